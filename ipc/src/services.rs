@@ -1,0 +1,276 @@
+//! Service names and the one place where each service's quality of service is chosen.
+//!
+//! Every process opens services through these functions so that all of them agree on the
+//! settings (iceoryx2 refuses to open a service whose settings are incompatible with the
+//! creator's). The Python mirror (`ipc/python/chunkrt_ipc.py`) repeats the same numbers.
+//!
+//! Real-time choices: subscribers keep only the newest samples (`history 1`, small buffers),
+//! overflow is safe (the oldest unread sample is overwritten, so a stalled reader never blocks a
+//! writer), and publishers never block.
+
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+
+use crate::messages::*;
+
+/// Subscriber buffer of the joint state / command / status services.
+pub const BUFFER_SIZE: usize = 4;
+/// Subscriber buffer of a camera service (frames are large; only the newest matters).
+pub const CAMERA_BUFFER_SIZE: usize = 2;
+/// Late joiners get the last sample.
+pub const HISTORY_SIZE: usize = 1;
+/// Processes per service (publisher + subscribers + monitors + tests).
+pub const MAX_NODES: usize = 16;
+/// Subscribers per service.
+pub const MAX_SUBSCRIBERS: usize = 8;
+/// Publishers per service (a restarted process overlaps its dead predecessor briefly).
+pub const MAX_PUBLISHERS: usize = 4;
+
+/// Errors opening the IPC edge.
+#[derive(Debug, thiserror::Error)]
+pub enum IpcError {
+    #[error("invalid service name '{name}': {reason}")]
+    InvalidName { name: String, reason: String },
+    #[error("cannot open service '{name}': {reason}")]
+    Service { name: String, reason: String },
+    #[error("cannot create {what} port on '{name}': {reason}")]
+    Port {
+        what: &'static str,
+        name: String,
+        reason: String,
+    },
+    #[error("cannot create iceoryx2 node: {0}")]
+    Node(String),
+}
+
+/// Namespace of one robot's services, e.g. `chunkrt/arm0`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Namespace(String);
+
+impl Namespace {
+    /// Validates a namespace: non-empty, `[A-Za-z0-9_./-]` only, no leading or trailing '/'.
+    pub fn new(ns: &str) -> Result<Self, IpcError> {
+        let bad = |reason: &str| IpcError::InvalidName {
+            name: ns.to_string(),
+            reason: reason.to_string(),
+        };
+        if ns.is_empty() {
+            return Err(bad("empty"));
+        }
+        if ns.len() > 200 {
+            return Err(bad("longer than 200 characters"));
+        }
+        if ns.starts_with('/') || ns.ends_with('/') {
+            return Err(bad("must not start or end with '/'"));
+        }
+        if let Some(c) = ns
+            .chars()
+            .find(|c| !(c.is_ascii_alphanumeric() || "_-./".contains(*c)))
+        {
+            return Err(bad(&format!("character '{c}' not allowed")));
+        }
+        Ok(Self(ns.to_string()))
+    }
+
+    /// The namespace as given.
+    pub fn as_str(&self) -> &str {
+        &self.0
+    }
+
+    /// `<ns>/joint_state`
+    pub fn joint_state(&self) -> String {
+        format!("{}/joint_state", self.0)
+    }
+    /// `<ns>/joint_command`
+    pub fn joint_command(&self) -> String {
+        format!("{}/joint_command", self.0)
+    }
+    /// `<ns>/status`
+    pub fn status(&self) -> String {
+        format!("{}/status", self.0)
+    }
+    /// `<ns>/camera/<name>`
+    pub fn camera(&self, camera: &str) -> String {
+        format!("{}/camera/{}", self.0, camera)
+    }
+}
+
+/// The iceoryx2 service flavour every chunkrt process uses (inter-process, not thread-safe
+/// ports: each port lives in the thread that created it).
+pub type Ipc = ipc::Service;
+
+/// Creates a node with signal handling left to the process (chunkrt installs its own handler so
+/// that every thread sees one shutdown flag).
+pub fn node(name: &str) -> Result<Node<Ipc>, IpcError> {
+    let node_name = NodeName::new(name).map_err(|e| IpcError::Node(format!("{e:?}")))?;
+    NodeBuilder::new()
+        .name(&node_name)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<Ipc>()
+        .map_err(|e| IpcError::Node(format!("{e:?}")))
+}
+
+/// Removes the shared-memory resources left by processes that died without cleaning up, so a
+/// restart right after a crash works. Returns the number of nodes cleaned.
+pub fn cleanup_dead_nodes(node: &Node<Ipc>) -> usize {
+    let state = node.try_cleanup_dead_nodes();
+    state.cleanups as usize
+}
+
+fn service_name(name: &str) -> Result<ServiceName, IpcError> {
+    ServiceName::new(name).map_err(|e| IpcError::InvalidName {
+        name: name.to_string(),
+        reason: format!("{e:?}"),
+    })
+}
+
+macro_rules! typed_service {
+    ($fn_name:ident, $ty:ty, $doc:literal) => {
+        #[doc = $doc]
+        pub fn $fn_name(
+            node: &Node<Ipc>,
+            name: &str,
+        ) -> Result<
+            iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, $ty, ()>,
+            IpcError,
+        > {
+            node.service_builder(&service_name(name)?)
+                .publish_subscribe::<$ty>()
+                .history_size(HISTORY_SIZE)
+                .subscriber_max_buffer_size(BUFFER_SIZE)
+                .subscriber_max_borrowed_samples(2)
+                .enable_safe_overflow(true)
+                .max_publishers(MAX_PUBLISHERS)
+                .max_subscribers(MAX_SUBSCRIBERS)
+                .max_nodes(MAX_NODES)
+                .open_or_create()
+                .map_err(|e| IpcError::Service {
+                    name: name.to_string(),
+                    reason: format!("{e:?}"),
+                })
+        }
+    };
+}
+
+typed_service!(
+    joint_state_service,
+    JointState,
+    "Opens (or creates) a joint state service."
+);
+typed_service!(
+    joint_command_service,
+    JointCommand,
+    "Opens (or creates) a joint command service."
+);
+typed_service!(
+    status_service,
+    ControllerStatus,
+    "Opens (or creates) a controller status service."
+);
+
+/// Port factory of a camera service: `[u8]` pixels with a [`CameraFrameHeader`] user header.
+pub type CameraService =
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], CameraFrameHeader>;
+
+/// Opens (or creates) a camera service.
+pub fn camera_service(node: &Node<Ipc>, name: &str) -> Result<CameraService, IpcError> {
+    node.service_builder(&service_name(name)?)
+        .publish_subscribe::<[u8]>()
+        .user_header::<CameraFrameHeader>()
+        .history_size(HISTORY_SIZE)
+        .subscriber_max_buffer_size(CAMERA_BUFFER_SIZE)
+        .subscriber_max_borrowed_samples(2)
+        .enable_safe_overflow(true)
+        .max_publishers(MAX_PUBLISHERS)
+        .max_subscribers(MAX_SUBSCRIBERS)
+        .max_nodes(MAX_NODES)
+        .open_or_create()
+        .map_err(|e| IpcError::Service {
+            name: name.to_string(),
+            reason: format!("{e:?}"),
+        })
+}
+
+/// A publisher that never blocks: when a subscriber's buffer is full its oldest sample goes.
+pub fn publisher<T: core::fmt::Debug + ZeroCopySend>(
+    factory: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, T, ()>,
+    name: &str,
+) -> Result<Publisher<Ipc, T, ()>, IpcError> {
+    factory
+        .publisher_builder()
+        .max_loaned_samples(2)
+        .create()
+        .map_err(|e| IpcError::Port {
+            what: "publisher",
+            name: name.to_string(),
+            reason: format!("{e:?}"),
+        })
+}
+
+/// A subscriber keeping the last few samples.
+pub fn subscriber<T: core::fmt::Debug + ZeroCopySend>(
+    factory: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, T, ()>,
+    name: &str,
+) -> Result<Subscriber<Ipc, T, ()>, IpcError> {
+    factory
+        .subscriber_builder()
+        .buffer_size(BUFFER_SIZE)
+        .create()
+        .map_err(|e| IpcError::Port {
+            what: "subscriber",
+            name: name.to_string(),
+            reason: format!("{e:?}"),
+        })
+}
+
+/// A camera publisher sized for frames up to `max_bytes` (allocated once, up front).
+pub fn camera_publisher(
+    factory: &CameraService,
+    name: &str,
+    max_bytes: usize,
+) -> Result<Publisher<Ipc, [u8], CameraFrameHeader>, IpcError> {
+    factory
+        .publisher_builder()
+        .initial_max_slice_len(max_bytes.max(1))
+        .allocation_strategy(AllocationStrategy::Static)
+        .max_loaned_samples(2)
+        .create()
+        .map_err(|e| IpcError::Port {
+            what: "camera publisher",
+            name: name.to_string(),
+            reason: format!("{e:?}"),
+        })
+}
+
+/// A camera subscriber.
+pub fn camera_subscriber(
+    factory: &CameraService,
+    name: &str,
+) -> Result<Subscriber<Ipc, [u8], CameraFrameHeader>, IpcError> {
+    factory
+        .subscriber_builder()
+        .buffer_size(CAMERA_BUFFER_SIZE)
+        .create()
+        .map_err(|e| IpcError::Port {
+            what: "camera subscriber",
+            name: name.to_string(),
+            reason: format!("{e:?}"),
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn namespace_rules() {
+        assert!(Namespace::new("chunkrt/arm0").is_ok());
+        assert!(Namespace::new("").is_err());
+        assert!(Namespace::new("/x").is_err());
+        assert!(Namespace::new("a b").is_err());
+        let ns = Namespace::new("chunkrt/t1").unwrap();
+        assert_eq!(ns.camera("base"), "chunkrt/t1/camera/base");
+        assert_eq!(ns.joint_state(), "chunkrt/t1/joint_state");
+    }
+}

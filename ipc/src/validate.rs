@@ -1,0 +1,430 @@
+//! Validation of every message at the boundary, with typed errors and counter codes.
+//!
+//! Structural checks (`validate_*`) need only the message. Stream checks (sequence increasing,
+//! time not going backwards, neither from the future nor stale) need the previous message of
+//! the same publisher and the receiver's clock: [`StreamGuard`] keeps that state without
+//! allocating, so it can run inside the control tick.
+
+use crate::messages::*;
+
+/// Why a message was rejected; the code indexes [`ControllerStatus::rejected`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u32)]
+pub enum RejectReason {
+    /// `n_dof` is 0, above `MAX_DOF`, or not the robot's number of joints.
+    NDof = 0,
+    /// A NaN or infinite number.
+    NonFinite = 1,
+    /// Image geometry inconsistent (stride, width, height, payload length, size limits).
+    FrameGeometry = 2,
+    /// Unknown image encoding or command mode code.
+    UnknownCode = 3,
+    /// Sequence number not increasing, or measurement time going backwards.
+    OutOfOrder = 4,
+    /// Timestamp ahead of the receiver's clock.
+    FromFuture = 5,
+    /// Timestamp older than the allowed age.
+    Stale = 6,
+    /// Any other problem (e.g. wrong camera id).
+    Other = 7,
+}
+
+impl RejectReason {
+    /// Every reason, in code order.
+    pub const ALL: [RejectReason; REJECT_REASON_COUNT] = [
+        RejectReason::NDof,
+        RejectReason::NonFinite,
+        RejectReason::FrameGeometry,
+        RejectReason::UnknownCode,
+        RejectReason::OutOfOrder,
+        RejectReason::FromFuture,
+        RejectReason::Stale,
+        RejectReason::Other,
+    ];
+
+    /// Index into the rejection counters.
+    pub const fn code(self) -> usize {
+        self as usize
+    }
+
+    /// Short name for logs and tables.
+    pub const fn name(self) -> &'static str {
+        match self {
+            RejectReason::NDof => "n_dof",
+            RejectReason::NonFinite => "non_finite",
+            RejectReason::FrameGeometry => "frame_geometry",
+            RejectReason::UnknownCode => "unknown_code",
+            RejectReason::OutOfOrder => "out_of_order",
+            RejectReason::FromFuture => "from_future",
+            RejectReason::Stale => "stale",
+            RejectReason::Other => "other",
+        }
+    }
+}
+
+/// A rejected message: what was wrong, with the offending values.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum ValidationError {
+    #[error("n_dof {n_dof} outside 1..={max}")]
+    NDofOutOfRange { n_dof: u32, max: u32 },
+    #[error("n_dof {n_dof} but the robot has {expected} joints")]
+    NDofMismatch { n_dof: u32, expected: u32 },
+    #[error("{field}[{index}] is not finite ({value})")]
+    NonFinite {
+        field: &'static str,
+        index: usize,
+        value: f64,
+    },
+    #[error("unknown image encoding code {0}")]
+    UnknownEncoding(u32),
+    #[error("unknown command mode code {0}")]
+    UnknownMode(u32),
+    #[error("frame {width}x{height} exceeds the configured maximum {max_width}x{max_height}")]
+    FrameTooLarge {
+        width: u32,
+        height: u32,
+        max_width: u32,
+        max_height: u32,
+    },
+    #[error("frame stride {stride} is below width {width} x {bytes_per_pixel} bytes per pixel")]
+    StrideTooSmall {
+        stride: u32,
+        width: u32,
+        bytes_per_pixel: u32,
+    },
+    #[error(
+        "frame payload has {payload_len} bytes, stride {stride} x height {height} needs {expected}"
+    )]
+    PayloadLength {
+        payload_len: usize,
+        stride: u32,
+        height: u32,
+        expected: u64,
+    },
+    #[error("frame has zero width or height")]
+    EmptyFrame,
+    #[error("camera id {got}, expected {expected}")]
+    WrongCamera { got: u32, expected: u32 },
+    #[error("seq {got} does not follow {previous}")]
+    SeqNotIncreasing { previous: u64, got: u64 },
+    #[error("timestamp {got_ns} ns is before the previous {previous_ns} ns")]
+    TimeWentBackwards { previous_ns: u64, got_ns: u64 },
+    #[error("timestamp {ahead_ns} ns in the future")]
+    FromFuture { ahead_ns: u64 },
+    #[error("message is {age_ns} ns old, the limit is {max_age_ns} ns")]
+    Stale { age_ns: u64, max_age_ns: u64 },
+}
+
+impl ValidationError {
+    /// The counter this error is counted under.
+    pub const fn reason(&self) -> RejectReason {
+        match self {
+            ValidationError::NDofOutOfRange { .. } | ValidationError::NDofMismatch { .. } => {
+                RejectReason::NDof
+            }
+            ValidationError::NonFinite { .. } => RejectReason::NonFinite,
+            ValidationError::UnknownEncoding(_) | ValidationError::UnknownMode(_) => {
+                RejectReason::UnknownCode
+            }
+            ValidationError::FrameTooLarge { .. }
+            | ValidationError::StrideTooSmall { .. }
+            | ValidationError::PayloadLength { .. }
+            | ValidationError::EmptyFrame => RejectReason::FrameGeometry,
+            ValidationError::WrongCamera { .. } => RejectReason::Other,
+            ValidationError::SeqNotIncreasing { .. }
+            | ValidationError::TimeWentBackwards { .. } => RejectReason::OutOfOrder,
+            ValidationError::FromFuture { .. } => RejectReason::FromFuture,
+            ValidationError::Stale { .. } => RejectReason::Stale,
+        }
+    }
+}
+
+fn check_n_dof(n_dof: u32, expected: Option<u32>) -> Result<usize, ValidationError> {
+    if n_dof == 0 || n_dof as usize > MAX_DOF {
+        return Err(ValidationError::NDofOutOfRange {
+            n_dof,
+            max: MAX_DOF as u32,
+        });
+    }
+    if let Some(expected) = expected {
+        if n_dof != expected {
+            return Err(ValidationError::NDofMismatch { n_dof, expected });
+        }
+    }
+    Ok(n_dof as usize)
+}
+
+fn check_finite(field: &'static str, values: &[f64]) -> Result<(), ValidationError> {
+    match values.iter().position(|v| !v.is_finite()) {
+        None => Ok(()),
+        Some(index) => Err(ValidationError::NonFinite {
+            field,
+            index,
+            value: values[index],
+        }),
+    }
+}
+
+/// Structural check of a joint state; `expected_dof` is the robot's joint count if known.
+pub fn validate_joint_state(
+    msg: &JointState,
+    expected_dof: Option<u32>,
+) -> Result<(), ValidationError> {
+    let n = check_n_dof(msg.n_dof, expected_dof)?;
+    check_finite("position", &msg.position[..n])?;
+    check_finite("velocity", &msg.velocity[..n])?;
+    check_finite("effort", &msg.effort[..n])
+}
+
+/// Structural check of a joint command; `expected_dof` is the robot's joint count if known.
+pub fn validate_joint_command(
+    msg: &JointCommand,
+    expected_dof: Option<u32>,
+) -> Result<(), ValidationError> {
+    let n = check_n_dof(msg.n_dof, expected_dof)?;
+    if msg.mode != COMMAND_MODE_POSITION && msg.mode != COMMAND_MODE_HOLD {
+        return Err(ValidationError::UnknownMode(msg.mode));
+    }
+    check_finite("position", &msg.position[..n])?;
+    check_finite("velocity", &msg.velocity[..n])?;
+    check_finite("acceleration", &msg.acceleration[..n])
+}
+
+/// Structural check of a camera frame header against its payload length and the configured
+/// maximum resolution.
+pub fn validate_frame(
+    header: &CameraFrameHeader,
+    payload_len: usize,
+    max_width: u32,
+    max_height: u32,
+) -> Result<(), ValidationError> {
+    let bpp = bytes_per_pixel(header.encoding)
+        .ok_or(ValidationError::UnknownEncoding(header.encoding))?;
+    if header.width == 0 || header.height == 0 {
+        return Err(ValidationError::EmptyFrame);
+    }
+    if header.width > max_width || header.height > max_height {
+        return Err(ValidationError::FrameTooLarge {
+            width: header.width,
+            height: header.height,
+            max_width,
+            max_height,
+        });
+    }
+    if (header.stride as u64) < header.width as u64 * bpp as u64 {
+        return Err(ValidationError::StrideTooSmall {
+            stride: header.stride,
+            width: header.width,
+            bytes_per_pixel: bpp,
+        });
+    }
+    let expected = header.stride as u64 * header.height as u64;
+    if payload_len as u64 != expected {
+        return Err(ValidationError::PayloadLength {
+            payload_len,
+            stride: header.stride,
+            height: header.height,
+            expected,
+        });
+    }
+    Ok(())
+}
+
+/// Time limits applied by [`StreamGuard`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Freshness {
+    /// Oldest accepted message age.
+    pub max_age_ns: u64,
+    /// How far ahead of the receiver's clock a timestamp may be (clock granularity, skew).
+    pub max_future_ns: u64,
+}
+
+/// Per-stream ordering and freshness check. A new publisher (restarted process) starts a new
+/// stream: its sequence numbers may begin again from zero.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct StreamGuard {
+    publisher: Option<u128>,
+    last_seq: u64,
+    last_time_ns: u64,
+}
+
+impl StreamGuard {
+    /// A guard that has seen nothing yet.
+    pub const fn new() -> Self {
+        Self {
+            publisher: None,
+            last_seq: 0,
+            last_time_ns: 0,
+        }
+    }
+
+    /// Checks one message and, if accepted, remembers it. `publisher` identifies the sending
+    /// port (iceoryx2's unique publisher id), `time_ns` is the message's own timestamp.
+    pub fn check(
+        &mut self,
+        publisher: u128,
+        seq: u64,
+        time_ns: u64,
+        now_ns: u64,
+        limits: Freshness,
+    ) -> Result<(), ValidationError> {
+        if time_ns > now_ns.saturating_add(limits.max_future_ns) {
+            return Err(ValidationError::FromFuture {
+                ahead_ns: time_ns - now_ns,
+            });
+        }
+        let age_ns = now_ns.saturating_sub(time_ns);
+        if age_ns > limits.max_age_ns {
+            return Err(ValidationError::Stale {
+                age_ns,
+                max_age_ns: limits.max_age_ns,
+            });
+        }
+        if self.publisher == Some(publisher) {
+            if seq <= self.last_seq {
+                return Err(ValidationError::SeqNotIncreasing {
+                    previous: self.last_seq,
+                    got: seq,
+                });
+            }
+            if time_ns < self.last_time_ns {
+                return Err(ValidationError::TimeWentBackwards {
+                    previous_ns: self.last_time_ns,
+                    got_ns: time_ns,
+                });
+            }
+        }
+        self.publisher = Some(publisher);
+        self.last_seq = seq;
+        self.last_time_ns = time_ns;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn state(n: u32) -> JointState {
+        JointState {
+            n_dof: n,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn joint_state_checks() {
+        assert!(validate_joint_state(&state(6), Some(6)).is_ok());
+        assert_eq!(
+            validate_joint_state(&state(17), None).unwrap_err().reason(),
+            RejectReason::NDof
+        );
+        assert_eq!(
+            validate_joint_state(&state(0), None).unwrap_err().reason(),
+            RejectReason::NDof
+        );
+        assert!(matches!(
+            validate_joint_state(&state(5), Some(6)),
+            Err(ValidationError::NDofMismatch { .. })
+        ));
+        let mut s = state(6);
+        s.velocity[3] = f64::NAN;
+        assert!(matches!(
+            validate_joint_state(&s, Some(6)),
+            Err(ValidationError::NonFinite {
+                field: "velocity",
+                index: 3,
+                ..
+            })
+        ));
+        // garbage beyond n_dof is ignored
+        s.velocity[3] = 0.0;
+        s.position[10] = f64::INFINITY;
+        assert!(validate_joint_state(&s, Some(6)).is_ok());
+    }
+
+    #[test]
+    fn command_checks() {
+        let mut c = JointCommand {
+            n_dof: 2,
+            mode: 9,
+            ..Default::default()
+        };
+        assert_eq!(
+            validate_joint_command(&c, None).unwrap_err().reason(),
+            RejectReason::UnknownCode
+        );
+        c.mode = COMMAND_MODE_POSITION;
+        c.acceleration[1] = f64::NEG_INFINITY;
+        assert_eq!(
+            validate_joint_command(&c, None).unwrap_err().reason(),
+            RejectReason::NonFinite
+        );
+    }
+
+    #[test]
+    fn frame_checks() {
+        let h = CameraFrameHeader {
+            encoding: ENCODING_RGB8,
+            width: 4,
+            height: 2,
+            stride: 12,
+            ..Default::default()
+        };
+        assert!(validate_frame(&h, 24, 64, 64).is_ok());
+        assert!(matches!(
+            validate_frame(&h, 23, 64, 64),
+            Err(ValidationError::PayloadLength { .. })
+        ));
+        assert!(matches!(
+            validate_frame(&CameraFrameHeader { stride: 11, ..h }, 22, 64, 64),
+            Err(ValidationError::StrideTooSmall { .. })
+        ));
+        assert!(matches!(
+            validate_frame(&CameraFrameHeader { encoding: 77, ..h }, 24, 64, 64),
+            Err(ValidationError::UnknownEncoding(77))
+        ));
+        assert!(matches!(
+            validate_frame(&h, 24, 3, 64),
+            Err(ValidationError::FrameTooLarge { .. })
+        ));
+        // padded rows are fine
+        assert!(validate_frame(&CameraFrameHeader { stride: 16, ..h }, 32, 64, 64).is_ok());
+        // a huge stride x height must not overflow
+        let big = CameraFrameHeader {
+            stride: u32::MAX,
+            height: 2,
+            ..h
+        };
+        assert!(validate_frame(&big, 24, 64, 64).is_err());
+    }
+
+    #[test]
+    fn stream_guard_orders_and_ages() {
+        let lim = Freshness {
+            max_age_ns: 1_000,
+            max_future_ns: 10,
+        };
+        let mut g = StreamGuard::new();
+        assert!(g.check(1, 5, 100, 200, lim).is_ok());
+        assert_eq!(
+            g.check(1, 5, 150, 200, lim).unwrap_err().reason(),
+            RejectReason::OutOfOrder
+        );
+        assert!(matches!(
+            g.check(1, 6, 90, 200, lim),
+            Err(ValidationError::TimeWentBackwards { .. })
+        ));
+        assert_eq!(
+            g.check(1, 7, 300, 200, lim).unwrap_err().reason(),
+            RejectReason::FromFuture
+        );
+        assert_eq!(
+            g.check(1, 7, 100, 5_000, lim).unwrap_err().reason(),
+            RejectReason::Stale
+        );
+        // a restarted publisher may start its sequence again
+        assert!(g.check(2, 0, 4_500, 5_000, lim).is_ok());
+        assert!(g.check(2, 1, 4_600, 5_000, lim).is_ok());
+    }
+}

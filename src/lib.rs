@@ -1,0 +1,29 @@
+//! # chunkrt
+//!
+//! A real-time controller that runs a π0 / π0.5 vision-language-action policy next to a robot.
+//!
+//! ```text
+//!  cameras, robot driver ──iceoryx2──▶ edge ─▶ observation ─▶ inference thread (policy)
+//!  joint commands ◀────────────────── edge ◀── control thread (chunk executor, ruckig, watchdog)
+//! ```
+//!
+//! Modules, one concern each:
+//! - [`edge`]: the IPC edge — subscribers, validation, observation assembly, command publishing.
+//! - [`chunk`]: the chunk timeline handed from inference to control.
+//! - [`controller`]: the controller process — threads, real-time setup, status.
+//! - [`control`]: the control tick — chunk execution, transitions, ruckig, safety, measurement.
+//! - [`policy`]: π0 / π0.5 in candle, pre/post-processing, checkpoints.
+//! - [`report`]: latency histograms → logs, tables, plots.
+//! - [`demo`]: starts the fake devices and the controller as processes.
+
+pub mod chunk;
+pub mod control;
+pub mod controller;
+pub mod demo;
+pub mod edge;
+pub mod policy;
+pub mod report;
+pub mod rt;
+
+pub use chunkrt_ipc as ipc;
+pub use chunkrt_ipc::config;

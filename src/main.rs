@@ -1,0 +1,50 @@
+//! The `chunkrt` command: the controller, its demo, and the companion tools.
+
+use clap::{Parser, Subcommand};
+
+/// chunkrt — a real-time controller running a π0 / π0.5 policy next to a robot.
+#[derive(Debug, Parser)]
+#[command(name = "chunkrt", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run the controller on a configuration file.
+    Run(chunkrt::controller::RunArgs),
+    /// Start fake camera, simulated robot and controller as processes and show them working.
+    Demo(chunkrt::demo::DemoArgs),
+    /// Publish synthetic camera frames (same as the `fake-camera` tool).
+    FakeCamera(chunkrt_tools::fake_camera::Args),
+    /// Simulate an N-DoF arm (same as the `fake-robot` tool).
+    FakeRobot(chunkrt_tools::fake_robot::Args),
+    /// List chunkrt services with live rate, latency and last values (same as `monitor`).
+    Monitor(chunkrt_tools::monitor::Args),
+    /// Compute an action chunk from a safetensors file of inputs.
+    Sample(chunkrt::policy::cli::SampleArgs),
+    /// Describe a checkpoint: architecture, parameter counts, dtype, what is missing.
+    Inspect(chunkrt::policy::cli::InspectArgs),
+    /// Render a folder of HdrHistogram logs into a PNG plot and a Markdown table.
+    Report(chunkrt::report::ReportArgs),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    chunkrt::rt::init_logging();
+    let result = match cli.command {
+        Command::Run(a) => chunkrt::controller::run(a),
+        Command::Demo(a) => chunkrt::demo::run(a),
+        Command::FakeCamera(a) => chunkrt_tools::fake_camera::run(a),
+        Command::FakeRobot(a) => chunkrt_tools::fake_robot::run(a),
+        Command::Monitor(a) => chunkrt_tools::monitor::run(a),
+        Command::Sample(a) => chunkrt::policy::cli::sample(a),
+        Command::Inspect(a) => chunkrt::policy::cli::inspect(a),
+        Command::Report(a) => chunkrt::report::run(a),
+    };
+    if let Err(e) = result {
+        eprintln!("chunkrt: error: {e:#}");
+        std::process::exit(1);
+    }
+}

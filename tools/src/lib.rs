@@ -1,0 +1,8 @@
+//! chunkrt's companion processes: a fake camera, a simulated robot and a monitor.
+//! Each is a module with clap `Args` and a `run` function, used by the standalone binaries and
+//! by the `chunkrt` multi-call binary (so `chunkrt demo` can start them as processes).
+
+pub mod fake_camera;
+pub mod fake_robot;
+pub mod monitor;
+pub mod shutdown;

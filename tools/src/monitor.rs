@@ -1,0 +1,10 @@
+//! monitor
+
+/// Command-line arguments.
+#[derive(Debug, clap::Args)]
+pub struct Args {}
+
+/// Runs until SIGINT / SIGTERM.
+pub fn run(_args: Args) -> anyhow::Result<()> {
+    anyhow::bail!("not implemented yet")
+}
