@@ -1,15 +1,780 @@
-//! The controller process (`chunkrt run`).
+//! The controller process (`chunkrt run`): threads, real-time set-up, status.
+//!
+//! ```text
+//!  observation thread:  cameras + joint state ─▶ Observation ─▶ ChunkSource ─▶ chunk hand-off
+//!  control thread:      joint state ─▶ ControlTick (every period, absolute deadline) ─▶ command
+//!  main thread:         logs events, prints the periodic status line, stops everything
+//! ```
+//!
+//! Each thread creates its own iceoryx2 node and ports. Threads share only atomics and
+//! lock-free queues; the control thread never waits for anything but its next deadline.
 
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use anyhow::Context;
+use hdrhistogram::Histogram;
+
+use chunkrt_ipc::services;
+use chunkrt_ipc::{
+    controller_state_name, monotonic_ns, sleep_until_ns, Config, ControllerStatus, JointCommand,
+    JointState, RejectReason, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD, CONTROLLER_STATE_RUNNING,
+    CONTROLLER_STATE_STARTING, MAX_DOF,
+};
+
+use crate::chunk::ActionChunk;
+use crate::edge::{
+    event_ring, CameraInput, CommandOutput, Counters, EdgeEvent, EventRing, JointStateInput,
+    Observation, Source, StatusOutput,
+};
+use crate::rt;
 
 /// `chunkrt run`.
-#[derive(Debug, clap::Args)]
+#[derive(Debug, Clone, clap::Args)]
 pub struct RunArgs {
-    /// Configuration file (TOML). Default: the embedded demo robot.
+    /// Configuration file (TOML). Default: the embedded demo robot (`config/default.toml`).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Override `robot.namespace` (service names become `<NS>/joint_state`, ...).
+    #[arg(long)]
+    pub namespace: Option<String>,
+    /// Stop after this many seconds (default: run until SIGINT / SIGTERM).
+    #[arg(long)]
+    pub duration: Option<f64>,
+    /// Seconds between status log lines (0: none).
+    #[arg(long, default_value_t = 1.0)]
+    pub log_every: f64,
 }
 
-pub fn run(_args: RunArgs) -> anyhow::Result<()> {
-    anyhow::bail!("not implemented yet")
+/// Loads the configuration named by `--config` (or the embedded default) and applies
+/// `--namespace`.
+pub fn load_config(config: Option<&PathBuf>, namespace: Option<&str>) -> anyhow::Result<Config> {
+    let mut cfg = match config {
+        Some(p) => Config::load(p)?,
+        None => Config::embedded_default(),
+    };
+    if let Some(ns) = namespace {
+        cfg.robot.namespace = ns.to_string();
+        let file = cfg.source.display().to_string();
+        cfg.validate(&format!("{file} (with --namespace)"))?;
+    }
+    Ok(cfg)
+}
+
+/// Produces action chunks from observations; runs in the observation/inference thread.
+/// The policy implements it; tests use scripted sources.
+pub trait ChunkSource: Send {
+    /// Name for logs.
+    fn name(&self) -> &str;
+    /// Computes the next chunk for `obs`; `Ok(None)` when the source has nothing to execute.
+    fn compute(&mut self, obs: &Observation) -> anyhow::Result<Option<ActionChunk>>;
+}
+
+/// The source used when no policy is configured: it never produces a chunk, so the
+/// controller holds the robot where it is.
+pub struct HoldSource;
+
+impl ChunkSource for HoldSource {
+    fn name(&self) -> &str {
+        "hold"
+    }
+    fn compute(&mut self, _obs: &Observation) -> anyhow::Result<Option<ActionChunk>> {
+        Ok(None)
+    }
+}
+
+/// What one control tick decided.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TickOutcome {
+    /// Publish the command written into `cmd`.
+    pub publish: bool,
+    /// `CONTROLLER_STATE_*` after the tick.
+    pub state: u32,
+}
+
+/// The work of one control tick, separated from the thread and the IPC ports so that it can
+/// be tested alone. Must not allocate, block or do I/O.
+pub trait ControlTick: Send {
+    /// Computes the command for `now_ns` from the newest valid joint state (if any).
+    fn tick(&mut self, now_ns: u64, joint_state: Option<&JointState>, cmd: &mut JointCommand)
+        -> TickOutcome;
+}
+
+/// Holds the robot still: STARTING until a fresh joint state arrives, then commands the
+/// position measured at that moment with zero velocity (latched, so the robot cannot drift
+/// by following its own measurement). A stale joint state re-arms the latch, so a restarted
+/// robot is held where it is, not sent back to where the old one was.
+pub struct HoldTick {
+    n_dof: usize,
+    max_age_ns: u64,
+    target: [f64; MAX_DOF],
+    latched: bool,
+    lo: [f64; MAX_DOF],
+    hi: [f64; MAX_DOF],
+}
+
+impl HoldTick {
+    /// From the configuration's joint count, limits and joint-state age limit.
+    pub fn new(cfg: &Config) -> Self {
+        let mut lo = [0.0; MAX_DOF];
+        let mut hi = [0.0; MAX_DOF];
+        for (i, j) in cfg.robot.joints.iter().enumerate() {
+            lo[i] = j.position_min;
+            hi[i] = j.position_max;
+        }
+        Self {
+            n_dof: cfg.n_dof(),
+            max_age_ns: (cfg.control.joint_state_max_age_ms * 1e6) as u64,
+            target: [0.0; MAX_DOF],
+            latched: false,
+            lo,
+            hi,
+        }
+    }
+}
+
+impl ControlTick for HoldTick {
+    fn tick(
+        &mut self,
+        now_ns: u64,
+        joint_state: Option<&JointState>,
+        cmd: &mut JointCommand,
+    ) -> TickOutcome {
+        let fresh = joint_state
+            .filter(|js| now_ns.saturating_sub(js.measurement_time_ns) <= self.max_age_ns);
+        match (fresh, self.latched) {
+            (Some(js), false) => {
+                for i in 0..self.n_dof {
+                    self.target[i] = js.position[i].clamp(self.lo[i], self.hi[i]);
+                }
+                self.latched = true;
+            }
+            (None, true) => self.latched = false,
+            _ => {}
+        }
+        if !self.latched {
+            return TickOutcome {
+                publish: false,
+                state: CONTROLLER_STATE_STARTING,
+            };
+        }
+        cmd.n_dof = self.n_dof as u32;
+        cmd.mode = COMMAND_MODE_HOLD;
+        cmd.chunk_id = 0;
+        cmd.position = self.target;
+        cmd.velocity = [0.0; MAX_DOF];
+        cmd.acceleration = [0.0; MAX_DOF];
+        TickOutcome {
+            publish: true,
+            state: CONTROLLER_STATE_HOLD,
+        }
+    }
+}
+
+/// Latency histograms of the control thread (fixed bounds: recording never allocates).
+pub struct TickHistograms {
+    /// Wake-up lateness (ns).
+    pub lateness: Histogram<u64>,
+    /// Tick compute time (ns).
+    pub compute: Histogram<u64>,
+}
+
+impl TickHistograms {
+    /// Histograms from 1 ns to 10 s at 3 significant digits.
+    pub fn new() -> Self {
+        let h = || {
+            Histogram::new_with_bounds(1, 10_000_000_000, 3)
+                .expect("constant histogram bounds are valid")
+        };
+        Self {
+            lateness: h(),
+            compute: h(),
+        }
+    }
+}
+
+impl Default for TickHistograms {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// State shared by the controller's threads.
+pub struct Shared {
+    /// Message counters.
+    pub counters: Counters,
+    /// Events to log (written by the real-time threads, drained by the main thread).
+    pub events: EventRing,
+    /// Set to stop every thread.
+    pub stop: AtomicBool,
+    /// `CONTROLLER_STATE_*`.
+    pub state: AtomicU32,
+    /// Ticks executed.
+    pub ticks: AtomicU64,
+    /// Ticks that ended after the next deadline.
+    pub overruns: AtomicU64,
+    /// Commands published.
+    pub commands: AtomicU64,
+    /// Chunks produced by the source.
+    pub chunks: AtomicU64,
+    /// Latency of the last chunk (observation → chunk ready), ns.
+    pub last_inference_latency_ns: AtomicU64,
+    /// Transitions into HOLD.
+    pub hold_entries: AtomicU64,
+    /// Latest status as published (for the periodic log line).
+    pub lateness_p50_ns: AtomicU64,
+    pub lateness_p99_ns: AtomicU64,
+    pub lateness_max_ns: AtomicU64,
+    pub compute_p50_ns: AtomicU64,
+    pub compute_p99_ns: AtomicU64,
+    pub compute_max_ns: AtomicU64,
+}
+
+impl Shared {
+    fn new() -> Self {
+        Self {
+            counters: Counters::default(),
+            events: event_ring(1024),
+            stop: AtomicBool::new(false),
+            state: AtomicU32::new(CONTROLLER_STATE_STARTING),
+            ticks: AtomicU64::new(0),
+            overruns: AtomicU64::new(0),
+            commands: AtomicU64::new(0),
+            chunks: AtomicU64::new(0),
+            last_inference_latency_ns: AtomicU64::new(0),
+            hold_entries: AtomicU64::new(0),
+            lateness_p50_ns: AtomicU64::new(0),
+            lateness_p99_ns: AtomicU64::new(0),
+            lateness_max_ns: AtomicU64::new(0),
+            compute_p50_ns: AtomicU64::new(0),
+            compute_p99_ns: AtomicU64::new(0),
+            compute_max_ns: AtomicU64::new(0),
+        }
+    }
+}
+
+/// What the controller did, printed on exit.
+pub struct Summary {
+    /// Seconds the control thread ran.
+    pub seconds: f64,
+    /// Control histograms.
+    pub histograms: TickHistograms,
+    /// How the control thread's real-time set-up went.
+    pub rt: String,
+}
+
+/// A running controller.
+pub struct Controller {
+    shared: Arc<Shared>,
+    control: Option<JoinHandle<anyhow::Result<Summary>>>,
+    observer: Option<JoinHandle<anyhow::Result<()>>>,
+}
+
+impl Controller {
+    /// Starts the observation and control threads.
+    pub fn start(
+        cfg: Config,
+        mut tick: Box<dyn ControlTick>,
+        mut source: Box<dyn ChunkSource>,
+    ) -> anyhow::Result<Self> {
+        // clean up shared memory of controllers that died without doing so
+        {
+            let node = services::node("chunkrt-cleanup")?;
+            let n = services::cleanup_dead_nodes(&node);
+            if n > 0 {
+                tracing::info!("cleaned up {n} dead iceoryx2 node(s)");
+            }
+        }
+        let shared = Arc::new(Shared::new());
+        let (ready_tx, ready_rx) = crossbeam::channel::bounded::<anyhow::Result<()>>(2);
+
+        let observer = {
+            let cfg = cfg.clone();
+            let shared = shared.clone();
+            let ready = ready_tx.clone();
+            std::thread::Builder::new()
+                .name("chunkrt-observe".into())
+                .spawn(move || observation_thread(&cfg, &shared, source.as_mut(), ready))
+                .context("cannot spawn the observation thread")?
+        };
+        let control = {
+            let shared = shared.clone();
+            std::thread::Builder::new()
+                .name("chunkrt-control".into())
+                .spawn(move || control_thread(&cfg, &shared, tick.as_mut(), ready_tx))
+                .context("cannot spawn the control thread")?
+        };
+        let mut me = Self {
+            shared,
+            control: Some(control),
+            observer: Some(observer),
+        };
+        for _ in 0..2 {
+            match ready_rx.recv_timeout(Duration::from_secs(10)) {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => {
+                    me.shared.stop.store(true, Ordering::SeqCst);
+                    let _ = me.join();
+                    return Err(e);
+                }
+                Err(_) => {
+                    me.shared.stop.store(true, Ordering::SeqCst);
+                    anyhow::bail!("controller threads did not start within 10 s");
+                }
+            }
+        }
+        Ok(me)
+    }
+
+    /// Shared counters and state.
+    pub fn shared(&self) -> &Arc<Shared> {
+        &self.shared
+    }
+
+    /// True while both threads run.
+    pub fn is_running(&self) -> bool {
+        self.control.as_ref().is_some_and(|h| !h.is_finished())
+            && self.observer.as_ref().is_some_and(|h| !h.is_finished())
+    }
+
+    /// Logs the events queued by the real-time threads (at most `max` lines; the rest are
+    /// summarised in one line).
+    pub fn log_events(&self, cfg: &Config, max: usize) {
+        let mut logged = 0;
+        let mut skipped = 0;
+        while let Some(ev) = self.shared.events.pop() {
+            if logged >= max {
+                skipped += 1;
+                continue;
+            }
+            logged += 1;
+            let source = |s: Source| match s {
+                Source::JointState => "joint_state".to_string(),
+                Source::Camera(i) => format!(
+                    "camera {}",
+                    cfg.cameras.get(i).map(|c| c.name.as_str()).unwrap_or("?")
+                ),
+            };
+            match ev {
+                EdgeEvent::Rejected { source: s, error } => tracing::warn!(
+                    "rejected {} message ({}): {error}",
+                    source(s),
+                    error.reason().name()
+                ),
+                EdgeEvent::PortError { source: s, publish } => tracing::warn!(
+                    "iceoryx2 {} error on {}",
+                    if publish { "publish" } else { "receive" },
+                    source(s)
+                ),
+            }
+        }
+        if skipped > 0 {
+            tracing::warn!("{skipped} more events not logged (see the counters)");
+        }
+    }
+
+    fn join(&mut self) -> anyhow::Result<Summary> {
+        let observed = match self.observer.take().map(|h| h.join()) {
+            Some(Ok(r)) => r,
+            Some(Err(_)) => Err(anyhow::anyhow!("the observation thread panicked")),
+            None => Ok(()),
+        };
+        let summary = match self.control.take().map(|h| h.join()) {
+            Some(Ok(r)) => r,
+            Some(Err(_)) => Err(anyhow::anyhow!("the control thread panicked")),
+            None => Err(anyhow::anyhow!("the control thread was already joined")),
+        };
+        observed?;
+        summary
+    }
+
+    /// Stops both threads and returns the summary.
+    pub fn stop(mut self) -> anyhow::Result<Summary> {
+        self.shared.stop.store(true, Ordering::SeqCst);
+        self.join()
+    }
+}
+
+impl Drop for Controller {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::SeqCst);
+        let _ = self.join();
+    }
+}
+
+fn observation_thread(
+    cfg: &Config,
+    shared: &Shared,
+    source: &mut dyn ChunkSource,
+    ready: crossbeam::channel::Sender<anyhow::Result<()>>,
+) -> anyhow::Result<()> {
+    let ns = cfg.namespace();
+    let setup = || -> anyhow::Result<_> {
+        let node = services::node("chunkrt-observe")?;
+        let cams = CameraInput::new(&node, &ns, cfg)?;
+        let js = JointStateInput::new(&node, &ns, cfg)?;
+        Ok((node, cams, js))
+    };
+    let (_node, mut cams, mut js) = match setup() {
+        Ok(v) => {
+            let _ = ready.send(Ok(()));
+            v
+        }
+        Err(e) => {
+            let _ = ready.send(Err(anyhow::anyhow!("observation thread: {e:#}")));
+            return Ok(());
+        }
+    };
+    // this thread's joint-state subscriber is a second reader of the same stream; its
+    // rejections are counted by the control thread already, so they go to private counters
+    let private = Counters::default();
+    let private_events = event_ring(1);
+    let mut obs = Observation::new(cfg);
+    let poll_period_ns = 2_000_000;
+    let mut next = monotonic_ns();
+    let mut source_failures = 0u64;
+    while !shared.stop.load(Ordering::Relaxed) {
+        next += poll_period_ns;
+        sleep_until_ns(next);
+        let now = monotonic_ns();
+        cams.poll(now, &mut obs.frames, &shared.counters, &shared.events);
+        js.poll(now, &private, &private_events);
+        while private_events.pop().is_some() {}
+        let Some(state) = js.latest() else { continue };
+        obs.joint_state = *state;
+        obs.assembled_ns = now;
+        match source.compute(&obs) {
+            Ok(Some(chunk)) => {
+                shared.chunks.fetch_add(1, Ordering::Relaxed);
+                shared.last_inference_latency_ns.store(
+                    chunk.ready_ns.saturating_sub(chunk.t_obs_ns),
+                    Ordering::Relaxed,
+                );
+            }
+            Ok(None) => {}
+            Err(e) => {
+                source_failures += 1;
+                if source_failures.is_power_of_two() {
+                    tracing::error!(
+                        "chunk source '{}' failed ({source_failures} times so far): {e:#}",
+                        source.name()
+                    );
+                }
+            }
+        }
+        if now > next + 100 * poll_period_ns {
+            next = now; // the source took long: do not try to catch up
+        }
+    }
+    Ok(())
+}
+
+fn control_thread(
+    cfg: &Config,
+    shared: &Shared,
+    tick: &mut dyn ControlTick,
+    ready: crossbeam::channel::Sender<anyhow::Result<()>>,
+) -> anyhow::Result<Summary> {
+    let outcome = rt::make_current_thread_realtime(
+        cfg.control.cpu,
+        cfg.control.realtime_priority,
+        cfg.control.lock_memory,
+    );
+    if outcome.fully_realtime() {
+        tracing::info!("control thread: {outcome}");
+    } else {
+        tracing::warn!("control thread not fully real-time: {outcome}");
+    }
+    let ns = cfg.namespace();
+    let setup = || -> anyhow::Result<_> {
+        let node = services::node("chunkrt-control")?;
+        let js = JointStateInput::new(&node, &ns, cfg)?;
+        let cmd_out = CommandOutput::new(&node, &ns)?;
+        let status_out = StatusOutput::new(&node, &ns)?;
+        Ok((node, js, cmd_out, status_out))
+    };
+    let (_node, mut js, cmd_out, status_out) = match setup() {
+        Ok(v) => {
+            let _ = ready.send(Ok(()));
+            v
+        }
+        Err(e) => {
+            let msg = format!("control thread: {e:#}");
+            let _ = ready.send(Err(anyhow::anyhow!(msg.clone())));
+            anyhow::bail!(msg);
+        }
+    };
+
+    let period = cfg.control_period_ns();
+    let deadline_ns = (cfg.control.command_deadline_ms * 1e6) as u64;
+    let status_every = ((cfg.control.rate_hz / cfg.control.status_rate_hz).round() as u64).max(1);
+    let mut hist = TickHistograms::new();
+    let mut cmd = JointCommand::default();
+    let mut status = ControllerStatus {
+        n_dof: cfg.n_dof() as u32,
+        ..Default::default()
+    };
+    let mut state = CONTROLLER_STATE_STARTING;
+    let mut ticks: u64 = 0;
+    let mut overruns: u64 = 0;
+    let start = monotonic_ns();
+    let mut next = start + period;
+
+    while !shared.stop.load(Ordering::Relaxed) {
+        sleep_until_ns(next);
+        let wake = monotonic_ns();
+        hist.lateness.saturating_record(wake.saturating_sub(next).max(1));
+
+        js.poll(wake, &shared.counters, &shared.events);
+        let out = tick.tick(wake, js.latest(), &mut cmd);
+        if out.publish {
+            cmd.seq += 1;
+            cmd.deadline_ns = wake + deadline_ns;
+            if cmd_out.publish(&cmd, monotonic_ns()) {
+                shared.commands.fetch_add(1, Ordering::Relaxed);
+            } else {
+                shared
+                    .counters
+                    .publish_errors
+                    .fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        if out.state != state {
+            if out.state == CONTROLLER_STATE_HOLD {
+                shared.hold_entries.fetch_add(1, Ordering::Relaxed);
+            }
+            state = out.state;
+            shared.state.store(state, Ordering::Relaxed);
+        }
+        ticks += 1;
+        shared.ticks.store(ticks, Ordering::Relaxed);
+
+        if ticks % status_every == 0 {
+            status.seq += 1;
+            status.state = state;
+            status.ticks = ticks;
+            status.overruns = overruns;
+            status.chunks = shared.chunks.load(Ordering::Relaxed);
+            status.joint_states = shared.counters.joint_states.load(Ordering::Relaxed);
+            status.frames = shared.counters.frames.load(Ordering::Relaxed);
+            status.rejected = shared.counters.rejected_snapshot();
+            status.last_inference_latency_ns =
+                shared.last_inference_latency_ns.load(Ordering::Relaxed);
+            status.lateness_p50_ns = hist.lateness.value_at_quantile(0.5);
+            status.lateness_p99_ns = hist.lateness.value_at_quantile(0.99);
+            status.lateness_max_ns = hist.lateness.max();
+            status.compute_p50_ns = hist.compute.value_at_quantile(0.5);
+            status.compute_p99_ns = hist.compute.value_at_quantile(0.99);
+            status.compute_max_ns = hist.compute.max();
+            status.joint_state_age_ns = js
+                .latest()
+                .map(|s| wake.saturating_sub(s.measurement_time_ns))
+                .unwrap_or(u64::MAX);
+            status.hold_entries = shared.hold_entries.load(Ordering::Relaxed);
+            status.publish_time_ns = monotonic_ns();
+            status_out.publish(&status);
+            shared
+                .lateness_p50_ns
+                .store(status.lateness_p50_ns, Ordering::Relaxed);
+            shared
+                .lateness_p99_ns
+                .store(status.lateness_p99_ns, Ordering::Relaxed);
+            shared
+                .lateness_max_ns
+                .store(status.lateness_max_ns, Ordering::Relaxed);
+            shared
+                .compute_p50_ns
+                .store(status.compute_p50_ns, Ordering::Relaxed);
+            shared
+                .compute_p99_ns
+                .store(status.compute_p99_ns, Ordering::Relaxed);
+            shared
+                .compute_max_ns
+                .store(status.compute_max_ns, Ordering::Relaxed);
+        }
+
+        let end = monotonic_ns();
+        hist.compute.saturating_record(end.saturating_sub(wake).max(1));
+        next += period;
+        if end > next {
+            // finished after the next deadline: count it, and skip the ticks already missed
+            // instead of bursting to catch up
+            overruns += 1;
+            shared.overruns.store(overruns, Ordering::Relaxed);
+            let missed = (end - next) / period;
+            next += missed * period;
+        }
+    }
+    Ok(Summary {
+        seconds: (monotonic_ns() - start) as f64 / 1e9,
+        histograms: hist,
+        rt: outcome.to_string(),
+    })
+}
+
+fn us(ns: u64) -> f64 {
+    ns as f64 / 1e3
+}
+
+/// One line for the periodic log.
+pub fn status_line(shared: &Shared) -> String {
+    let rejected: Vec<String> = RejectReason::ALL
+        .iter()
+        .filter_map(|r| {
+            let n = shared.counters.rejected[r.code()].load(Ordering::Relaxed);
+            (n > 0).then(|| format!("{}={n}", r.name()))
+        })
+        .collect();
+    format!(
+        "state={} ticks={} overruns={} commands={} joint_states={} frames={} chunks={} \
+         lateness p50/p99/max={:.0}/{:.0}/{:.0} us tick p50/p99/max={:.1}/{:.1}/{:.1} us rejected=[{}]",
+        controller_state_name(shared.state.load(Ordering::Relaxed)),
+        shared.ticks.load(Ordering::Relaxed),
+        shared.overruns.load(Ordering::Relaxed),
+        shared.commands.load(Ordering::Relaxed),
+        shared.counters.joint_states.load(Ordering::Relaxed),
+        shared.counters.frames.load(Ordering::Relaxed),
+        shared.chunks.load(Ordering::Relaxed),
+        us(shared.lateness_p50_ns.load(Ordering::Relaxed)),
+        us(shared.lateness_p99_ns.load(Ordering::Relaxed)),
+        us(shared.lateness_max_ns.load(Ordering::Relaxed)),
+        us(shared.compute_p50_ns.load(Ordering::Relaxed)),
+        us(shared.compute_p99_ns.load(Ordering::Relaxed)),
+        us(shared.compute_max_ns.load(Ordering::Relaxed)),
+        rejected.join(" "),
+    )
+}
+
+/// Prints the exit summary (stdout: it is the command's result).
+pub fn print_summary(shared: &Shared, summary: &Summary) {
+    let h = &summary.histograms;
+    let row = |name: &str, h: &Histogram<u64>| {
+        println!(
+            "  {name:<10} {:>9} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
+            h.len(),
+            us(h.value_at_quantile(0.5)),
+            us(h.value_at_quantile(0.9)),
+            us(h.value_at_quantile(0.99)),
+            us(h.value_at_quantile(0.999)),
+            us(h.max()),
+        )
+    };
+    println!(
+        "chunkrt summary: {:.2} s, {}",
+        summary.seconds, summary.rt
+    );
+    println!(
+        "  {:<10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9}",
+        "us", "count", "p50", "p90", "p99", "p99.9", "max"
+    );
+    row("lateness", &h.lateness);
+    row("tick", &h.compute);
+    println!("  {}", status_line(shared));
+    let ticks = shared.ticks.load(Ordering::Relaxed) as f64;
+    println!(
+        "  command rate {:.1} Hz, joint states {:.1} Hz, frames {:.1} Hz, publish errors {}",
+        shared.commands.load(Ordering::Relaxed) as f64 / summary.seconds.max(1e-9),
+        shared.counters.joint_states.load(Ordering::Relaxed) as f64 / summary.seconds.max(1e-9),
+        shared.counters.frames.load(Ordering::Relaxed) as f64 / summary.seconds.max(1e-9),
+        shared.counters.publish_errors.load(Ordering::Relaxed),
+    );
+    if ticks == 0.0 {
+        println!("  (no control ticks ran)");
+    }
+}
+
+/// `chunkrt run`: the controller until SIGINT / SIGTERM or `--duration`.
+pub fn run(args: RunArgs) -> anyhow::Result<()> {
+    let cfg = load_config(args.config.as_ref(), args.namespace.as_deref())?;
+    let stop_flag = chunkrt_tools::shutdown::flag();
+    tracing::info!(
+        "chunkrt run: robot '{}' ({} joints) on '{}', {} camera(s), control at {} Hz, policy '{}'",
+        cfg.robot.name,
+        cfg.n_dof(),
+        cfg.robot.namespace,
+        cfg.cameras.len(),
+        cfg.control.rate_hz,
+        cfg.policy.kind
+    );
+    if cfg.policy.kind != "hold" {
+        anyhow::bail!(
+            "policy.kind = '{}' is not wired into the controller yet; use 'hold'",
+            cfg.policy.kind
+        );
+    }
+    let controller = Controller::start(cfg.clone(), Box::new(HoldTick::new(&cfg)), Box::new(HoldSource))?;
+    let started = std::time::Instant::now();
+    let mut last_log = std::time::Instant::now();
+    while !stop_flag.load(Ordering::Relaxed) && controller.is_running() {
+        std::thread::sleep(Duration::from_millis(20));
+        controller.log_events(&cfg, 20);
+        if args.log_every > 0.0 && last_log.elapsed().as_secs_f64() >= args.log_every {
+            tracing::info!("{}", status_line(controller.shared()));
+            last_log = std::time::Instant::now();
+        }
+        if args.duration.is_some_and(|d| started.elapsed().as_secs_f64() >= d) {
+            break;
+        }
+    }
+    let shared = controller.shared().clone();
+    let summary = controller.stop()?;
+    controller_log_final(&cfg, &shared);
+    print_summary(&shared, &summary);
+    Ok(())
+}
+
+fn controller_log_final(cfg: &Config, shared: &Shared) {
+    let total = shared.counters.rejected_total();
+    if total > 0 {
+        tracing::warn!(
+            "{total} message(s) rejected on '{}' during the run",
+            cfg.robot.namespace
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn js(t: u64, pos: f64) -> JointState {
+        let mut s = JointState {
+            seq: 1,
+            measurement_time_ns: t,
+            n_dof: 4,
+            ..Default::default()
+        };
+        s.position[..4].fill(pos);
+        s
+    }
+
+    #[test]
+    fn hold_latches_and_rearms() {
+        let cfg = Config::embedded_default();
+        let mut h = HoldTick::new(&cfg);
+        let mut cmd = JointCommand::default();
+        let out = h.tick(1_000_000_000, None, &mut cmd);
+        assert!(!out.publish);
+        assert_eq!(out.state, CONTROLLER_STATE_STARTING);
+        let t0 = 1_000_000_000;
+        let out = h.tick(t0, Some(&js(t0, 0.5)), &mut cmd);
+        assert!(out.publish);
+        assert_eq!(cmd.position[0], 0.5);
+        assert_eq!(cmd.mode, COMMAND_MODE_HOLD);
+        // a newer measurement does not move the target: no drift
+        h.tick(t0 + 1_000_000, Some(&js(t0 + 1_000_000, 0.51)), &mut cmd);
+        assert_eq!(cmd.position[0], 0.5);
+        // stale → starting; fresh again → re-latched at the new position
+        let late = t0 + 1_000_000_000;
+        assert!(!h.tick(late, Some(&js(t0, 0.5)), &mut cmd).publish);
+        h.tick(late, Some(&js(late, -0.2)), &mut cmd);
+        assert_eq!(cmd.position[0], -0.2);
+        // targets are clamped to the joint limits (gripper is 0..1)
+        let mut h = HoldTick::new(&cfg);
+        h.tick(late, Some(&js(late, -0.2)), &mut cmd);
+        assert_eq!(cmd.position[3], 0.0);
+    }
 }

@@ -1,4 +1,10 @@
 //! Process and thread set-up for real time: logging, pinning, SCHED_FIFO, mlockall.
+//!
+//! Each step is attempted and its outcome reported; none is fatal, because a development
+//! machine or a container often forbids SCHED_FIFO and mlockall. The control thread then runs
+//! as an ordinary pinned thread, and the log says so in one line.
+
+use std::fmt;
 
 /// Logs to stderr; `RUST_LOG` filters (default `info`).
 pub fn init_logging() {
@@ -9,4 +15,156 @@ pub fn init_logging() {
         )
         .with_writer(std::io::stderr)
         .try_init();
+}
+
+/// What [`make_current_thread_realtime`] achieved.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RtOutcome {
+    /// Core the thread is pinned to, or why not.
+    pub pinned: Result<usize, String>,
+    /// SCHED_FIFO priority set, or why not (`Err("disabled")` when priority 0 was asked).
+    pub fifo: Result<i32, String>,
+    /// mlockall outcome.
+    pub locked: Result<(), String>,
+}
+
+impl RtOutcome {
+    /// True when every real-time measure took effect.
+    pub fn fully_realtime(&self) -> bool {
+        self.pinned.is_ok() && self.fifo.is_ok() && self.locked.is_ok()
+    }
+}
+
+impl fmt::Display for RtOutcome {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match &self.pinned {
+            Ok(c) => write!(f, "pinned to core {c}")?,
+            Err(e) => write!(f, "not pinned ({e})")?,
+        }
+        match &self.fifo {
+            Ok(p) => write!(f, ", SCHED_FIFO priority {p}")?,
+            Err(e) => write!(f, ", SCHED_OTHER ({e})")?,
+        }
+        match &self.locked {
+            Ok(()) => write!(f, ", memory locked"),
+            Err(e) => write!(f, ", memory not locked ({e})"),
+        }
+    }
+}
+
+/// Number of cores this process may run on.
+pub fn available_cores() -> usize {
+    core_affinity::get_core_ids().map(|c| c.len()).unwrap_or(1)
+}
+
+/// The core the control thread uses by default: the last one (the first usually takes
+/// interrupts and housekeeping).
+pub fn default_control_core() -> usize {
+    available_cores().saturating_sub(1)
+}
+
+/// Pins the calling thread to `core` (an index into the allowed cores).
+pub fn pin_current_thread(core: usize) -> Result<usize, String> {
+    let ids = core_affinity::get_core_ids().ok_or("cannot list cores")?;
+    let id = ids
+        .get(core)
+        .copied()
+        .ok_or_else(|| format!("core {core} not available ({} cores)", ids.len()))?;
+    if core_affinity::set_for_current(id) {
+        Ok(id.id)
+    } else {
+        Err(format!("sched_setaffinity to core {} refused", id.id))
+    }
+}
+
+fn errno_string() -> String {
+    std::io::Error::last_os_error().to_string()
+}
+
+/// Sets SCHED_FIFO with `priority` for the calling thread.
+pub fn set_current_thread_fifo(priority: i32) -> Result<i32, String> {
+    if priority <= 0 {
+        return Err("disabled in config".to_string());
+    }
+    let param = libc::sched_param {
+        sched_priority: priority,
+    };
+    // SAFETY: plain syscall wrapper on the calling thread with a valid parameter struct.
+    let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &param) };
+    if rc == 0 {
+        Ok(priority)
+    } else {
+        Err(format!(
+            "SCHED_FIFO refused: {}",
+            std::io::Error::from_raw_os_error(rc)
+        ))
+    }
+}
+
+/// Locks current and future pages in RAM so page faults cannot stall the control thread.
+pub fn lock_memory() -> Result<(), String> {
+    // SAFETY: mlockall has no memory-safety preconditions.
+    let rc = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) };
+    if rc == 0 {
+        Ok(())
+    } else {
+        Err(format!("mlockall refused: {}", errno_string()))
+    }
+}
+
+/// Touches `bytes` of stack so the control thread never faults a stack page mid-tick.
+#[inline(never)]
+pub fn prefault_stack(bytes: usize) {
+    const CHUNK: usize = 16 * 1024;
+    fn touch(depth: usize) {
+        let mut buf = [0u8; CHUNK];
+        // volatile write: the compiler must not remove the buffer
+        // SAFETY: `buf` is a valid local array.
+        unsafe { std::ptr::write_volatile(buf.as_mut_ptr(), 1) };
+        if depth > 1 {
+            touch(depth - 1);
+        }
+        std::hint::black_box(&buf);
+    }
+    touch(bytes.div_ceil(CHUNK).max(1));
+}
+
+/// Applies every real-time measure to the calling thread and reports what took effect.
+pub fn make_current_thread_realtime(
+    core: Option<usize>,
+    priority: i32,
+    lock: bool,
+) -> RtOutcome {
+    let pinned = pin_current_thread(core.unwrap_or_else(default_control_core));
+    let fifo = set_current_thread_fifo(priority);
+    let locked = if lock {
+        lock_memory()
+    } else {
+        Err("disabled in config".to_string())
+    };
+    prefault_stack(256 * 1024);
+    RtOutcome {
+        pinned,
+        fifo,
+        locked,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pinning_works_and_bad_core_is_an_error() {
+        std::thread::spawn(|| {
+            assert!(pin_current_thread(0).is_ok());
+            let e = pin_current_thread(100_000).unwrap_err();
+            assert!(e.contains("not available"), "{e}");
+            assert!(set_current_thread_fifo(0).is_err());
+            let out = make_current_thread_realtime(Some(0), 0, false);
+            assert!(out.to_string().contains("pinned to core"), "{out}");
+        })
+        .join()
+        .unwrap();
+    }
 }
