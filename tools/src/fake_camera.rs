@@ -315,12 +315,16 @@ pub fn publish(args: &Args) -> anyhow::Result<Summary> {
                 };
                 if let Err(e) = sample.send() {
                     failures += 1;
-                    tracing::warn!("fake-camera: {}: send failed: {e:?}", cam.plan.name);
+                    if failures <= 10 {
+                        tracing::warn!("fake-camera: {}: send failed: {e:?}", cam.plan.name);
+                    }
                 }
             }
             Err(e) => {
                 failures += 1;
-                tracing::warn!("fake-camera: {}: loan failed: {e:?}", cam.plan.name);
+                if failures <= 10 {
+                    tracing::warn!("fake-camera: {}: loan failed: {e:?}", cam.plan.name);
+                }
             }
         }
         cam.next_ns += cam.period_ns;

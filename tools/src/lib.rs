@@ -7,3 +7,4 @@ pub mod fake_camera;
 pub mod fake_robot;
 pub mod monitor;
 pub mod shutdown;
+pub mod testing;
