@@ -284,3 +284,90 @@ fn tools_fake_camera_frames_are_valid_and_on_rate() {
     assert!(out.stdout.contains("fake-camera summary:"), "{out:?}");
     assert_eq!(summary_value(&out.stdout, "failures"), Some(0.0), "{out:?}");
 }
+
+/// The `key=value` token of a monitor line.
+fn token<'a>(line: &'a str, key: &str) -> Option<&'a str> {
+    let pat = format!("{key}=");
+    line.split_whitespace()
+        .find_map(|w| w.strip_prefix(pat.as_str()))
+}
+
+#[test]
+fn tools_monitor_lists_and_measures_services() {
+    let ns = unique_namespace("monitor");
+    let _robot = ChildGuard::spawn(BIN, &["fake-robot", "--namespace", &ns, "--duration", "20"])
+        .expect("spawn fake-robot");
+    let _camera = ChildGuard::spawn(
+        BIN,
+        &[
+            "fake-camera",
+            "--namespace",
+            &ns,
+            "--fps",
+            "50",
+            "--duration",
+            "20",
+        ],
+    )
+    .expect("spawn fake-camera");
+    // Let both create their services.
+    let cfg = Config::embedded_default();
+    let node = node("monitor");
+    let nsv = Namespace::new(&ns).unwrap();
+    let st = services::joint_state_service(&node, &nsv.joint_state()).unwrap();
+    let sub = services::subscriber(&st, &nsv.joint_state()).unwrap();
+    latest_state(&sub, Duration::from_secs(10)).expect("fake-robot is not publishing");
+    let cam = services::camera_service(&node, &nsv.camera(&cfg.cameras[0].name)).unwrap();
+    let cam_sub = services::camera_subscriber(&cam, &nsv.camera(&cfg.cameras[0].name)).unwrap();
+    let end = Instant::now() + Duration::from_secs(10);
+    while !matches!(cam_sub.receive(), Ok(Some(_))) {
+        assert!(Instant::now() < end, "fake-camera is not publishing");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+
+    let monitor = ChildGuard::spawn(
+        BIN,
+        &["monitor", "--namespace", &ns, "--once", "--interval", "1.5"],
+    )
+    .expect("spawn monitor");
+    let out = monitor.finish(Duration::from_secs(15));
+    eprintln!("{}", out.stdout);
+    assert_eq!(out.code, Some(0), "{out:?}");
+    let lines: Vec<&str> = out
+        .stdout
+        .lines()
+        .filter(|l| !l.trim().is_empty())
+        .collect();
+    for l in &lines {
+        assert!(
+            l.starts_with(&format!("{ns}/")),
+            "foreign service listed: {l}"
+        );
+        assert_eq!(token(l, "invalid"), Some("0"), "{l}");
+    }
+    let find = |name: String| {
+        *lines
+            .iter()
+            .find(|l| l.split_whitespace().next() == Some(name.as_str()))
+            .unwrap_or_else(|| panic!("{name} not listed in {lines:?}"))
+    };
+    let rate = |l: &str| -> f64 {
+        token(l, "rate_hz")
+            .and_then(|r| r.parse().ok())
+            .unwrap_or_else(|| panic!("no rate in {l}"))
+    };
+    let js = find(nsv.joint_state());
+    assert!(js.contains("JointState") && js.contains("n_dof=4"), "{js}");
+    let r = rate(js);
+    assert!((800.0..=1100.0).contains(&r), "joint_state rate {r}: {js}");
+    let lat: f64 = token(js, "latency_avg_us").unwrap().parse().unwrap();
+    assert!(lat > 0.0 && lat < 100_000.0, "{js}");
+    let jc = find(nsv.joint_command());
+    assert!(jc.contains("(no data)"), "{jc}");
+    for c in &cfg.cameras {
+        let l = find(nsv.camera(&c.name));
+        let r = rate(l);
+        assert!((r - 50.0).abs() <= 5.0, "camera rate {r}: {l}");
+        assert!(l.contains(&format!("{}x{}", c.width, c.height)), "{l}");
+    }
+}

@@ -37,6 +37,9 @@ impl CommonArgs {
 
 /// Creates this tool's node and removes the resources of dead nodes (a restart after a crash).
 pub fn open_node(tool: &str) -> anyhow::Result<Node<Ipc>> {
+    // iceoryx2 warns on stderr that it runs without a config file; keep its warnings for
+    // `IOX2_LOG_LEVEL=warn` and show only errors by default.
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
     let node = services::node(tool)?;
     let cleaned = services::cleanup_dead_nodes(&node);
     if cleaned > 0 {

@@ -137,7 +137,11 @@ pub struct Stats {
 }
 
 impl Stats {
-    fn record(&mut self, origin: u128, seq: u64, time_ns: u64, now_ns: u64) {
+    fn record(&mut self, origin: u128, seq: u64, time_ns: u64, now_ns: u64, since_ns: u64) {
+        if time_ns < since_ns {
+            // Sent before we subscribed (the service's history): a value, not a measurement.
+            return;
+        }
         self.received += 1;
         let lat = now_ns.saturating_sub(time_ns);
         self.latency_sum_ns += lat as f64;
@@ -179,6 +183,8 @@ struct Watched {
     listed: Listed,
     port: Port,
     stats: Stats,
+    /// When the subscriber was created (monotonic ns).
+    since_ns: u64,
 }
 
 fn fmt_joints(v: &[f64], n: usize, wide: bool) -> String {
@@ -243,18 +249,20 @@ impl Watched {
             listed,
             port,
             stats: Stats::default(),
+            since_ns: monotonic_ns(),
         }
     }
 
     /// Drains the subscriber.
     fn poll(&mut self, wide: bool) {
         let st = &mut self.stats;
+        let since = self.since_ns;
         match &self.port {
             Port::JointState(sub) => {
                 while let Ok(Some(s)) = sub.receive() {
                     let now = monotonic_ns();
                     let m = s.payload();
-                    st.record(s.origin().value(), m.seq, m.measurement_time_ns, now);
+                    st.record(s.origin().value(), m.seq, m.measurement_time_ns, now, since);
                     if validate_joint_state(m, None).is_err() {
                         st.invalid += 1;
                         continue;
@@ -272,7 +280,7 @@ impl Watched {
                 while let Ok(Some(s)) = sub.receive() {
                     let now = monotonic_ns();
                     let m = s.payload();
-                    st.record(s.origin().value(), m.seq, m.publish_time_ns, now);
+                    st.record(s.origin().value(), m.seq, m.publish_time_ns, now, since);
                     if validate_joint_command(m, None).is_err() {
                         st.invalid += 1;
                         continue;
@@ -296,7 +304,7 @@ impl Watched {
                 while let Ok(Some(s)) = sub.receive() {
                     let now = monotonic_ns();
                     let m = s.payload();
-                    st.record(s.origin().value(), m.seq, m.publish_time_ns, now);
+                    st.record(s.origin().value(), m.seq, m.publish_time_ns, now, since);
                     let rejected: u64 = m.rejected.iter().sum();
                     st.last_value = format!(
                         "state={} ticks={} overruns={} chunks={} rejected={rejected} \
@@ -315,7 +323,7 @@ impl Watched {
                 while let Ok(Some(s)) = sub.receive() {
                     let now = monotonic_ns();
                     let h = *s.user_header();
-                    st.record(s.origin().value(), h.seq, h.publish_time_ns, now);
+                    st.record(s.origin().value(), h.seq, h.publish_time_ns, now, since);
                     if validate_frame(&h, s.payload().len(), u32::MAX, u32::MAX).is_err() {
                         st.invalid += 1;
                         continue;
@@ -462,16 +470,19 @@ mod tests {
         assert_eq!(Kind::from_type_names("u8", "()"), Kind::Unknown);
         let mut s = Stats::default();
         assert_eq!(s.rate_hz(), None);
-        s.record(1, 10, 1_000_000_000, 1_000_050_000);
-        s.record(1, 20, 1_010_000_000, 1_010_150_000);
+        s.record(1, 10, 1_000_000_000, 1_000_050_000, 0);
+        s.record(1, 20, 1_010_000_000, 1_010_150_000, 0);
         assert!((s.rate_hz().unwrap() - 1000.0).abs() < 1e-6);
         assert!((s.latency_avg_us().unwrap() - 100.0).abs() < 1e-6);
         s.reset_window();
         assert_eq!(s.received, 0);
-        s.record(1, 30, 1_020_000_000, 1_020_000_000);
+        s.record(1, 30, 1_020_000_000, 1_020_000_000, 0);
         assert!((s.rate_hz().unwrap() - 1000.0).abs() < 1e-6);
         // a new publisher restarts the measurement
-        s.record(2, 1, 1_030_000_000, 1_030_000_000);
+        s.record(2, 1, 1_030_000_000, 1_030_000_000, 0);
+        // samples from before the subscription do not count
+        s.record(2, 2, 5, 1_031_000_000, 1_000_000_000);
+        assert_eq!(s.received, 2);
         assert_eq!(s.rate_hz(), None);
     }
 }
