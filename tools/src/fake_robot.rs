@@ -1,10 +1,575 @@
-//! fake_robot
+//! `fake-robot`: a simulated N-DoF arm behind the real joint state / joint command services.
+//!
+//! Every joint is a unit-inertia double integrator driven by a critically damped tracking law
+//! with the command's velocity and acceleration as feed-forward:
+//!
+//! ```text
+//! a = a_cmd + ω²·(p_cmd − p) + 2ω·(v_cmd − v),   |a| ≤ max_acceleration
+//! v ← v + a·dt,                                  |v| ≤ max_velocity
+//! p ← p + v·dt,                                  position_min ≤ p ≤ position_max
+//! ```
+//!
+//! A watchdog decides what is tracked: the newest valid command while its deadline has not
+//! passed; otherwise the arm brakes to a hold at the position where the hold began, and the
+//! published `status_flags` say why (`JOINT_STATUS_*`). The reported effort is the applied
+//! acceleration (unit inertia).
+
+use std::sync::atomic::Ordering;
+
+use anyhow::Context;
+use chunkrt_ipc::config::JointConfig;
+use chunkrt_ipc::services;
+use chunkrt_ipc::*;
+use rand::{Rng, SeedableRng};
+
+use crate::common::{check_rate, end_time_ns, open_node, CommonArgs};
+use crate::shutdown;
 
 /// Command-line arguments.
-#[derive(Debug, clap::Args)]
-pub struct Args {}
+#[derive(Debug, Clone, clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// Joint state publish (and simulation) rate; default `robot.joint_state_rate_hz`.
+    #[arg(long, value_name = "HZ")]
+    pub rate_hz: Option<f64>,
+    /// Seed of the measurement noise (only used with `--noise`).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Uniform measurement noise added to published positions, ± this amplitude.
+    #[arg(long, default_value_t = 0.0)]
+    pub noise: f64,
+    /// Stop after this many seconds (default: run until SIGINT / SIGTERM).
+    #[arg(long, value_name = "SECONDS")]
+    pub duration: Option<f64>,
+    /// Hold (and flag `COMMAND_TIMEOUT`) when no command arrived for this long.
+    #[arg(long, value_name = "MS", default_value_t = 50.0)]
+    pub command_timeout_ms: f64,
+    /// Natural frequency of the tracking law (rad/s).
+    #[arg(long, value_name = "RAD_PER_S", default_value_t = 60.0)]
+    pub omega: f64,
+    /// Initial positions, comma separated (default: `initial_position` of each joint).
+    #[arg(long, value_name = "P0,P1,...", value_delimiter = ',')]
+    pub initial: Option<Vec<f64>>,
+}
 
-/// Runs until SIGINT / SIGTERM.
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("not implemented yet")
+/// Counters printed on exit.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Summary {
+    /// Joint states published.
+    pub states_published: u64,
+    /// Commands accepted for tracking.
+    pub commands_applied: u64,
+    /// Commands received after their deadline (ignored).
+    pub commands_expired: u64,
+    /// Commands that failed validation or arrived out of order.
+    pub commands_rejected: u64,
+    /// Transitions into the watchdog hold.
+    pub holds: u64,
+    /// Ticks spent in the watchdog hold.
+    pub hold_ticks: u64,
+    /// Largest |commanded − simulated| position while tracking a position command.
+    pub max_tracking_error: f64,
+    /// Largest wake-up lateness of the simulation loop (ns).
+    pub max_lateness_ns: u64,
+}
+
+impl std::fmt::Display for Summary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "fake-robot summary: states_published={} commands_applied={} commands_expired={} \
+             commands_rejected={} holds={} hold_ticks={} max_tracking_error={:.6} \
+             max_lateness_us={:.1}",
+            self.states_published,
+            self.commands_applied,
+            self.commands_expired,
+            self.commands_rejected,
+            self.holds,
+            self.hold_ticks,
+            self.max_tracking_error,
+            self.max_lateness_ns as f64 / 1e3
+        )
+    }
+}
+
+/// Limits of one simulated joint.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JointLimits {
+    pub position_min: f64,
+    pub position_max: f64,
+    pub max_velocity: f64,
+    pub max_acceleration: f64,
+}
+
+impl From<&JointConfig> for JointLimits {
+    fn from(j: &JointConfig) -> Self {
+        Self {
+            position_min: j.position_min,
+            position_max: j.position_max,
+            max_velocity: j.max_velocity,
+            max_acceleration: j.max_acceleration,
+        }
+    }
+}
+
+/// What the arm tracks in one step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Target {
+    pub position: [f64; MAX_DOF],
+    pub velocity: [f64; MAX_DOF],
+    pub acceleration: [f64; MAX_DOF],
+}
+
+/// The simulated arm (state and limits; no I/O, no allocation).
+#[derive(Debug, Clone)]
+pub struct Arm {
+    n: usize,
+    limits: [JointLimits; MAX_DOF],
+    omega: f64,
+    /// Simulated positions.
+    pub position: [f64; MAX_DOF],
+    /// Simulated velocities.
+    pub velocity: [f64; MAX_DOF],
+    /// Acceleration applied in the last step.
+    pub acceleration: [f64; MAX_DOF],
+}
+
+impl Arm {
+    /// An arm at rest at `initial` (clamped to the limits). `limits.len()` must be 1..=MAX_DOF.
+    pub fn new(limits: &[JointLimits], initial: &[f64], omega: f64) -> anyhow::Result<Self> {
+        let n = limits.len();
+        anyhow::ensure!(
+            (1..=MAX_DOF).contains(&n),
+            "{n} joints, must be 1..={MAX_DOF}"
+        );
+        anyhow::ensure!(
+            initial.len() == n,
+            "{} initial positions for {n} joints",
+            initial.len()
+        );
+        anyhow::ensure!(
+            omega.is_finite() && (0.1..=10_000.0).contains(&omega),
+            "--omega {omega}: must be in 0.1..=10000"
+        );
+        let mut arm = Self {
+            n,
+            limits: [limits[0]; MAX_DOF],
+            omega,
+            position: [0.0; MAX_DOF],
+            velocity: [0.0; MAX_DOF],
+            acceleration: [0.0; MAX_DOF],
+        };
+        for i in 0..n {
+            anyhow::ensure!(initial[i].is_finite(), "initial position {i} is not finite");
+            arm.limits[i] = limits[i];
+            arm.position[i] = initial[i].clamp(limits[i].position_min, limits[i].position_max);
+        }
+        Ok(arm)
+    }
+
+    /// Number of joints.
+    pub fn n_dof(&self) -> usize {
+        self.n
+    }
+
+    /// Clamps `target.position` into the joint limits; true if anything changed.
+    pub fn clamp_target(&self, target: &mut Target) -> bool {
+        let mut clamped = false;
+        for i in 0..self.n {
+            let l = &self.limits[i];
+            let p = target.position[i].clamp(l.position_min, l.position_max);
+            if p != target.position[i] {
+                clamped = true;
+                target.position[i] = p;
+            }
+        }
+        clamped
+    }
+
+    /// Advances the simulation by `dt` seconds towards `target` (positions within limits).
+    pub fn step(&mut self, target: &Target, dt: f64) {
+        let w = self.omega;
+        for i in 0..self.n {
+            let l = &self.limits[i];
+            let a = target.acceleration[i]
+                + w * w * (target.position[i] - self.position[i])
+                + 2.0 * w * (target.velocity[i] - self.velocity[i]);
+            let a = a.clamp(-l.max_acceleration, l.max_acceleration);
+            let mut v = (self.velocity[i] + a * dt).clamp(-l.max_velocity, l.max_velocity);
+            let mut p = self.position[i] + v * dt;
+            if p <= l.position_min || p >= l.position_max {
+                p = p.clamp(l.position_min, l.position_max);
+                v = 0.0;
+            }
+            self.acceleration[i] = a;
+            self.velocity[i] = v;
+            self.position[i] = p;
+        }
+    }
+}
+
+/// The watchdog and bookkeeping around the arm: what to track, flags, counters.
+#[derive(Debug, Clone)]
+pub struct Robot {
+    /// The simulated arm.
+    pub arm: Arm,
+    command_timeout_ns: u64,
+    max_future_ns: u64,
+    guard: StreamGuard,
+    active: Option<JointCommand>,
+    last_command_ns: u64,
+    holding: bool,
+    hold_target: Target,
+    /// Sticky flags set by the last received command (`EXPIRED`, `REJECTED`).
+    command_flags: u32,
+    /// Flags of the last step.
+    pub status_flags: u32,
+    /// Counters.
+    pub summary: Summary,
+}
+
+impl Robot {
+    /// A robot that starts holding at the arm's position; `now_ns` starts the command timeout.
+    pub fn new(arm: Arm, command_timeout_ns: u64, max_future_ns: u64, now_ns: u64) -> Self {
+        let hold_target = Target {
+            position: arm.position,
+            velocity: [0.0; MAX_DOF],
+            acceleration: [0.0; MAX_DOF],
+        };
+        Self {
+            arm,
+            command_timeout_ns,
+            max_future_ns,
+            guard: StreamGuard::new(),
+            active: None,
+            last_command_ns: now_ns,
+            holding: true,
+            hold_target,
+            command_flags: 0,
+            status_flags: JOINT_STATUS_HOLDING,
+            summary: Summary::default(),
+        }
+    }
+
+    /// Handles one received command from publisher `origin`.
+    pub fn on_command(&mut self, cmd: &JointCommand, origin: u128, now_ns: u64) {
+        if let Err(e) = validate_joint_command(cmd, Some(self.arm.n_dof() as u32)) {
+            self.reject(&e);
+            return;
+        }
+        let limits = Freshness {
+            max_age_ns: u64::MAX,
+            max_future_ns: self.max_future_ns,
+        };
+        if let Err(e) = self
+            .guard
+            .check(origin, cmd.seq, cmd.publish_time_ns, now_ns, limits)
+        {
+            self.reject(&e);
+            return;
+        }
+        if cmd.deadline_ns < now_ns {
+            self.summary.commands_expired += 1;
+            self.command_flags = JOINT_STATUS_COMMAND_EXPIRED;
+            return;
+        }
+        self.summary.commands_applied += 1;
+        self.command_flags = 0;
+        self.last_command_ns = now_ns;
+        self.active = Some(*cmd);
+    }
+
+    fn reject(&mut self, e: &ValidationError) {
+        self.summary.commands_rejected += 1;
+        self.command_flags = JOINT_STATUS_COMMAND_REJECTED;
+        if self.summary.commands_rejected <= 10 {
+            tracing::warn!("fake-robot: command rejected: {e}");
+        }
+    }
+
+    /// Runs the watchdog and advances the arm by `dt` seconds at time `now_ns`; returns the
+    /// status flags of this step.
+    pub fn step(&mut self, now_ns: u64, dt: f64) -> u32 {
+        let mut flags = self.command_flags;
+        let timed_out = now_ns.saturating_sub(self.last_command_ns) > self.command_timeout_ns;
+        if timed_out {
+            flags |= JOINT_STATUS_COMMAND_TIMEOUT;
+        }
+        let live = match &self.active {
+            Some(c) if c.deadline_ns >= now_ns && !timed_out => Some(*c),
+            _ => None,
+        };
+        let target = match live {
+            Some(cmd) => {
+                self.holding = false;
+                let mut t = Target {
+                    position: cmd.position,
+                    velocity: cmd.velocity,
+                    acceleration: cmd.acceleration,
+                };
+                if cmd.mode == COMMAND_MODE_HOLD {
+                    t.velocity = [0.0; MAX_DOF];
+                    t.acceleration = [0.0; MAX_DOF];
+                }
+                if self.arm.clamp_target(&mut t) {
+                    flags |= JOINT_STATUS_LIMIT_CLAMPED;
+                }
+                t
+            }
+            None => {
+                if !self.holding {
+                    self.holding = true;
+                    self.summary.holds += 1;
+                    self.hold_target.position = self.arm.position;
+                }
+                self.summary.hold_ticks += 1;
+                flags |= JOINT_STATUS_HOLDING;
+                self.hold_target
+            }
+        };
+        self.arm.step(&target, dt);
+        if live.is_some() {
+            for i in 0..self.arm.n_dof() {
+                let e = (target.position[i] - self.arm.position[i]).abs();
+                if e > self.summary.max_tracking_error {
+                    self.summary.max_tracking_error = e;
+                }
+            }
+        }
+        self.status_flags = flags;
+        flags
+    }
+}
+
+/// Runs until SIGINT / SIGTERM or `--duration`; prints the [`Summary`] on stdout.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let summary = simulate(&args)?;
+    println!("{summary}");
+    Ok(())
+}
+
+/// The whole process: returns the counters instead of printing them.
+pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
+    let stop = shutdown::flag();
+    let (cfg, ns) = args.common.load()?;
+    let rate_hz = check_rate(
+        "--rate-hz",
+        args.rate_hz.unwrap_or(cfg.robot.joint_state_rate_hz),
+        1.0,
+        10_000.0,
+    )?;
+    let timeout_ms = args.command_timeout_ms;
+    anyhow::ensure!(
+        timeout_ms.is_finite() && (0.1..=3_600_000.0).contains(&timeout_ms),
+        "--command-timeout-ms {timeout_ms}: must be in 0.1..=3600000"
+    );
+    anyhow::ensure!(
+        args.noise.is_finite() && (0.0..=1.0).contains(&args.noise),
+        "--noise {}: must be in 0..=1",
+        args.noise
+    );
+    let limits: Vec<JointLimits> = cfg.robot.joints.iter().map(JointLimits::from).collect();
+    let initial: Vec<f64> = match &args.initial {
+        Some(v) => v.clone(),
+        None => cfg
+            .robot
+            .joints
+            .iter()
+            .map(|j| j.initial_position)
+            .collect(),
+    };
+    let arm = Arm::new(&limits, &initial, args.omega).context("fake-robot")?;
+    let n_dof = arm.n_dof();
+
+    let node = open_node("chunkrt-fake-robot")?;
+    let state_name = ns.joint_state();
+    let cmd_name = ns.joint_command();
+    let state_service = services::joint_state_service(&node, &state_name)?;
+    let state_pub = services::publisher(&state_service, &state_name)?;
+    let cmd_service = services::joint_command_service(&node, &cmd_name)?;
+    let cmd_sub = services::subscriber(&cmd_service, &cmd_name)?;
+    tracing::info!(
+        "fake-robot: {n_dof} joints at {rate_hz} Hz, publishing '{state_name}', \
+         following '{cmd_name}' (command timeout {timeout_ms} ms)"
+    );
+
+    let period_ns = (1e9 / rate_hz).round() as u64;
+    let dt = period_ns as f64 * 1e-9;
+    let start = monotonic_ns();
+    let end = end_time_ns(start, args.duration)?;
+    let max_future_ns = (cfg.control.max_future_ms * 1e6) as u64;
+    let mut robot = Robot::new(arm, (timeout_ms * 1e6) as u64, max_future_ns, start);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
+    let mut seq = 0u64;
+    let mut next = start;
+    let mut receive_errors = 0u64;
+
+    // The loop: no allocation, no locks, IPC only, absolute deadlines.
+    while !stop.load(Ordering::Relaxed) {
+        let now = monotonic_ns();
+        if now >= end {
+            break;
+        }
+        loop {
+            match cmd_sub.receive() {
+                Ok(Some(sample)) => {
+                    robot.on_command(sample.payload(), sample.origin().value(), monotonic_ns())
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    receive_errors += 1;
+                    if receive_errors <= 10 {
+                        tracing::warn!("fake-robot: receive failed: {e:?}");
+                    }
+                    break;
+                }
+            }
+        }
+        let now = monotonic_ns();
+        let flags = robot.step(now, dt);
+
+        seq += 1;
+        let mut msg = JointState {
+            seq,
+            measurement_time_ns: now,
+            n_dof: n_dof as u32,
+            status_flags: flags,
+            position: robot.arm.position,
+            velocity: robot.arm.velocity,
+            effort: robot.arm.acceleration,
+        };
+        if args.noise > 0.0 {
+            for p in msg.position.iter_mut().take(n_dof) {
+                *p += rng.gen_range(-args.noise..=args.noise);
+            }
+        }
+        match state_pub.loan_uninit() {
+            Ok(sample) => match sample.write_payload(msg).send() {
+                Ok(_) => robot.summary.states_published += 1,
+                Err(e) => tracing::warn!("fake-robot: send failed: {e:?}"),
+            },
+            Err(e) => tracing::warn!("fake-robot: loan failed: {e:?}"),
+        }
+
+        next += period_ns;
+        let after = monotonic_ns();
+        if after > next {
+            let late = after - next;
+            robot.summary.max_lateness_ns = robot.summary.max_lateness_ns.max(late);
+            if late > 10 * period_ns {
+                // Far behind (suspended, overloaded): restart the schedule instead of bursting.
+                next = after;
+            }
+        }
+        sleep_until_ns(next);
+    }
+    tracing::info!("fake-robot: stopping");
+    Ok(robot.summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn limits() -> Vec<JointLimits> {
+        vec![
+            JointLimits {
+                position_min: -1.0,
+                position_max: 1.0,
+                max_velocity: 2.0,
+                max_acceleration: 20.0,
+            };
+            2
+        ]
+    }
+
+    fn cmd(seq: u64, now: u64, pos: [f64; 2]) -> JointCommand {
+        let mut c = JointCommand {
+            seq,
+            publish_time_ns: now,
+            deadline_ns: now + 5_000_000,
+            n_dof: 2,
+            mode: COMMAND_MODE_POSITION,
+            ..Default::default()
+        };
+        c.position[..2].copy_from_slice(&pos);
+        c
+    }
+
+    #[test]
+    fn arm_tracks_a_step_within_limits() {
+        let mut arm = Arm::new(&limits(), &[0.0, 0.0], 60.0).unwrap();
+        let mut t = Target {
+            position: [0.0; MAX_DOF],
+            velocity: [0.0; MAX_DOF],
+            acceleration: [0.0; MAX_DOF],
+        };
+        t.position[0] = 0.5;
+        t.position[1] = 5.0; // beyond the limit
+        assert!(arm.clamp_target(&mut t));
+        let mut max_v: f64 = 0.0;
+        for _ in 0..2000 {
+            arm.step(&t, 1e-3);
+            max_v = max_v.max(arm.velocity[0].abs());
+            assert!(arm.position[1] <= 1.0);
+        }
+        assert!((arm.position[0] - 0.5).abs() < 1e-4, "{}", arm.position[0]);
+        assert!((arm.position[1] - 1.0).abs() < 1e-4, "{}", arm.position[1]);
+        assert!(max_v <= 2.0 + 1e-12);
+        // critically damped with a velocity limit: no overshoot
+        assert!(arm.position[0] <= 0.5 + 1e-9);
+    }
+
+    #[test]
+    fn watchdog_holds_on_deadline_timeout_and_rejects_bad_commands() {
+        let arm = Arm::new(&limits(), &[0.0, 0.0], 60.0).unwrap();
+        let t0 = 1_000_000_000u64;
+        let mut r = Robot::new(arm, 50_000_000, 1_000_000, t0);
+        assert_ne!(r.step(t0, 1e-3) & JOINT_STATUS_HOLDING, 0);
+
+        r.on_command(&cmd(1, t0, [0.3, 0.0]), 7, t0);
+        assert_eq!(r.step(t0 + 1_000_000, 1e-3), 0);
+        assert_eq!(r.summary.commands_applied, 1);
+
+        // past its deadline: hold
+        let f = r.step(t0 + 6_000_000, 1e-3);
+        assert_ne!(f & JOINT_STATUS_HOLDING, 0);
+        assert_eq!(r.summary.holds, 1);
+
+        // arrives expired
+        let late = cmd(2, t0, [0.3, 0.0]);
+        r.on_command(&late, 7, t0 + 10_000_000);
+        assert_eq!(r.summary.commands_expired, 1);
+        assert_ne!(
+            r.step(t0 + 10_000_000, 1e-3) & JOINT_STATUS_COMMAND_EXPIRED,
+            0
+        );
+
+        // invalid
+        let mut bad = cmd(3, t0 + 11_000_000, [0.3, f64::NAN]);
+        r.on_command(&bad, 7, t0 + 11_000_000);
+        bad.n_dof = 3;
+        r.on_command(&bad, 7, t0 + 11_000_000);
+        assert_eq!(r.summary.commands_rejected, 2);
+        assert_ne!(
+            r.step(t0 + 11_000_000, 1e-3) & JOINT_STATUS_COMMAND_REJECTED,
+            0
+        );
+
+        // a valid one again clears the sticky flags; out of order is rejected
+        r.on_command(&cmd(4, t0 + 12_000_000, [0.3, 0.0]), 7, t0 + 12_000_000);
+        assert_eq!(r.step(t0 + 12_000_000, 1e-3), 0);
+        r.on_command(&cmd(4, t0 + 12_000_000, [0.3, 0.0]), 7, t0 + 12_500_000);
+        assert_eq!(r.summary.commands_rejected, 3);
+
+        // a far deadline still ends with the command timeout
+        let mut long = cmd(5, t0 + 13_000_000, [0.3, 0.0]);
+        long.deadline_ns = u64::MAX;
+        r.on_command(&long, 7, t0 + 13_000_000);
+        assert_eq!(r.step(t0 + 40_000_000, 1e-3), 0);
+        let f = r.step(t0 + 70_000_000, 1e-3);
+        assert_ne!(f & JOINT_STATUS_COMMAND_TIMEOUT, 0);
+        assert_ne!(f & JOINT_STATUS_HOLDING, 0);
+    }
 }

@@ -2,7 +2,9 @@
 //! Each is a module with clap `Args` and a `run` function, used by the standalone binaries and
 //! by the `chunkrt` multi-call binary (so `chunkrt demo` can start them as processes).
 
+pub mod common;
 pub mod fake_camera;
 pub mod fake_robot;
 pub mod monitor;
 pub mod shutdown;
+pub mod testing;

@@ -1,0 +1,191 @@
+/*
+ * chunkrt_ipc.h: the chunkrt message contract for C and C++ processes.
+ *
+ * A mirror of ipc/src/messages.rs and of the quality-of-service numbers in
+ * ipc/src/services.rs. The test suite (tests/ipc_layout.rs) compiles this header and checks
+ * every size and field offset against the Rust definitions, so a drift fails the build.
+ *
+ * Rules of the contract:
+ *  - fixed-size, naturally aligned structs, no pointers; codes are uint32_t constants;
+ *  - every type name carries the contract version (".v1"): a changed layout gets a new name;
+ *  - timestamps are CLOCK_MONOTONIC nanoseconds (uint64_t);
+ *  - joint arrays hold CHUNKRT_MAX_DOF entries, only the first n_dof are meaningful.
+ *
+ * Services (see chunkrt_ipc::services::Namespace), publish-subscribe, for namespace NS:
+ *   NS/joint_state    payload JointState,       user header none
+ *   NS/joint_command  payload JointCommand,     user header none
+ *   NS/status         payload ControllerStatus, user header none
+ *   NS/camera/NAME    payload uint8_t[] (slice, "u8"), user header CameraFrameHeader
+ */
+#ifndef CHUNKRT_IPC_H
+#define CHUNKRT_IPC_H
+
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* ---- contract ------------------------------------------------------------------------- */
+
+/** Largest number of joints a message can carry. */
+#define CHUNKRT_MAX_DOF 16
+/** Version of the message contract; part of every type name. */
+#define CHUNKRT_CONTRACT_VERSION 1u
+
+/* iceoryx2 type names (must equal the Rust #[type_name]s). */
+#define CHUNKRT_TYPE_NAME_CAMERA_FRAME_HEADER "chunkrt.CameraFrameHeader.v1"
+#define CHUNKRT_TYPE_NAME_JOINT_STATE "chunkrt.JointState.v1"
+#define CHUNKRT_TYPE_NAME_JOINT_COMMAND "chunkrt.JointCommand.v1"
+#define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v1"
+/** Element type name of the camera pixel slice. */
+#define CHUNKRT_TYPE_NAME_PIXEL "u8"
+
+/* ---- quality of service (ipc/src/services.rs) ------------------------------------------ */
+
+/** Subscriber buffer of the joint state / command / status services. */
+#define CHUNKRT_BUFFER_SIZE 4
+/** Subscriber buffer of a camera service. */
+#define CHUNKRT_CAMERA_BUFFER_SIZE 2
+/** Late joiners get the last sample. */
+#define CHUNKRT_HISTORY_SIZE 1
+/** Processes per service. */
+#define CHUNKRT_MAX_NODES 16
+/** Subscribers per service. */
+#define CHUNKRT_MAX_SUBSCRIBERS 8
+/** Publishers per service. */
+#define CHUNKRT_MAX_PUBLISHERS 4
+/** Samples a subscriber may hold at once. */
+#define CHUNKRT_SUBSCRIBER_MAX_BORROWED_SAMPLES 2
+/** Samples a publisher may loan at once. */
+#define CHUNKRT_PUBLISHER_MAX_LOANED_SAMPLES 2
+/** Safe overflow: a full subscriber buffer drops its oldest sample (1 = enabled). */
+#define CHUNKRT_ENABLE_SAFE_OVERFLOW 1
+
+/* ---- camera frames --------------------------------------------------------------------- */
+
+/** 8-bit RGB, 3 bytes per pixel. */
+#define CHUNKRT_ENCODING_RGB8 1u
+/** 8-bit BGR, 3 bytes per pixel. */
+#define CHUNKRT_ENCODING_BGR8 2u
+/** 8-bit grey, 1 byte per pixel. */
+#define CHUNKRT_ENCODING_MONO8 3u
+
+/** User header of a camera frame; the pixels are the sample's uint8_t payload
+ *  (stride * height bytes, rows top to bottom). */
+typedef struct CameraFrameHeader {
+    uint64_t seq;             /**< frame counter of this camera, +1 per frame */
+    uint64_t capture_time_ns; /**< when the image was exposed (monotonic ns) */
+    uint64_t publish_time_ns; /**< when the sample was handed to iceoryx2 (monotonic ns) */
+    uint32_t camera_id;       /**< index of the camera in the robot's configuration */
+    uint32_t encoding;        /**< CHUNKRT_ENCODING_* */
+    uint32_t width;           /**< pixels per row */
+    uint32_t height;          /**< rows */
+    uint32_t stride;          /**< bytes per row (>= width * bytes per pixel) */
+    uint32_t reserved;        /**< zero */
+} CameraFrameHeader;
+
+/* ---- joint state (robot -> controller) ------------------------------------------------- */
+
+/** The robot's watchdog holds position (no fresh, in-deadline command). */
+#define CHUNKRT_JOINT_STATUS_HOLDING (1u << 0)
+/** The last command arrived after its deadline and was ignored. */
+#define CHUNKRT_JOINT_STATUS_COMMAND_EXPIRED (1u << 1)
+/** No command arrived for longer than the robot's command timeout. */
+#define CHUNKRT_JOINT_STATUS_COMMAND_TIMEOUT (1u << 2)
+/** The last command failed validation. */
+#define CHUNKRT_JOINT_STATUS_COMMAND_REJECTED (1u << 3)
+/** A commanded value was outside the robot's limits and was clamped. */
+#define CHUNKRT_JOINT_STATUS_LIMIT_CLAMPED (1u << 4)
+
+/** Measured joint state published by the robot driver. */
+typedef struct JointState {
+    uint64_t seq;                      /**< +1 per message */
+    uint64_t measurement_time_ns;      /**< when the joints were measured (monotonic ns) */
+    uint32_t n_dof;                    /**< valid joints, 1 ..= CHUNKRT_MAX_DOF */
+    uint32_t status_flags;             /**< CHUNKRT_JOINT_STATUS_* bits */
+    double position[CHUNKRT_MAX_DOF];  /**< rad or m */
+    double velocity[CHUNKRT_MAX_DOF];  /**< per second */
+    double effort[CHUNKRT_MAX_DOF];    /**< N*m or N */
+} JointState;
+
+/* ---- joint command (controller -> robot) ----------------------------------------------- */
+
+/** Track position, with velocity and acceleration as feed-forward. */
+#define CHUNKRT_COMMAND_MODE_POSITION 1u
+/** Hold the commanded position. */
+#define CHUNKRT_COMMAND_MODE_HOLD 2u
+
+/** Command published by the controller every control tick. */
+typedef struct JointCommand {
+    uint64_t seq;                         /**< +1 per tick */
+    uint64_t publish_time_ns;             /**< monotonic ns */
+    uint64_t deadline_ns;                 /**< must not be applied after this (monotonic ns) */
+    uint64_t observation_seq;             /**< joint state seq behind the chunk (0: none) */
+    uint64_t chunk_id;                    /**< action chunk id (0: none) */
+    uint32_t n_dof;                       /**< valid joints */
+    uint32_t mode;                        /**< CHUNKRT_COMMAND_MODE_* */
+    double position[CHUNKRT_MAX_DOF];     /**< target positions */
+    double velocity[CHUNKRT_MAX_DOF];     /**< target velocities */
+    double acceleration[CHUNKRT_MAX_DOF]; /**< target accelerations */
+} JointCommand;
+
+/* ---- controller status (controller -> anyone) ------------------------------------------ */
+
+#define CHUNKRT_CONTROLLER_STATE_STARTING 0u
+#define CHUNKRT_CONTROLLER_STATE_HOLD 1u
+#define CHUNKRT_CONTROLLER_STATE_RUNNING 2u
+#define CHUNKRT_CONTROLLER_STATE_FAULT 3u
+
+/* Rejection reasons: indices into ControllerStatus.rejected. */
+#define CHUNKRT_REJECT_REASON_COUNT 8
+#define CHUNKRT_REJECT_N_DOF 0u
+#define CHUNKRT_REJECT_NON_FINITE 1u
+#define CHUNKRT_REJECT_FRAME_GEOMETRY 2u
+#define CHUNKRT_REJECT_UNKNOWN_CODE 3u
+#define CHUNKRT_REJECT_OUT_OF_ORDER 4u
+#define CHUNKRT_REJECT_FROM_FUTURE 5u
+#define CHUNKRT_REJECT_STALE 6u
+#define CHUNKRT_REJECT_OTHER 7u
+
+/** Status published by the controller. */
+typedef struct ControllerStatus {
+    uint64_t seq;
+    uint64_t publish_time_ns;
+    uint32_t state; /**< CHUNKRT_CONTROLLER_STATE_* */
+    uint32_t n_dof;
+    uint64_t ticks;
+    uint64_t overruns;
+    uint64_t chunks;
+    uint64_t joint_states;
+    uint64_t frames;
+    uint64_t rejected[CHUNKRT_REJECT_REASON_COUNT]; /**< by CHUNKRT_REJECT_* */
+    uint64_t last_inference_latency_ns;
+    uint64_t lateness_p50_ns;
+    uint64_t lateness_p99_ns;
+    uint64_t lateness_max_ns;
+    uint64_t compute_p50_ns;
+    uint64_t compute_p99_ns;
+    uint64_t compute_max_ns;
+    uint64_t joint_state_age_ns;
+    uint64_t hold_entries;
+} ControllerStatus;
+
+/* ---- compile-time layout checks (the full per-field check is in tests/ipc_layout.rs) ---- */
+
+#if defined(__cplusplus)
+#define CHUNKRT_STATIC_ASSERT(c, m) static_assert(c, m)
+#else
+#define CHUNKRT_STATIC_ASSERT(c, m) _Static_assert(c, m)
+#endif
+CHUNKRT_STATIC_ASSERT(sizeof(CameraFrameHeader) == 48, "CameraFrameHeader size");
+CHUNKRT_STATIC_ASSERT(sizeof(JointState) == 24 + 3 * 8 * CHUNKRT_MAX_DOF, "JointState size");
+CHUNKRT_STATIC_ASSERT(sizeof(JointCommand) == 48 + 3 * 8 * CHUNKRT_MAX_DOF, "JointCommand size");
+CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 9 * 8,
+                      "ControllerStatus size");
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CHUNKRT_IPC_H */
