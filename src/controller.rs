@@ -21,7 +21,7 @@ use hdrhistogram::Histogram;
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
     controller_state_name, monotonic_ns, sleep_until_ns, Config, ControllerStatus, JointCommand,
-    JointState, RejectReason, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD, CONTROLLER_STATE_RUNNING,
+    JointState, RejectReason, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD,
     CONTROLLER_STATE_STARTING, MAX_DOF,
 };
 
@@ -686,6 +686,16 @@ pub fn print_summary(shared: &Shared, summary: &Summary) {
     }
 }
 
+/// Per-camera frame counts, `name=count` separated by spaces.
+pub fn frames_per_camera(cfg: &Config, shared: &Shared) -> String {
+    cfg.cameras
+        .iter()
+        .zip(shared.counters.frames_per_camera.iter())
+        .map(|(c, n)| format!("{}={}", c.name, n.load(Ordering::Relaxed)))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
 /// `chunkrt run`: the controller until SIGINT / SIGTERM or `--duration`.
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let cfg = load_config(args.config.as_ref(), args.namespace.as_deref())?;
@@ -723,6 +733,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let summary = controller.stop()?;
     controller_log_final(&cfg, &shared);
     print_summary(&shared, &summary);
+    println!("  frames per camera: {}", frames_per_camera(&cfg, &shared));
     Ok(())
 }
 

@@ -19,6 +19,9 @@ use chunkrt_ipc::{
     REJECT_REASON_COUNT,
 };
 
+/// Cameras with a counter of their own in [`Counters::frames_per_camera`].
+pub const MAX_COUNTED_CAMERAS: usize = 8;
+
 /// Counters shared by every thread of the controller (atomics only: no locks).
 #[derive(Debug, Default)]
 pub struct Counters {
@@ -28,6 +31,9 @@ pub struct Counters {
     pub joint_states: AtomicU64,
     /// Camera frames accepted (all cameras).
     pub frames: AtomicU64,
+    /// Camera frames accepted, per camera (configuration order; cameras past
+    /// [`MAX_COUNTED_CAMERAS`] count only in `frames`).
+    pub frames_per_camera: [AtomicU64; MAX_COUNTED_CAMERAS],
     /// Receive errors reported by iceoryx2 itself.
     pub receive_errors: AtomicU64,
     /// Publish errors reported by iceoryx2 itself.
@@ -285,6 +291,9 @@ impl CameraInput {
                         f.valid = true;
                         accepted += 1;
                         counters.frames.fetch_add(1, Ordering::Relaxed);
+                        if let Some(c) = counters.frames_per_camera.get(i) {
+                            c.fetch_add(1, Ordering::Relaxed);
+                        }
                     }
                     Err(error) => {
                         counters.reject(error.reason());

@@ -1,0 +1,318 @@
+//! End-to-end: fake camera + simulated robot + `chunkrt run` as real processes over real
+//! iceoryx2 services, each test in a namespace of its own.
+
+use std::time::{Duration, Instant};
+
+use chunkrt_ipc::services::{self, Ipc};
+use chunkrt_ipc::{
+    monotonic_ns, CameraFrameHeader, Config, ControllerStatus, JointCommand, JointState,
+    Namespace, RejectReason, ENCODING_RGB8, JOINT_STATUS_LIMIT_CLAMPED,
+};
+use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};
+use iceoryx2::prelude::*;
+
+const EXE: &str = env!("CARGO_BIN_EXE_chunkrt");
+
+/// The process tests share two cores: one at a time, so rate assertions measure chunkrt and
+/// not the other tests.
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn start(sub: &str, ns: &str, extra: &[&str]) -> ChildGuard {
+    let mut args = vec![sub, "--namespace", ns];
+    args.extend_from_slice(extra);
+    ChildGuard::spawn(EXE, &args).expect("spawn chunkrt")
+}
+
+/// SIGKILL: the process gets no chance to clean up its iceoryx2 resources.
+fn kill9(g: ChildGuard) {
+    // SAFETY: kill(2) on our own child.
+    unsafe { libc::kill(g.id() as libc::pid_t, libc::SIGKILL) };
+    drop(g);
+}
+
+/// Receives everything the test needs to watch, from the test process itself.
+struct Watch {
+    _node: Node<Ipc>,
+    status: iceoryx2::port::subscriber::Subscriber<Ipc, ControllerStatus, ()>,
+    js: iceoryx2::port::subscriber::Subscriber<Ipc, JointState, ()>,
+    cmd: iceoryx2::port::subscriber::Subscriber<Ipc, JointCommand, ()>,
+    last_status: ControllerStatus,
+    last_js: JointState,
+    commands: Vec<JointCommand>,
+}
+
+impl Watch {
+    fn new(ns: &str) -> Self {
+        let ns = Namespace::new(ns).unwrap();
+        let node = services::node(&format!("test-watch-{}", std::process::id())).unwrap();
+        let status = services::subscriber(
+            &services::status_service(&node, &ns.status()).unwrap(),
+            "status",
+        )
+        .unwrap();
+        let js = services::subscriber(
+            &services::joint_state_service(&node, &ns.joint_state()).unwrap(),
+            "js",
+        )
+        .unwrap();
+        let cmd = services::subscriber(
+            &services::joint_command_service(&node, &ns.joint_command()).unwrap(),
+            "cmd",
+        )
+        .unwrap();
+        Self {
+            _node: node,
+            status,
+            js,
+            cmd,
+            last_status: ControllerStatus::default(),
+            last_js: JointState::default(),
+            commands: Vec::new(),
+        }
+    }
+
+    /// Polls every ~0.5 ms for `d`.
+    fn pump(&mut self, d: Duration) {
+        let t0 = Instant::now();
+        while t0.elapsed() < d {
+            while let Ok(Some(s)) = self.status.receive() {
+                self.last_status = *s.payload();
+            }
+            while let Ok(Some(s)) = self.js.receive() {
+                self.last_js = *s.payload();
+            }
+            while let Ok(Some(s)) = self.cmd.receive() {
+                self.commands.push(*s.payload());
+            }
+            std::thread::sleep(Duration::from_micros(500));
+        }
+    }
+
+    fn wait_for(&mut self, timeout: Duration, what: &str, mut f: impl FnMut(&Self) -> bool) {
+        let t0 = Instant::now();
+        while !f(self) {
+            assert!(t0.elapsed() < timeout, "timed out waiting for {what}");
+            self.pump(Duration::from_millis(20));
+        }
+    }
+}
+
+#[test]
+fn controller_holds_the_robot_and_sees_every_camera() {
+    let _serial = serial();
+    let ns = unique_namespace("e2e");
+    let cfg = Config::embedded_default();
+    let robot = start("fake-robot", &ns, &[]);
+    let camera = start("fake-camera", &ns, &[]);
+    let ctl = start("run", &ns, &["--log-every", "0"]);
+    let mut w = Watch::new(&ns);
+    w.wait_for(Duration::from_secs(15), "the controller to hold", |w| {
+        w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_HOLD && w.last_status.frames > 10
+    });
+    w.pump(Duration::from_millis(200));
+    // steady state window of about 2 s
+    let (s1, js1, t1) = (w.last_status, w.last_js, monotonic_ns());
+    w.commands.clear();
+    w.pump(Duration::from_secs(2));
+    let (s2, js2, t2) = (w.last_status, w.last_js, monotonic_ns());
+
+    // ≥ 95 % of the joint states the robot published were received and accepted
+    let published = (js2.seq - js1.seq) as f64;
+    let received = (s2.joint_states - s1.joint_states) as f64;
+    assert!(published > 1000.0, "robot published only {published}");
+    assert!(
+        received >= 0.95 * published,
+        "controller accepted {received} of {published} joint states"
+    );
+    // commands at the control rate within 5 %, measured on the commands' own clock
+    let first = w.commands.first().copied().expect("commands received");
+    let last = w.commands.last().copied().unwrap();
+    let rate = (last.seq - first.seq) as f64 / ((last.publish_time_ns - first.publish_time_ns) as f64 / 1e9);
+    assert!(
+        (rate - cfg.control.rate_hz).abs() <= 0.05 * cfg.control.rate_hz,
+        "command rate {rate:.1} Hz"
+    );
+    // every command within the joint limits, with a deadline in the future of its publication
+    for c in &w.commands {
+        assert_eq!(c.n_dof as usize, cfg.n_dof());
+        assert!(c.deadline_ns > c.publish_time_ns);
+        for (i, j) in cfg.robot.joints.iter().enumerate() {
+            assert!(
+                c.position[i] >= j.position_min && c.position[i] <= j.position_max,
+                "joint {i} command {} outside limits",
+                c.position[i]
+            );
+            assert_eq!(c.velocity[i], 0.0);
+        }
+    }
+    assert_eq!(js2.status_flags & JOINT_STATUS_LIMIT_CLAMPED, 0);
+    // the held robot does not drift
+    for i in 0..cfg.n_dof() {
+        let d = (js2.position[i] - js1.position[i]).abs();
+        assert!(d < 1e-6, "joint {i} drifted by {d} rad over {} s", (t2 - t1) / 1_000_000_000);
+    }
+    // frames from every camera
+    let out = ctl.terminate(Duration::from_secs(5));
+    assert_eq!(out.code, Some(0), "controller exit: {}", out.stderr);
+    let line = out
+        .stdout
+        .lines()
+        .find(|l| l.contains("frames per camera"))
+        .unwrap_or_else(|| panic!("no per-camera line in {}", out.stdout));
+    for cam in &cfg.cameras {
+        let n = summary_value(line, &cam.name).unwrap_or(0.0);
+        assert!(n > 10.0, "camera {} delivered {n} frames: {line}", cam.name);
+    }
+    assert_eq!(s2.rejected.iter().sum::<u64>(), 0, "nothing rejected in a clean run");
+    let r = robot.terminate(Duration::from_secs(5));
+    assert_eq!(summary_value(&r.stdout, "commands_rejected"), Some(0.0), "{}", r.stdout);
+    drop(camera);
+}
+
+#[test]
+fn controller_survives_robot_and_camera_restarts() {
+    let _serial = serial();
+    let ns = unique_namespace("restart");
+    let robot = start("fake-robot", &ns, &[]);
+    let camera = start("fake-camera", &ns, &[]);
+    let mut ctl = start("run", &ns, &["--log-every", "0"]);
+    let mut w = Watch::new(&ns);
+    w.wait_for(Duration::from_secs(15), "hold", |w| {
+        w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_HOLD
+    });
+    // kill -9 both devices: no clean-up on their side
+    kill9(robot);
+    kill9(camera);
+    w.wait_for(Duration::from_secs(5), "the controller to notice", |w| {
+        w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_STARTING
+    });
+    assert!(ctl.running(), "controller died with its robot");
+    let before = w.last_status;
+    // restart both; the controller picks them up again (new publishers, seq from 0)
+    let robot = start("fake-robot", &ns, &[]);
+    let camera = start("fake-camera", &ns, &[]);
+    w.wait_for(Duration::from_secs(15), "hold again", |w| {
+        w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_HOLD
+            && w.last_status.joint_states > before.joint_states + 500
+            && w.last_status.frames > before.frames + 5
+    });
+    w.commands.clear();
+    w.pump(Duration::from_millis(300));
+    assert!(w.commands.len() > 50, "commands flow again");
+    assert_eq!(
+        w.last_status.rejected[RejectReason::OutOfOrder.code()],
+        0,
+        "a restarted publisher starts a new stream, not an out-of-order one"
+    );
+    assert!(ctl.running());
+    let out = ctl.terminate(Duration::from_secs(5));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    drop((robot, camera));
+}
+
+#[test]
+fn malformed_messages_are_rejected_and_counted() {
+    let _serial = serial();
+    let ns = unique_namespace("bad");
+    let ctl = start("run", &ns, &["--log-every", "0"]);
+    let mut w = Watch::new(&ns);
+    w.wait_for(Duration::from_secs(15), "the controller's status", |w| {
+        w.last_status.seq > 0
+    });
+    let nsp = Namespace::new(&ns).unwrap();
+    let node = services::node("test-bad-publisher").unwrap();
+    let js_pub = services::publisher(
+        &services::joint_state_service(&node, &nsp.joint_state()).unwrap(),
+        "js",
+    )
+    .unwrap();
+    let cfg = Config::embedded_default();
+    let good = |seq: u64, t: u64| {
+        let mut s = JointState {
+            seq,
+            measurement_time_ns: t,
+            n_dof: cfg.n_dof() as u32,
+            ..Default::default()
+        };
+        s.position[1] = 1.2;
+        s
+    };
+    let send = |s: JointState| {
+        js_pub.send_copy(s).unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    let t = monotonic_ns();
+    send(good(1, t));
+    send(JointState { n_dof: 99, ..good(2, monotonic_ns()) }); // n_dof too large
+    let mut nan = good(3, monotonic_ns());
+    nan.position[0] = f64::NAN;
+    send(nan);
+    send(good(4, monotonic_ns()));
+    send(good(5, t)); // time going backwards
+    send(good(4, monotonic_ns())); // seq not increasing
+    send(good(6, monotonic_ns() + 10_000_000_000)); // from the future
+    send(good(7, monotonic_ns() - 10_000_000_000)); // stale
+    // a camera frame whose stride does not match its payload
+    let cam = &cfg.cameras[0];
+    let cam_name = nsp.camera(&cam.name);
+    let cam_pub = services::camera_publisher(
+        &services::camera_service(&node, &cam_name).unwrap(),
+        &cam_name,
+        (cam.width * cam.height * 3) as usize,
+    )
+    .unwrap();
+    let mut sample = cam_pub.loan_slice_uninit(100).unwrap();
+    *sample.user_header_mut() = CameraFrameHeader {
+        seq: 1,
+        capture_time_ns: monotonic_ns(),
+        publish_time_ns: monotonic_ns(),
+        camera_id: 0,
+        encoding: ENCODING_RGB8,
+        width: 10,
+        height: 10,
+        stride: 30,
+        reserved: 0,
+    };
+    sample.write_from_fn(|_| 0u8).send().unwrap();
+
+    let want = [
+        (RejectReason::NDof, 1),
+        (RejectReason::NonFinite, 1),
+        (RejectReason::OutOfOrder, 2),
+        (RejectReason::FromFuture, 1),
+        (RejectReason::Stale, 1),
+        (RejectReason::FrameGeometry, 1),
+    ];
+    w.wait_for(Duration::from_secs(5), "the rejections in the status", |w| {
+        want.iter()
+            .all(|(r, n)| w.last_status.rejected[r.code()] >= *n)
+    });
+    for (r, n) in want {
+        assert_eq!(w.last_status.rejected[r.code()], n, "{}", r.name());
+    }
+    assert_eq!(w.last_status.joint_states, 2, "the two good states were accepted");
+    let out = ctl.terminate(Duration::from_secs(5));
+    assert_eq!(out.code, Some(0), "controller exit: {}", out.stderr);
+    assert!(out.stderr.contains("rejected joint_state message (n_dof)"), "{}", out.stderr);
+    assert!(out.stderr.contains("frame_geometry"), "{}", out.stderr);
+}
+
+#[test]
+fn bad_config_is_a_clear_error() {
+    let dir = std::env::temp_dir().join(format!("chunkrt-badcfg-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("bad.toml");
+    let text = chunkrt_ipc::config::DEFAULT_TOML.replace("rate_hz = 1000.0", "rate_hz = 5.0");
+    std::fs::write(&path, text).unwrap();
+    let out = std::process::Command::new(EXE)
+        .args(["run", "--config", path.to_str().unwrap(), "--duration", "0.1"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("bad.toml") && err.contains("control.rate_hz") && err.contains("10..=10000"), "{err}");
+}
