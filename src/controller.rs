@@ -21,8 +21,8 @@ use hdrhistogram::Histogram;
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
     controller_state_name, monotonic_ns, sleep_until_ns, Config, ControllerStatus, JointCommand,
-    JointState, RejectReason, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD,
-    CONTROLLER_STATE_STARTING, MAX_DOF,
+    JointState, RejectReason, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD, CONTROLLER_STATE_STARTING,
+    MAX_DOF,
 };
 
 use crate::chunk::ActionChunk;
@@ -99,8 +99,12 @@ pub struct TickOutcome {
 /// be tested alone. Must not allocate, block or do I/O.
 pub trait ControlTick: Send {
     /// Computes the command for `now_ns` from the newest valid joint state (if any).
-    fn tick(&mut self, now_ns: u64, joint_state: Option<&JointState>, cmd: &mut JointCommand)
-        -> TickOutcome;
+    fn tick(
+        &mut self,
+        now_ns: u64,
+        joint_state: Option<&JointState>,
+        cmd: &mut JointCommand,
+    ) -> TickOutcome;
 }
 
 /// Holds the robot still: STARTING until a fresh joint state arrives, then commands the
@@ -526,7 +530,8 @@ fn control_thread(
     while !shared.stop.load(Ordering::Relaxed) {
         sleep_until_ns(next);
         let wake = monotonic_ns();
-        hist.lateness.saturating_record(wake.saturating_sub(next).max(1));
+        hist.lateness
+            .saturating_record(wake.saturating_sub(next).max(1));
 
         js.poll(wake, &shared.counters, &shared.events);
         let out = tick.tick(wake, js.latest(), &mut cmd);
@@ -597,7 +602,8 @@ fn control_thread(
         }
 
         let end = monotonic_ns();
-        hist.compute.saturating_record(end.saturating_sub(wake).max(1));
+        hist.compute
+            .saturating_record(end.saturating_sub(wake).max(1));
         next += period;
         if end > next {
             // finished after the next deadline: count it, and skip the ticks already missed
@@ -662,10 +668,7 @@ pub fn print_summary(shared: &Shared, summary: &Summary) {
             us(h.max()),
         )
     };
-    println!(
-        "chunkrt summary: {:.2} s, {}",
-        summary.seconds, summary.rt
-    );
+    println!("chunkrt summary: {:.2} s, {}", summary.seconds, summary.rt);
     println!(
         "  {:<10} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9}",
         "us", "count", "p50", "p90", "p99", "p99.9", "max"
@@ -715,7 +718,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             cfg.policy.kind
         );
     }
-    let controller = Controller::start(cfg.clone(), Box::new(HoldTick::new(&cfg)), Box::new(HoldSource))?;
+    let controller = Controller::start(
+        cfg.clone(),
+        Box::new(HoldTick::new(&cfg)),
+        Box::new(HoldSource),
+    )?;
     let started = std::time::Instant::now();
     let mut last_log = std::time::Instant::now();
     while !stop_flag.load(Ordering::Relaxed) && controller.is_running() {
@@ -725,7 +732,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             tracing::info!("{}", status_line(controller.shared()));
             last_log = std::time::Instant::now();
         }
-        if args.duration.is_some_and(|d| started.elapsed().as_secs_f64() >= d) {
+        if args
+            .duration
+            .is_some_and(|d| started.elapsed().as_secs_f64() >= d)
+        {
             break;
         }
     }

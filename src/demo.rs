@@ -11,7 +11,9 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 
 use chunkrt_ipc::services;
-use chunkrt_ipc::{controller_state_name, monotonic_ns, ControllerStatus, JointState, RejectReason};
+use chunkrt_ipc::{
+    controller_state_name, monotonic_ns, ControllerStatus, JointState, RejectReason,
+};
 
 /// `chunkrt demo`.
 #[derive(Debug, clap::Args)]
@@ -85,10 +87,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         .unwrap_or_else(|| format!("{}-{}", cfg.robot.namespace, std::process::id()));
     let cfg = crate::controller::load_config(args.config.as_ref(), Some(&ns))?;
     let exe = std::env::current_exe().context("cannot find the chunkrt executable")?;
-    let log_dir = args
-        .log_dir
-        .clone()
-        .unwrap_or_else(|| std::env::temp_dir().join(format!("chunkrt-demo-{}", std::process::id())));
+    let log_dir = args.log_dir.clone().unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("chunkrt-demo-{}", std::process::id()))
+    });
     std::fs::create_dir_all(&log_dir)
         .with_context(|| format!("cannot create {}", log_dir.display()))?;
 
@@ -134,7 +135,8 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let mut early_exit = None;
     let tty = std::io::IsTerminal::is_terminal(&std::io::stdout());
     let mut last_line = -1.0f64;
-    while started.elapsed().as_secs_f64() < args.duration && !stop_flag.load(std::sync::atomic::Ordering::Relaxed)
+    while started.elapsed().as_secs_f64() < args.duration
+        && !stop_flag.load(std::sync::atomic::Ordering::Relaxed)
     {
         std::thread::sleep(Duration::from_millis(100));
         while let Ok(Some(s)) = status_sub.receive() {
@@ -154,7 +156,10 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
             break;
         }
         let n = (js.n_dof as usize).min(chunkrt_ipc::MAX_DOF);
-        let pos: Vec<String> = js.position[..n].iter().map(|p| format!("{p:+.3}")).collect();
+        let pos: Vec<String> = js.position[..n]
+            .iter()
+            .map(|p| format!("{p:+.3}"))
+            .collect();
         let age_ms = if js.measurement_time_ns == 0 {
             f64::NAN
         } else {

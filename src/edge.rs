@@ -75,10 +75,7 @@ pub enum EdgeEvent {
         error: ValidationError,
     },
     /// iceoryx2 reported an error on a port.
-    PortError {
-        source: Source,
-        publish: bool,
-    },
+    PortError { source: Source, publish: bool },
 }
 
 /// Lock-free, fixed-capacity ring of events (a full ring drops the newest; the counters still

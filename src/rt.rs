@@ -135,11 +135,7 @@ pub fn prefault_stack(bytes: usize) {
 }
 
 /// Applies every real-time measure to the calling thread and reports what took effect.
-pub fn make_current_thread_realtime(
-    core: Option<usize>,
-    priority: i32,
-    lock: bool,
-) -> RtOutcome {
+pub fn make_current_thread_realtime(core: Option<usize>, priority: i32, lock: bool) -> RtOutcome {
     let pinned = pin_current_thread(core.unwrap_or_else(default_control_core));
     let fifo = set_current_thread_fifo(priority);
     let locked = if lock {

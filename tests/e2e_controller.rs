@@ -5,8 +5,8 @@ use std::time::{Duration, Instant};
 
 use chunkrt_ipc::services::{self, Ipc};
 use chunkrt_ipc::{
-    monotonic_ns, CameraFrameHeader, Config, ControllerStatus, JointCommand, JointState,
-    Namespace, RejectReason, ENCODING_RGB8, JOINT_STATUS_LIMIT_CLAMPED,
+    monotonic_ns, CameraFrameHeader, Config, ControllerStatus, JointCommand, JointState, Namespace,
+    RejectReason, ENCODING_RGB8, JOINT_STATUS_LIMIT_CLAMPED,
 };
 use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};
 use iceoryx2::prelude::*;
@@ -131,7 +131,8 @@ fn controller_holds_the_robot_and_sees_every_camera() {
     // commands at the control rate within 5 %, measured on the commands' own clock
     let first = w.commands.first().copied().expect("commands received");
     let last = w.commands.last().copied().unwrap();
-    let rate = (last.seq - first.seq) as f64 / ((last.publish_time_ns - first.publish_time_ns) as f64 / 1e9);
+    let rate = (last.seq - first.seq) as f64
+        / ((last.publish_time_ns - first.publish_time_ns) as f64 / 1e9);
     assert!(
         (rate - cfg.control.rate_hz).abs() <= 0.05 * cfg.control.rate_hz,
         "command rate {rate:.1} Hz"
@@ -153,7 +154,11 @@ fn controller_holds_the_robot_and_sees_every_camera() {
     // the held robot does not drift
     for i in 0..cfg.n_dof() {
         let d = (js2.position[i] - js1.position[i]).abs();
-        assert!(d < 1e-6, "joint {i} drifted by {d} rad over {} s", (t2 - t1) / 1_000_000_000);
+        assert!(
+            d < 1e-6,
+            "joint {i} drifted by {d} rad over {} s",
+            (t2 - t1) / 1_000_000_000
+        );
     }
     // frames from every camera
     let out = ctl.terminate(Duration::from_secs(5));
@@ -167,9 +172,18 @@ fn controller_holds_the_robot_and_sees_every_camera() {
         let n = summary_value(line, &cam.name).unwrap_or(0.0);
         assert!(n > 10.0, "camera {} delivered {n} frames: {line}", cam.name);
     }
-    assert_eq!(s2.rejected.iter().sum::<u64>(), 0, "nothing rejected in a clean run");
+    assert_eq!(
+        s2.rejected.iter().sum::<u64>(),
+        0,
+        "nothing rejected in a clean run"
+    );
     let r = robot.terminate(Duration::from_secs(5));
-    assert_eq!(summary_value(&r.stdout, "commands_rejected"), Some(0.0), "{}", r.stdout);
+    assert_eq!(
+        summary_value(&r.stdout, "commands_rejected"),
+        Some(0.0),
+        "{}",
+        r.stdout
+    );
     drop(camera);
 }
 
@@ -247,7 +261,10 @@ fn malformed_messages_are_rejected_and_counted() {
     };
     let t = monotonic_ns();
     send(good(1, t));
-    send(JointState { n_dof: 99, ..good(2, monotonic_ns()) }); // n_dof too large
+    send(JointState {
+        n_dof: 99,
+        ..good(2, monotonic_ns())
+    }); // n_dof too large
     let mut nan = good(3, monotonic_ns());
     nan.position[0] = f64::NAN;
     send(nan);
@@ -256,7 +273,7 @@ fn malformed_messages_are_rejected_and_counted() {
     send(good(4, monotonic_ns())); // seq not increasing
     send(good(6, monotonic_ns() + 10_000_000_000)); // from the future
     send(good(7, monotonic_ns() - 10_000_000_000)); // stale
-    // a camera frame whose stride does not match its payload
+                                                    // a camera frame whose stride does not match its payload
     let cam = &cfg.cameras[0];
     let cam_name = nsp.camera(&cam.name);
     let cam_pub = services::camera_publisher(
@@ -287,17 +304,28 @@ fn malformed_messages_are_rejected_and_counted() {
         (RejectReason::Stale, 1),
         (RejectReason::FrameGeometry, 1),
     ];
-    w.wait_for(Duration::from_secs(5), "the rejections in the status", |w| {
-        want.iter()
-            .all(|(r, n)| w.last_status.rejected[r.code()] >= *n)
-    });
+    w.wait_for(
+        Duration::from_secs(5),
+        "the rejections in the status",
+        |w| {
+            want.iter()
+                .all(|(r, n)| w.last_status.rejected[r.code()] >= *n)
+        },
+    );
     for (r, n) in want {
         assert_eq!(w.last_status.rejected[r.code()], n, "{}", r.name());
     }
-    assert_eq!(w.last_status.joint_states, 2, "the two good states were accepted");
+    assert_eq!(
+        w.last_status.joint_states, 2,
+        "the two good states were accepted"
+    );
     let out = ctl.terminate(Duration::from_secs(5));
     assert_eq!(out.code, Some(0), "controller exit: {}", out.stderr);
-    assert!(out.stderr.contains("rejected joint_state message (n_dof)"), "{}", out.stderr);
+    assert!(
+        out.stderr.contains("rejected joint_state message (n_dof)"),
+        "{}",
+        out.stderr
+    );
     assert!(out.stderr.contains("frame_geometry"), "{}", out.stderr);
 }
 
@@ -309,10 +337,19 @@ fn bad_config_is_a_clear_error() {
     let text = chunkrt_ipc::config::DEFAULT_TOML.replace("rate_hz = 1000.0", "rate_hz = 5.0");
     std::fs::write(&path, text).unwrap();
     let out = std::process::Command::new(EXE)
-        .args(["run", "--config", path.to_str().unwrap(), "--duration", "0.1"])
+        .args([
+            "run",
+            "--config",
+            path.to_str().unwrap(),
+            "--duration",
+            "0.1",
+        ])
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("bad.toml") && err.contains("control.rate_hz") && err.contains("10..=10000"), "{err}");
+    assert!(
+        err.contains("bad.toml") && err.contains("control.rate_hz") && err.contains("10..=10000"),
+        "{err}"
+    );
 }
