@@ -364,7 +364,7 @@ pub fn read_interval_log(path: &Path) -> Result<Vec<Series>, ReportError> {
 }
 
 /// Percentile axis position of a quantile: `log10(1 / (1 - q))` (0 → 0 %, 1 → 90 %, 2 → 99 %…).
-fn percentile_x(q: f64) -> f64 {
+pub fn percentile_x(q: f64) -> f64 {
     (1.0 / (1.0 - q).max(1e-12)).log10()
 }
 
