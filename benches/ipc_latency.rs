@@ -9,6 +9,7 @@ use chunkrt::bench::ipc_latency::{self, Options, PeerCommand};
 use chunkrt::bench::BenchError;
 
 fn main() {
+    iceoryx2::prelude::set_log_level(iceoryx2::prelude::LogLevel::Error);
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.first().map(String::as_str) == Some("--peer") {
         if let Err(e) = ipc_latency::peer_from_args(args.into_iter().skip(1)) {

@@ -7,6 +7,7 @@ use chunkrt::bench::{output_root, BenchOpts};
 const NAME: &str = "ipc_latency_quick";
 
 fn main() {
+    iceoryx2::prelude::set_log_level(iceoryx2::prelude::LogLevel::Error);
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.first().map(String::as_str) == Some("--peer") {
         if let Err(e) = ipc_latency::peer_from_args(args.into_iter().skip(1)) {
@@ -47,7 +48,11 @@ fn main() {
         assert_eq!(c.lost, 0, "{}: lost samples", c.name);
         assert_eq!(c.ours.count, 100, "{}: sample count", c.name);
         assert!(c.ours.p50_ns > 0, "{}: zero latency is impossible", c.name);
-        assert!(c.ours.p50_ns <= c.ours_rtt.p50_ns, "{}: one way > round trip", c.name);
+        assert!(
+            c.ours.p50_ns <= c.ours_rtt.p50_ns,
+            "{}: one way > round trip",
+            c.name
+        );
     }
     let js = &s.cases[0];
     assert!(
@@ -55,12 +60,22 @@ fn main() {
         "joint state p50 {} ns: iceoryx2 should be well under 1 ms",
         js.ours.p50_ns
     );
-    let big = s.cases.iter().find(|c| c.name == "cam3_640x480").expect("case exists");
+    let big = s
+        .cases
+        .iter()
+        .find(|c| c.name == "cam3_640x480")
+        .expect("case exists");
     assert_eq!(big.bytes, 3 * 640 * 480 * 3);
     match (s.p50_ratio, &s.cases[0].baseline) {
         (Some(r), Some(_)) => {
-            assert!(r > 1.0, "websocket+msgpack faster than shared memory? ratio {r}");
-            assert!(s.cases.iter().all(|c| c.baseline.as_ref().is_some_and(|b| b.count == 100)));
+            assert!(
+                r > 1.0,
+                "websocket+msgpack faster than shared memory? ratio {r}"
+            );
+            assert!(s
+                .cases
+                .iter()
+                .all(|c| c.baseline.as_ref().is_some_and(|b| b.count == 100)));
         }
         _ => assert!(
             s.baseline_note.contains("did not run"),
@@ -70,7 +85,10 @@ fn main() {
     }
     assert!(s.line.starts_with("ipc_latency: "));
     assert!(s.outputs.hlog.exists() && s.outputs.md.exists());
-    assert_eq!(s.outputs.pngs.len(), if s.p50_ratio.is_some() { 2 } else { 1 });
+    assert_eq!(
+        s.outputs.pngs.len(),
+        if s.p50_ratio.is_some() { 2 } else { 1 }
+    );
     let back = chunkrt::report::read_interval_log(&s.outputs.hlog).expect("log reads back");
     assert_eq!(back[0].name, "joint_state");
     assert_eq!(back[0].hist.len(), 100);

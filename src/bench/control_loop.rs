@@ -133,7 +133,11 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
         }
         let period_ns = (1e9 / rate).round() as u64;
         for loaded in [false, true] {
-            let name = format!("{}hz_{}", rate as u64, if loaded { "loaded" } else { "idle" });
+            let name = format!(
+                "{}hz_{}",
+                rate as u64,
+                if loaded { "loaded" } else { "idle" }
+            );
             let load = if loaded {
                 Some(MatmulLoad::start(Some(opts.load_core), opts.load_size)?)
             } else {
@@ -218,7 +222,14 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
     println!("{table}");
     println!(
         "{:<14} {:>8} {:>9} {:>12} {:>12} {:>12} {:>10} {:>8}",
-        "scenario", "ticks", "overruns", "late p99 µs", "cyc p99 µs", "ours/cyc", "comp p99", "GFLOP/s"
+        "scenario",
+        "ticks",
+        "overruns",
+        "late p99 µs",
+        "cyc p99 µs",
+        "ours/cyc",
+        "comp p99",
+        "GFLOP/s"
     );
     let mut ratios = Vec::new();
     for s in &scenarios {
@@ -239,7 +250,9 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
             cyc,
             ratio,
             fmt_us(s.compute.p99_ns),
-            s.load_gflops.map(|g| format!("{g:.1}")).unwrap_or("-".into())
+            s.load_gflops
+                .map(|g| format!("{g:.1}"))
+                .unwrap_or("-".into())
         );
     }
     for n in &notes {

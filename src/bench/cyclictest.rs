@@ -138,7 +138,9 @@ mod tests {
         assert_eq!(r.latency.len(), 100);
         assert_eq!(r.overflows, 2);
         assert_eq!(r.max_us, 250);
-        assert!(r.latency.value_at_quantile(0.5) >= 3000 && r.latency.value_at_quantile(0.5) < 3010);
+        assert!(
+            r.latency.value_at_quantile(0.5) >= 3000 && r.latency.value_at_quantile(0.5) < 3010
+        );
         assert!(r.latency.max() >= 250_000);
         assert!(parse("garbage").is_err());
     }

@@ -13,8 +13,9 @@
 //!  one-way = t1 - t0 (same CLOCK_MONOTONIC),  round trip = now - t0
 //! ```
 //!
-//! The peer polls its subscribers (spin + `yield_now`), so the figures are the transport's cost,
-//! not a wake-up latency; the websocket baseline blocks in `recv` like openpi's server does.
+//! By default ([`Wake::Event`]) each side blocks on an iceoryx2 event that the other side
+//! notifies right after sending, so a figure includes the receiver's wake-up, like the websocket
+//! baseline's blocking `recv` (openpi's server). [`Wake::Poll`] spins on `receive()` instead.
 //! The publisher writes the pixels into the loaned shared-memory sample (a camera driver has to
 //! put them somewhere), the receiver reads them in place (zero copy).
 
@@ -60,6 +61,18 @@ pub struct Options {
     pub gap: Duration,
     /// Run the websocket baseline.
     pub baseline: bool,
+    /// How the receiver learns that a sample arrived.
+    pub wake: Wake,
+}
+
+/// How a receiver waits for samples.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Wake {
+    /// Block on an iceoryx2 event the publisher notifies after sending (like a socket read).
+    Event,
+    /// Spin on `receive()` with `yield_now` (lowest latency on an idle core; suffers when the
+    /// core is shared with other runnable threads).
+    Poll,
 }
 
 impl Options {
@@ -73,6 +86,7 @@ impl Options {
             warmup: if quick { 20 } else { 100 },
             gap: Duration::from_millis(1),
             baseline: true,
+            wake: Wake::Event,
         }
     }
 }
@@ -150,6 +164,9 @@ pub struct PeerArgs {
     /// Exit after this long without a message (the bench process died).
     #[arg(long, default_value_t = 10_000)]
     pub idle_timeout_ms: u64,
+    /// How to wait for samples.
+    #[arg(long, value_enum, default_value_t = Wake::Event)]
+    pub wake: Wake,
 }
 
 #[derive(Debug, clap::Parser)]
@@ -175,11 +192,71 @@ fn ack_service_name(ns: &Namespace) -> String {
     format!("{}/bench_ack", ns.as_str())
 }
 
+/// Event services: `<ns>/bench_wake` (bench → peer) and `<ns>/bench_ack_wake` (peer → bench).
+fn event_ports(
+    node: &iceoryx2::node::Node<services::Ipc>,
+    ns: &Namespace,
+    peer_side: bool,
+) -> Result<
+    (
+        iceoryx2::port::notifier::Notifier<services::Ipc>,
+        iceoryx2::port::listener::Listener<services::Ipc>,
+    ),
+    BenchError,
+> {
+    use iceoryx2::prelude::ServiceName;
+    let open = |name: String| {
+        let sn = ServiceName::new(&name).map_err(|e| port_err("event name")(format!("{e:?}")))?;
+        node.service_builder(&sn)
+            .event()
+            .open_or_create()
+            .map_err(|e| port_err("event service")(format!("{e:?}")))
+    };
+    let to_peer = open(format!("{}/bench_wake", ns.as_str()))?;
+    let to_bench = open(format!("{}/bench_ack_wake", ns.as_str()))?;
+    let (n, l) = if peer_side {
+        (&to_bench, &to_peer)
+    } else {
+        (&to_peer, &to_bench)
+    };
+    let notifier = n
+        .notifier_builder()
+        .create()
+        .map_err(|e| port_err("notifier")(format!("{e:?}")))?;
+    let listener = l
+        .listener_builder()
+        .create()
+        .map_err(|e| port_err("listener")(format!("{e:?}")))?;
+    Ok((notifier, listener))
+}
+
+/// Waits for the next sample: blocks on the listener (event) or yields (poll).
+fn wait_for_more(
+    wake: Wake,
+    listener: &iceoryx2::port::listener::Listener<services::Ipc>,
+    timeout: Duration,
+) -> Result<(), BenchError> {
+    match wake {
+        Wake::Event => listener
+            .timed_wait(|_| {}, timeout)
+            .map(|_| ())
+            .map_err(|e| port_err("event wait")(format!("{e:?}"))),
+        Wake::Poll => {
+            // Drain stale notifications so they do not pile up; then give the core away.
+            let _ = listener.try_wait(|_| {});
+            std::thread::yield_now();
+            Ok(())
+        }
+    }
+}
+
 /// The receiving process: takes every observation, validates it, reads it, and acknowledges
 /// each complete observation (all cameras of one seq) with its receive time.
 pub fn peer_main(args: &PeerArgs) -> Result<(), BenchError> {
     let ns = Namespace::new(&args.namespace)?;
     let node = services::node("chunkrt-bench-peer")?;
+    let (notifier, listener) = event_ports(&node, &ns, true)?;
+    let wait = || wait_for_more(args.wake, &listener, Duration::from_millis(100));
     let ack_name = ack_service_name(&ns);
     let ack_service = services::joint_state_service(&node, &ack_name)?;
     let ack_pub = services::publisher(&ack_service, &ack_name)?;
@@ -193,8 +270,13 @@ pub fn peer_main(args: &PeerArgs) -> Result<(), BenchError> {
         msg.position[0] = 0.0;
         ack_pub
             .send_copy(msg)
-            .map(|_| ())
-            .map_err(|e| port_err("ack send")(format!("{e:?}")))
+            .map_err(|e| port_err("ack send")(format!("{e:?}")))?;
+        if args.wake == Wake::Event {
+            notifier
+                .notify()
+                .map_err(|e| port_err("notify")(format!("{e:?}")))?;
+        }
+        Ok(())
     };
     let idle = args.idle_timeout_ms * 1_000_000;
     let mut last_msg = monotonic_ns();
@@ -228,7 +310,7 @@ pub fn peer_main(args: &PeerArgs) -> Result<(), BenchError> {
                     if monotonic_ns() - last_msg > idle {
                         return Err(BenchError::Timeout("peer: no joint state".into()));
                     }
-                    std::thread::yield_now();
+                    wait()?;
                 }
             }
         }
@@ -278,7 +360,7 @@ pub fn peer_main(args: &PeerArgs) -> Result<(), BenchError> {
                     "peer: no frame (checksum {checksum})"
                 )));
             }
-            std::thread::yield_now();
+            wait()?;
         }
     }
 }
@@ -309,11 +391,9 @@ struct Measured {
 }
 
 fn measure_case(opts: &Options, case: &Case, index: usize) -> Result<Measured, BenchError> {
-    let ns = Namespace::new(&format!(
-        "chunkrt/bench/ipc{}/c{index}",
-        std::process::id()
-    ))?;
+    let ns = Namespace::new(&format!("chunkrt/bench/ipc{}/c{index}", std::process::id()))?;
     let node = services::node("chunkrt-bench-ipc")?;
+    let (notifier, listener) = event_ports(&node, &ns, false)?;
     let ack_name = ack_service_name(&ns);
     let ack_svc = services::joint_state_service(&node, &ack_name)?;
     let ack_sub = services::subscriber(&ack_svc, &ack_name)?;
@@ -387,6 +467,11 @@ fn measure_case(opts: &Options, case: &Case, index: usize) -> Result<Measured, B
                 }
             }
         }
+        if opts.wake == Wake::Event {
+            notifier
+                .notify()
+                .map_err(|e| port_err("notify")(format!("{e:?}")))?;
+        }
         Ok(())
     };
     let wait_ack = |seq: u64, timeout_ns: u64| -> Result<Option<u64>, BenchError> {
@@ -400,10 +485,15 @@ fn measure_case(opts: &Options, case: &Case, index: usize) -> Result<Measured, B
                     return Ok(Some(s.payload().measurement_time_ns));
                 }
             }
-            if monotonic_ns() - start > timeout_ns {
+            let waited = monotonic_ns() - start;
+            if waited > timeout_ns {
                 return Ok(None);
             }
-            std::thread::yield_now();
+            wait_for_more(
+                opts.wake,
+                &listener,
+                Duration::from_nanos((timeout_ns - waited).min(100_000_000)),
+            )?;
         }
     };
 
@@ -413,6 +503,13 @@ fn measure_case(opts: &Options, case: &Case, index: usize) -> Result<Measured, B
         .args(["--cameras", &case.cameras.to_string()])
         .args(["--width", &case.width.to_string()])
         .args(["--height", &case.height.to_string()])
+        .args([
+            "--wake",
+            match opts.wake {
+                Wake::Event => "event",
+                Wake::Poll => "poll",
+            },
+        ])
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(Stdio::inherit());
@@ -438,7 +535,9 @@ fn measure_case(opts: &Options, case: &Case, index: usize) -> Result<Measured, B
             });
         }
         if t_start.elapsed() > Duration::from_secs(20) {
-            return Err(BenchError::Timeout("peer did not connect within 20 s".into()));
+            return Err(BenchError::Timeout(
+                "peer did not connect within 20 s".into(),
+            ));
         }
     }
 
@@ -552,15 +651,19 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
 
     let table = LatencyTable::from_series(
         format!(
-            "ipc_latency: publish → receive, one way ({} samples per case, {} µs apart); \
-             ws_* = {baseline_note}",
+            "ipc_latency: publish → receive, one way ({} samples per case, {} µs apart, receiver \
+             wakes by {:?}); ws_* = {baseline_note}",
             opts.iters,
-            opts.gap.as_micros()
+            opts.gap.as_micros(),
+            opts.wake
         ),
         &series,
     );
     println!("{table}");
-    println!("{:<14} {:>9} {:>12} {:>12} {:>12} {:>12} {:>8}", "case", "bytes", "iox2 p50", "iox2 p99", "ws p50", "ws p99", "ws/iox2");
+    println!(
+        "{:<14} {:>9} {:>12} {:>12} {:>12} {:>12} {:>8}",
+        "case", "bytes", "iox2 p50", "iox2 p99", "ws p50", "ws p99", "ws/iox2"
+    );
     for s in &summaries {
         let (b50, b99, ratio) = match &s.baseline {
             Some(b) => (
@@ -619,7 +722,11 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
         &table,
         &series,
         &[
-            ("ipc_latency", "iceoryx2 publish → receive (one way)", ours_names),
+            (
+                "ipc_latency",
+                "iceoryx2 publish → receive (one way)",
+                ours_names,
+            ),
             (
                 "ipc_latency_vs_websocket",
                 "iceoryx2 vs websocket + msgpack-numpy (one way)",

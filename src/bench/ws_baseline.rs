@@ -102,10 +102,12 @@ pub fn run(
     BufReader::new(stdout)
         .read_line(&mut line)
         .map_err(|e| proc_err("server.py", e))?;
-    let port: u16 = line
-        .trim()
-        .parse()
-        .map_err(|_| proc_err("server.py", format!("expected a port, got '{}'", line.trim())))?;
+    let port: u16 = line.trim().parse().map_err(|_| {
+        proc_err(
+            "server.py",
+            format!("expected a port, got '{}'", line.trim()),
+        )
+    })?;
 
     let out = std::env::temp_dir().join(format!(
         "chunkrt-ws-baseline-{}-{}.json",
