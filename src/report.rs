@@ -461,7 +461,10 @@ pub fn plot_percentiles(
             .map_err(|e| perr(e.to_string()))?
             .label(*name)
             .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], Palette99::pick(i).stroke_width(2))
+                PathElement::new(
+                    vec![(x, y), (x + 20, y)],
+                    Palette99::pick(i).stroke_width(2),
+                )
             });
     }
     chart
@@ -581,8 +584,13 @@ mod tests {
         let a = Series::new("fast", hist((0..5000u64).map(|i| 10_000 + i)));
         let b = Series::new("slow", hist((0..5000u64).map(|i| 100_000 + 20 * i)));
         let path = dir.join("x.hlog");
-        write_interval_log(&path, &[a.clone(), b.clone()], Duration::from_secs(2), "test")
-            .expect("write log");
+        write_interval_log(
+            &path,
+            &[a.clone(), b.clone()],
+            Duration::from_secs(2),
+            "test",
+        )
+        .expect("write log");
         let back = read_interval_log(&path).expect("read log");
         assert_eq!(back.len(), 2);
         assert_eq!(back[0].name, "fast");
@@ -591,8 +599,13 @@ mod tests {
             back[1].hist.value_at_quantile(0.99),
             b.hist.value_at_quantile(0.99)
         );
-        assert!(write_interval_log(&path, &[Series::new("bad name", hist([1]))], Duration::ZERO, "")
-            .is_err());
+        assert!(write_interval_log(
+            &path,
+            &[Series::new("bad name", hist([1]))],
+            Duration::ZERO,
+            ""
+        )
+        .is_err());
         write_interval_log(&path, &[a, b], Duration::from_secs(2), "test").expect("rewrite");
         run(ReportArgs {
             dir: dir.clone(),
