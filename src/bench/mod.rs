@@ -158,7 +158,7 @@ pub fn write_outputs(
     for (stem, title, names) in plots {
         let chosen: Vec<Series> = series
             .iter()
-            .filter(|s| names.iter().any(|n| *n == s.name))
+            .filter(|s| names.contains(&s.name))
             .cloned()
             .collect();
         if chosen.is_empty() {
