@@ -16,6 +16,7 @@
 //! - [`report`]: latency histograms → logs, tables, plots.
 //! - [`demo`]: starts the fake devices and the controller as processes.
 
+pub mod bench;
 pub mod chunk;
 pub mod control;
 pub mod controller;

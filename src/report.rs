@@ -1,14 +1,634 @@
 //! Latency histograms → HdrHistogram interval logs, percentile tables and PNG plots.
+//!
+//! Every chunkrt benchmark (and `chunkrt demo`'s summary) records latencies in nanoseconds into
+//! [`hdrhistogram::Histogram<u64>`]s made by [`latency_histogram`], and reports them through the
+//! pieces here so that they all print the same table and draw the same plot:
+//!
+//! - [`LatencyTable`]: count, p50, p90, p99, p99.9, max per series, as text or Markdown.
+//! - [`write_interval_log`] / [`read_interval_log`]: HdrHistogram interval logs (`.hlog`, the
+//!   Java `HistogramLogWriter` format: base64 V2-deflate histograms, one tag per series), readable
+//!   by HdrHistogram's own tools.
+//! - [`plot_percentiles`]: latency by percentile on HdrHistogram's log-scaled percentile axis
+//!   (0 %, 90 %, 99 %, 99.9 %, …), one line per series, PNG.
+//! - [`run`]: `chunkrt report DIR` renders every `*.hlog` of a folder into `report.png` and
+//!   `report.md`.
 
-use std::path::PathBuf;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, SystemTime};
 
-/// `chunkrt report DIR`.
-#[derive(Debug, clap::Args)]
-pub struct ReportArgs {
-    /// Folder of HdrHistogram interval logs.
-    pub dir: PathBuf,
+use hdrhistogram::serialization::interval_log::{
+    IntervalLogIterator, IntervalLogWriterBuilder, LogEntry, Tag,
+};
+use hdrhistogram::serialization::{Deserializer, V2DeflateSerializer};
+use hdrhistogram::Histogram;
+
+/// Highest latency a histogram made by [`latency_histogram`] records exactly (60 s, in ns);
+/// larger values are clamped to it.
+pub const MAX_LATENCY_NS: u64 = 60_000_000_000;
+
+/// Errors of reading, writing and drawing latency reports.
+#[derive(Debug, thiserror::Error)]
+pub enum ReportError {
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// An interval log is malformed.
+    #[error("{path}: malformed interval log: {reason}")]
+    BadLog {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A series name cannot be used as an interval-log tag.
+    #[error("series name '{0}' cannot be a log tag (no spaces, ',' or newlines)")]
+    BadTag(String),
+    /// Histogram serialization failed.
+    #[error("cannot serialize histogram '{name}': {reason}")]
+    Serialize {
+        /// Series name.
+        name: String,
+        /// The cause.
+        reason: String,
+    },
+    /// The plot could not be drawn.
+    #[error("cannot draw {path}: {reason}")]
+    Plot {
+        /// The PNG file.
+        path: PathBuf,
+        /// The cause.
+        reason: String,
+    },
+    /// Nothing to report.
+    #[error("{0}: no histograms found")]
+    Empty(PathBuf),
 }
 
-pub fn run(_args: ReportArgs) -> anyhow::Result<()> {
-    anyhow::bail!("chunkrt report: not implemented yet")
+/// A latency histogram in nanoseconds: 1 ns .. [`MAX_LATENCY_NS`], 3 significant digits.
+/// All its memory is allocated here, so recording never allocates (use `saturating_record`).
+pub fn latency_histogram() -> Histogram<u64> {
+    Histogram::new_with_bounds(1, MAX_LATENCY_NS, 3)
+        .expect("constant bounds 1..60e9 with 3 significant digits are valid")
+}
+
+/// One named latency histogram (values in ns).
+#[derive(Debug, Clone)]
+pub struct Series {
+    /// Name shown in tables, plot legends and log tags (no spaces or commas).
+    pub name: String,
+    /// Latencies in nanoseconds.
+    pub hist: Histogram<u64>,
+}
+
+impl Series {
+    /// A named series.
+    pub fn new(name: impl Into<String>, hist: Histogram<u64>) -> Self {
+        Self {
+            name: name.into(),
+            hist,
+        }
+    }
+}
+
+/// One row of a [`LatencyTable`]; latencies in nanoseconds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LatencyRow {
+    /// Series name.
+    pub name: String,
+    /// Number of samples.
+    pub count: u64,
+    /// Median.
+    pub p50_ns: u64,
+    /// 90th percentile.
+    pub p90_ns: u64,
+    /// 99th percentile.
+    pub p99_ns: u64,
+    /// 99.9th percentile.
+    pub p999_ns: u64,
+    /// Largest sample.
+    pub max_ns: u64,
+}
+
+impl LatencyRow {
+    /// Percentiles of one histogram.
+    pub fn from_hist(name: &str, h: &Histogram<u64>) -> Self {
+        Self {
+            name: name.to_string(),
+            count: h.len(),
+            p50_ns: h.value_at_quantile(0.5),
+            p90_ns: h.value_at_quantile(0.9),
+            p99_ns: h.value_at_quantile(0.99),
+            p999_ns: h.value_at_quantile(0.999),
+            max_ns: h.max(),
+        }
+    }
+}
+
+/// HdrHistogram-style percentile table: count, p50, p90, p99, p99.9, max (shown in µs).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LatencyTable {
+    /// Title printed above the table.
+    pub title: String,
+    /// One row per series, in insertion order.
+    pub rows: Vec<LatencyRow>,
+}
+
+/// Formats nanoseconds as microseconds with a precision that suits the magnitude.
+pub fn fmt_us(ns: u64) -> String {
+    let us = ns as f64 / 1000.0;
+    if us < 10.0 {
+        format!("{us:.2}")
+    } else if us < 1000.0 {
+        format!("{us:.1}")
+    } else {
+        format!("{us:.0}")
+    }
+}
+
+impl LatencyTable {
+    /// An empty table.
+    pub fn new(title: impl Into<String>) -> Self {
+        Self {
+            title: title.into(),
+            rows: Vec::new(),
+        }
+    }
+
+    /// A table with one row per series.
+    pub fn from_series(title: impl Into<String>, series: &[Series]) -> Self {
+        let mut t = Self::new(title);
+        for s in series {
+            t.push(&s.name, &s.hist);
+        }
+        t
+    }
+
+    /// Adds a row.
+    pub fn push(&mut self, name: &str, h: &Histogram<u64>) {
+        self.rows.push(LatencyRow::from_hist(name, h));
+    }
+
+    /// The row of a series, if present.
+    pub fn row(&self, name: &str) -> Option<&LatencyRow> {
+        self.rows.iter().find(|r| r.name == name)
+    }
+
+    /// The table as GitHub Markdown (latencies in µs).
+    pub fn to_markdown(&self) -> String {
+        let mut s = String::new();
+        s.push_str("| series | count | p50 µs | p90 µs | p99 µs | p99.9 µs | max µs |\n");
+        s.push_str("|---|---:|---:|---:|---:|---:|---:|\n");
+        for r in &self.rows {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {} | {} | {} |",
+                r.name,
+                r.count,
+                fmt_us(r.p50_ns),
+                fmt_us(r.p90_ns),
+                fmt_us(r.p99_ns),
+                fmt_us(r.p999_ns),
+                fmt_us(r.max_ns)
+            );
+        }
+        s
+    }
+}
+
+impl std::fmt::Display for LatencyTable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let w = self
+            .rows
+            .iter()
+            .map(|r| r.name.len())
+            .max()
+            .unwrap_or(6)
+            .max(6);
+        if !self.title.is_empty() {
+            writeln!(f, "{}", self.title)?;
+        }
+        writeln!(
+            f,
+            "{:<w$} {:>9} {:>10} {:>10} {:>10} {:>10} {:>10}",
+            "series", "count", "p50 µs", "p90 µs", "p99 µs", "p99.9 µs", "max µs"
+        )?;
+        for r in &self.rows {
+            writeln!(
+                f,
+                "{:<w$} {:>9} {:>10} {:>10} {:>10} {:>10} {:>10}",
+                r.name,
+                r.count,
+                fmt_us(r.p50_ns),
+                fmt_us(r.p90_ns),
+                fmt_us(r.p99_ns),
+                fmt_us(r.p999_ns),
+                fmt_us(r.max_ns)
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// Markdown percentile table of some series (see [`LatencyTable::to_markdown`]).
+pub fn markdown_table(series: &[Series]) -> String {
+    LatencyTable::from_series("", series).to_markdown()
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ReportError + '_ {
+    move |source| ReportError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Writes the series as one HdrHistogram interval log (one interval per series, tagged with the
+/// series name; `duration` is how long the measurement ran). `comment` lines go in the header.
+pub fn write_interval_log(
+    path: &Path,
+    series: &[Series],
+    duration: Duration,
+    comment: &str,
+) -> Result<(), ReportError> {
+    if let Some(parent) = path.parent() {
+        std::fs::create_dir_all(parent).map_err(io_err(parent))?;
+    }
+    let mut buf: Vec<u8> = Vec::new();
+    let mut serializer = V2DeflateSerializer::new();
+    let now = SystemTime::now();
+    let start = now.checked_sub(duration).unwrap_or(now);
+    {
+        let mut builder = IntervalLogWriterBuilder::new();
+        for line in comment.lines() {
+            builder.add_comment(line);
+        }
+        builder.add_comment("values in nanoseconds; one interval per series, tag = series");
+        builder.with_start_time(start).with_base_time(start);
+        // Max column in ms, for humans reading the log.
+        builder.with_max_value_divisor(1e6);
+        let mut writer = builder
+            .begin_log_with(&mut buf, &mut serializer)
+            .map_err(io_err(path))?;
+        for s in series {
+            let tag = Tag::new(&s.name).ok_or_else(|| ReportError::BadTag(s.name.clone()))?;
+            if s.name.contains(' ') {
+                return Err(ReportError::BadTag(s.name.clone()));
+            }
+            writer
+                .write_histogram(&s.hist, Duration::ZERO, duration, Some(tag))
+                .map_err(|e| ReportError::Serialize {
+                    name: s.name.clone(),
+                    reason: format!("{e:?}"),
+                })?;
+        }
+    }
+    std::fs::write(path, buf).map_err(io_err(path))
+}
+
+/// Decodes standard base64 (with or without padding).
+fn base64_decode(s: &str) -> Option<Vec<u8>> {
+    fn val(c: u8) -> Option<u32> {
+        Some(match c {
+            b'A'..=b'Z' => c - b'A',
+            b'a'..=b'z' => c - b'a' + 26,
+            b'0'..=b'9' => c - b'0' + 52,
+            b'+' => 62,
+            b'/' => 63,
+            _ => return None,
+        } as u32)
+    }
+    let bytes: Vec<u8> = s.bytes().filter(|c| *c != b'=').collect();
+    let mut out = Vec::with_capacity(bytes.len() * 3 / 4);
+    for chunk in bytes.chunks(4) {
+        let mut acc = 0u32;
+        for (i, c) in chunk.iter().enumerate() {
+            acc |= val(*c)? << (18 - 6 * i);
+        }
+        match chunk.len() {
+            4 => out.extend_from_slice(&[(acc >> 16) as u8, (acc >> 8) as u8, acc as u8]),
+            3 => out.extend_from_slice(&[(acc >> 16) as u8, (acc >> 8) as u8]),
+            2 => out.push((acc >> 16) as u8),
+            _ => return None,
+        }
+    }
+    Some(out)
+}
+
+/// Reads an interval log; intervals with the same tag are added into one series (untagged
+/// intervals form the series named after the file). Series keep the order of first appearance.
+pub fn read_interval_log(path: &Path) -> Result<Vec<Series>, ReportError> {
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    let bad = |reason: String| ReportError::BadLog {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let default_name = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "series".to_string());
+    let mut out: Vec<Series> = Vec::new();
+    let mut de = Deserializer::new();
+    for entry in IntervalLogIterator::new(&bytes) {
+        let entry = entry.map_err(|e| bad(format!("{e:?}")))?;
+        let LogEntry::Interval(iv) = entry else {
+            continue;
+        };
+        let name = iv
+            .tag()
+            .map(|t| t.as_str().to_string())
+            .unwrap_or_else(|| default_name.clone());
+        let raw = base64_decode(iv.encoded_histogram())
+            .ok_or_else(|| bad(format!("series '{name}': invalid base64")))?;
+        let h: Histogram<u64> = de
+            .deserialize(&mut std::io::Cursor::new(raw))
+            .map_err(|e| bad(format!("series '{name}': {e:?}")))?;
+        match out.iter_mut().find(|s| s.name == name) {
+            Some(s) => s
+                .hist
+                .add(&h)
+                .map_err(|e| bad(format!("series '{name}': {e:?}")))?,
+            None => {
+                let mut acc = latency_histogram();
+                acc.add(&h)
+                    .map_err(|e| bad(format!("series '{name}': {e:?}")))?;
+                out.push(Series::new(name, acc));
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Percentile axis position of a quantile: `log10(1 / (1 - q))` (0 → 0 %, 1 → 90 %, 2 → 99 %…).
+pub fn percentile_x(q: f64) -> f64 {
+    (1.0 / (1.0 - q).max(1e-12)).log10()
+}
+
+fn percentile_label(x: f64) -> String {
+    let q = 1.0 - 10f64.powf(-x);
+    let pct = q * 100.0;
+    let digits = (x.round() as i64 - 2).max(0) as usize;
+    format!("{pct:.digits$}%")
+}
+
+/// Points `(percentile axis x, latency µs)` of a histogram, up to the percentile its sample
+/// count resolves, ending at its maximum.
+pub fn percentile_curve(h: &Histogram<u64>) -> Vec<(f64, f64)> {
+    if h.is_empty() {
+        return Vec::new();
+    }
+    let x_max = (h.len() as f64).log10().clamp(1.0, 7.0);
+    let steps = 200;
+    let mut pts: Vec<(f64, f64)> = (0..=steps)
+        .map(|i| {
+            let x = x_max * i as f64 / steps as f64;
+            let q = 1.0 - 10f64.powf(-x);
+            (x, h.value_at_quantile(q) as f64 / 1000.0)
+        })
+        .collect();
+    pts.push((x_max, h.max() as f64 / 1000.0));
+    pts
+}
+
+/// Draws latency by percentile (HdrHistogram's log-scaled percentile x axis, log-scaled µs y
+/// axis), one line per series, into a PNG of `size` pixels.
+pub fn plot_percentiles(
+    path: &Path,
+    title: &str,
+    series: &[Series],
+    size: (u32, u32),
+) -> Result<(), ReportError> {
+    use plotters::prelude::*;
+    if let Some(parent) = path.parent() {
+        std::fs::create_dir_all(parent).map_err(io_err(parent))?;
+    }
+    let perr = |e: String| ReportError::Plot {
+        path: path.to_path_buf(),
+        reason: e,
+    };
+    let curves: Vec<(&str, Vec<(f64, f64)>)> = series
+        .iter()
+        .filter(|s| !s.hist.is_empty())
+        .map(|s| (s.name.as_str(), percentile_curve(&s.hist)))
+        .collect();
+    if curves.is_empty() {
+        return Err(perr("no non-empty series".into()));
+    }
+    let x_max = curves
+        .iter()
+        .flat_map(|(_, c)| c.iter().map(|p| p.0))
+        .fold(1.0f64, f64::max)
+        .ceil();
+    let (y_min, y_max) = curves
+        .iter()
+        .flat_map(|(_, c)| c.iter().map(|p| p.1))
+        .fold((f64::MAX, 0.0f64), |(lo, hi), y| (lo.min(y), hi.max(y)));
+    let y_lo = (y_min.max(0.01) / 1.5).max(0.01);
+    let y_hi = (y_max * 1.5).max(y_lo * 10.0);
+
+    let root = BitMapBackend::new(path, size).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| perr(e.to_string()))?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0f64..x_max, (y_lo..y_hi).log_scale())
+        .map_err(|e| perr(e.to_string()))?;
+    chart
+        .configure_mesh()
+        .x_labels(x_max as usize + 1)
+        .x_label_formatter(&|x| percentile_label(*x))
+        .y_label_formatter(&|y| {
+            if *y >= 1.0 {
+                format!("{y:.0}")
+            } else {
+                format!("{y:.2}")
+            }
+        })
+        .x_desc("percentile")
+        .y_desc("latency (µs)")
+        .draw()
+        .map_err(|e| perr(e.to_string()))?;
+    for (i, (name, pts)) in curves.iter().enumerate() {
+        let color = Palette99::pick(i).to_rgba().stroke_width(2);
+        chart
+            .draw_series(LineSeries::new(pts.iter().copied(), color))
+            .map_err(|e| perr(e.to_string()))?
+            .label(*name)
+            .legend(move |(x, y)| {
+                PathElement::new(
+                    vec![(x, y), (x + 20, y)],
+                    Palette99::pick(i).stroke_width(2),
+                )
+            });
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| perr(e.to_string()))?;
+    root.present().map_err(|e| perr(e.to_string()))?;
+    Ok(())
+}
+
+/// Where `chunkrt report` writes (by default inside the folder it reads).
+#[derive(Debug, clap::Args)]
+pub struct ReportArgs {
+    /// Folder of HdrHistogram interval logs (`*.hlog`).
+    pub dir: PathBuf,
+    /// Output PNG (default DIR/report.png).
+    #[arg(long)]
+    pub png: Option<PathBuf>,
+    /// Output Markdown table (default DIR/report.md).
+    #[arg(long)]
+    pub md: Option<PathBuf>,
+    /// Plot title.
+    #[arg(long, default_value = "chunkrt latency by percentile")]
+    pub title: String,
+}
+
+/// Reads every `*.hlog` in `dir` (sorted by name). A series is named `file/tag` when the folder
+/// holds more than one log.
+pub fn read_log_dir(dir: &Path) -> Result<Vec<Series>, ReportError> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(io_err(dir))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "hlog"))
+        .collect();
+    files.sort();
+    let many = files.len() > 1;
+    let mut all = Vec::new();
+    for f in &files {
+        let stem = f
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        for mut s in read_interval_log(f)? {
+            if many && s.name != stem {
+                s.name = format!("{stem}/{}", s.name);
+            }
+            all.push(s);
+        }
+    }
+    if all.is_empty() {
+        return Err(ReportError::Empty(dir.to_path_buf()));
+    }
+    Ok(all)
+}
+
+/// `chunkrt report DIR`: one PNG (latency by percentile, every series) and one Markdown table.
+pub fn run(args: ReportArgs) -> anyhow::Result<()> {
+    let series = read_log_dir(&args.dir)?;
+    let png = args.png.unwrap_or_else(|| args.dir.join("report.png"));
+    let md = args.md.unwrap_or_else(|| args.dir.join("report.md"));
+    plot_percentiles(&png, &args.title, &series, (1000, 640))?;
+    let table = LatencyTable::from_series(args.title.clone(), &series);
+    let text = format!(
+        "# {}\n\n{}\n![latency by percentile]({})\n",
+        args.title,
+        table.to_markdown(),
+        png.file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    );
+    std::fs::write(&md, text).map_err(io_err(&md))?;
+    print!("{table}");
+    println!("wrote {} and {}", png.display(), md.display());
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hist(values: impl IntoIterator<Item = u64>) -> Histogram<u64> {
+        let mut h = latency_histogram();
+        for v in values {
+            h.saturating_record(v);
+        }
+        h
+    }
+
+    #[test]
+    fn base64_roundtrip_known() {
+        assert_eq!(base64_decode("aGVsbG8=").as_deref(), Some(&b"hello"[..]));
+        assert_eq!(base64_decode("aGk").as_deref(), Some(&b"hi"[..]));
+        assert_eq!(base64_decode("a!b="), None);
+    }
+
+    #[test]
+    fn table_percentiles() {
+        let h = hist(1..=1000u64);
+        let t = LatencyTable::from_series("t", &[Series::new("a", h)]);
+        let r = t.row("a").expect("row a was pushed");
+        assert_eq!(r.count, 1000);
+        assert!((r.p50_ns as i64 - 500).abs() <= 1, "{r:?}");
+        assert!((r.p99_ns as i64 - 990).abs() <= 1, "{r:?}");
+        assert_eq!(r.max_ns, 1000);
+        let md = t.to_markdown();
+        assert!(md.contains("| a | 1000 |"), "{md}");
+        assert!(t.to_string().contains("p99.9 µs"));
+    }
+
+    #[test]
+    fn interval_log_roundtrip_and_report() {
+        let dir = std::env::temp_dir().join(format!("chunkrt-report-test-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let a = Series::new("fast", hist((0..5000u64).map(|i| 10_000 + i)));
+        let b = Series::new("slow", hist((0..5000u64).map(|i| 100_000 + 20 * i)));
+        let path = dir.join("x.hlog");
+        write_interval_log(
+            &path,
+            &[a.clone(), b.clone()],
+            Duration::from_secs(2),
+            "test",
+        )
+        .expect("write log");
+        let back = read_interval_log(&path).expect("read log");
+        assert_eq!(back.len(), 2);
+        assert_eq!(back[0].name, "fast");
+        assert_eq!(back[0].hist.len(), 5000);
+        assert_eq!(
+            back[1].hist.value_at_quantile(0.99),
+            b.hist.value_at_quantile(0.99)
+        );
+        assert!(write_interval_log(
+            &path,
+            &[Series::new("bad name", hist([1]))],
+            Duration::ZERO,
+            ""
+        )
+        .is_err());
+        write_interval_log(&path, &[a, b], Duration::from_secs(2), "test").expect("rewrite");
+        run(ReportArgs {
+            dir: dir.clone(),
+            png: None,
+            md: None,
+            title: "t".into(),
+        })
+        .expect("report");
+        let png = std::fs::read(dir.join("report.png")).expect("png written");
+        assert_eq!(&png[1..4], b"PNG");
+        let md = std::fs::read_to_string(dir.join("report.md")).expect("md written");
+        assert!(md.contains("| slow | 5000 |"), "{md}");
+        // A garbage log is an error, not a crash.
+        std::fs::write(dir.join("y.hlog"), "0.0,1.0,2.0,HISTFAKE!!\n").expect("write garbage");
+        assert!(read_log_dir(&dir).is_err());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn percentile_axis() {
+        assert_eq!(percentile_label(0.0), "0%");
+        assert_eq!(percentile_label(1.0), "90%");
+        assert_eq!(percentile_label(3.0), "99.9%");
+        assert!((percentile_x(0.99) - 2.0).abs() < 1e-9);
+    }
 }

@@ -1,0 +1,15 @@
+//! `cargo bench --bench control_loop [-- --quick]`: control-thread wake-up lateness and tick
+//! compute at 500 Hz / 1 kHz, idle and under a candle matmul load, vs cyclictest.
+//! See `chunkrt::bench::control_loop`. The tick body is the synthetic test double until the
+//! controller's tick lands (plug it in through `Options::tick`).
+
+mod common;
+
+use chunkrt::bench::control_loop::{self, Options};
+
+fn main() {
+    common::single_threaded_candle();
+    common::main("control_loop", |opts| {
+        control_loop::run(&Options::new(opts)).map(|_| ())
+    });
+}

@@ -1,0 +1,335 @@
+//! `control_loop`: the control thread's wake-up lateness and tick compute time at 500 Hz and
+//! 1 kHz, idle and with a candle matmul load saturating the other core, next to `cyclictest` on
+//! the same core under the same load (the platform's floor).
+//!
+//! The tick body is pluggable ([`TickFactory`]); until the controller lands the bench runs
+//! [`SyntheticTick`], a scripted test double of a control tick.
+
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use super::cyclictest::{self, CyclictestConfig};
+use super::load::MatmulLoad;
+use super::periodic::{run_periodic, PeriodicConfig, SyntheticTick, TickBody};
+use super::{geomean, write_outputs, BenchError, BenchOpts, Outputs};
+use crate::report::{fmt_us, LatencyRow, LatencyTable, Series};
+
+/// Makes a fresh tick body for each scenario.
+pub type TickFactory = Box<dyn Fn() -> Box<dyn TickBody>>;
+
+impl TickBody for Box<dyn TickBody> {
+    fn tick(&mut self, index: u64, deadline_ns: u64) {
+        (**self).tick(index, deadline_ns)
+    }
+}
+
+/// Options of one `control_loop` run.
+pub struct Options {
+    /// Output folder and quick mode.
+    pub bench: BenchOpts,
+    /// Control rates to measure (Hz).
+    pub rates_hz: Vec<f64>,
+    /// How long each scenario runs (60 s; quick 10 s; the test uses ~1 s).
+    pub duration: Duration,
+    /// How long cyclictest runs per scenario.
+    pub cyclictest_duration: Duration,
+    /// Core of the control thread (and cyclictest).
+    pub control_core: usize,
+    /// Core of the load generator.
+    pub load_core: usize,
+    /// Matmul size of the load.
+    pub load_size: usize,
+    /// SCHED_FIFO priority for the control thread and cyclictest (None: SCHED_OTHER).
+    pub fifo_priority: Option<i32>,
+    /// Run cyclictest when installed.
+    pub cyclictest: bool,
+    /// The tick body.
+    pub tick: TickFactory,
+}
+
+impl Options {
+    /// Defaults: 500 Hz and 1 kHz, 60 s per scenario (quick: 10 s), cyclictest a third of that
+    /// (quick: the same), control on core 1, load on core 0, SCHED_FIFO 80, synthetic tick.
+    pub fn new(bench: BenchOpts) -> Self {
+        let quick = bench.quick;
+        let d = Duration::from_secs(if quick { 10 } else { 60 });
+        Self {
+            bench,
+            rates_hz: vec![500.0, 1000.0],
+            duration: d,
+            cyclictest_duration: if quick { d } else { d / 3 },
+            control_core: 1,
+            load_core: 0,
+            load_size: 256,
+            fifo_priority: Some(80),
+            cyclictest: true,
+            tick: Box::new(|| Box::new(SyntheticTick::default())),
+        }
+    }
+}
+
+/// One rate × load scenario.
+#[derive(Debug, Clone)]
+pub struct Scenario {
+    /// e.g. `1000hz_loaded`.
+    pub name: String,
+    /// Rate (Hz).
+    pub rate_hz: f64,
+    /// With the matmul load.
+    pub loaded: bool,
+    /// Our wake-up lateness.
+    pub lateness: LatencyRow,
+    /// Our tick compute time.
+    pub compute: LatencyRow,
+    /// Ticks run.
+    pub ticks: u64,
+    /// Ticks whose work ended after the next deadline.
+    pub overruns: u64,
+    /// cyclictest latency on the same core under the same load.
+    pub cyclictest: Option<LatencyRow>,
+    /// Load throughput (GFLOP/s) when loaded.
+    pub load_gflops: Option<f64>,
+}
+
+/// What `control_loop` measured.
+#[derive(Debug, Clone)]
+pub struct Summary {
+    /// Per scenario.
+    pub scenarios: Vec<Scenario>,
+    /// Scheduling policy the control thread got.
+    pub policy: String,
+    /// Whether the control thread was pinned.
+    pub pinned: bool,
+    /// Geometric mean over scenarios of our lateness p99 / cyclictest p99.
+    pub p99_ratio: Option<f64>,
+    /// Why cyclictest did not run, if it did not.
+    pub cyclictest_note: String,
+    /// The one-line summary printed last.
+    pub line: String,
+    /// Files written.
+    pub outputs: Outputs,
+}
+
+/// Runs every scenario, prints the tables and the summary line, writes log, plot and table.
+pub fn run(opts: &Options) -> Result<Summary, BenchError> {
+    let started = Instant::now();
+    let have_cyclictest = opts.cyclictest && cyclictest::available();
+    let cyclictest_note = if !opts.cyclictest {
+        "cyclictest disabled".to_string()
+    } else if have_cyclictest {
+        "cyclictest (rt-tests) on the same core, same load".to_string()
+    } else {
+        "cyclictest not installed (apt-get install rt-tests): no platform floor".to_string()
+    };
+    let load_threads = MatmulLoad::threads();
+    let mut series = Vec::new();
+    let mut scenarios = Vec::new();
+    let (mut policy, mut pinned) = (String::new(), false);
+    let mut notes = Vec::new();
+    for &rate in &opts.rates_hz {
+        if !(rate.is_finite() && rate > 0.0 && rate <= 20_000.0) {
+            return Err(BenchError::Option(format!("rate {rate} Hz out of range")));
+        }
+        let period_ns = (1e9 / rate).round() as u64;
+        for loaded in [false, true] {
+            let name = format!(
+                "{}hz_{}",
+                rate as u64,
+                if loaded { "loaded" } else { "idle" }
+            );
+            let load = if loaded {
+                Some(MatmulLoad::start(Some(opts.load_core), opts.load_size)?)
+            } else {
+                None
+            };
+            if loaded {
+                // Let the load reach steady state.
+                std::thread::sleep(Duration::from_millis(200));
+            }
+            let cfg = PeriodicConfig {
+                period_ns,
+                duration_ns: opts.duration.as_nanos() as u64,
+                core: Some(opts.control_core),
+                fifo_priority: opts.fifo_priority,
+            };
+            let (st, _) = run_periodic(&cfg, (opts.tick)(), Arc::new(AtomicBool::new(false)))?;
+            policy = st.policy.clone();
+            pinned = st.pinned;
+            let ct = if have_cyclictest {
+                let ccfg = CyclictestConfig {
+                    interval_us: period_ns / 1000,
+                    loops: (opts.cyclictest_duration.as_secs_f64() * rate).max(1.0) as u64,
+                    core: Some(opts.control_core),
+                    priority: if st.policy.starts_with("SCHED_FIFO") {
+                        opts.fifo_priority
+                    } else {
+                        None
+                    },
+                    hist_max_us: 20_000,
+                };
+                match cyclictest::run(&ccfg) {
+                    Ok(r) => Some(r),
+                    Err(e) => {
+                        notes.push(format!("{name}: cyclictest failed: {e}"));
+                        None
+                    }
+                }
+            } else {
+                None
+            };
+            let load_gflops = match load {
+                Some(l) => Some(l.stop()?.gflops),
+                None => None,
+            };
+            series.push(Series::new(format!("{name}_lateness"), st.lateness.clone()));
+            series.push(Series::new(format!("{name}_compute"), st.compute.clone()));
+            if let Some(c) = &ct {
+                series.push(Series::new(format!("{name}_cyclictest"), c.latency.clone()));
+            }
+            scenarios.push(Scenario {
+                name: name.clone(),
+                rate_hz: rate,
+                loaded,
+                lateness: LatencyRow::from_hist(&format!("{name}_lateness"), &st.lateness),
+                compute: LatencyRow::from_hist(&format!("{name}_compute"), &st.compute),
+                ticks: st.ticks,
+                overruns: st.overruns,
+                cyclictest: ct
+                    .as_ref()
+                    .map(|c| LatencyRow::from_hist(&format!("{name}_cyclictest"), &c.latency)),
+                load_gflops,
+            });
+        }
+    }
+
+    let table = LatencyTable::from_series(
+        format!(
+            "control_loop: wake-up lateness and tick compute, {:.0} s per scenario, control thread \
+             on core {} ({policy}{}), load = {}x{} f32 candle matmuls on core {} ({} candle \
+             thread{}); {cyclictest_note}",
+            opts.duration.as_secs_f64(),
+            opts.control_core,
+            if pinned { ", pinned" } else { ", not pinned" },
+            opts.load_size,
+            opts.load_size,
+            opts.load_core,
+            load_threads,
+            if load_threads == 1 { "" } else { "s: set RAYON_NUM_THREADS=1 to confine it" },
+        ),
+        &series,
+    );
+    println!("{table}");
+    println!(
+        "{:<14} {:>8} {:>9} {:>12} {:>12} {:>12} {:>10} {:>8}",
+        "scenario",
+        "ticks",
+        "overruns",
+        "late p99 µs",
+        "cyc p99 µs",
+        "ours/cyc",
+        "comp p99",
+        "GFLOP/s"
+    );
+    let mut ratios = Vec::new();
+    for s in &scenarios {
+        let (cyc, ratio) = match &s.cyclictest {
+            Some(c) => {
+                let r = s.lateness.p99_ns as f64 / c.p99_ns.max(1) as f64;
+                ratios.push(r);
+                (fmt_us(c.p99_ns), format!("{r:.2}x"))
+            }
+            None => ("-".into(), "-".into()),
+        };
+        println!(
+            "{:<14} {:>8} {:>9} {:>12} {:>12} {:>12} {:>10} {:>8}",
+            s.name,
+            s.ticks,
+            s.overruns,
+            fmt_us(s.lateness.p99_ns),
+            cyc,
+            ratio,
+            fmt_us(s.compute.p99_ns),
+            s.load_gflops
+                .map(|g| format!("{g:.1}"))
+                .unwrap_or("-".into())
+        );
+    }
+    for n in &notes {
+        println!("note: {n}");
+    }
+    let p99_ratio = if ratios.is_empty() {
+        None
+    } else {
+        Some(geomean(&ratios))
+    };
+    let overruns: u64 = scenarios.iter().map(|s| s.overruns).sum();
+    let ticks: u64 = scenarios.iter().map(|s| s.ticks).sum();
+    let worst = scenarios
+        .iter()
+        .max_by_key(|s| s.lateness.p99_ns)
+        .map(|s| format!("{} lateness p99 {} µs", s.name, fmt_us(s.lateness.p99_ns)))
+        .unwrap_or_default();
+    let line = match p99_ratio {
+        Some(r) => format!(
+            "control_loop: lateness p99 / cyclictest p99 = {r:.2}x (geomean over {} scenarios); \
+             worst {worst}; overruns {overruns} of {ticks} ticks",
+            ratios.len()
+        ),
+        None => format!(
+            "control_loop: no cyclictest ratio ({cyclictest_note}); worst {worst}; overruns \
+             {overruns} of {ticks} ticks"
+        ),
+    };
+    let lateness_names: Vec<String> = series
+        .iter()
+        .filter(|s| !s.name.ends_with("_compute"))
+        .map(|s| s.name.clone())
+        .collect();
+    let compute_names: Vec<String> = series
+        .iter()
+        .filter(|s| s.name.ends_with("_compute"))
+        .map(|s| s.name.clone())
+        .collect();
+    let outputs = write_outputs(
+        &opts.bench.out_dir,
+        "control_loop",
+        &table,
+        &series,
+        &[
+            (
+                "control_loop",
+                "control thread wake-up lateness vs cyclictest",
+                lateness_names,
+            ),
+            (
+                "control_loop_compute",
+                "control tick compute time",
+                compute_names,
+            ),
+        ],
+        started.elapsed(),
+        &format!("chunkrt control_loop on {}", super::machine_line()),
+    )?;
+    println!(
+        "wrote {}, {} and {}",
+        outputs.hlog.display(),
+        outputs
+            .pngs
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        outputs.md.display()
+    );
+    println!("{line}");
+    Ok(Summary {
+        scenarios,
+        policy,
+        pinned,
+        p99_ratio,
+        cyclictest_note,
+        line,
+        outputs,
+    })
+}

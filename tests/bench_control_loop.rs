@@ -1,0 +1,51 @@
+//! Runs `control_loop` briefly (~1 s per scenario) in the dev profile so the bench cannot rot.
+
+use std::time::Duration;
+
+use chunkrt::bench::control_loop::{self, Options};
+use chunkrt::bench::{cyclictest, output_root, BenchOpts};
+
+#[test]
+fn control_loop_quick() {
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        // Only this test runs in this binary; keep candle's load on its own core.
+        std::env::set_var("RAYON_NUM_THREADS", "1");
+    }
+    let mut opts = Options::new(BenchOpts {
+        quick: true,
+        out_dir: output_root().join("test").join("control_loop"),
+    });
+    opts.duration = Duration::from_secs(1);
+    opts.cyclictest_duration = Duration::from_millis(500);
+    opts.load_size = 128;
+    let s = control_loop::run(&opts).unwrap_or_else(|e| panic!("control_loop failed: {e}"));
+
+    assert_eq!(s.scenarios.len(), 4, "500 Hz / 1 kHz x idle / loaded");
+    for sc in &s.scenarios {
+        let expected = sc.rate_hz; // 1 s
+        let ticks = sc.ticks as f64 + sc.overruns as f64;
+        assert!(
+            ticks >= expected * 0.9 && sc.ticks as f64 <= expected + 1.0,
+            "{}: {} ticks for {expected}",
+            sc.name,
+            sc.ticks
+        );
+        assert_eq!(sc.lateness.count, sc.ticks);
+        assert_eq!(sc.compute.count, sc.ticks);
+        // The synthetic tick is ~100 flops: its p50 is far below the period.
+        assert!(sc.compute.p50_ns < (1e9 / sc.rate_hz) as u64 / 10, "{sc:?}");
+        assert_eq!(sc.loaded, sc.load_gflops.is_some());
+        if cyclictest::available() {
+            let c = sc.cyclictest.as_ref().expect("cyclictest ran");
+            assert!(c.count as f64 >= sc.rate_hz * 0.5 * 0.9, "{c:?}");
+        }
+    }
+    if cyclictest::available() {
+        assert!(s.p99_ratio.is_some_and(|r| r > 0.0));
+    } else {
+        assert!(s.cyclictest_note.contains("not installed"));
+    }
+    assert!(s.line.starts_with("control_loop: "));
+    assert!(s.outputs.hlog.exists());
+    assert_eq!(s.outputs.pngs.len(), 2);
+}
