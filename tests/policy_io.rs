@@ -149,7 +149,7 @@ fn checkpoint_errors_list_every_bad_tensor_and_lerobot_prefix_and_bf16_load() {
 #[test]
 fn runtime_prepares_fixture_inputs_and_infers() {
     let dir = data("pi05_tiny");
-    let pc = chunkrt::config::Config::default().policy;
+    let pc = chunkrt::config::PolicyConfig::default();
     let mut policy = Policy::load(&dir, &pc).unwrap();
     let inp = inputs("pi05_tiny");
     let frames: Vec<(String, Vec<u8>, usize, usize)> = ["base_0_rgb", "left_wrist_0_rgb"]
