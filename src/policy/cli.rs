@@ -1,6 +1,15 @@
 //! `chunkrt sample` and `chunkrt inspect`.
 
+use std::collections::HashMap;
 use std::path::PathBuf;
+
+use anyhow::Context;
+use candle_core::{DType, Device, Tensor};
+
+use super::checkpoint;
+use super::config::ConfigOverrides;
+use super::model::ModelInputs;
+use super::preprocess::{resize_with_pad, to_model_chw};
 
 /// `chunkrt sample`: run the policy on a safetensors file of inputs.
 #[derive(Debug, clap::Args)]
@@ -8,6 +17,20 @@ pub struct SampleArgs {
     /// Checkpoint directory (config.json + model.safetensors).
     #[arg(long)]
     pub checkpoint: PathBuf,
+    /// Inputs (safetensors named like the fixtures: `image.<camera>` f32 NCHW or
+    /// `image_raw_uint8.<camera>` HWC, `image_mask.<camera>`, `tokenized_prompt`,
+    /// `tokenized_prompt_mask`, `state`, `noise`).
+    #[arg(long)]
+    pub inputs: PathBuf,
+    /// Output safetensors (`actions` [B, H, A], `v_t_step0`).
+    #[arg(long)]
+    pub output: PathBuf,
+    /// Denoising steps (default: the checkpoint's).
+    #[arg(long)]
+    pub steps: Option<usize>,
+    /// Run the full joint forward at every step instead of using the prefix KV cache.
+    #[arg(long)]
+    pub no_cache: bool,
 }
 
 /// `chunkrt inspect`: describe a checkpoint.
@@ -17,10 +40,139 @@ pub struct InspectArgs {
     pub dir: PathBuf,
 }
 
-pub fn sample(_args: SampleArgs) -> anyhow::Result<()> {
-    anyhow::bail!("chunkrt sample: not implemented yet")
+fn mask_rows(t: &Tensor) -> anyhow::Result<Vec<bool>> {
+    Ok(t.flatten_all()?
+        .to_dtype(DType::F32)?
+        .to_vec1::<f32>()?
+        .into_iter()
+        .map(|v| v != 0.0)
+        .collect())
 }
 
-pub fn inspect(_args: InspectArgs) -> anyhow::Result<()> {
-    anyhow::bail!("chunkrt inspect: not implemented yet")
+/// Builds model inputs from a fixture-style safetensors map.
+pub fn inputs_from_map(
+    cfg: &super::ModelConfig,
+    m: &HashMap<String, Tensor>,
+) -> anyhow::Result<(ModelInputs, Option<Tensor>)> {
+    let dev = Device::Cpu;
+    let tokens = m
+        .get("tokenized_prompt")
+        .context("inputs: missing tokenized_prompt")?;
+    let (b, lt) = tokens.dims2().context("tokenized_prompt must be [B, L]")?;
+    anyhow::ensure!(
+        lt == cfg.max_token_len,
+        "tokenized_prompt has {lt} tokens, the model takes {}",
+        cfg.max_token_len
+    );
+    let tokens = match tokens.dtype() {
+        DType::I64 | DType::U32 => tokens.clone(),
+        d => anyhow::bail!("tokenized_prompt must be I64 or U32, got {d:?}"),
+    };
+    let token_mask = match m.get("tokenized_prompt_mask") {
+        Some(t) => {
+            anyhow::ensure!(t.dims() == [b, lt], "tokenized_prompt_mask must be [{b}, {lt}]");
+            let f = mask_rows(t)?;
+            (0..b).map(|i| f[i * lt..(i + 1) * lt].to_vec()).collect()
+        }
+        None => vec![vec![true; lt]; b],
+    };
+    let s = cfg.vision.image_size;
+    let mut images = Vec::new();
+    let mut image_masks = Vec::new();
+    for cam in &cfg.cameras {
+        let (img, present) = if let Some(t) = m.get(&format!("image.{cam}")) {
+            anyhow::ensure!(t.dims() == [b, 3, s, s], "image.{cam} must be [{b}, 3, {s}, {s}]");
+            (t.to_dtype(DType::F32)?, true)
+        } else if let Some(t) = m.get(&format!("image_raw_uint8.{cam}")) {
+            let (tb, h, w, c) = t.dims4().context("image_raw_uint8 must be [B, H, W, 3]")?;
+            anyhow::ensure!(tb == b && c == 3 && t.dtype() == DType::U8, "image_raw_uint8.{cam} must be U8 [{b}, H, W, 3]");
+            let mut out = Vec::with_capacity(b * 3 * s * s);
+            for bi in 0..b {
+                let px = t.get(bi)?.flatten_all()?.to_vec1::<u8>()?;
+                let r = resize_with_pad(&px, h, w, s, s)?;
+                to_model_chw(&r, s, s, &mut out);
+            }
+            (Tensor::from_vec(out, (b, 3, s, s), &dev)?, true)
+        } else {
+            (Tensor::full(-1f32, (b, 3, s, s), &dev)?, false)
+        };
+        let mask = match m.get(&format!("image_mask.{cam}")) {
+            Some(t) => {
+                let v = mask_rows(t)?;
+                anyhow::ensure!(v.len() == b, "image_mask.{cam} must have {b} entries");
+                v.into_iter().map(|x| x && present).collect()
+            }
+            None => vec![present; b],
+        };
+        images.push(img);
+        image_masks.push(mask);
+    }
+    let a = cfg.action_dim;
+    let state = match m.get("state") {
+        Some(t) => {
+            let (sb, sd) = t.dims2().context("state must be [B, D]")?;
+            anyhow::ensure!(sb == b && sd <= a, "state must be [{b}, <= {a}]");
+            let t = t.to_dtype(DType::F32)?;
+            if sd < a {
+                t.pad_with_zeros(1, 0, a - sd)?
+            } else {
+                t
+            }
+        }
+        None => Tensor::zeros((b, a), DType::F32, &dev)?,
+    };
+    let noise = m.get("noise").map(|t| t.to_dtype(DType::F32)).transpose()?;
+    Ok((
+        ModelInputs {
+            images,
+            image_masks,
+            tokens,
+            token_mask,
+            state,
+        },
+        noise,
+    ))
+}
+
+/// `chunkrt sample`.
+pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
+    let loaded = checkpoint::load(&args.checkpoint, &ConfigOverrides::default())?;
+    let model = loaded.model;
+    let m = candle_core::safetensors::load(&args.inputs, &Device::Cpu)
+        .with_context(|| format!("reading {}", args.inputs.display()))?;
+    let (inputs, noise) = inputs_from_map(&model.cfg, &m)?;
+    let b = inputs.batch();
+    let noise = match noise {
+        Some(n) => n,
+        None => Tensor::randn(0f32, 1f32, (b, model.cfg.action_horizon, model.cfg.action_dim), &Device::Cpu)?,
+    };
+    let steps = args.steps.unwrap_or(model.cfg.num_denoise_steps);
+    let t0 = std::time::Instant::now();
+    let out = if args.no_cache {
+        model.sample(&inputs, &noise, steps, None)?
+    } else {
+        let mut cache = None;
+        model.sample(&inputs, &noise, steps, Some(&mut cache))?
+    };
+    let dt = t0.elapsed();
+    let mut save = HashMap::new();
+    save.insert("actions".to_string(), out.actions.clone());
+    save.insert("v_t_step0".to_string(), out.v_t_step0.clone());
+    candle_core::safetensors::save(&save, &args.output)
+        .with_context(|| format!("writing {}", args.output.display()))?;
+    println!(
+        "sampled {:?} actions in {:.1} ms ({} steps, {}) -> {}",
+        out.actions.dims(),
+        dt.as_secs_f64() * 1e3,
+        steps,
+        if args.no_cache { "no cache" } else { "prefix KV cache" },
+        args.output.display()
+    );
+    Ok(())
+}
+
+/// `chunkrt inspect`.
+pub fn inspect(args: InspectArgs) -> anyhow::Result<()> {
+    print!("{}", checkpoint::inspect(&args.dir)?);
+    Ok(())
 }

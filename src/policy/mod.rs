@@ -1,3 +1,44 @@
-//! π0 / π0.5 policies in candle.
+//! π0 / π0.5 policies in candle: the model (exact to openpi), the prefix KV cache, checkpoints,
+//! pre/post-processing, the runtime API for the controller and the inference benchmark.
+//!
+//! One file per part: [`config`] (dimensions, presets), [`siglip`] (vision tower + projector),
+//! [`gemma`] (the dual-expert transformer), [`model`] (embeddings, masks, cache, sampler, loss),
+//! [`checkpoint`] (safetensors loading and checks), [`preprocess`] (images, normalisation,
+//! prompts, tokenizer), [`runtime`] (`Policy::load` / `Policy::infer`), [`bench`], [`cli`].
 
+pub mod bench;
+pub mod checkpoint;
 pub mod cli;
+pub mod config;
+pub mod gemma;
+pub mod model;
+pub mod preprocess;
+pub mod runtime;
+pub mod siglip;
+
+pub use config::{ConfigOverrides, ModelConfig, ModelKind};
+pub use model::{ModelInputs, PiModel, PrefixCache, SampleOutput};
+pub use runtime::{Policy, RawFrame, RawObservation};
+
+/// Errors of the policy.
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyError {
+    /// Bad or inconsistent configuration.
+    #[error("policy config: {0}")]
+    Config(String),
+    /// Missing or mismatched checkpoint tensors (one line each).
+    #[error("checkpoint: {0}")]
+    Checkpoint(String),
+    /// File system.
+    #[error("io: {0}")]
+    Io(String),
+    /// Bad input data (shapes, ranges, encodings).
+    #[error("policy input: {0}")]
+    Input(String),
+    /// Tokenizer.
+    #[error("tokenizer: {0}")]
+    Tokenizer(String),
+    /// Tensor library.
+    #[error("candle: {0}")]
+    Candle(#[from] candle_core::Error),
+}

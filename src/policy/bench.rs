@@ -1,0 +1,267 @@
+//! The inference benchmark (core of `benches/inference.rs`): random weights built in-process from
+//! the bench configurations, p50 / p99 (hdrhistogram) of each phase, cached vs uncached, GFLOP/s.
+
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{VarBuilder, VarMap};
+use hdrhistogram::Histogram;
+
+use super::config::{GemmaDims, ModelConfig};
+use super::model::{ModelInputs, PiModel};
+use super::PolicyError;
+
+/// The bench configurations (same schema as the fixtures' `config.json`).
+pub const CONFIGS: [(&str, &str); 2] = [
+    ("pi0_bench", include_str!("../../benches/data/pi0_bench.json")),
+    ("pi05_bench", include_str!("../../benches/data/pi05_bench.json")),
+];
+
+/// openpi's PyTorch medians on the same kind of machine (s): π0, π0.5.
+pub const OPENPI_SAMPLE_S: [(&str, f64); 2] = [("pi0_bench", 0.4073), ("pi05_bench", 0.5219)];
+
+/// Timing of one phase.
+#[derive(Debug, Clone)]
+pub struct Phase {
+    /// Phase name.
+    pub name: String,
+    /// Samples.
+    pub n: u64,
+    /// Median (ms).
+    pub p50_ms: f64,
+    /// 99th percentile (ms).
+    pub p99_ms: f64,
+    /// Analytic matmul FLOPs of one run.
+    pub flops: f64,
+}
+
+impl Phase {
+    /// Achieved GFLOP/s at the median.
+    pub fn gflops(&self) -> f64 {
+        self.flops / (self.p50_ms * 1e-3) / 1e9
+    }
+}
+
+/// Results for one configuration.
+#[derive(Debug, Clone)]
+pub struct ConfigReport {
+    /// Configuration name.
+    pub name: String,
+    /// Phases.
+    pub phases: Vec<Phase>,
+    /// openpi's median for the full sample (s).
+    pub openpi_s: f64,
+}
+
+impl ConfigReport {
+    /// A phase by name.
+    pub fn phase(&self, name: &str) -> Option<&Phase> {
+        self.phases.iter().find(|p| p.name == name)
+    }
+
+    /// openpi median / our full cached sample median.
+    pub fn speedup_vs_openpi(&self) -> f64 {
+        self.phase("sample_cached")
+            .map(|p| self.openpi_s / (p.p50_ms * 1e-3))
+            .unwrap_or(0.0)
+    }
+
+    /// Uncached step median / cached step median.
+    pub fn step_ratio(&self) -> f64 {
+        match (self.phase("step_uncached"), self.phase("step_cached")) {
+            (Some(u), Some(c)) => u.p50_ms / c.p50_ms,
+            _ => 0.0,
+        }
+    }
+}
+
+/// The whole report.
+#[derive(Debug, Clone)]
+pub struct BenchReport {
+    /// Per configuration.
+    pub configs: Vec<ConfigReport>,
+    /// candle's CPU thread count.
+    pub threads: usize,
+}
+
+impl std::fmt::Display for BenchReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(f, "threads: {}", self.threads)?;
+        for c in &self.configs {
+            writeln!(f, "== {} ==", c.name)?;
+            writeln!(f, "{:<16} {:>5} {:>10} {:>10} {:>9}", "phase", "n", "p50 ms", "p99 ms", "GFLOP/s")?;
+            for p in &c.phases {
+                writeln!(
+                    f,
+                    "{:<16} {:>5} {:>10.2} {:>10.2} {:>9.1}",
+                    p.name,
+                    p.n,
+                    p.p50_ms,
+                    p.p99_ms,
+                    p.gflops()
+                )?;
+            }
+            writeln!(
+                f,
+                "full sample (cached) vs openpi PyTorch {:.3} s: {:.2}x faster; uncached/cached step: {:.1}x",
+                c.openpi_s,
+                c.speedup_vs_openpi(),
+                c.step_ratio()
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// FLOPs of one Gemma layer for `l` queries over `t` keys.
+fn layer_flops(d: &GemmaDims, l: usize, t: usize) -> f64 {
+    let (w, qd, kvd) = (d.width, d.num_heads * d.head_dim, d.num_kv_heads * d.head_dim);
+    let l = l as f64;
+    2.0 * l * (w * (qd + 2 * kvd) + qd * w + 3 * w * d.mlp_dim) as f64 + 4.0 * l * t as f64 * qd as f64
+}
+
+fn vision_flops(c: &ModelConfig) -> f64 {
+    let v = &c.vision;
+    let t = v.num_tokens() as f64;
+    let dv = v.hidden_size as f64;
+    let per_layer = 2.0 * t * (4.0 * dv * dv + 2.0 * dv * v.intermediate_size as f64) + 4.0 * t * t * dv;
+    let per_image = per_layer * v.num_hidden_layers as f64
+        + 2.0 * t * dv * (3 * v.patch_size * v.patch_size) as f64
+        + 2.0 * t * dv * c.paligemma.width as f64;
+    per_image * c.cameras.len() as f64
+}
+
+fn histogram() -> Result<Histogram<u64>, PolicyError> {
+    Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)
+        .map_err(|e| PolicyError::Config(format!("histogram: {e}")))
+}
+
+fn time_phase(
+    name: &str,
+    n: usize,
+    flops: f64,
+    mut f: impl FnMut() -> Result<(), PolicyError>,
+) -> Result<Phase, PolicyError> {
+    f()?; // warm-up
+    let mut h = histogram()?;
+    for _ in 0..n {
+        let t0 = Instant::now();
+        f()?;
+        let us = t0.elapsed().as_micros().max(1) as u64;
+        h.record(us.min(600_000_000))
+            .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
+    }
+    Ok(Phase {
+        name: name.to_string(),
+        n: h.len(),
+        p50_ms: h.value_at_quantile(0.5) as f64 / 1e3,
+        p99_ms: h.value_at_quantile(0.99) as f64 / 1e3,
+        flops,
+    })
+}
+
+/// A model with random weights (a `VarMap`) for `cfg`.
+pub fn random_model(cfg: &ModelConfig) -> Result<(PiModel, VarMap), PolicyError> {
+    let vm = VarMap::new();
+    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+    let m = PiModel::new(cfg, vb)?;
+    Ok((m, vm))
+}
+
+/// Random model-ready inputs with `valid_tokens` valid prompt tokens.
+pub fn random_inputs(cfg: &ModelConfig, batch: usize, valid_tokens: usize, seed: u64) -> Result<ModelInputs, PolicyError> {
+    let dev = Device::Cpu;
+    let s = cfg.vision.image_size;
+    let mut images = Vec::new();
+    for i in 0..cfg.cameras.len() {
+        let _ = (seed, i);
+        images.push(Tensor::rand(-1f32, 1f32, (batch, 3, s, s), &dev)?);
+    }
+    let lt = cfg.max_token_len;
+    let ids: Vec<u32> = (0..batch * lt)
+        .map(|i| if i % lt < valid_tokens { (i * 7919 % cfg.vocab_size) as u32 } else { 0 })
+        .collect();
+    Ok(ModelInputs {
+        images,
+        image_masks: vec![vec![true; batch]; cfg.cameras.len()],
+        tokens: Tensor::from_vec(ids, (batch, lt), &dev)?,
+        token_mask: vec![(0..lt).map(|i| i < valid_tokens).collect(); batch],
+        state: Tensor::randn(0f32, 1f32, (batch, cfg.action_dim), &dev)?,
+    })
+}
+
+/// Benchmarks one configuration (`json` in the fixtures' schema).
+pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, PolicyError> {
+    let cfg = ModelConfig::from_json_str(json)?;
+    let v: serde_json::Value =
+        serde_json::from_str(json).map_err(|e| PolicyError::Config(e.to_string()))?;
+    let valid = v["valid_prompt_tokens"].as_u64().unwrap_or(cfg.max_token_len as u64) as usize;
+    let steps = cfg.num_denoise_steps;
+    let (model, _vm) = random_model(&cfg)?;
+    let inp = random_inputs(&cfg, 1, valid, 1)?;
+    let noise = Tensor::randn(0f32, 1f32, (1, cfg.action_horizon, cfg.action_dim), &Device::Cpu)?;
+    let (n_fast, n_slow) = if quick { (3, 1) } else { (20, 5) };
+    let p = cfg.prefix_len();
+    let s = cfg.suffix_len();
+    let prefix_flops = layer_flops(&cfg.paligemma, p, p) * cfg.paligemma.depth as f64;
+    let step_flops = layer_flops(&cfg.action_expert, cfg.action_horizon, p + s) * cfg.action_expert.depth as f64;
+    let unc_step = prefix_flops
+        + layer_flops(&cfg.action_expert, s, p + s) * cfg.action_expert.depth as f64;
+    let vis = vision_flops(&cfg);
+    let mut phases = Vec::new();
+    phases.push(time_phase("vision", n_fast, vis, || {
+        model.embed_prefix(&inp)?;
+        Ok(())
+    })?);
+    let embs = model.embed_prefix(&inp)?;
+    let mut cache = None;
+    phases.push(time_phase("prefix", n_fast, prefix_flops, || {
+        model.fill_cache_from_embs(&inp, &embs, &mut cache, false)?;
+        Ok(())
+    })?);
+    let c = cache
+        .as_ref()
+        .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
+    phases.push(time_phase("step_cached", n_fast * 10, step_flops, || {
+        model.velocity_at(c, &noise, &[0.5], false)?;
+        Ok(())
+    })?);
+    phases.push(time_phase("step_uncached", n_slow, unc_step, || {
+        model.velocity_uncached(&inp, &embs, &noise, &[0.5], false)?;
+        Ok(())
+    })?);
+    let total = vis + prefix_flops + steps as f64 * step_flops;
+    let mut cache2 = None;
+    phases.push(time_phase("sample_cached", n_fast, total, || {
+        model.sample(&inp, &noise, steps, Some(&mut cache2))?;
+        Ok(())
+    })?);
+    if !quick {
+        phases.push(time_phase("sample_uncached", 2, vis + steps as f64 * unc_step, || {
+            model.sample(&inp, &noise, steps, None)?;
+            Ok(())
+        })?);
+    }
+    let openpi_s = OPENPI_SAMPLE_S
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|x| x.1)
+        .unwrap_or(0.0);
+    Ok(ConfigReport {
+        name: name.to_string(),
+        phases,
+        openpi_s,
+    })
+}
+
+/// Runs both bench configurations (`quick`: few iterations, no uncached full sample).
+pub fn run(quick: bool) -> Result<BenchReport, PolicyError> {
+    let mut configs = Vec::new();
+    for (name, json) in CONFIGS {
+        configs.push(run_config(name, json, quick)?);
+    }
+    Ok(BenchReport {
+        configs,
+        threads: candle_core::utils::get_num_threads(),
+    })
+}

@@ -1,0 +1,353 @@
+//! Model dimensions: the `config.json` schema of the fixtures (top-level fields) and named presets
+//! for real openpi / LeRobot checkpoints that ship no config.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::PolicyError;
+
+/// π0 (state token in the suffix) or π0.5 (adaRMS action expert, discrete state in the prompt).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ModelKind {
+    /// π0.
+    Pi0,
+    /// π0.5.
+    Pi05,
+}
+
+impl ModelKind {
+    /// `pi0` / `pi05`.
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelKind::Pi0 => "pi0",
+            ModelKind::Pi05 => "pi05",
+        }
+    }
+}
+
+/// SigLIP vision tower dimensions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VisionDims {
+    /// Width `Dv`.
+    pub hidden_size: usize,
+    /// Encoder layers.
+    pub num_hidden_layers: usize,
+    /// Attention heads.
+    pub num_attention_heads: usize,
+    /// MLP width.
+    pub intermediate_size: usize,
+    /// Patch size (14).
+    pub patch_size: usize,
+    /// Square input resolution (224).
+    pub image_size: usize,
+    /// LayerNorm epsilon.
+    #[serde(default = "default_ln_eps")]
+    pub layer_norm_eps: f64,
+}
+
+fn default_ln_eps() -> f64 {
+    1e-6
+}
+
+impl VisionDims {
+    /// Tokens per camera (`(image_size / patch_size)^2`).
+    pub fn num_tokens(&self) -> usize {
+        let side = self.image_size / self.patch_size.max(1);
+        side * side
+    }
+}
+
+/// One Gemma expert (the VLM language model or the action expert).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GemmaDims {
+    /// Width `W`.
+    pub width: usize,
+    /// Layers.
+    pub depth: usize,
+    /// MLP width.
+    pub mlp_dim: usize,
+    /// Query heads.
+    pub num_heads: usize,
+    /// Key/value heads (GQA).
+    pub num_kv_heads: usize,
+    /// Head dimension.
+    pub head_dim: usize,
+}
+
+/// Everything needed to build a π0 / π0.5 model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelConfig {
+    /// π0 or π0.5.
+    pub kind: ModelKind,
+    /// SigLIP.
+    pub vision: VisionDims,
+    /// PaliGemma language model (prefix expert).
+    pub paligemma: GemmaDims,
+    /// Action expert (suffix).
+    pub action_expert: GemmaDims,
+    /// Token vocabulary (taken from the embedding tensor's shape when loading).
+    pub vocab_size: usize,
+    /// Model action dimension `A` (state and actions are padded to it).
+    pub action_dim: usize,
+    /// Action horizon `H`.
+    pub action_horizon: usize,
+    /// Prompt length in tokens.
+    pub max_token_len: usize,
+    /// Cameras in prefix order.
+    pub cameras: Vec<String>,
+    /// Default number of denoising steps.
+    pub num_denoise_steps: usize,
+    /// Gemma RMSNorm epsilon.
+    pub rms_norm_eps: f64,
+    /// RoPE base.
+    pub rope_theta: f64,
+    /// Sinusoidal time embedding periods.
+    pub time_min_period: f64,
+    /// Sinusoidal time embedding periods.
+    pub time_max_period: f64,
+}
+
+/// The fixtures' `config.json` (only the fields we read; everything else is ignored).
+#[derive(Debug, Deserialize)]
+struct FileConfig {
+    vision: FileVision,
+    paligemma: GemmaDims,
+    action_expert: GemmaDims,
+    #[serde(default)]
+    vocab_size: Option<usize>,
+    action_dim: usize,
+    action_horizon: usize,
+    max_token_len: usize,
+    #[serde(default)]
+    pi05: Option<bool>,
+    #[serde(default)]
+    model_kind: Option<String>,
+    #[serde(default)]
+    image_keys_in_order: Option<Vec<String>>,
+    #[serde(default)]
+    cameras: Option<Vec<String>>,
+    #[serde(default)]
+    num_denoise_steps: Option<usize>,
+    #[serde(default)]
+    rms_norm_eps: Option<f64>,
+    #[serde(default)]
+    rope_theta: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+struct FileVision {
+    hidden_size: usize,
+    num_hidden_layers: usize,
+    num_attention_heads: usize,
+    intermediate_size: usize,
+    patch_size: usize,
+    image_size: usize,
+    #[serde(default = "default_ln_eps")]
+    layer_norm_eps: f64,
+}
+
+/// openpi's default camera order.
+pub const DEFAULT_CAMERAS: [&str; 3] = ["base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"];
+
+impl ModelConfig {
+    /// Parses a `config.json` in the fixtures' schema.
+    pub fn from_json_str(s: &str) -> Result<Self, PolicyError> {
+        let f: FileConfig =
+            serde_json::from_str(s).map_err(|e| PolicyError::Config(format!("config.json: {e}")))?;
+        let kind = match (f.model_kind.as_deref(), f.pi05) {
+            (Some("pi05"), _) | (None, Some(true)) => ModelKind::Pi05,
+            (Some("pi0"), _) | (None, Some(false)) | (None, None) => ModelKind::Pi0,
+            (Some(other), _) => {
+                return Err(PolicyError::Config(format!(
+                    "config.json: unknown model_kind {other:?} (pi0 or pi05)"
+                )))
+            }
+        };
+        let cameras = f
+            .image_keys_in_order
+            .or(f.cameras)
+            .unwrap_or_else(|| DEFAULT_CAMERAS.iter().map(|s| s.to_string()).collect());
+        let cfg = ModelConfig {
+            kind,
+            vision: VisionDims {
+                hidden_size: f.vision.hidden_size,
+                num_hidden_layers: f.vision.num_hidden_layers,
+                num_attention_heads: f.vision.num_attention_heads,
+                intermediate_size: f.vision.intermediate_size,
+                patch_size: f.vision.patch_size,
+                image_size: f.vision.image_size,
+                layer_norm_eps: f.vision.layer_norm_eps,
+            },
+            paligemma: f.paligemma,
+            action_expert: f.action_expert,
+            vocab_size: f.vocab_size.unwrap_or(257_152),
+            action_dim: f.action_dim,
+            action_horizon: f.action_horizon,
+            max_token_len: f.max_token_len,
+            cameras,
+            num_denoise_steps: f.num_denoise_steps.unwrap_or(10),
+            rms_norm_eps: f.rms_norm_eps.unwrap_or(1e-6),
+            rope_theta: f.rope_theta.unwrap_or(10_000.0),
+            time_min_period: 4e-3,
+            time_max_period: 4.0,
+        };
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Reads `dir/config.json`.
+    pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
+        let s = std::fs::read_to_string(path)
+            .map_err(|e| PolicyError::Io(format!("{}: {e}", path.display())))?;
+        Self::from_json_str(&s)
+    }
+
+    /// Named presets for real checkpoints: `pi0` / `pi05` (PaliGemma gemma_2b + gemma_300m action
+    /// expert, SigLIP So400m/14 at 224, openpi's horizons: 50 actions of dim 32; prompt 48 / 200).
+    pub fn preset(name: &str) -> Result<Self, PolicyError> {
+        let kind = match name {
+            "pi0" => ModelKind::Pi0,
+            "pi05" | "pi0.5" => ModelKind::Pi05,
+            other => return Err(PolicyError::Config(format!("unknown preset {other:?}"))),
+        };
+        Ok(ModelConfig {
+            kind,
+            vision: VisionDims {
+                hidden_size: 1152,
+                num_hidden_layers: 27,
+                num_attention_heads: 16,
+                intermediate_size: 4304,
+                patch_size: 14,
+                image_size: 224,
+                layer_norm_eps: 1e-6,
+            },
+            // gemma_2b
+            paligemma: GemmaDims {
+                width: 2048,
+                depth: 18,
+                mlp_dim: 16_384,
+                num_heads: 8,
+                num_kv_heads: 1,
+                head_dim: 256,
+            },
+            // gemma_300m
+            action_expert: GemmaDims {
+                width: 1024,
+                depth: 18,
+                mlp_dim: 4096,
+                num_heads: 8,
+                num_kv_heads: 1,
+                head_dim: 256,
+            },
+            vocab_size: 257_152,
+            action_dim: 32,
+            action_horizon: 50,
+            max_token_len: if kind == ModelKind::Pi05 { 200 } else { 48 },
+            cameras: DEFAULT_CAMERAS.iter().map(|s| s.to_string()).collect(),
+            num_denoise_steps: 10,
+            rms_norm_eps: 1e-6,
+            rope_theta: 10_000.0,
+            time_min_period: 4e-3,
+            time_max_period: 4.0,
+        })
+    }
+
+    /// Checks the invariants the model code relies on.
+    pub fn validate(&self) -> Result<(), PolicyError> {
+        let mut errs = Vec::new();
+        let (p, e) = (&self.paligemma, &self.action_expert);
+        if p.depth != e.depth || p.num_heads != e.num_heads || p.num_kv_heads != e.num_kv_heads
+            || p.head_dim != e.head_dim
+        {
+            errs.push("both experts must share depth, num_heads, num_kv_heads and head_dim".into());
+        }
+        for (n, g) in [("paligemma", p), ("action_expert", e)] {
+            if g.num_kv_heads == 0 || g.num_heads % g.num_kv_heads != 0 {
+                errs.push(format!("{n}: num_heads must be a multiple of num_kv_heads (>0)"));
+            }
+            if g.head_dim == 0 || g.head_dim % 2 != 0 {
+                errs.push(format!("{n}: head_dim must be even and > 0"));
+            }
+            if g.width == 0 || g.depth == 0 || g.mlp_dim == 0 {
+                errs.push(format!("{n}: zero width/depth/mlp_dim"));
+            }
+        }
+        let v = &self.vision;
+        if v.num_attention_heads == 0 || v.hidden_size % v.num_attention_heads != 0 {
+            errs.push("vision: hidden_size must be a multiple of num_attention_heads".into());
+        }
+        if v.patch_size == 0 || v.image_size % v.patch_size != 0 {
+            errs.push("vision: image_size must be a multiple of patch_size".into());
+        }
+        if self.action_dim == 0 || self.action_horizon == 0 || self.max_token_len == 0 {
+            errs.push("action_dim, action_horizon and max_token_len must be > 0".into());
+        }
+        if self.action_expert.width % 2 != 0 {
+            errs.push("action expert width must be even (sin/cos time embedding)".into());
+        }
+        if self.cameras.is_empty() {
+            errs.push("at least one camera is required".into());
+        }
+        if errs.is_empty() {
+            Ok(())
+        } else {
+            Err(PolicyError::Config(errs.join("; ")))
+        }
+    }
+
+    /// Prefix length `P = cameras * tokens_per_camera + max_token_len`.
+    pub fn prefix_len(&self) -> usize {
+        self.cameras.len() * self.vision.num_tokens() + self.max_token_len
+    }
+
+    /// Suffix length `S` (π0: state + H actions, π0.5: H actions).
+    pub fn suffix_len(&self) -> usize {
+        self.action_horizon + self.state_tokens()
+    }
+
+    /// 1 for π0 (the state token), 0 for π0.5.
+    pub fn state_tokens(&self) -> usize {
+        match self.kind {
+            ModelKind::Pi0 => 1,
+            ModelKind::Pi05 => 0,
+        }
+    }
+}
+
+/// Overrides applied on top of a preset or a `config.json` (from the controller's TOML).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ConfigOverrides {
+    /// Action horizon.
+    pub action_horizon: Option<usize>,
+    /// Action dimension.
+    pub action_dim: Option<usize>,
+    /// Prompt length.
+    pub max_token_len: Option<usize>,
+    /// Camera order.
+    pub cameras: Option<Vec<String>>,
+    /// Denoising steps.
+    pub num_denoise_steps: Option<usize>,
+}
+
+impl ConfigOverrides {
+    /// Applies the overrides and re-validates.
+    pub fn apply(&self, cfg: &mut ModelConfig) -> Result<(), PolicyError> {
+        if let Some(v) = self.action_horizon {
+            cfg.action_horizon = v;
+        }
+        if let Some(v) = self.action_dim {
+            cfg.action_dim = v;
+        }
+        if let Some(v) = self.max_token_len {
+            cfg.max_token_len = v;
+        }
+        if let Some(v) = &self.cameras {
+            cfg.cameras = v.clone();
+        }
+        if let Some(v) = self.num_denoise_steps {
+            cfg.num_denoise_steps = v;
+        }
+        cfg.validate()
+    }
+}

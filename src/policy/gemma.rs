@@ -1,0 +1,418 @@
+//! The Gemma dual-expert transformer of π0 / π0.5.
+//!
+//! Two experts (the PaliGemma language model for prefix tokens, the action expert for suffix
+//! tokens) each have their own norms, Q/K/V/O projections and MLP; at every layer one masked
+//! attention runs over the concatenation of the streams that are present. GQA with any number of
+//! kv heads (kv-head-major), RoPE rotate-half, Gemma RMSNorm `(1 + w)`, and for π0.5's action
+//! expert adaRMSNorm `norm(x) * (1 + scale) + shift` with gated residuals.
+//!
+//! Every op has a fast path (candle's fused CPU kernels) and a differentiable path built from
+//! differentiable compositions, selected per call with `diff`.
+
+use candle_core::{DType, Device, Module, Tensor, D};
+use candle_nn::{Linear, VarBuilder};
+
+use super::config::GemmaDims;
+
+/// Additive attention mask value used by openpi (not `-inf`).
+pub const MASK_VALUE: f32 = -2.381_976_3e38;
+
+/// Gemma RMSNorm, plain (`1 + w`) or adaptive (π0.5 action expert).
+#[derive(Debug, Clone)]
+pub enum Norm {
+    /// `x * rsqrt(mean(x^2) + eps) * (1 + w)`.
+    Rms {
+        /// `1 + w` [W].
+        alpha: Tensor,
+        /// eps.
+        eps: f64,
+    },
+    /// `(scale, shift, gate) = chunk(dense(cond), 3)`; `y = norm(x) * (1 + scale) + shift`.
+    Ada {
+        /// Linear(W_cond -> 3 W, bias).
+        dense: Linear,
+        /// Ones [W] (alpha of the fused kernel).
+        ones: Tensor,
+        /// eps.
+        eps: f64,
+    },
+}
+
+/// `x * rsqrt(mean(x^2) + eps)` without weight; `x` [.., W].
+fn rms_plain(x: &Tensor, ones: &Tensor, eps: f64, diff: bool) -> candle_core::Result<Tensor> {
+    if diff {
+        let ms = x.sqr()?.mean_keepdim(D::Minus1)?;
+        x.broadcast_div(&(ms + eps)?.sqrt()?)
+    } else {
+        candle_nn::ops::rms_norm(&x.contiguous()?, ones, eps as f32)
+    }
+}
+
+impl Norm {
+    /// Loads `input_layernorm` & co. Plain norms read `weight` [W]; adaptive ones read
+    /// `dense.{weight,bias}` [3W, W].
+    pub fn new(width: usize, ada: bool, eps: f64, vb: VarBuilder) -> candle_core::Result<Self> {
+        if ada {
+            let dense = candle_nn::linear(width, 3 * width, vb.pp("dense"))?;
+            let ones = Tensor::ones(width, DType::F32, vb.device())?;
+            Ok(Norm::Ada { dense, ones, eps })
+        } else {
+            let w = vb.get_with_hints(width, "weight", candle_nn::Init::Const(0.0))?;
+            Ok(Norm::Rms {
+                alpha: (w + 1.0)?,
+                eps,
+            })
+        }
+    }
+
+    /// `x` [B, L, W], `cond` [B, Wc] (adaptive only). Returns the normed `x` and the gate
+    /// [B, 1, W] (adaptive only).
+    pub fn forward(
+        &self,
+        x: &Tensor,
+        cond: Option<&Tensor>,
+        diff: bool,
+    ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
+        match self {
+            Norm::Rms { alpha, eps } => {
+                if diff {
+                    let ms = x.sqr()?.mean_keepdim(D::Minus1)?;
+                    let y = x.broadcast_div(&(ms + *eps)?.sqrt()?)?;
+                    Ok((y.broadcast_mul(alpha)?, None))
+                } else {
+                    Ok((
+                        candle_nn::ops::rms_norm(&x.contiguous()?, alpha, *eps as f32)?,
+                        None,
+                    ))
+                }
+            }
+            Norm::Ada { dense, ones, eps } => {
+                let cond = cond.ok_or_else(|| {
+                    candle_core::Error::Msg("adaRMSNorm needs a condition".into())
+                })?;
+                // [B, 3W] -> [B, 1, 3W]
+                let m = dense.forward(cond)?.unsqueeze(1)?;
+                let w = m.dim(D::Minus1)? / 3;
+                let scale = m.narrow(D::Minus1, 0, w)?;
+                let shift = m.narrow(D::Minus1, w, w)?;
+                let gate = m.narrow(D::Minus1, 2 * w, w)?;
+                let y = rms_plain(x, ones, *eps, diff)?;
+                let y = y.broadcast_mul(&(scale + 1.0)?)?.broadcast_add(&shift)?;
+                Ok((y, Some(gate)))
+            }
+        }
+    }
+}
+
+/// `x + y * gate` (gate absent: `x + y`).
+pub fn gated_residual(x: &Tensor, y: &Tensor, gate: Option<&Tensor>) -> candle_core::Result<Tensor> {
+    match gate {
+        None => x + y,
+        Some(g) => x + y.broadcast_mul(g)?,
+    }
+}
+
+/// RoPE tables for one stream: `cos`, `sin` [B, L, head_dim/2] (f32, from positions).
+#[derive(Debug, Clone)]
+pub struct Rope {
+    /// [B, L, hd/2].
+    pub cos: Tensor,
+    /// [B, L, hd/2].
+    pub sin: Tensor,
+}
+
+impl Rope {
+    /// Tables from positions `pos[b][l]` (HF: f32 `inv_freq * pos`).
+    pub fn new(
+        pos: &[Vec<i64>],
+        head_dim: usize,
+        theta: f64,
+        dev: &Device,
+    ) -> candle_core::Result<Self> {
+        let half = head_dim / 2;
+        let inv: Vec<f32> = (0..half)
+            .map(|i| 1.0f32 / (theta as f32).powf((2 * i) as f32 / head_dim as f32))
+            .collect();
+        let b = pos.len();
+        let l = pos.first().map(|p| p.len()).unwrap_or(0);
+        let mut c = Vec::with_capacity(b * l * half);
+        let mut s = Vec::with_capacity(b * l * half);
+        for row in pos {
+            for &p in row {
+                for &f in &inv {
+                    let a = p as f32 * f;
+                    c.push(a.cos());
+                    s.push(a.sin());
+                }
+            }
+        }
+        Ok(Rope {
+            cos: Tensor::from_vec(c, (b, l, half), dev)?,
+            sin: Tensor::from_vec(s, (b, l, half), dev)?,
+        })
+    }
+
+    /// Applies the rotation to `x` [B, H, L, hd] (contiguous in the fast path).
+    pub fn apply(&self, x: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
+        if diff {
+            // rotate_half: cat(-x2, x1); cos/sin duplicated to hd: [B, 1, L, hd]
+            let hd = x.dim(D::Minus1)?;
+            let x1 = x.narrow(D::Minus1, 0, hd / 2)?;
+            let x2 = x.narrow(D::Minus1, hd / 2, hd / 2)?;
+            let rot = Tensor::cat(&[&x2.neg()?, &x1], D::Minus1)?;
+            let cos = Tensor::cat(&[&self.cos, &self.cos], D::Minus1)?.unsqueeze(1)?;
+            let sin = Tensor::cat(&[&self.sin, &self.sin], D::Minus1)?.unsqueeze(1)?;
+            x.broadcast_mul(&cos)? + rot.broadcast_mul(&sin)?
+        } else {
+            candle_nn::rotary_emb::rope(&x.contiguous()?, &self.cos, &self.sin)
+        }
+    }
+}
+
+/// One expert layer: norms, attention projections and the gelu-tanh gated MLP.
+#[derive(Debug, Clone)]
+pub struct ExpertLayer {
+    input_norm: Norm,
+    post_norm: Norm,
+    q: Linear,
+    k: Linear,
+    v: Linear,
+    o: Linear,
+    gate: Linear,
+    up: Linear,
+    down: Linear,
+}
+
+/// One Gemma expert (`layers.i.*` and the final `norm`).
+#[derive(Debug, Clone)]
+pub struct Expert {
+    /// Layers.
+    pub layers: Vec<ExpertLayer>,
+    /// Final norm.
+    pub norm: Norm,
+    /// Dimensions.
+    pub dims: GemmaDims,
+}
+
+impl Expert {
+    /// `vb` at `...language_model` / `...gemma_expert.model`.
+    pub fn new(dims: &GemmaDims, ada: bool, eps: f64, vb: VarBuilder) -> candle_core::Result<Self> {
+        let w = dims.width;
+        let qd = dims.num_heads * dims.head_dim;
+        let kvd = dims.num_kv_heads * dims.head_dim;
+        let mut layers = Vec::with_capacity(dims.depth);
+        for i in 0..dims.depth {
+            let vb = vb.pp(format!("layers.{i}"));
+            let a = vb.pp("self_attn");
+            let m = vb.pp("mlp");
+            layers.push(ExpertLayer {
+                input_norm: Norm::new(w, ada, eps, vb.pp("input_layernorm"))?,
+                post_norm: Norm::new(w, ada, eps, vb.pp("post_attention_layernorm"))?,
+                q: candle_nn::linear_no_bias(w, qd, a.pp("q_proj"))?,
+                k: candle_nn::linear_no_bias(w, kvd, a.pp("k_proj"))?,
+                v: candle_nn::linear_no_bias(w, kvd, a.pp("v_proj"))?,
+                o: candle_nn::linear_no_bias(qd, w, a.pp("o_proj"))?,
+                gate: candle_nn::linear_no_bias(w, dims.mlp_dim, m.pp("gate_proj"))?,
+                up: candle_nn::linear_no_bias(w, dims.mlp_dim, m.pp("up_proj"))?,
+                down: candle_nn::linear_no_bias(dims.mlp_dim, w, m.pp("down_proj"))?,
+            });
+        }
+        let norm = Norm::new(w, ada, eps, vb.pp("norm"))?;
+        Ok(Expert {
+            layers,
+            norm,
+            dims: dims.clone(),
+        })
+    }
+}
+
+/// One stream entering a joint layer: its tokens, expert, adaRMS condition and RoPE tables.
+pub struct Stream<'a> {
+    /// Hidden states [B, L, W].
+    pub x: Tensor,
+    /// The expert that owns these tokens.
+    pub expert: &'a Expert,
+    /// adaRMS condition [B, Wc] (π0.5 action expert only).
+    pub cond: Option<&'a Tensor>,
+    /// RoPE tables for this stream's positions.
+    pub rope: &'a Rope,
+}
+
+/// Where the keys/values of a layer come from.
+pub enum KvMode<'a> {
+    /// Keys/values are only those of the streams (prefix pass, joint pass). When `store` is
+    /// given, the (post-RoPE) K/V are written there at sequence offset 0.
+    Own {
+        /// Cache buffers `[B, nKV, T, hd]` to fill.
+        store: Option<(&'a Tensor, &'a Tensor)>,
+    },
+    /// Keys/values = a cached buffer `[B, nKV, T, hd]` with the streams' K/V written at `offset`
+    /// (fast path: in place; differentiable path: concatenated after `cache[..offset]`).
+    Cached {
+        /// K buffer.
+        k: &'a Tensor,
+        /// V buffer.
+        v: &'a Tensor,
+        /// Where the streams' tokens go.
+        offset: usize,
+    },
+}
+
+/// Attention `softmax(q k^T + bias) v` with GQA.
+/// `q` [B, nH, L, hd] (pre-scaled), `k`, `v` [B, nKV, T, hd], `bias` [B, 1, L or 1, T].
+/// Returns [B, L, nH*hd].
+pub fn attention(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    bias: &Tensor,
+    diff: bool,
+) -> candle_core::Result<Tensor> {
+    let (b, nh, l, hd) = q.dims4()?;
+    let nkv = k.dim(1)?;
+    let t = k.dim(2)?;
+    let g = nh / nkv;
+    // [B, nKV, g*L, hd]: query heads are kv-head-major, so this is a free reshape
+    let q = q.reshape((b, nkv, g * l, hd))?;
+    // [B, nKV, g*L, T]
+    let s = q.matmul(&k.t()?)?;
+    let bl = bias.dim(2)?;
+    // [B, nKV, g, L, T] + [B, 1, 1, L|1, T]
+    let s = s
+        .reshape((b, nkv, g, l, t))?
+        .broadcast_add(&bias.reshape((b, 1, 1, bl, t))?)?;
+    let p = if diff {
+        candle_nn::ops::softmax(&s, D::Minus1)?
+    } else {
+        candle_nn::ops::softmax_last_dim(&s)?
+    };
+    // [B, nKV, g*L, hd] -> [B, nH, L, hd] -> [B, L, nH*hd]
+    let o = p.reshape((b, nkv, g * l, t))?.matmul(v)?;
+    o.reshape((b, nh, l, hd))?
+        .transpose(1, 2)?
+        .reshape((b, l, nh * hd))
+}
+
+/// `down(gelu_tanh(gate(x)) * up(x))`.
+fn mlp(layer: &ExpertLayer, x: &Tensor) -> candle_core::Result<Tensor> {
+    let g = layer.gate.forward(x)?.gelu()?;
+    let u = layer.up.forward(x)?;
+    layer.down.forward(&(g * u)?)
+}
+
+/// `[B, L, n*hd]` -> `[B, n, L, hd]`.
+fn heads(x: &Tensor, n: usize, hd: usize) -> candle_core::Result<Tensor> {
+    let (b, l, _) = x.dims3()?;
+    x.reshape((b, l, n, hd))?.transpose(1, 2)?.contiguous()
+}
+
+/// Only the post-RoPE K/V of layer `li` for one stream (the last prefix layer: its attention
+/// output and MLP feed nothing the sampler uses), written to `kb` / `vb` at offset 0.
+pub fn kv_only_layer(
+    li: usize,
+    s: &Stream<'_>,
+    kb: &Tensor,
+    vb: &Tensor,
+) -> candle_core::Result<()> {
+    let layer = &s.expert.layers[li];
+    let d = &s.expert.dims;
+    let (h, _) = layer.input_norm.forward(&s.x, s.cond, false)?;
+    let k = heads(&layer.k.forward(&h)?, d.num_kv_heads, d.head_dim)?;
+    let k = s.rope.apply(&k, false)?;
+    let v = heads(&layer.v.forward(&h)?, d.num_kv_heads, d.head_dim)?;
+    kb.slice_set(&k.contiguous()?, 2, 0)?;
+    vb.slice_set(&v, 2, 0)
+}
+
+/// Runs layer `li` over the streams with one joint masked attention; updates each `x` in place.
+pub fn joint_layer(
+    li: usize,
+    streams: &mut [Stream<'_>],
+    bias: &Tensor,
+    kv: KvMode<'_>,
+    diff: bool,
+) -> candle_core::Result<()> {
+    let mut qs = Vec::with_capacity(streams.len());
+    let mut ks = Vec::with_capacity(streams.len());
+    let mut vs = Vec::with_capacity(streams.len());
+    let mut gates = Vec::with_capacity(streams.len());
+    for s in streams.iter() {
+        let layer = &s.expert.layers[li];
+        let d = &s.expert.dims;
+        let (h, gate) = layer.input_norm.forward(&s.x, s.cond, diff)?;
+        let scale = (d.head_dim as f64).powf(-0.5);
+        // [B, nH, L, hd], [B, nKV, L, hd]
+        let q = heads(&layer.q.forward(&h)?, d.num_heads, d.head_dim)?;
+        let q = (s.rope.apply(&q, diff)? * scale)?;
+        let k = heads(&layer.k.forward(&h)?, d.num_kv_heads, d.head_dim)?;
+        let k = s.rope.apply(&k, diff)?;
+        let v = heads(&layer.v.forward(&h)?, d.num_kv_heads, d.head_dim)?;
+        qs.push(q);
+        ks.push(k);
+        vs.push(v);
+        gates.push(gate);
+    }
+    let cat = |xs: &[Tensor]| -> candle_core::Result<Tensor> {
+        if xs.len() == 1 {
+            Ok(xs[0].clone())
+        } else {
+            Tensor::cat(xs, 2)
+        }
+    };
+    let q = cat(&qs)?;
+    let k = cat(&ks)?;
+    let v = cat(&vs)?;
+    let out = match kv {
+        KvMode::Own { store } => {
+            if let Some((kb, vb)) = store {
+                kb.slice_set(&k.contiguous()?, 2, 0)?;
+                vb.slice_set(&v.contiguous()?, 2, 0)?;
+            }
+            attention(&q, &k, &v, bias, diff)?
+        }
+        KvMode::Cached {
+            k: kb,
+            v: vb,
+            offset,
+        } => {
+            if diff {
+                let kk = Tensor::cat(&[&kb.narrow(2, 0, offset)?, &k], 2)?;
+                let vv = Tensor::cat(&[&vb.narrow(2, 0, offset)?, &v], 2)?;
+                // Keys past the streams' tokens are masked anyway; keep T equal to the bias.
+                let t = bias.dim(3)?;
+                let l = kk.dim(2)?;
+                let (kk, vv) = if l < t {
+                    (
+                        Tensor::cat(&[&kk, &kb.narrow(2, l, t - l)?], 2)?,
+                        Tensor::cat(&[&vv, &vb.narrow(2, l, t - l)?], 2)?,
+                    )
+                } else {
+                    (kk, vv)
+                };
+                attention(&q, &kk, &vv, bias, diff)?
+            } else {
+                kb.slice_set(&k.contiguous()?, 2, offset)?;
+                vb.slice_set(&v.contiguous()?, 2, offset)?;
+                attention(&q, kb, vb, bias, diff)?
+            }
+        }
+    };
+    // split the attention output back into the streams
+    let mut start = 0;
+    for (s, gate) in streams.iter_mut().zip(gates.iter()) {
+        let layer = &s.expert.layers[li];
+        let l = s.x.dim(1)?;
+        let o = if start == 0 && l == out.dim(1)? {
+            out.clone()
+        } else {
+            out.narrow(1, start, l)?
+        };
+        start += l;
+        let o = layer.o.forward(&o)?;
+        let x1 = gated_residual(&s.x, &o, gate.as_ref())?;
+        let (h, gate2) = layer.post_norm.forward(&x1, s.cond, diff)?;
+        let m = mlp(layer, &h)?;
+        s.x = gated_residual(&x1, &m, gate2.as_ref())?;
+    }
+    Ok(())
+}

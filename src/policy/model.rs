@@ -1,0 +1,843 @@
+//! π0 / π0.5: prefix and suffix embeddings, masks and positions, the prefix KV cache, the
+//! flow-matching sampler and the training loss (openpi `PI0Pytorch`).
+//!
+//! Shapes: B batch, C cameras, T tokens per camera, Lt prompt tokens, P = C*T + Lt prefix length,
+//! H horizon, A action dim, S suffix length (π0: 1 + H, π0.5: H), W / We widths of the VLM /
+//! action expert.
+
+use candle_core::{DType, Device, Module, Tensor};
+use candle_nn::{Linear, VarBuilder};
+
+use super::config::{ModelConfig, ModelKind};
+use super::gemma::{joint_layer, kv_only_layer, Expert, KvMode, Rope, Stream, MASK_VALUE};
+use super::siglip::Vision;
+use super::PolicyError;
+
+/// Model-ready inputs (what openpi's `sample_actions` takes).
+#[derive(Debug, Clone)]
+pub struct ModelInputs {
+    /// Per camera (config order): [B, 3, S, S] f32 in [-1, 1].
+    pub images: Vec<Tensor>,
+    /// Per camera: [B] validity.
+    pub image_masks: Vec<Vec<bool>>,
+    /// [B, Lt] token ids (u32 or i64).
+    pub tokens: Tensor,
+    /// [B][Lt] validity of the tokens.
+    pub token_mask: Vec<Vec<bool>>,
+    /// [B, A] normalised, zero-padded state (π0: state token; π0.5: unused).
+    pub state: Tensor,
+}
+
+impl ModelInputs {
+    /// Batch size.
+    pub fn batch(&self) -> usize {
+        self.token_mask.len()
+    }
+}
+
+/// Host-side prefix layout: validity and RoPE positions of each prefix token.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PrefixLayout {
+    /// [B][P] valid tokens (camera mask expanded + token mask).
+    pub pad: Vec<Vec<bool>>,
+    /// [B][P] `cumsum(pad) - 1`.
+    pub pos: Vec<Vec<i64>>,
+    /// [B] number of valid prefix tokens (= first suffix position).
+    pub n_valid: Vec<usize>,
+}
+
+/// Post-RoPE K/V of the prefix (and, for π0, of the state token) for every layer, in buffers of
+/// length `P + S` that are reused across denoising steps and observations.
+#[derive(Debug)]
+pub struct PrefixCache {
+    /// Per layer [B, nKV, P + S, hd].
+    pub k: Vec<Tensor>,
+    /// Per layer [B, nKV, P + S, hd].
+    pub v: Vec<Tensor>,
+    /// Additive mask for action queries over all keys [B, 1, 1, P + S].
+    pub step_bias: Tensor,
+    /// RoPE tables of the action tokens.
+    pub action_rope: Rope,
+    /// Sequence index of the first action token (`P + state_tokens`).
+    pub action_offset: usize,
+    /// Prefix layout the cache was built from.
+    pub layout: PrefixLayout,
+    /// Batch size.
+    pub batch: usize,
+}
+
+/// Result of [`PiModel::sample`].
+#[derive(Debug, Clone)]
+pub struct SampleOutput {
+    /// x_0 [B, H, A].
+    pub actions: Tensor,
+    /// Velocity at the first step (t = 1) [B, H, A].
+    pub v_t_step0: Tensor,
+    /// Time values of the steps (f32 accumulation).
+    pub times: Vec<f32>,
+}
+
+/// Result of [`PiModel::loss`].
+#[derive(Debug, Clone)]
+pub struct LossOutput {
+    /// `(u - v)^2` [B, H, A].
+    pub per_element: Tensor,
+    /// Mean of `per_element` (scalar).
+    pub mean: Tensor,
+    /// Model velocity [B, H, A].
+    pub v_t: Tensor,
+}
+
+/// Kind-specific suffix heads.
+#[derive(Debug, Clone)]
+enum SuffixHeads {
+    Pi0 {
+        state_proj: Linear,
+        mlp_in: Linear,
+        mlp_out: Linear,
+    },
+    Pi05 {
+        time_in: Linear,
+        time_out: Linear,
+    },
+}
+
+/// π0 / π0.5.
+#[derive(Debug, Clone)]
+pub struct PiModel {
+    /// Dimensions.
+    pub cfg: ModelConfig,
+    vision: Vision,
+    /// Token embedding [V, W] (tied with the LM head).
+    embed_tokens: Tensor,
+    vlm: Expert,
+    expert: Expert,
+    action_in_proj: Linear,
+    action_out_proj: Linear,
+    heads: SuffixHeads,
+    device: Device,
+}
+
+/// Sinusoidal time embedding [B, W] (sin half then cos half), computed in f64 like openpi's
+/// PyTorch reference, then cast to f32.
+pub fn time_embedding(
+    t: &[f32],
+    width: usize,
+    min_period: f64,
+    max_period: f64,
+    dev: &Device,
+) -> candle_core::Result<Tensor> {
+    let half = width / 2;
+    let mut out = Vec::with_capacity(t.len() * width);
+    for &ti in t {
+        let mut sin = Vec::with_capacity(half);
+        let mut cos = Vec::with_capacity(half);
+        for i in 0..half {
+            let frac = if half > 1 {
+                i as f64 / (half - 1) as f64
+            } else {
+                0.0
+            };
+            let period = min_period * (max_period / min_period).powf(frac);
+            let x = (1.0 / period * 2.0 * std::f64::consts::PI) * ti as f64;
+            sin.push(x.sin() as f32);
+            cos.push(x.cos() as f32);
+        }
+        out.extend(sin);
+        out.extend(cos);
+    }
+    Tensor::from_vec(out, (t.len(), width), dev)
+}
+
+/// Additive bias from a boolean mask: 0 where visible, [`MASK_VALUE`] elsewhere.
+fn bias_tensor(vis: Vec<bool>, shape: (usize, usize, usize, usize), dev: &Device) -> candle_core::Result<Tensor> {
+    let v: Vec<f32> = vis
+        .into_iter()
+        .map(|b| if b { 0.0 } else { MASK_VALUE })
+        .collect();
+    Tensor::from_vec(v, shape, dev)
+}
+
+/// openpi `make_att_2d_masks`: query i sees key j iff `cum[j] <= cum[i]` and both are valid.
+pub fn att_2d_mask(pad: &[bool], ar: &[bool]) -> Vec<bool> {
+    let n = pad.len();
+    let mut cum = Vec::with_capacity(n);
+    let mut c = 0u32;
+    for &a in ar {
+        c += a as u32;
+        cum.push(c);
+    }
+    let mut m = Vec::with_capacity(n * n);
+    for i in 0..n {
+        for j in 0..n {
+            m.push(cum[j] <= cum[i] && pad[i] && pad[j]);
+        }
+    }
+    m
+}
+
+impl PiModel {
+    /// Builds the model from a `VarBuilder` at the checkpoint root (openpi key names). With a
+    /// `VarMap`-backed builder the weights are trainable variables.
+    pub fn new(cfg: &ModelConfig, vb: VarBuilder) -> Result<Self, PolicyError> {
+        cfg.validate()?;
+        let w = cfg.paligemma.width;
+        let we = cfg.action_expert.width;
+        let a = cfg.action_dim;
+        let eps = cfg.rms_norm_eps;
+        let pg = vb.pp("paligemma_with_expert.paligemma");
+        let vision = Vision::new(&cfg.vision, w, pg.pp("model"))?;
+        let init = candle_nn::Init::Randn {
+            mean: 0.0,
+            stdev: 1.0 / (w as f64).sqrt(),
+        };
+        let embed_tokens = if pg.contains_tensor("model.language_model.embed_tokens.weight") {
+            pg.get_with_hints(
+                (cfg.vocab_size, w),
+                "model.language_model.embed_tokens.weight",
+                init,
+            )?
+        } else {
+            pg.get_with_hints((cfg.vocab_size, w), "lm_head.weight", init)?
+        };
+        let vlm = Expert::new(&cfg.paligemma, false, eps, pg.pp("model.language_model"))?;
+        let pi05 = cfg.kind == ModelKind::Pi05;
+        let expert = Expert::new(
+            &cfg.action_expert,
+            pi05,
+            eps,
+            vb.pp("paligemma_with_expert.gemma_expert.model"),
+        )?;
+        let action_in_proj = candle_nn::linear(a, we, vb.pp("action_in_proj"))?;
+        let action_out_proj = candle_nn::linear(we, a, vb.pp("action_out_proj"))?;
+        let heads = match cfg.kind {
+            ModelKind::Pi0 => SuffixHeads::Pi0 {
+                state_proj: candle_nn::linear(a, we, vb.pp("state_proj"))?,
+                mlp_in: candle_nn::linear(2 * we, we, vb.pp("action_time_mlp_in"))?,
+                mlp_out: candle_nn::linear(we, we, vb.pp("action_time_mlp_out"))?,
+            },
+            ModelKind::Pi05 => SuffixHeads::Pi05 {
+                time_in: candle_nn::linear(we, we, vb.pp("time_mlp_in"))?,
+                time_out: candle_nn::linear(we, we, vb.pp("time_mlp_out"))?,
+            },
+        };
+        Ok(PiModel {
+            cfg: cfg.clone(),
+            vision,
+            embed_tokens,
+            vlm,
+            expert,
+            action_in_proj,
+            action_out_proj,
+            heads,
+            device: vb.device().clone(),
+        })
+    }
+
+    /// The device.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    fn check_inputs(&self, inp: &ModelInputs) -> Result<usize, PolicyError> {
+        let b = inp.batch();
+        let c = self.cfg.cameras.len();
+        let s = self.cfg.vision.image_size;
+        let bad = |m: String| Err(PolicyError::Input(m));
+        if b == 0 {
+            return bad("empty batch".into());
+        }
+        if inp.images.len() != c || inp.image_masks.len() != c {
+            return bad(format!("expected {c} cameras, got {} images / {} masks", inp.images.len(), inp.image_masks.len()));
+        }
+        for (i, im) in inp.images.iter().enumerate() {
+            if im.dims() != [b, 3, s, s] {
+                return bad(format!("image {i}: shape {:?}, expected [{b}, 3, {s}, {s}]", im.dims()));
+            }
+            if inp.image_masks[i].len() != b {
+                return bad(format!("image mask {i}: {} entries for batch {b}", inp.image_masks[i].len()));
+            }
+        }
+        let lt = self.cfg.max_token_len;
+        if inp.tokens.dims() != [b, lt] || inp.token_mask.iter().any(|m| m.len() != lt) {
+            return bad(format!("tokens: shape {:?}, expected [{b}, {lt}]", inp.tokens.dims()));
+        }
+        if inp.state.dims() != [b, self.cfg.action_dim] {
+            return bad(format!("state: shape {:?}, expected [{b}, {}]", inp.state.dims(), self.cfg.action_dim));
+        }
+        Ok(b)
+    }
+
+    /// Validity and positions of the prefix tokens.
+    pub fn prefix_layout(&self, inp: &ModelInputs) -> PrefixLayout {
+        let t = self.cfg.vision.num_tokens();
+        let b = inp.batch();
+        let mut pad = Vec::with_capacity(b);
+        let mut pos = Vec::with_capacity(b);
+        let mut n_valid = Vec::with_capacity(b);
+        for bi in 0..b {
+            let mut row = Vec::with_capacity(self.cfg.prefix_len());
+            for cm in &inp.image_masks {
+                row.extend(std::iter::repeat_n(cm[bi], t));
+            }
+            row.extend_from_slice(&inp.token_mask[bi]);
+            let mut c = 0i64;
+            let p: Vec<i64> = row
+                .iter()
+                .map(|&v| {
+                    c += v as i64;
+                    c - 1
+                })
+                .collect();
+            n_valid.push(c as usize);
+            pad.push(row);
+            pos.push(p);
+        }
+        PrefixLayout { pad, pos, n_valid }
+    }
+
+    /// SigLIP last hidden states and image embeddings per camera ([B, T, Dv], [B, T, W]).
+    pub fn vision(&self, inp: &ModelInputs) -> Result<(Vec<Tensor>, Vec<Tensor>), PolicyError> {
+        let b = self.check_inputs(inp)?;
+        // all cameras in one pass: [C*B, 3, S, S]
+        let all = Tensor::cat(&inp.images, 0)?;
+        let hidden = self.vision.tower(&all)?;
+        let emb = self.vision.forward_projector(&hidden)?;
+        let mut hs = Vec::new();
+        let mut es = Vec::new();
+        for c in 0..inp.images.len() {
+            hs.push(hidden.narrow(0, c * b, b)?);
+            es.push(emb.narrow(0, c * b, b)?);
+        }
+        Ok((hs, es))
+    }
+
+    /// `embed_prefix`: concat(image embeddings per camera, embed(ids) * sqrt(W)) [B, P, W].
+    pub fn embed_prefix(&self, inp: &ModelInputs) -> Result<Tensor, PolicyError> {
+        self.embed_prefix_inner(inp, false)
+    }
+
+    /// `skip_masked`: cameras masked in every batch row get zeros instead of a vision pass (their
+    /// tokens are padding and never reach valid tokens).
+    fn embed_prefix_inner(&self, inp: &ModelInputs, skip_masked: bool) -> Result<Tensor, PolicyError> {
+        let b = self.check_inputs(inp)?;
+        let run: Vec<usize> = (0..inp.images.len())
+            .filter(|&c| !skip_masked || inp.image_masks[c].iter().any(|&m| m))
+            .collect();
+        let t = self.cfg.vision.num_tokens();
+        let w = self.cfg.paligemma.width;
+        // all cameras in one pass: [C*B, 3, S, S] -> [C*B, T, W]
+        let emb = if run.is_empty() {
+            None
+        } else {
+            let imgs: Vec<&Tensor> = run.iter().map(|&c| &inp.images[c]).collect();
+            Some(self.vision.forward(&Tensor::cat(&imgs, 0)?)?)
+        };
+        let mut parts = Vec::with_capacity(inp.images.len() + 1);
+        for c in 0..inp.images.len() {
+            match (run.iter().position(|&r| r == c), &emb) {
+                (Some(i), Some(e)) => parts.push(e.narrow(0, i * b, b)?),
+                _ => parts.push(Tensor::zeros((b, t, w), DType::F32, &self.device)?),
+            }
+        }
+        let lt = self.cfg.max_token_len;
+        let ids = inp.tokens.flatten_all()?;
+        let ids = if ids.dtype() == DType::I64 || ids.dtype() == DType::U32 {
+            ids
+        } else {
+            ids.to_dtype(DType::U32)?
+        };
+        let vocab = self.embed_tokens.dim(0)?;
+        let max_id = ids.to_dtype(DType::F64)?.max(0)?.to_scalar::<f64>()?;
+        let min_id = ids.to_dtype(DType::F64)?.min(0)?.to_scalar::<f64>()?;
+        if min_id < 0.0 || max_id >= vocab as f64 {
+            return Err(PolicyError::Input(format!(
+                "token ids must be in [0, {vocab}), got [{min_id}, {max_id}]"
+            )));
+        }
+        let text = self
+            .embed_tokens
+            .index_select(&ids, 0)?
+            .reshape((b, lt, w))?;
+        parts.push((text * (w as f64).sqrt())?);
+        Ok(Tensor::cat(&parts, 1)?)
+    }
+
+    /// Additive prefix self-attention bias [B, 1, P, P].
+    fn prefix_bias(&self, layout: &PrefixLayout) -> candle_core::Result<Tensor> {
+        let b = layout.pad.len();
+        let p = layout.pad.first().map(|r| r.len()).unwrap_or(0);
+        let mut vis = Vec::with_capacity(b * p * p);
+        for row in &layout.pad {
+            for &qi in row {
+                for &kj in row {
+                    vis.push(qi && kj);
+                }
+            }
+        }
+        bias_tensor(vis, (b, 1, p, p), &self.device)
+    }
+
+    /// Suffix ar flags (π0: `[1, 1, 0, ..]`, π0.5: `[1, 0, ..]`).
+    pub fn suffix_ar(&self) -> Vec<bool> {
+        let h = self.cfg.action_horizon;
+        let mut ar = Vec::with_capacity(h + 1);
+        if self.cfg.kind == ModelKind::Pi0 {
+            ar.push(true);
+        }
+        ar.push(true);
+        ar.extend(std::iter::repeat_n(false, h - 1));
+        ar
+    }
+
+    /// Suffix tokens and the adaRMS condition at time `t` [B]: tokens [B, S or H, We].
+    /// `with_state`: prepend π0's state token.
+    fn embed_suffix(
+        &self,
+        state: &Tensor,
+        x_t: &Tensor,
+        t: &[f32],
+        with_state: bool,
+    ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
+        let we = self.cfg.action_expert.width;
+        let te = time_embedding(
+            t,
+            we,
+            self.cfg.time_min_period,
+            self.cfg.time_max_period,
+            &self.device,
+        )?;
+        // [B, H, We]
+        let a = self.action_in_proj.forward(x_t)?;
+        match &self.heads {
+            SuffixHeads::Pi0 {
+                state_proj,
+                mlp_in,
+                mlp_out,
+            } => {
+                let (b, h, _) = a.dims3()?;
+                let te = te.unsqueeze(1)?.broadcast_as((b, h, we))?;
+                let at = Tensor::cat(&[&a, &te], 2)?;
+                let at = mlp_out.forward(&mlp_in.forward(&at)?.silu()?)?;
+                if with_state {
+                    // [B, 1, We]
+                    let s = state_proj.forward(state)?.unsqueeze(1)?;
+                    Ok((Tensor::cat(&[&s, &at], 1)?, None))
+                } else {
+                    Ok((at, None))
+                }
+            }
+            SuffixHeads::Pi05 { time_in, time_out } => {
+                let c = time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?;
+                Ok((a, Some(c)))
+            }
+        }
+    }
+
+    /// The adaRMS condition at time `t` (π0.5; `None` for π0) [B, We].
+    pub fn adarms_cond(&self, t: &[f32]) -> candle_core::Result<Option<Tensor>> {
+        match &self.heads {
+            SuffixHeads::Pi0 { .. } => Ok(None),
+            SuffixHeads::Pi05 { time_in, time_out } => {
+                let te = time_embedding(
+                    t,
+                    self.cfg.action_expert.width,
+                    self.cfg.time_min_period,
+                    self.cfg.time_max_period,
+                    &self.device,
+                )?;
+                Ok(Some(time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?))
+            }
+        }
+    }
+
+    /// `embed_suffix` output at time `t` (π0: state token first) [B, S, We].
+    pub fn suffix_embeddings(&self, state: &Tensor, x_t: &Tensor, t: &[f32]) -> Result<Tensor, PolicyError> {
+        Ok(self.embed_suffix(state, x_t, t, true)?.0)
+    }
+
+    /// Runs the prefix through the VLM expert only, filling `cache` (reusing its buffers when the
+    /// shapes match). Only valid prefix tokens are computed: row `b` of the cache holds the valid
+    /// tokens in order at `[0, n_valid[b])`. Returns the prefix output (after the final norm) of
+    /// those compacted tokens [B, max n_valid, W] when `want_out`.
+    pub fn fill_cache(
+        &self,
+        inp: &ModelInputs,
+        cache: &mut Option<PrefixCache>,
+        want_out: bool,
+    ) -> Result<Option<Tensor>, PolicyError> {
+        let embs = self.embed_prefix_inner(inp, !want_out)?;
+        self.fill_cache_from_embs(inp, &embs, cache, want_out)
+    }
+
+    /// [`Self::fill_cache`] from precomputed prefix embeddings [B, P, W].
+    pub fn fill_cache_from_embs(
+        &self,
+        inp: &ModelInputs,
+        embs: &Tensor,
+        cache: &mut Option<PrefixCache>,
+        want_out: bool,
+    ) -> Result<Option<Tensor>, PolicyError> {
+        let b = self.check_inputs(inp)?;
+        let d = &self.cfg.paligemma;
+        let p = self.cfg.prefix_len();
+        let ns = self.cfg.state_tokens();
+        let total = p + self.cfg.suffix_len();
+        let layout = self.prefix_layout(inp);
+        let reuse = matches!(cache, Some(c) if c.batch == b && c.k.first().map(|k| k.dims() == [b, d.num_kv_heads, total, d.head_dim]).unwrap_or(false));
+        let (ks, vs) = if reuse {
+            let c = cache.take().expect("checked Some above");
+            (c.k, c.v)
+        } else {
+            let mut ks = Vec::with_capacity(d.depth);
+            let mut vs = Vec::with_capacity(d.depth);
+            for _ in 0..d.depth {
+                ks.push(Tensor::zeros((b, d.num_kv_heads, total, d.head_dim), DType::F32, &self.device)?);
+                vs.push(Tensor::zeros((b, d.num_kv_heads, total, d.head_dim), DType::F32, &self.device)?);
+            }
+            (ks, vs)
+        };
+        // Compaction: padding tokens and masked cameras never influence valid tokens (they are
+        // masked as keys everywhere), so the prefix pass runs over the valid tokens only, in
+        // order, padded per row to the largest valid count `pc` with (masked) filler tokens.
+        let pc = layout.n_valid.iter().copied().max().unwrap_or(0).max(1);
+        let mut rows = Vec::with_capacity(b);
+        let mut cpad = Vec::with_capacity(b);
+        let mut cpos = Vec::with_capacity(b);
+        for bi in 0..b {
+            let pad = &layout.pad[bi];
+            let mut idx: Vec<u32> = (0..p).filter(|&j| pad[j]).map(|j| j as u32).collect();
+            idx.extend(
+                (0..p)
+                    .filter(|&j| !pad[j])
+                    .take(pc - layout.n_valid[bi])
+                    .map(|j| j as u32),
+            );
+            cpad.push((0..pc).map(|i| i < layout.n_valid[bi]).collect::<Vec<_>>());
+            cpos.push(idx.iter().map(|&j| layout.pos[bi][j as usize]).collect::<Vec<_>>());
+            rows.push(idx);
+        }
+        let x = if pc == p {
+            embs.clone()
+        } else if b == 1 {
+            embs.index_select(&Tensor::new(rows[0].as_slice(), &self.device)?, 1)?
+        } else {
+            let mut parts = Vec::with_capacity(b);
+            for (bi, r) in rows.iter().enumerate() {
+                let idx = Tensor::new(r.as_slice(), &self.device)?;
+                parts.push(embs.narrow(0, bi, 1)?.index_select(&idx, 1)?);
+            }
+            Tensor::cat(&parts, 0)?
+        };
+        let compact = PrefixLayout {
+            pad: cpad,
+            pos: cpos,
+            n_valid: layout.n_valid.clone(),
+        };
+        let rope = Rope::new(&compact.pos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let bias = self.prefix_bias(&compact)?;
+        let mut streams = [Stream {
+            x,
+            expert: &self.vlm,
+            cond: None,
+            rope: &rope,
+        }];
+        for li in 0..d.depth {
+            if li + 1 == d.depth && !want_out {
+                // the last layer only has to provide K/V
+                kv_only_layer(li, &streams[0], &ks[li], &vs[li])?;
+                continue;
+            }
+            joint_layer(
+                li,
+                &mut streams,
+                &bias,
+                KvMode::Own {
+                    store: Some((&ks[li], &vs[li])),
+                },
+                false,
+            )?;
+        }
+        let out = if want_out {
+            Some(self.vlm.norm.forward(&streams[0].x, None, false)?.0)
+        } else {
+            None
+        };
+        // key visibility for suffix queries: valid compacted prefix, masked fillers and unused
+        // slots up to P, all suffix slots
+        let mut vis = Vec::with_capacity(b * total);
+        for row in &compact.pad {
+            vis.extend_from_slice(row);
+            vis.extend(std::iter::repeat_n(false, p - pc));
+            vis.extend(std::iter::repeat_n(true, total - p));
+        }
+        let step_bias = bias_tensor(vis, (b, 1, 1, total), &self.device)?;
+        // positions of the action tokens: n_valid + state_tokens + [0, H)
+        let h = self.cfg.action_horizon;
+        let apos: Vec<Vec<i64>> = layout
+            .n_valid
+            .iter()
+            .map(|&n| (0..h).map(|i| (n + ns + i) as i64).collect())
+            .collect();
+        let action_rope = Rope::new(&apos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        if ns == 1 {
+            // π0: the state token sees the prefix and itself only, so its K/V do not depend on
+            // x_t or t: run it once through the action expert and keep it in the cache at P.
+            let SuffixHeads::Pi0 { state_proj, .. } = &self.heads else {
+                return Err(PolicyError::Config("pi0 without state_proj".into()));
+            };
+            let s = state_proj.forward(&inp.state)?.unsqueeze(1)?;
+            let spos: Vec<Vec<i64>> = layout.n_valid.iter().map(|&n| vec![n as i64]).collect();
+            let srope = Rope::new(&spos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+            let mut svis = Vec::with_capacity(b * total);
+            for row in &compact.pad {
+                svis.extend_from_slice(row);
+                svis.extend(std::iter::repeat_n(false, p - pc));
+                svis.push(true);
+                svis.extend(std::iter::repeat_n(false, total - p - 1));
+            }
+            let sbias = bias_tensor(svis, (b, 1, 1, total), &self.device)?;
+            let mut st = [Stream {
+                x: s,
+                expert: &self.expert,
+                cond: None,
+                rope: &srope,
+            }];
+            for li in 0..d.depth {
+                joint_layer(
+                    li,
+                    &mut st,
+                    &sbias,
+                    KvMode::Cached {
+                        k: &ks[li],
+                        v: &vs[li],
+                        offset: p,
+                    },
+                    false,
+                )?;
+            }
+        }
+        *cache = Some(PrefixCache {
+            k: ks,
+            v: vs,
+            step_bias,
+            action_rope,
+            action_offset: p + ns,
+            layout,
+            batch: b,
+        });
+        Ok(out)
+    }
+
+    /// One velocity evaluation against the prefix cache: only the action expert runs, over the
+    /// H action tokens. `x_t` [B, H, A], `t` [B] f32. Returns `v_t` [B, H, A]. `differentiable`
+    /// selects ops with backward (for vector-Jacobian products through the action expert).
+    pub fn velocity(
+        &self,
+        cache: &PrefixCache,
+        x_t: &Tensor,
+        t: &Tensor,
+        differentiable: bool,
+    ) -> Result<Tensor, PolicyError> {
+        let tv = t.to_dtype(DType::F32)?.to_vec1::<f32>()?;
+        self.velocity_at(cache, x_t, &tv, differentiable)
+    }
+
+    /// [`Self::velocity`] with host time values.
+    pub fn velocity_at(
+        &self,
+        cache: &PrefixCache,
+        x_t: &Tensor,
+        t: &[f32],
+        differentiable: bool,
+    ) -> Result<Tensor, PolicyError> {
+        let (b, h, a) = x_t.dims3()?;
+        if b != cache.batch || h != self.cfg.action_horizon || a != self.cfg.action_dim || t.len() != b {
+            return Err(PolicyError::Input(format!(
+                "x_t {:?} / t [{}] do not match the cache (batch {}, H {}, A {})",
+                x_t.dims(),
+                t.len(),
+                cache.batch,
+                self.cfg.action_horizon,
+                self.cfg.action_dim
+            )));
+        }
+        // the state token (π0) is already in the cache; `state` is unused without it
+        let (tokens, cond) = self.embed_suffix(x_t, x_t, t, false)?;
+        let mut st = [Stream {
+            x: tokens,
+            expert: &self.expert,
+            cond: cond.as_ref(),
+            rope: &cache.action_rope,
+        }];
+        for li in 0..self.cfg.action_expert.depth {
+            joint_layer(
+                li,
+                &mut st,
+                &cache.step_bias,
+                KvMode::Cached {
+                    k: &cache.k[li],
+                    v: &cache.v[li],
+                    offset: cache.action_offset,
+                },
+                differentiable,
+            )?;
+        }
+        let out = self.expert.norm.forward(&st[0].x, cond.as_ref(), differentiable)?.0;
+        Ok(self.action_out_proj.forward(&out)?)
+    }
+
+    /// The full joint forward (no cache; training and the uncached sampler): prefix tokens through
+    /// the VLM expert and suffix tokens through the action expert with one attention per layer.
+    /// Returns (prefix_out [B, P, W], suffix_out [B, S, We]).
+    pub fn joint_forward(
+        &self,
+        inp: &ModelInputs,
+        prefix_embs: &Tensor,
+        x_t: &Tensor,
+        t: &[f32],
+        diff: bool,
+    ) -> Result<(Tensor, Tensor), PolicyError> {
+        let b = self.check_inputs(inp)?;
+        let layout = self.prefix_layout(inp);
+        let (suffix, cond) = self.embed_suffix(&inp.state, x_t, t, true)?;
+        let s = suffix.dim(1)?;
+        let p = self.cfg.prefix_len();
+        let ar_s = self.suffix_ar();
+        let mut vis = Vec::with_capacity(b * (p + s) * (p + s));
+        let mut spos = Vec::with_capacity(b);
+        for bi in 0..b {
+            let mut pad = layout.pad[bi].clone();
+            pad.extend(std::iter::repeat_n(true, s));
+            let mut ar = vec![false; p];
+            ar.extend_from_slice(&ar_s);
+            vis.extend(att_2d_mask(&pad, &ar));
+            let n = layout.n_valid[bi] as i64;
+            spos.push((0..s as i64).map(|i| n + i).collect::<Vec<_>>());
+        }
+        let bias = bias_tensor(vis, (b, 1, p + s, p + s), &self.device)?;
+        let d = &self.cfg.paligemma;
+        let prope = Rope::new(&layout.pos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let srope = Rope::new(&spos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let mut streams = [
+            Stream {
+                x: prefix_embs.clone(),
+                expert: &self.vlm,
+                cond: None,
+                rope: &prope,
+            },
+            Stream {
+                x: suffix,
+                expert: &self.expert,
+                cond: cond.as_ref(),
+                rope: &srope,
+            },
+        ];
+        for li in 0..d.depth {
+            joint_layer(li, &mut streams, &bias, KvMode::Own { store: None }, diff)?;
+        }
+        let po = self.vlm.norm.forward(&streams[0].x, None, diff)?.0;
+        let so = self.expert.norm.forward(&streams[1].x, cond.as_ref(), diff)?.0;
+        Ok((po, so))
+    }
+
+    /// Velocity from the joint forward (no cache) [B, H, A].
+    pub fn velocity_uncached(
+        &self,
+        inp: &ModelInputs,
+        prefix_embs: &Tensor,
+        x_t: &Tensor,
+        t: &[f32],
+        diff: bool,
+    ) -> Result<Tensor, PolicyError> {
+        let (_, so) = self.joint_forward(inp, prefix_embs, x_t, t, diff)?;
+        let s = so.dim(1)?;
+        let h = self.cfg.action_horizon;
+        Ok(self.action_out_proj.forward(&so.narrow(1, s - h, h)?)?)
+    }
+
+    /// Flow-matching sampler: Euler from t = 1 (noise) with `dt = -1/steps`, time accumulated in
+    /// f32, loop while `t >= -dt/2`. `noise` [B, H, A]. With `cache` the prefix runs once and each
+    /// step only runs the action expert (buffers in `cache` are reused); without, every step runs
+    /// the full joint forward.
+    pub fn sample(
+        &self,
+        inp: &ModelInputs,
+        noise: &Tensor,
+        steps: usize,
+        cache: Option<&mut Option<PrefixCache>>,
+    ) -> Result<SampleOutput, PolicyError> {
+        let b = self.check_inputs(inp)?;
+        if steps == 0 {
+            return Err(PolicyError::Input("steps must be > 0".into()));
+        }
+        let want = [b, self.cfg.action_horizon, self.cfg.action_dim];
+        if noise.dims() != want {
+            return Err(PolicyError::Input(format!("noise: shape {:?}, expected {want:?}", noise.dims())));
+        }
+        let dt = -1.0f32 / steps as f32;
+        let mut time = 1.0f32;
+        let mut x = noise.to_dtype(DType::F32)?;
+        let mut v0 = None;
+        let mut times = Vec::with_capacity(steps);
+        match cache {
+            Some(cache) => {
+                self.fill_cache(inp, cache, false)?;
+                let c = cache.as_ref().expect("fill_cache stores the cache");
+                while time >= -dt / 2.0 {
+                    let v = self.velocity_at(c, &x, &vec![time; b], false)?;
+                    x = (x + (&v * dt as f64)?)?;
+                    if v0.is_none() {
+                        v0 = Some(v);
+                    }
+                    times.push(time);
+                    time += dt;
+                }
+            }
+            None => {
+                let embs = self.embed_prefix(inp)?;
+                while time >= -dt / 2.0 {
+                    let v = self.velocity_uncached(inp, &embs, &x, &vec![time; b], false)?;
+                    x = (x + (&v * dt as f64)?)?;
+                    if v0.is_none() {
+                        v0 = Some(v);
+                    }
+                    times.push(time);
+                    time += dt;
+                }
+            }
+        }
+        let v_t_step0 = v0.ok_or_else(|| PolicyError::Input("no denoising step ran".into()))?;
+        Ok(SampleOutput {
+            actions: x,
+            v_t_step0,
+            times,
+        })
+    }
+
+    /// Flow-matching training loss: `x_t = t*noise + (1-t)*actions`, `u = noise - actions`,
+    /// `(u - v(x_t, t))^2` per element (joint forward, no cache). `time` [B] f32.
+    /// With `diff` every op has a backward (train with a `VarMap`-backed model).
+    pub fn loss(
+        &self,
+        inp: &ModelInputs,
+        actions: &Tensor,
+        noise: &Tensor,
+        time: &Tensor,
+        diff: bool,
+    ) -> Result<LossOutput, PolicyError> {
+        let tv = time.to_dtype(DType::F32)?.to_vec1::<f32>()?;
+        let t3 = time.to_dtype(DType::F32)?.reshape((tv.len(), 1, 1))?;
+        let x_t = (noise.broadcast_mul(&t3)? + actions.broadcast_mul(&(t3.neg()? + 1.0)?)?)?;
+        let u = (noise - actions)?;
+        let embs = self.embed_prefix(inp)?;
+        let v_t = self.velocity_uncached(inp, &embs, &x_t, &tv, diff)?;
+        let per_element = (u - &v_t)?.sqr()?;
+        let mean = per_element.mean_all()?;
+        Ok(LossOutput {
+            per_element,
+            mean,
+            v_t,
+        })
+    }
+}

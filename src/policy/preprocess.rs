@@ -1,0 +1,367 @@
+//! Pre/post-processing: camera frames -> model images, openpi `norm_stats.json`, π0.5 state
+//! discretisation into the prompt, prompt formats, tokenizer, padding and un-normalisation.
+
+use std::path::Path;
+
+use serde::Deserialize;
+
+use super::PolicyError;
+
+/// Pixel layout of a raw frame (the `ENCODING_*` codes of `CameraFrameHeader`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Encoding {
+    /// 3 bytes R, G, B.
+    Rgb8,
+    /// 3 bytes B, G, R.
+    Bgr8,
+    /// 1 byte grey.
+    Mono8,
+}
+
+impl Encoding {
+    /// From `chunkrt_ipc::ENCODING_*`.
+    pub fn from_code(code: u32) -> Result<Self, PolicyError> {
+        match code {
+            c if c == chunkrt_ipc::ENCODING_RGB8 => Ok(Encoding::Rgb8),
+            c if c == chunkrt_ipc::ENCODING_BGR8 => Ok(Encoding::Bgr8),
+            c if c == chunkrt_ipc::ENCODING_MONO8 => Ok(Encoding::Mono8),
+            other => Err(PolicyError::Input(format!("unknown frame encoding {other}"))),
+        }
+    }
+
+    /// Bytes per pixel.
+    pub fn bytes_per_pixel(self) -> usize {
+        match self {
+            Encoding::Mono8 => 1,
+            _ => 3,
+        }
+    }
+}
+
+/// Copies a strided frame into packed RGB HWC.
+pub fn to_rgb(
+    data: &[u8],
+    width: usize,
+    height: usize,
+    stride: usize,
+    enc: Encoding,
+) -> Result<Vec<u8>, PolicyError> {
+    let bpp = enc.bytes_per_pixel();
+    if width == 0 || height == 0 || stride < width * bpp {
+        return Err(PolicyError::Input(format!(
+            "frame {width}x{height} with stride {stride} is invalid"
+        )));
+    }
+    let need = stride * (height - 1) + width * bpp;
+    if data.len() < need {
+        return Err(PolicyError::Input(format!(
+            "frame {width}x{height} stride {stride} needs {need} bytes, got {}",
+            data.len()
+        )));
+    }
+    let mut out = Vec::with_capacity(width * height * 3);
+    for y in 0..height {
+        let row = &data[y * stride..y * stride + width * bpp];
+        match enc {
+            Encoding::Rgb8 => out.extend_from_slice(row),
+            Encoding::Bgr8 => {
+                for px in row.chunks_exact(3) {
+                    out.extend_from_slice(&[px[2], px[1], px[0]]);
+                }
+            }
+            Encoding::Mono8 => {
+                for &g in row {
+                    out.extend_from_slice(&[g, g, g]);
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Antialiased linear resampling weights along one axis (the triangle kernel of
+/// `jax.image.resize(..., "linear")`, widened by the downscale factor): per output index, the first
+/// input index and the normalised weights.
+fn axis_weights(inp: usize, out: usize) -> Vec<(usize, Vec<f32>)> {
+    let scale = out as f64 / inp as f64;
+    let ks = scale.min(1.0);
+    let radius = 1.0 / ks;
+    (0..out)
+        .map(|i| {
+            let c = (i as f64 + 0.5) / scale - 0.5;
+            let lo = ((c - radius).floor().max(0.0)) as usize;
+            let hi = ((c + radius).ceil() as usize).min(inp - 1);
+            let mut w: Vec<f64> = (lo..=hi)
+                .map(|j| (1.0 - ((j as f64 - c) * ks).abs()).max(0.0))
+                .collect();
+            let s: f64 = w.iter().sum();
+            if s > 0.0 {
+                w.iter_mut().for_each(|x| *x /= s);
+            }
+            (lo, w.into_iter().map(|x| x as f32).collect())
+        })
+        .collect()
+}
+
+/// openpi `resize_with_pad`: keeps the aspect ratio, resizes (linear, antialiased, rounded) so
+/// the image fits `out_h x out_w`, and pads with black, centred. RGB HWC in and out.
+pub fn resize_with_pad(
+    rgb: &[u8],
+    h: usize,
+    w: usize,
+    out_h: usize,
+    out_w: usize,
+) -> Result<Vec<u8>, PolicyError> {
+    if rgb.len() != h * w * 3 || h == 0 || w == 0 {
+        return Err(PolicyError::Input(format!(
+            "rgb buffer of {} bytes for {h}x{w}",
+            rgb.len()
+        )));
+    }
+    let ratio = (w as f64 / out_w as f64).max(h as f64 / out_h as f64);
+    let rh = ((h as f64 / ratio) as usize).clamp(1, out_h);
+    let rw = ((w as f64 / ratio) as usize).clamp(1, out_w);
+    let wy = axis_weights(h, rh);
+    let wx = axis_weights(w, rw);
+    // vertical pass: [rh, w, 3] f32
+    let mut tmp = vec![0f32; rh * w * 3];
+    for (oy, (lo, ws)) in wy.iter().enumerate() {
+        let dst = &mut tmp[oy * w * 3..(oy + 1) * w * 3];
+        for (k, &wt) in ws.iter().enumerate() {
+            let src = &rgb[(lo + k) * w * 3..(lo + k + 1) * w * 3];
+            for (d, &s) in dst.iter_mut().zip(src) {
+                *d += wt * s as f32;
+            }
+        }
+    }
+    let (py, px) = ((out_h - rh) / 2, (out_w - rw) / 2);
+    let mut out = vec![0u8; out_h * out_w * 3];
+    for oy in 0..rh {
+        let row = &tmp[oy * w * 3..(oy + 1) * w * 3];
+        for (ox, (lo, ws)) in wx.iter().enumerate() {
+            let mut acc = [0f32; 3];
+            for (k, &wt) in ws.iter().enumerate() {
+                let s = &row[(lo + k) * 3..(lo + k) * 3 + 3];
+                acc[0] += wt * s[0];
+                acc[1] += wt * s[1];
+                acc[2] += wt * s[2];
+            }
+            let o = ((oy + py) * out_w + ox + px) * 3;
+            for c in 0..3 {
+                out[o + c] = acc[c].round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// uint8 RGB HWC -> f32 CHW in [-1, 1] (`x / 255 * 2 - 1`), appended to `out`.
+pub fn to_model_chw(rgb: &[u8], h: usize, w: usize, out: &mut Vec<f32>) {
+    for c in 0..3 {
+        for y in 0..h {
+            for x in 0..w {
+                out.push(rgb[(y * w + x) * 3 + c] as f32 / 255.0 * 2.0 - 1.0);
+            }
+        }
+    }
+}
+
+/// Statistics of one quantity in openpi's `norm_stats.json`.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+pub struct Stats {
+    /// Mean.
+    pub mean: Vec<f32>,
+    /// Standard deviation.
+    pub std: Vec<f32>,
+    /// 1 % quantile.
+    #[serde(default)]
+    pub q01: Option<Vec<f32>>,
+    /// 99 % quantile.
+    #[serde(default)]
+    pub q99: Option<Vec<f32>>,
+}
+
+/// openpi `norm_stats.json`: `{"norm_stats": {"state": Stats, "actions": Stats}}`.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+pub struct NormStats {
+    /// State statistics.
+    pub state: Stats,
+    /// Action statistics.
+    pub actions: Stats,
+}
+
+#[derive(Deserialize)]
+struct NormFile {
+    norm_stats: NormStats,
+}
+
+/// z-score (π0) or quantile to [-1, 1] (π0.5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NormMode {
+    /// `(x - mean) / (std + 1e-6)`.
+    ZScore,
+    /// `(x - q01) / (q99 - q01 + 1e-6) * 2 - 1`.
+    Quantile,
+}
+
+impl NormStats {
+    /// Reads a `norm_stats.json`.
+    pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
+        let s = std::fs::read_to_string(path)
+            .map_err(|e| PolicyError::Io(format!("{}: {e}", path.display())))?;
+        let f: NormFile = serde_json::from_str(&s)
+            .map_err(|e| PolicyError::Config(format!("{}: {e}", path.display())))?;
+        for (n, st) in [("state", &f.norm_stats.state), ("actions", &f.norm_stats.actions)] {
+            if st.mean.len() != st.std.len() {
+                return Err(PolicyError::Config(format!("norm_stats {n}: mean/std lengths differ")));
+            }
+        }
+        Ok(f.norm_stats)
+    }
+}
+
+fn quantiles(s: &Stats) -> Result<(&[f32], &[f32]), PolicyError> {
+    match (&s.q01, &s.q99) {
+        (Some(a), Some(b)) if a.len() == b.len() => Ok((a, b)),
+        _ => Err(PolicyError::Config(
+            "quantile normalisation needs q01 and q99 of equal length".into(),
+        )),
+    }
+}
+
+/// Normalises the leading `len(stats)` values of `x` in place (the rest is left unchanged).
+pub fn normalize(x: &mut [f32], s: &Stats, mode: NormMode) -> Result<(), PolicyError> {
+    match mode {
+        NormMode::ZScore => {
+            for (i, v) in x.iter_mut().enumerate().take(s.mean.len()) {
+                *v = (*v - s.mean[i]) / (s.std[i] + 1e-6);
+            }
+        }
+        NormMode::Quantile => {
+            let (q01, q99) = quantiles(s)?;
+            for (i, v) in x.iter_mut().enumerate().take(q01.len()) {
+                *v = (*v - q01[i]) / (q99[i] - q01[i] + 1e-6) * 2.0 - 1.0;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Inverse of [`normalize`].
+pub fn unnormalize(x: &mut [f32], s: &Stats, mode: NormMode) -> Result<(), PolicyError> {
+    match mode {
+        NormMode::ZScore => {
+            for (i, v) in x.iter_mut().enumerate().take(s.mean.len()) {
+                *v = *v * (s.std[i] + 1e-6) + s.mean[i];
+            }
+        }
+        NormMode::Quantile => {
+            let (q01, q99) = quantiles(s)?;
+            for (i, v) in x.iter_mut().enumerate().take(q01.len()) {
+                *v = (*v + 1.0) / 2.0 * (q99[i] - q01[i] + 1e-6) + q01[i];
+            }
+        }
+    }
+    Ok(())
+}
+
+/// π0.5 state bins: `digitize(state, linspace(-1, 1, 257)[:-1]) - 1` on the unpadded normalised
+/// state (below -1 -> -1, >= 0.9921875 -> 255).
+pub fn discretize_state(state: &[f32]) -> Vec<i64> {
+    state
+        .iter()
+        .map(|&s| {
+            let s = s as f64;
+            // number of edges e_k = -1 + 2k/256 (k = 0..255) with e_k <= s
+            let mut n = 0i64;
+            for k in 0..256 {
+                let e = -1.0 + 2.0 * k as f64 / 256.0;
+                if e <= s {
+                    n += 1;
+                } else {
+                    break;
+                }
+            }
+            n - 1
+        })
+        .collect()
+}
+
+/// openpi's prompt cleaning: `strip()`, `_` -> space, newline -> space.
+pub fn clean_prompt(p: &str) -> String {
+    p.trim().replace('_', " ").replace('\n', " ")
+}
+
+/// The π0.5 prompt: `Task: {cleaned}, State: {bins};\nAction: `.
+pub fn pi05_prompt(prompt: &str, bins: &[i64]) -> String {
+    let b: Vec<String> = bins.iter().map(|x| x.to_string()).collect();
+    format!("Task: {}, State: {};\nAction: ", clean_prompt(prompt), b.join(" "))
+}
+
+/// Tokenizer of prompts.
+pub enum PromptTokenizer {
+    /// A `tokenizer.json` (the `tokenizers` crate); `bos` is prepended.
+    Hf {
+        /// The tokenizer.
+        tok: Box<tokenizers::Tokenizer>,
+        /// BOS id.
+        bos: u32,
+    },
+    /// Test double named as such: the fixtures' stand-in byte tokenizer
+    /// (`[2] + [byte + 3 ...]`), used when a checkpoint ships no `tokenizer.json`.
+    ByteStandIn,
+}
+
+impl PromptTokenizer {
+    /// Loads `tokenizer.json`; BOS = the id of `<bos>` (2 when absent).
+    pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
+        let tok = tokenizers::Tokenizer::from_file(path)
+            .map_err(|e| PolicyError::Tokenizer(format!("{}: {e}", path.display())))?;
+        let bos = tok.token_to_id("<bos>").unwrap_or(2);
+        Ok(PromptTokenizer::Hf {
+            tok: Box::new(tok),
+            bos,
+        })
+    }
+
+    fn encode(&self, text: &str) -> Result<Vec<u32>, PolicyError> {
+        match self {
+            PromptTokenizer::Hf { tok, .. } => Ok(tok
+                .encode(text, false)
+                .map_err(|e| PolicyError::Tokenizer(e.to_string()))?
+                .get_ids()
+                .to_vec()),
+            PromptTokenizer::ByteStandIn => Ok(text.bytes().map(|b| b as u32 + 3).collect()),
+        }
+    }
+
+    fn bos(&self) -> u32 {
+        match self {
+            PromptTokenizer::Hf { bos, .. } => *bos,
+            PromptTokenizer::ByteStandIn => 2,
+        }
+    }
+
+    /// π0: BOS + cleaned prompt, then `"\n"` tokenized separately; π0.5 (`state_bins` given):
+    /// BOS + the π0.5 prompt. Padded with 0 / truncated to `max_len`; returns ids and mask.
+    pub fn tokenize(
+        &self,
+        prompt: &str,
+        state_bins: Option<&[i64]>,
+        max_len: usize,
+    ) -> Result<(Vec<u32>, Vec<bool>), PolicyError> {
+        let mut ids = vec![self.bos()];
+        match state_bins {
+            Some(b) => ids.extend(self.encode(&pi05_prompt(prompt, b))?),
+            None => {
+                ids.extend(self.encode(&clean_prompt(prompt))?);
+                ids.extend(self.encode("\n")?);
+            }
+        }
+        ids.truncate(max_len);
+        let n = ids.len();
+        ids.resize(max_len, 0);
+        let mask = (0..max_len).map(|i| i < n).collect();
+        Ok((ids, mask))
+    }
+}

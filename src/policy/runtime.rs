@@ -1,0 +1,224 @@
+//! The runtime API for the controller's inference thread: load once, then
+//! `infer(&RawObservation) -> [H][n_dof]` actions in robot units. The prefix KV cache buffers are
+//! kept across calls.
+
+use std::path::Path;
+
+use candle_core::{Device, Tensor};
+use rand::{Rng, SeedableRng};
+
+use super::checkpoint;
+use super::config::{ConfigOverrides, ModelKind};
+use super::model::{ModelInputs, PiModel, PrefixCache};
+use super::preprocess::{
+    discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
+    NormMode, NormStats, PromptTokenizer,
+};
+use super::PolicyError;
+
+/// One camera frame as received over IPC (fields as in `CameraFrameHeader`).
+#[derive(Debug, Clone, Copy)]
+pub struct RawFrame<'a> {
+    /// Camera name (the policy's image key, e.g. `base_0_rgb`).
+    pub camera: &'a str,
+    /// Pixels per row.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// Bytes per row.
+    pub stride: u32,
+    /// `chunkrt_ipc::ENCODING_*`.
+    pub encoding: u32,
+    /// Pixel bytes.
+    pub data: &'a [u8],
+}
+
+/// One observation: frames by camera name (missing cameras are embedded black and masked), the
+/// joint positions (robot DoF, robot units) and the prompt.
+#[derive(Debug, Clone, Copy)]
+pub struct RawObservation<'a> {
+    /// Frames.
+    pub frames: &'a [RawFrame<'a>],
+    /// Joint positions.
+    pub joint_positions: &'a [f64],
+    /// Task prompt.
+    pub prompt: &'a str,
+}
+
+/// A loaded policy with its reusable buffers.
+pub struct Policy {
+    model: PiModel,
+    tokenizer: PromptTokenizer,
+    norm: Option<NormStats>,
+    steps: usize,
+    cache: Option<PrefixCache>,
+    rng: rand_chacha::ChaCha8Rng,
+    images: Vec<f32>,
+    noise: Vec<f32>,
+}
+
+impl Policy {
+    /// Loads `checkpoint_dir` (`model.safetensors`, `config.json` or a preset by kind, optional
+    /// `tokenizer.json` and `norm_stats.json`). `cfg.num_steps` sets the denoising steps and
+    /// `cfg.threads` the CPU threads (0: leave candle's default).
+    pub fn load(
+        checkpoint_dir: &Path,
+        cfg: &chunkrt_ipc::config::PolicyConfig,
+    ) -> Result<Self, PolicyError> {
+        if cfg.threads > 0 && std::env::var_os("RAYON_NUM_THREADS").is_none() {
+            // candle sizes its CPU thread pool from this variable on first use
+            std::env::set_var("RAYON_NUM_THREADS", cfg.threads.to_string());
+        }
+        let loaded = checkpoint::load(checkpoint_dir, &ConfigOverrides::default())?;
+        let model = loaded.model;
+        match (cfg.kind.as_str(), model.cfg.kind) {
+            ("pi0", ModelKind::Pi05) | ("pi05", ModelKind::Pi0) => {
+                return Err(PolicyError::Config(format!(
+                    "policy.kind = {} but the checkpoint is {}",
+                    cfg.kind,
+                    model.cfg.kind.name()
+                )))
+            }
+            _ => {}
+        }
+        let tok_path = checkpoint_dir.join("tokenizer.json");
+        let tokenizer = if tok_path.exists() {
+            PromptTokenizer::from_file(&tok_path)?
+        } else {
+            tracing::warn!("no tokenizer.json in {}: using the byte stand-in tokenizer", checkpoint_dir.display());
+            PromptTokenizer::ByteStandIn
+        };
+        let ns_path = checkpoint_dir.join("norm_stats.json");
+        let norm = if ns_path.exists() {
+            Some(NormStats::from_file(&ns_path)?)
+        } else {
+            tracing::warn!("no norm_stats.json in {}: state/actions are not normalised", checkpoint_dir.display());
+            None
+        };
+        Ok(Policy {
+            model,
+            tokenizer,
+            norm,
+            steps: cfg.num_steps.max(1),
+            cache: None,
+            rng: rand_chacha::ChaCha8Rng::seed_from_u64(0x5eed),
+            images: Vec::new(),
+            noise: Vec::new(),
+        })
+    }
+
+    /// The model.
+    pub fn model(&self) -> &PiModel {
+        &self.model
+    }
+
+    /// Action horizon H.
+    pub fn horizon(&self) -> usize {
+        self.model.cfg.action_horizon
+    }
+
+    fn mode(&self) -> NormMode {
+        match self.model.cfg.kind {
+            ModelKind::Pi0 => NormMode::ZScore,
+            ModelKind::Pi05 => NormMode::Quantile,
+        }
+    }
+
+    /// Runs the policy: returns `[H][n_dof]` actions (row-major) in robot units, where `n_dof` is
+    /// the number of joint positions given.
+    pub fn infer(&mut self, obs: &RawObservation<'_>) -> Result<Vec<f64>, PolicyError> {
+        let inputs = self.prepare(obs)?;
+        self.run(&inputs, obs.joint_positions.len())
+    }
+
+    /// Pre-processing only: model-ready inputs (batch 1) for an observation.
+    pub fn prepare(&mut self, obs: &RawObservation<'_>) -> Result<ModelInputs, PolicyError> {
+        let cfg = self.model.cfg.clone();
+        let n_dof = obs.joint_positions.len();
+        if n_dof == 0 || n_dof > cfg.action_dim {
+            return Err(PolicyError::Input(format!(
+                "{n_dof} joints; the model takes 1..={}",
+                cfg.action_dim
+            )));
+        }
+        if obs.joint_positions.iter().any(|x| !x.is_finite()) {
+            return Err(PolicyError::Input("non-finite joint position".into()));
+        }
+        let mode = self.mode();
+        // state: normalise the unpadded state, then pad to the action dim
+        let mut state: Vec<f32> = obs.joint_positions.iter().map(|&x| x as f32).collect();
+        if let Some(ns) = &self.norm {
+            normalize(&mut state, &ns.state, mode)?;
+        }
+        let bins = (cfg.kind == ModelKind::Pi05).then(|| discretize_state(&state));
+        state.resize(cfg.action_dim, 0.0);
+        // images in camera order; absent cameras black and masked
+        let s = cfg.vision.image_size;
+        let dev = Device::Cpu;
+        let mut images = Vec::with_capacity(cfg.cameras.len());
+        let mut masks = Vec::with_capacity(cfg.cameras.len());
+        for cam in &cfg.cameras {
+            self.images.clear();
+            match obs.frames.iter().find(|f| f.camera == cam) {
+                Some(f) => {
+                    let enc = Encoding::from_code(f.encoding)?;
+                    let (w, h) = (f.width as usize, f.height as usize);
+                    let rgb = to_rgb(f.data, w, h, f.stride as usize, enc)?;
+                    let r = resize_with_pad(&rgb, h, w, s, s)?;
+                    to_model_chw(&r, s, s, &mut self.images);
+                    masks.push(vec![true]);
+                }
+                None => {
+                    self.images.resize(3 * s * s, -1.0);
+                    masks.push(vec![false]);
+                }
+            }
+            images.push(Tensor::from_slice(&self.images, (1, 3, s, s), &dev)?);
+        }
+        let (ids, tmask) = self
+            .tokenizer
+            .tokenize(obs.prompt, bins.as_deref(), cfg.max_token_len)?;
+        let inputs = ModelInputs {
+            images,
+            image_masks: masks,
+            tokens: Tensor::from_vec(ids, (1, cfg.max_token_len), &dev)?,
+            token_mask: vec![tmask],
+            state: Tensor::from_vec(state, (1, cfg.action_dim), &dev)?,
+        };
+        Ok(inputs)
+    }
+
+    fn run(&mut self, inputs: &ModelInputs, n_dof: usize) -> Result<Vec<f64>, PolicyError> {
+        let cfg = self.model.cfg.clone();
+        let mode = self.mode();
+        let dev = Device::Cpu;
+        // noise ~ N(0, 1) (Box-Muller)
+        let n = cfg.action_horizon * cfg.action_dim;
+        self.noise.clear();
+        while self.noise.len() < n {
+            let u1: f64 = self.rng.gen_range(f64::MIN_POSITIVE..1.0);
+            let u2: f64 = self.rng.gen();
+            let r = (-2.0 * u1.ln()).sqrt();
+            self.noise.push((r * (2.0 * std::f64::consts::PI * u2).cos()) as f32);
+            self.noise.push((r * (2.0 * std::f64::consts::PI * u2).sin()) as f32);
+        }
+        self.noise.truncate(n);
+        let noise = Tensor::from_slice(&self.noise, (1, cfg.action_horizon, cfg.action_dim), &dev)?;
+        let out = self
+            .model
+            .sample(inputs, &noise, self.steps, Some(&mut self.cache))?;
+        let acts = out.actions.squeeze(0)?.to_vec2::<f32>()?;
+        let mut res = Vec::with_capacity(cfg.action_horizon * n_dof);
+        for row in acts {
+            let mut r = row;
+            if let Some(ns) = &self.norm {
+                unnormalize(&mut r, &ns.actions, mode)?;
+            }
+            res.extend(r.iter().take(n_dof).map(|&x| x as f64));
+        }
+        if res.iter().any(|x| !x.is_finite()) {
+            return Err(PolicyError::Input("model produced non-finite actions".into()));
+        }
+        Ok(res)
+    }
+}

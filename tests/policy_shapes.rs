@@ -1,0 +1,144 @@
+//! Shapes the fixtures do not cover (batch > 1, num_kv_heads > 1), with random weights:
+//! cached == uncached, batch rows == single runs, differentiable ops == fast ops, gradients flow.
+
+use candle_core::{DType, Device, Tensor, Var};
+use chunkrt::policy::bench::random_model;
+use chunkrt::policy::model::{ModelInputs, PiModel};
+use chunkrt::policy::ModelConfig;
+
+fn small_config(pi05: bool) -> ModelConfig {
+    let json = format!(
+        r#"{{
+        "vision": {{"hidden_size": 16, "num_hidden_layers": 1, "num_attention_heads": 2,
+                    "intermediate_size": 32, "patch_size": 14, "image_size": 28}},
+        "paligemma": {{"width": 32, "depth": 2, "mlp_dim": 64, "num_heads": 4, "num_kv_heads": 2, "head_dim": 8}},
+        "action_expert": {{"width": 24, "depth": 2, "mlp_dim": 48, "num_heads": 4, "num_kv_heads": 2, "head_dim": 8}},
+        "vocab_size": 50, "action_dim": 5, "action_horizon": 4, "max_token_len": 6,
+        "pi05": {pi05}, "cameras": ["base_0_rgb", "left_wrist_0_rgb"], "num_denoise_steps": 5
+    }}"#
+    );
+    ModelConfig::from_json_str(&json).expect("valid test config")
+}
+
+fn inputs(cfg: &ModelConfig) -> ModelInputs {
+    let dev = Device::Cpu;
+    let s = cfg.vision.image_size;
+    let b = 2;
+    let images = (0..cfg.cameras.len())
+        .map(|_| Tensor::rand(-1f32, 1f32, (b, 3, s, s), &dev).unwrap())
+        .collect();
+    let ids: Vec<u32> = (0..b * cfg.max_token_len).map(|i| (i * 7 % 50) as u32).collect();
+    ModelInputs {
+        images,
+        // row 1 has its wrist camera masked
+        image_masks: vec![vec![true, true], vec![true, false]],
+        tokens: Tensor::from_vec(ids, (b, cfg.max_token_len), &dev).unwrap(),
+        token_mask: vec![
+            vec![true, true, true, true, false, false],
+            vec![true, true, false, false, false, false],
+        ],
+        state: Tensor::randn(0f32, 1f32, (b, cfg.action_dim), &dev).unwrap(),
+    }
+}
+
+fn row(inp: &ModelInputs, i: usize) -> ModelInputs {
+    ModelInputs {
+        images: inp.images.iter().map(|t| t.narrow(0, i, 1).unwrap()).collect(),
+        image_masks: inp.image_masks.iter().map(|m| vec![m[i]]).collect(),
+        tokens: inp.tokens.narrow(0, i, 1).unwrap(),
+        token_mask: vec![inp.token_mask[i].clone()],
+        state: inp.state.narrow(0, i, 1).unwrap(),
+    }
+}
+
+fn maxdiff(a: &Tensor, b: &Tensor) -> f32 {
+    (a - b).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar().unwrap()
+}
+
+fn check_kind(pi05: bool) {
+    let cfg = small_config(pi05);
+    let (model, _vm): (PiModel, _) = random_model(&cfg).unwrap();
+    let inp = inputs(&cfg);
+    let noise = Tensor::randn(0f32, 1f32, (2, cfg.action_horizon, cfg.action_dim), &Device::Cpu).unwrap();
+    let mut cache = None;
+    let cached = model.sample(&inp, &noise, 5, Some(&mut cache)).unwrap();
+    let uncached = model.sample(&inp, &noise, 5, None).unwrap();
+    let d = maxdiff(&cached.actions, &uncached.actions);
+    println!("pi05={pi05}: cached vs uncached {d:.2e}");
+    assert!(d < 1e-4, "cached vs uncached {d}");
+    assert!(cached.actions.abs().unwrap().max_keepdim(2).unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap() > 0.0);
+    // the cache buffers are reused across observations
+    let k0 = cache.as_ref().unwrap().k[0].clone();
+    let again = model.sample(&inp, &noise, 5, Some(&mut cache)).unwrap();
+    assert!(cache.as_ref().unwrap().k[0].id() == k0.id(), "cache buffers reallocated");
+    assert!(maxdiff(&again.actions, &cached.actions) < 1e-6);
+    for i in 0..2 {
+        let single = model.sample(&row(&inp, i), &noise.narrow(0, i, 1).unwrap(), 5, Some(&mut None)).unwrap();
+        let d = maxdiff(&single.actions, &cached.actions.narrow(0, i, 1).unwrap());
+        println!("pi05={pi05}: row {i} vs single {d:.2e}");
+        assert!(d < 1e-4, "row {i} vs single run {d}");
+    }
+    // differentiable path == fast path, and a VJP through the action expert works
+    let c = cache.as_ref().unwrap();
+    let t = Tensor::new(&[0.7f32, 0.3], &Device::Cpu).unwrap();
+    let fast = model.velocity(c, &noise, &t, false).unwrap();
+    let x = Var::from_tensor(&noise).unwrap();
+    let slow = model.velocity(c, x.as_tensor(), &t, true).unwrap();
+    let d = maxdiff(&fast, &slow);
+    assert!(d < 1e-5, "differentiable vs fast velocity {d}");
+    // clean estimate A = x - t v; VJP with a ones cotangent
+    let t3 = t.reshape((2, 1, 1)).unwrap();
+    let a_hat = (x.as_tensor() - slow.broadcast_mul(&t3).unwrap()).unwrap();
+    let grads = a_hat.sum_all().unwrap().backward().unwrap();
+    let g = grads.get(x.as_tensor()).expect("gradient w.r.t. x_t");
+    assert_eq!(g.dims(), noise.dims());
+    // finite-difference check of one entry
+    let eps = 1e-2f64;
+    let bump = Tensor::zeros(noise.dims(), DType::F32, &Device::Cpu).unwrap();
+    let bump = bump.slice_assign(&[0..1, 1..2, 2..3], &Tensor::full(eps as f32, (1, 1, 1), &Device::Cpu).unwrap()).unwrap();
+    let f = |xx: &Tensor| -> f64 {
+        let v = model.velocity(c, xx, &t, false).unwrap();
+        (xx - v.broadcast_mul(&t3).unwrap()).unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap() as f64
+    };
+    let fd = (f(&(&noise + &bump).unwrap()) - f(&(&noise - &bump).unwrap())) / (2.0 * eps);
+    let an = g.get(0).unwrap().get(1).unwrap().get(2).unwrap().to_scalar::<f32>().unwrap() as f64;
+    println!("pi05={pi05}: vjp analytic {an:.5} finite-difference {fd:.5}");
+    assert!((an - fd).abs() < 2e-2 * (1.0 + fd.abs()), "vjp {an} vs fd {fd}");
+}
+
+#[test]
+fn pi05_batch2_gqa2_cached_uncached_rows_and_vjp() {
+    check_kind(true);
+}
+
+#[test]
+fn pi0_batch2_gqa2_cached_uncached_rows_and_vjp() {
+    check_kind(false);
+}
+
+#[test]
+fn loss_is_differentiable_end_to_end_for_the_transformer() {
+    let cfg = small_config(true);
+    let (model, vm) = random_model(&cfg).unwrap();
+    let inp = inputs(&cfg);
+    let dev = Device::Cpu;
+    let actions = Tensor::randn(0f32, 1f32, (2, cfg.action_horizon, cfg.action_dim), &dev).unwrap();
+    let noise = Tensor::randn(0f32, 1f32, (2, cfg.action_horizon, cfg.action_dim), &dev).unwrap();
+    let time = Tensor::new(&[0.4f32, 0.9], &dev).unwrap();
+    let fast = model.loss(&inp, &actions, &noise, &time, false).unwrap();
+    let diff = model.loss(&inp, &actions, &noise, &time, true).unwrap();
+    assert!(maxdiff(&fast.per_element, &diff.per_element) < 1e-4);
+    let grads = diff.mean.backward().unwrap();
+    let vars = vm.data().lock().unwrap();
+    let with_grad = vars
+        .iter()
+        .filter(|(k, _)| k.contains("gemma_expert") || k.starts_with("action") || k.starts_with("time_mlp") || k.contains("language_model.layers.0."))
+        .filter(|(_, v)| grads.get(v.as_tensor()).is_some())
+        .count();
+    let total = vars
+        .keys()
+        .filter(|k| k.contains("gemma_expert") || k.starts_with("action") || k.starts_with("time_mlp") || k.contains("language_model.layers.0."))
+        .count();
+    println!("action expert / heads / first VLM layer parameters with a gradient: {with_grad}/{total}");
+    assert_eq!(with_grad, total);
+}
