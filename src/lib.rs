@@ -22,6 +22,7 @@ pub mod control;
 pub mod controller;
 pub mod demo;
 pub mod edge;
+pub mod inference;
 pub mod policy;
 pub mod report;
 pub mod rt;

@@ -1,0 +1,98 @@
+//! The policy as a chunk source: observation (IPC frames + joint state) → action chunk.
+//!
+//! Runs in the observation/inference thread, never in the control thread.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use anyhow::Context;
+
+use chunkrt_ipc::{monotonic_ns, Config};
+
+use crate::chunk::ActionChunk;
+use crate::controller::ChunkSource;
+use crate::edge::Observation;
+use crate::policy::runtime::{Policy, RawFrame, RawObservation};
+
+static NEXT_CHUNK_ID: AtomicU64 = AtomicU64::new(1);
+
+/// A unique, increasing chunk id (never 0).
+pub fn next_chunk_id() -> u64 {
+    NEXT_CHUNK_ID.fetch_add(1, Ordering::Relaxed)
+}
+
+/// π0 / π0.5 loaded from the configured checkpoint.
+pub struct PolicySource {
+    policy: Policy,
+    prompt: String,
+    period_ns: u64,
+    n_dof: usize,
+}
+
+impl PolicySource {
+    /// Loads `policy.checkpoint` (relative to the configuration file).
+    pub fn load(cfg: &Config) -> anyhow::Result<Self> {
+        let dir = cfg
+            .policy
+            .checkpoint
+            .as_ref()
+            .map(|p| cfg.resolve(p))
+            .context("policy.checkpoint is not set")?;
+        let policy = Policy::load(&dir, &cfg.policy)
+            .with_context(|| format!("cannot load the policy from {}", dir.display()))?;
+        Ok(Self {
+            policy,
+            prompt: cfg.policy.prompt.clone(),
+            period_ns: (1e9 / cfg.policy.action_rate_hz).round() as u64,
+            n_dof: cfg.n_dof(),
+        })
+    }
+
+    /// Action horizon of the loaded model.
+    pub fn horizon(&self) -> usize {
+        self.policy.horizon()
+    }
+}
+
+/// The policy's view of an observation: borrowed frames, no copies.
+pub fn raw_frames(obs: &Observation) -> Vec<RawFrame<'_>> {
+    obs.frames
+        .iter()
+        .filter(|f| f.valid)
+        .map(|f| RawFrame {
+            camera: &f.name,
+            width: f.header.width,
+            height: f.header.height,
+            stride: f.header.stride,
+            encoding: f.header.encoding,
+            data: f.pixels(),
+        })
+        .collect()
+}
+
+impl ChunkSource for PolicySource {
+    fn name(&self) -> &str {
+        "policy"
+    }
+
+    fn compute(&mut self, obs: &Observation) -> anyhow::Result<Option<ActionChunk>> {
+        let frames = raw_frames(obs);
+        let n = self.n_dof.min(obs.joint_state.n_dof as usize);
+        let raw = RawObservation {
+            frames: &frames,
+            joint_positions: &obs.joint_state.position[..n],
+            prompt: &self.prompt,
+        };
+        let actions = self.policy.infer(&raw)?;
+        let chunk = ActionChunk {
+            id: next_chunk_id(),
+            observation_seq: obs.joint_state.seq,
+            t_obs_ns: obs.t_obs_ns(),
+            period_ns: self.period_ns,
+            n_dof: n,
+            actions,
+            ready_ns: monotonic_ns(),
+        };
+        chunk.validate()?;
+        Ok(Some(chunk))
+    }
+}
