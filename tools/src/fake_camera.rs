@@ -16,7 +16,7 @@ use chunkrt_ipc::services;
 use chunkrt_ipc::*;
 use rand::{Rng, SeedableRng};
 
-use crate::common::{check_rate, end_time_ns, open_node, CommonArgs};
+use crate::common::{check_rate, end_time_ns, open_node, sleep_until_or_stop, CommonArgs};
 use crate::shutdown;
 
 /// Command-line arguments.
@@ -291,8 +291,7 @@ pub fn publish(args: &Args) -> anyhow::Result<Summary> {
         if due >= end {
             break;
         }
-        sleep_until_ns(due);
-        if stop.load(Ordering::Relaxed) {
+        if !sleep_until_or_stop(due, stop) {
             break;
         }
         let cam = &mut cams[i];

@@ -22,7 +22,7 @@ use chunkrt_ipc::services;
 use chunkrt_ipc::*;
 use rand::{Rng, SeedableRng};
 
-use crate::common::{check_rate, end_time_ns, open_node, CommonArgs};
+use crate::common::{check_rate, end_time_ns, open_node, sleep_until_or_stop, CommonArgs};
 use crate::shutdown;
 
 /// Command-line arguments.
@@ -462,7 +462,10 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
                 next = after;
             }
         }
-        sleep_until_ns(next);
+        // Absolute deadline (`sleep_until_ns`), in ≤ 50 ms slices so SIGTERM is seen promptly.
+        if !sleep_until_or_stop(next, stop) {
+            break;
+        }
     }
     tracing::info!("fake-robot: stopping");
     Ok(robot.summary)
