@@ -136,7 +136,7 @@ pub struct Arm {
 }
 
 impl Arm {
-    /// An arm at rest at `initial` (clamped to the limits). `limits.len()` must be 1..=MAX_DOF.
+    /// An arm at rest at `initial` (within the limits). `limits.len()` must be 1..=MAX_DOF.
     pub fn new(limits: &[JointLimits], initial: &[f64], omega: f64) -> anyhow::Result<Self> {
         let n = limits.len();
         anyhow::ensure!(
@@ -161,9 +161,16 @@ impl Arm {
             acceleration: [0.0; MAX_DOF],
         };
         for i in 0..n {
-            anyhow::ensure!(initial[i].is_finite(), "initial position {i} is not finite");
-            arm.limits[i] = limits[i];
-            arm.position[i] = initial[i].clamp(limits[i].position_min, limits[i].position_max);
+            let l = &limits[i];
+            anyhow::ensure!(
+                initial[i].is_finite() && (l.position_min..=l.position_max).contains(&initial[i]),
+                "initial position {i} = {}: must be in {}..={}",
+                initial[i],
+                l.position_min,
+                l.position_max
+            );
+            arm.limits[i] = *l;
+            arm.position[i] = initial[i];
         }
         Ok(arm)
     }
