@@ -9,7 +9,7 @@ use chunkrt_ipc::{Config, Namespace};
 use iceoryx2::prelude::Node;
 
 /// Options shared by every tool: which configuration and which namespace.
-#[derive(Debug, Clone, Default, clap::Args)]
+#[derive(Debug, Clone, Default, PartialEq, clap::Args)]
 pub struct CommonArgs {
     /// Robot / camera description (TOML). Default: the embedded demo configuration.
     #[arg(long, value_name = "FILE")]

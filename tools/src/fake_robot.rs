@@ -26,7 +26,7 @@ use crate::common::{check_rate, end_time_ns, open_node, sleep_until_or_stop, Com
 use crate::shutdown;
 
 /// Command-line arguments.
-#[derive(Debug, Clone, clap::Args)]
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct Args {
     #[command(flatten)]
     pub common: CommonArgs,
@@ -51,6 +51,22 @@ pub struct Args {
     /// Initial positions, comma separated (default: `initial_position` of each joint).
     #[arg(long, value_name = "P0,P1,...", value_delimiter = ',')]
     pub initial: Option<Vec<f64>>,
+}
+
+impl Default for Args {
+    /// The same values as an empty command line.
+    fn default() -> Self {
+        Self {
+            common: CommonArgs::default(),
+            rate_hz: None,
+            seed: 0,
+            noise: 0.0,
+            duration: None,
+            command_timeout_ms: 50.0,
+            omega: 60.0,
+            initial: None,
+        }
+    }
 }
 
 /// Counters printed on exit.
@@ -481,6 +497,17 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn default_args_match_the_empty_command_line() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: Args,
+        }
+        assert_eq!(Cli::parse_from(["fake-robot"]).args, Args::default());
+    }
 
     fn limits() -> Vec<JointLimits> {
         vec![
