@@ -111,8 +111,8 @@ fn tools_fake_robot_follows_commands_and_holds() {
     let first = latest_state(&st_sub, Duration::from_secs(10)).expect("no joint state in 10 s");
     validate_joint_state(&first, Some(n as u32)).expect("valid joint state");
     assert_ne!(first.status_flags & JOINT_STATUS_HOLDING, 0, "{first:?}");
-    for i in 0..n {
-        assert!((first.position[i] - initial[i]).abs() < 1e-9, "{first:?}");
+    for (p, p0) in first.position.iter().zip(&initial) {
+        assert!((p - p0).abs() < 1e-9, "{first:?}");
     }
 
     // 2. Stream commands at 1 kHz for 1 s: shoulder to 0.5, elbow to 1.0.
@@ -228,7 +228,8 @@ fn tools_fake_camera_frames_are_valid_and_on_rate() {
     .expect("spawn chunkrt fake-camera");
 
     // (first seq, first capture time, last seq, last capture time, received)
-    let mut seen: Vec<Option<(u64, u64, u64, u64, u64)>> = vec![None; subs.len()];
+    type Seen = Option<(u64, u64, u64, u64, u64)>;
+    let mut seen: Vec<Seen> = vec![None; subs.len()];
     let mut first_rx: Option<Instant> = None;
     let deadline = Instant::now() + Duration::from_secs(12);
     let measure = Duration::from_secs(2);
@@ -370,4 +371,67 @@ fn tools_monitor_lists_and_measures_services() {
         assert!((r - 50.0).abs() <= 5.0, "camera rate {r}: {l}");
         assert!(l.contains(&format!("{}x{}", c.width, c.height)), "{l}");
     }
+}
+
+#[test]
+fn tools_fake_camera_configured_encodings() {
+    let toml = chunkrt_ipc::config::DEFAULT_TOML
+        .replacen("encoding = \"rgb8\"", "encoding = \"bgr8\"", 1)
+        .replacen("encoding = \"rgb8\"", "encoding = \"mono8\"", 1);
+    let cfg = Config::parse(&toml, "test").expect("edited config is valid");
+    assert_eq!(cfg.cameras[0].encoding, "bgr8");
+    assert_eq!(cfg.cameras[1].encoding, "mono8");
+    let dir = std::env::temp_dir().join(format!("chunkrt-tools-enc-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("cameras.toml");
+    std::fs::write(&path, &toml).unwrap();
+
+    let ns_str = unique_namespace("encodings");
+    let ns = Namespace::new(&ns_str).unwrap();
+    let node = node("encodings");
+    let subs: Vec<_> = cfg
+        .cameras
+        .iter()
+        .map(|c| {
+            let name = ns.camera(&c.name);
+            let f = services::camera_service(&node, &name).unwrap();
+            services::camera_subscriber(&f, &name).unwrap()
+        })
+        .collect();
+    let camera = ChildGuard::spawn(
+        BIN,
+        &[
+            "fake-camera",
+            "--config",
+            path.to_str().unwrap(),
+            "--namespace",
+            &ns_str,
+            "--fps",
+            "20",
+            "--duration",
+            "20",
+        ],
+    )
+    .expect("spawn fake-camera");
+    let expected = [(ENCODING_BGR8, 3), (ENCODING_MONO8, 1)];
+    let mut got = [false; 2];
+    let end = Instant::now() + Duration::from_secs(10);
+    while got.iter().any(|g| !g) && Instant::now() < end {
+        for (i, sub) in subs.iter().enumerate() {
+            while let Ok(Some(s)) = sub.receive() {
+                let h = *s.user_header();
+                let c = &cfg.cameras[i];
+                validate_frame(&h, s.payload().len(), c.width, c.height).unwrap();
+                assert_eq!(h.encoding, expected[i].0, "camera {i}");
+                assert_eq!(h.stride, c.width * expected[i].1, "camera {i}");
+                assert_eq!(read_seq_stamp(s.payload()), Some(h.seq));
+                got[i] = true;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let out = camera.terminate(Duration::from_secs(5));
+    let _ = std::fs::remove_dir_all(&dir);
+    assert_eq!(got, [true, true], "frames of both cameras: {out:?}");
+    assert_eq!(out.code, Some(0), "{out:?}");
 }

@@ -137,8 +137,8 @@ fn tools_python_client_round_trip() {
     assert_eq!(out.code, Some(0), "client exit: {out:?}");
     assert!(invalid.is_empty(), "invalid joint states: {invalid:?}");
     let first = first.expect("no joint state from the Python client");
-    for i in 0..N as usize {
-        assert!((first.position[i] - initial[i]).abs() < 0.05, "{first:?}");
+    for (p, p0) in first.position.iter().zip(initial) {
+        assert!((p - p0).abs() < 0.05, "{first:?}");
     }
     assert!(states >= 100, "only {states} joint states received");
     assert!(reached, "the Python arm never reached the commanded target");

@@ -9,7 +9,7 @@ use chunkrt_ipc::{Config, Namespace};
 use iceoryx2::prelude::Node;
 
 /// Options shared by every tool: which configuration and which namespace.
-#[derive(Debug, Clone, Default, clap::Args)]
+#[derive(Debug, Clone, Default, PartialEq, clap::Args)]
 pub struct CommonArgs {
     /// Robot / camera description (TOML). Default: the embedded demo configuration.
     #[arg(long, value_name = "FILE")]
@@ -66,5 +66,21 @@ pub fn check_rate(name: &str, hz: f64, lo: f64, hi: f64) -> anyhow::Result<f64> 
         Ok(hz)
     } else {
         anyhow::bail!("{name} {hz}: must be in {lo}..={hi}")
+    }
+}
+
+/// Sleeps until `deadline_ns` (absolute, monotonic) in slices of at most 50 ms, returning
+/// early (false) once `stop` is set, so a slow schedule still stops promptly on SIGTERM.
+pub fn sleep_until_or_stop(deadline_ns: u64, stop: &std::sync::atomic::AtomicBool) -> bool {
+    const SLICE_NS: u64 = 50_000_000;
+    loop {
+        if stop.load(std::sync::atomic::Ordering::Relaxed) {
+            return false;
+        }
+        let now = chunkrt_ipc::monotonic_ns();
+        if now >= deadline_ns {
+            return true;
+        }
+        chunkrt_ipc::sleep_until_ns(deadline_ns.min(now + SLICE_NS));
     }
 }

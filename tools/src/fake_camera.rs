@@ -16,11 +16,11 @@ use chunkrt_ipc::services;
 use chunkrt_ipc::*;
 use rand::{Rng, SeedableRng};
 
-use crate::common::{check_rate, end_time_ns, open_node, CommonArgs};
+use crate::common::{check_rate, end_time_ns, open_node, sleep_until_or_stop, CommonArgs};
 use crate::shutdown;
 
 /// Command-line arguments.
-#[derive(Debug, Clone, clap::Args)]
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct Args {
     #[command(flatten)]
     pub common: CommonArgs,
@@ -43,6 +43,21 @@ pub struct Args {
     /// Stop after this many seconds (default: run until SIGINT / SIGTERM).
     #[arg(long, value_name = "SECONDS")]
     pub duration: Option<f64>,
+}
+
+impl Default for Args {
+    /// The same values as an empty command line.
+    fn default() -> Self {
+        Self {
+            common: CommonArgs::default(),
+            cameras: None,
+            fps: None,
+            width: None,
+            height: None,
+            seed: 0,
+            duration: None,
+        }
+    }
 }
 
 /// Geometry and encoding of one camera's frames.
@@ -291,8 +306,7 @@ pub fn publish(args: &Args) -> anyhow::Result<Summary> {
         if due >= end {
             break;
         }
-        sleep_until_ns(due);
-        if stop.load(Ordering::Relaxed) {
+        if !sleep_until_or_stop(due, stop) {
             break;
         }
         let cam = &mut cams[i];
@@ -344,6 +358,17 @@ pub fn publish(args: &Args) -> anyhow::Result<Summary> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn default_args_match_the_empty_command_line() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: Args,
+        }
+        assert_eq!(Cli::parse_from(["fake-camera"]).args, Args::default());
+    }
 
     #[test]
     fn frames_are_deterministic_stamped_and_encoded() {

@@ -22,11 +22,11 @@ use chunkrt_ipc::services;
 use chunkrt_ipc::*;
 use rand::{Rng, SeedableRng};
 
-use crate::common::{check_rate, end_time_ns, open_node, CommonArgs};
+use crate::common::{check_rate, end_time_ns, open_node, sleep_until_or_stop, CommonArgs};
 use crate::shutdown;
 
 /// Command-line arguments.
-#[derive(Debug, Clone, clap::Args)]
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct Args {
     #[command(flatten)]
     pub common: CommonArgs,
@@ -51,6 +51,22 @@ pub struct Args {
     /// Initial positions, comma separated (default: `initial_position` of each joint).
     #[arg(long, value_name = "P0,P1,...", value_delimiter = ',')]
     pub initial: Option<Vec<f64>>,
+}
+
+impl Default for Args {
+    /// The same values as an empty command line.
+    fn default() -> Self {
+        Self {
+            common: CommonArgs::default(),
+            rate_hz: None,
+            seed: 0,
+            noise: 0.0,
+            duration: None,
+            command_timeout_ms: 50.0,
+            omega: 60.0,
+            initial: None,
+        }
+    }
 }
 
 /// Counters printed on exit.
@@ -136,7 +152,7 @@ pub struct Arm {
 }
 
 impl Arm {
-    /// An arm at rest at `initial` (clamped to the limits). `limits.len()` must be 1..=MAX_DOF.
+    /// An arm at rest at `initial` (within the limits). `limits.len()` must be 1..=MAX_DOF.
     pub fn new(limits: &[JointLimits], initial: &[f64], omega: f64) -> anyhow::Result<Self> {
         let n = limits.len();
         anyhow::ensure!(
@@ -161,9 +177,16 @@ impl Arm {
             acceleration: [0.0; MAX_DOF],
         };
         for i in 0..n {
-            anyhow::ensure!(initial[i].is_finite(), "initial position {i} is not finite");
-            arm.limits[i] = limits[i];
-            arm.position[i] = initial[i].clamp(limits[i].position_min, limits[i].position_max);
+            let l = &limits[i];
+            anyhow::ensure!(
+                initial[i].is_finite() && (l.position_min..=l.position_max).contains(&initial[i]),
+                "initial position {i} = {}: must be in {}..={}",
+                initial[i],
+                l.position_min,
+                l.position_max
+            );
+            arm.limits[i] = *l;
+            arm.position[i] = initial[i];
         }
         Ok(arm)
     }
@@ -462,7 +485,10 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
                 next = after;
             }
         }
-        sleep_until_ns(next);
+        // Absolute deadline (`sleep_until_ns`), in ≤ 50 ms slices so SIGTERM is seen promptly.
+        if !sleep_until_or_stop(next, stop) {
+            break;
+        }
     }
     tracing::info!("fake-robot: stopping");
     Ok(robot.summary)
@@ -471,6 +497,17 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn default_args_match_the_empty_command_line() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: Args,
+        }
+        assert_eq!(Cli::parse_from(["fake-robot"]).args, Args::default());
+    }
 
     fn limits() -> Vec<JointLimits> {
         vec![

@@ -23,7 +23,7 @@ use crate::common::{end_time_ns, open_node, CommonArgs};
 use crate::shutdown;
 
 /// Command-line arguments.
-#[derive(Debug, Clone, clap::Args)]
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct Args {
     #[command(flatten)]
     pub common: CommonArgs,
@@ -42,6 +42,20 @@ pub struct Args {
     /// Print every joint of the last values (default: the first 6).
     #[arg(long)]
     pub wide: bool,
+}
+
+impl Default for Args {
+    /// The same values as an empty command line.
+    fn default() -> Self {
+        Self {
+            common: CommonArgs::default(),
+            all: false,
+            once: false,
+            duration: None,
+            interval: 1.0,
+            wide: false,
+        }
+    }
 }
 
 /// What a service carries, from its type names.
@@ -456,6 +470,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn default_args_match_the_empty_command_line() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: Args,
+        }
+        assert_eq!(Cli::parse_from(["monitor"]).args, Args::default());
+    }
 
     #[test]
     fn kinds_and_rates() {
