@@ -32,11 +32,7 @@ pub struct ActionChunk {
 impl ActionChunk {
     /// Number of actions.
     pub fn horizon(&self) -> usize {
-        if self.n_dof == 0 {
-            0
-        } else {
-            self.actions.len() / self.n_dof
-        }
+        self.actions.len().checked_div(self.n_dof).unwrap_or(0)
     }
 
     /// Action `k` (`n_dof` values).

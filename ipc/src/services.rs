@@ -24,6 +24,10 @@ pub const HISTORY_SIZE: usize = 1;
 pub const MAX_NODES: usize = 16;
 /// Subscribers per service.
 pub const MAX_SUBSCRIBERS: usize = 8;
+/// Samples a subscriber may hold at once (it copies what it needs and lets go).
+pub const MAX_BORROWED_SAMPLES: usize = 2;
+/// Samples a publisher may have on loan at once (it loans, writes and sends in one go).
+pub const MAX_LOANED_SAMPLES: usize = 2;
 /// Publishers per service (a restarted process overlaps its dead predecessor briefly).
 pub const MAX_PUBLISHERS: usize = 4;
 
@@ -139,7 +143,7 @@ macro_rules! typed_service {
                 .publish_subscribe::<$ty>()
                 .history_size(HISTORY_SIZE)
                 .subscriber_max_buffer_size(BUFFER_SIZE)
-                .subscriber_max_borrowed_samples(2)
+                .subscriber_max_borrowed_samples(MAX_BORROWED_SAMPLES)
                 .enable_safe_overflow(true)
                 .max_publishers(MAX_PUBLISHERS)
                 .max_subscribers(MAX_SUBSCRIBERS)
@@ -180,7 +184,7 @@ pub fn camera_service(node: &Node<Ipc>, name: &str) -> Result<CameraService, Ipc
         .user_header::<CameraFrameHeader>()
         .history_size(HISTORY_SIZE)
         .subscriber_max_buffer_size(CAMERA_BUFFER_SIZE)
-        .subscriber_max_borrowed_samples(2)
+        .subscriber_max_borrowed_samples(MAX_BORROWED_SAMPLES)
         .enable_safe_overflow(true)
         .max_publishers(MAX_PUBLISHERS)
         .max_subscribers(MAX_SUBSCRIBERS)
@@ -199,7 +203,7 @@ pub fn publisher<T: core::fmt::Debug + ZeroCopySend>(
 ) -> Result<Publisher<Ipc, T, ()>, IpcError> {
     factory
         .publisher_builder()
-        .max_loaned_samples(2)
+        .max_loaned_samples(MAX_LOANED_SAMPLES)
         .create()
         .map_err(|e| IpcError::Port {
             what: "publisher",
@@ -234,7 +238,7 @@ pub fn camera_publisher(
         .publisher_builder()
         .initial_max_slice_len(max_bytes.max(1))
         .allocation_strategy(AllocationStrategy::Static)
-        .max_loaned_samples(2)
+        .max_loaned_samples(MAX_LOANED_SAMPLES)
         .create()
         .map_err(|e| IpcError::Port {
             what: "camera publisher",
