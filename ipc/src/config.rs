@@ -240,8 +240,8 @@ pub struct ExecutionConfig {
     /// `crossfade`: blend window from the old to the new chunk (ms).
     #[serde(default = "default_crossfade_ms")]
     pub crossfade_ms: f64,
-    /// `temporal_ensemble`: ACT's weight decay m per action step (weight of the i-th oldest
-    /// prediction is exp(-m·i)).
+    /// `temporal_ensemble`: ACT's weight decay m (the i-th oldest chunk covering a time gets
+    /// weight exp(-m·i)).
     #[serde(default = "default_ensemble_decay")]
     pub ensemble_decay: f64,
     /// Inference trigger: `after_s` (start the next inference once `execute_horizon` actions of
@@ -281,7 +281,7 @@ fn default_hold_to_fault_ms() -> f64 {
     10_000.0
 }
 fn default_crossfade_ms() -> f64 {
-    100.0
+    200.0
 }
 fn default_ensemble_decay() -> f64 {
     0.01

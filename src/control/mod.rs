@@ -4,7 +4,7 @@
 //! How the controller uses it:
 //!
 //! ```no_run
-//! use chunkrt::control::{Executor, State};
+//! use chunkrt::control::Executor;
 //! use chunkrt::ipc::{JointCommand, ControllerStatus};
 //! # fn main() -> anyhow::Result<()> {
 //! let config = chunkrt::config::Config::embedded_default();
