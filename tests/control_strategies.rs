@@ -147,9 +147,10 @@ fn every_strategy_respects_limits_and_rtc_crossfade_switch_smoothly() {
         rtc.max_switch_jump_target < 0.25 * rep.max_switch_jump_target,
         "rtc {rtc:?} vs replace {rep:?}"
     );
-    // The discontinuity reaches the command less, too: lower jerk.
-    assert!(cf.rms_jerk < rep.rms_jerk, "{cf:?} vs {rep:?}");
-    assert!(rtc.rms_jerk < rep.rms_jerk, "{rtc:?} vs {rep:?}");
+    // The command itself never jumps: ruckig turns every switch into a jerk-limited move.
+    for (s, m) in &rows {
+        assert!(m.max_switch_jump_command < 1e-4, "{s}: {m:?}");
+    }
 }
 
 #[test]

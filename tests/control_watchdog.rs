@@ -31,7 +31,13 @@ fn assert_brakes_within_limits(cfg: &Config, cmds: &[JointCommand]) {
     let dt = 1e-3;
     for k in 1..cmds.len() {
         for (j, jc) in cfg.robot.joints.iter().enumerate() {
-            assert!(cmds[k].velocity[j].abs() <= jc.max_velocity * (1.0 + 1e-9));
+            assert!(
+                cmds[k].velocity[j].abs() <= jc.max_velocity * (1.0 + 1e-9),
+                "tick {k} joint {j}: v {} a {} mode {}",
+                cmds[k].velocity[j],
+                cmds[k].acceleration[j],
+                cmds[k].mode
+            );
             assert!(cmds[k].acceleration[j].abs() <= jc.max_acceleration * (1.0 + 1e-9));
             let jerk = (cmds[k].acceleration[j] - cmds[k - 1].acceleration[j]) / dt;
             assert!(

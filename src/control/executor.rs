@@ -134,9 +134,13 @@ struct Settings {
 }
 
 const CHUNK_SLOTS: usize = 16;
+/// ruckig's `Synchronization::None`.
+const SYNC_NONE: i32 = 3;
 const GRAVEYARD: usize = 32;
 /// Velocity below which a braking joint counts as stopped (per second).
 const STOPPED_VELOCITY: f64 = 1e-6;
+/// Acceleration below which a braking joint counts as stopped (per second²).
+const STOPPED_ACCELERATION: f64 = 1e-6;
 
 /// The control tick. See the module documentation; built once with [`Executor::new`].
 pub struct Executor {
@@ -258,6 +262,9 @@ impl Executor {
             dofs: n as u32,
             ..Default::default()
         };
+        // Every joint is tracked on its own (time-optimal per joint): a time-synchronised
+        // generator would slow every joint down to the slowest one (e.g. a gripper step).
+        otg_in.synchronization = SYNC_NONE;
         otg_in.max_velocity = cfg.vmax;
         otg_in.max_acceleration = cfg.amax;
         otg_in.max_jerk = cfg.jmax;
@@ -546,7 +553,10 @@ impl Executor {
             self.otg_in.current_acceleration = out.acceleration;
             let stopped = self.otg_in.current_velocity[..n]
                 .iter()
-                .all(|v| v.abs() < STOPPED_VELOCITY);
+                .all(|v| v.abs() < STOPPED_VELOCITY)
+                && self.otg_in.current_acceleration[..n]
+                    .iter()
+                    .all(|a| a.abs() < STOPPED_ACCELERATION);
             mode = if running || !stopped {
                 COMMAND_MODE_POSITION
             } else {

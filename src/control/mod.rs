@@ -47,5 +47,5 @@ pub use metrics::{Smoothness, Trace};
 pub use otg::{cxx_allocations, Otg, OtgInput, OtgOutput, OtgResult, OtgState};
 pub use rtc::{guidance_weights, DelayEstimator, InferenceRequest, Schedule, MAX_HORIZON};
 pub use safety::{Event, EventReader, Reason, State};
-pub use scripted::{ScriptedChunkSource, ScriptedConfig};
+pub use scripted::{ScriptedChunkSource, ScriptedConfig, ScriptedSim};
 pub use timing::{Quantiles, TickTiming};
