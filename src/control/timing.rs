@@ -176,7 +176,7 @@ mod tests {
         t.write_interval_log(&mut buf).expect("in-memory write");
         let text = String::from_utf8(buf).expect("ascii log");
         assert!(
-            text.contains("tag=lateness") && text.contains("tag=compute"),
+            text.contains("Tag=lateness") && text.contains("Tag=compute"),
             "{text}"
         );
     }
