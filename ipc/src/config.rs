@@ -234,6 +234,38 @@ pub struct ExecutionConfig {
     /// Time in HOLD before FAULT (ms).
     #[serde(default = "default_hold_to_fault_ms")]
     pub hold_to_fault_ms: f64,
+    /// `crossfade`: blend window from the old to the new chunk (ms).
+    #[serde(default = "default_crossfade_ms")]
+    pub crossfade_ms: f64,
+    /// `temporal_ensemble`: ACT's weight decay m (the i-th oldest chunk covering a time gets
+    /// weight exp(-m·i)).
+    #[serde(default = "default_ensemble_decay")]
+    pub ensemble_decay: f64,
+    /// Inference trigger: `after_s` (start the next inference once `execute_horizon` actions of
+    /// the newest chunk are due) or `continuous` (start it as soon as the previous one landed).
+    #[serde(default = "default_trigger")]
+    pub trigger: String,
+    /// s: actions of a chunk executed before the next inference starts.
+    #[serde(default = "default_execute_horizon")]
+    pub execute_horizon: usize,
+    /// `rtc`: b, the number of observed inference delays whose maximum estimates the delay d.
+    #[serde(default = "default_delay_buffer")]
+    pub delay_buffer: usize,
+    /// `rtc`: the delay d (action steps) assumed before any inference has been observed.
+    #[serde(default = "default_initial_delay_steps")]
+    pub initial_delay_steps: usize,
+    /// `rtc`: β, the guidance weight clip handed to the guided sampler.
+    #[serde(default = "default_guidance_beta")]
+    pub guidance_beta: f64,
+    /// `rtc`: soft-mask schedule between d and H − s: `exp` (the paper's), `linear`, `ones`, `zeros`.
+    #[serde(default = "default_rtc_schedule")]
+    pub rtc_schedule: String,
+    /// Consecutive overrunning ticks that put the controller in HOLD.
+    #[serde(default = "default_overrun_streak")]
+    pub overrun_streak: u32,
+    /// An inference that has not landed after this long is given up and requested again (ms).
+    #[serde(default = "default_inference_timeout_ms")]
+    pub inference_timeout_ms: f64,
 }
 
 fn default_strategy() -> String {
@@ -245,6 +277,36 @@ fn default_interpolation() -> String {
 fn default_hold_to_fault_ms() -> f64 {
     10_000.0
 }
+fn default_crossfade_ms() -> f64 {
+    200.0
+}
+fn default_ensemble_decay() -> f64 {
+    0.01
+}
+fn default_trigger() -> String {
+    "after_s".to_string()
+}
+fn default_execute_horizon() -> usize {
+    25
+}
+fn default_delay_buffer() -> usize {
+    10
+}
+fn default_initial_delay_steps() -> usize {
+    5
+}
+fn default_guidance_beta() -> f64 {
+    5.0
+}
+fn default_rtc_schedule() -> String {
+    "exp".to_string()
+}
+fn default_overrun_streak() -> u32 {
+    10
+}
+fn default_inference_timeout_ms() -> f64 {
+    5_000.0
+}
 
 impl Default for ExecutionConfig {
     fn default() -> Self {
@@ -253,6 +315,16 @@ impl Default for ExecutionConfig {
             offset_ms: 0.0,
             interpolation: default_interpolation(),
             hold_to_fault_ms: default_hold_to_fault_ms(),
+            crossfade_ms: default_crossfade_ms(),
+            ensemble_decay: default_ensemble_decay(),
+            trigger: default_trigger(),
+            execute_horizon: default_execute_horizon(),
+            delay_buffer: default_delay_buffer(),
+            initial_delay_steps: default_initial_delay_steps(),
+            guidance_beta: default_guidance_beta(),
+            rtc_schedule: default_rtc_schedule(),
+            overrun_streak: default_overrun_streak(),
+            inference_timeout_ms: default_inference_timeout_ms(),
         }
     }
 }
@@ -457,6 +529,40 @@ impl Config {
             e.hold_to_fault_ms,
             1.0,
             3_600_000.0,
+        )?;
+        c.range("execution.crossfade_ms", e.crossfade_ms, 0.0, 10_000.0)?;
+        c.range("execution.ensemble_decay", e.ensemble_decay, 0.0, 10.0)?;
+        c.one_of("execution.trigger", &e.trigger, &["after_s", "continuous"])?;
+        c.range(
+            "execution.execute_horizon",
+            e.execute_horizon as f64,
+            1.0,
+            1000.0,
+        )?;
+        c.range("execution.delay_buffer", e.delay_buffer as f64, 1.0, 1000.0)?;
+        c.range(
+            "execution.initial_delay_steps",
+            e.initial_delay_steps as f64,
+            0.0,
+            1000.0,
+        )?;
+        c.range("execution.guidance_beta", e.guidance_beta, 0.0, 1000.0)?;
+        c.one_of(
+            "execution.rtc_schedule",
+            &e.rtc_schedule,
+            &["exp", "linear", "ones", "zeros"],
+        )?;
+        c.range(
+            "execution.overrun_streak",
+            e.overrun_streak as f64,
+            1.0,
+            1_000_000.0,
+        )?;
+        c.range(
+            "execution.inference_timeout_ms",
+            e.inference_timeout_ms,
+            1.0,
+            600_000.0,
         )?;
         Ok(())
     }

@@ -1,2 +1,51 @@
 //! The control tick: turns action chunks into a smooth, limit-respecting command stream.
 //! (Chunk executor, interpolation, transitions, ruckig, safety state machine, measurement.)
+//!
+//! How the controller uses it:
+//!
+//! ```no_run
+//! use chunkrt::control::Executor;
+//! use chunkrt::ipc::{JointCommand, ControllerStatus};
+//! # fn main() -> anyhow::Result<()> {
+//! let config = chunkrt::config::Config::embedded_default();
+//! // Built once, off the real-time path: allocates everything it will ever need.
+//! let mut exec = Executor::new(&config)?;
+//! // Inference thread: takes requests, sends chunks (lock-free, newest wins).
+//! let link = exec.connect();
+//! let events = exec.events(); // drained and logged by a non-RT thread
+//! # let (now_ns, latest_joint_state) = (0u64, None);
+//! let mut command = JointCommand::default();
+//! // Every tick, in the pinned control thread:
+//! let report = exec.tick(now_ns, latest_joint_state, &mut command);
+//! if report.publish { /* publish `command` */ }
+//! exec.record_timing(now_ns, now_ns + 20_000, now_ns + 80_000);
+//! let mut status = ControllerStatus::default();
+//! exec.fill_status(&mut status);
+//! // Inference thread:
+//! if let Some(req) = link.requests.try_recv() {
+//!     // ... run the policy (guided by req.prefix / req.weights when req.guided) ...
+//!     link.requests.done(req);
+//! }
+//! events.drain(|e| tracing::info!("controller {e}"));
+//! # Ok(()) }
+//! ```
+
+pub mod executor;
+pub mod handoff;
+pub mod interp;
+pub mod metrics;
+pub mod otg;
+pub mod rtc;
+pub mod safety;
+pub mod scripted;
+pub mod timing;
+
+pub use executor::{Executor, ExecutorError, InferenceLink, Strategy, TickReport, Trigger};
+pub use handoff::{channel, request_channel, ChunkReceiver, ChunkSender, RequestReceiver};
+pub use interp::{Interpolation, Sample};
+pub use metrics::{Smoothness, Trace};
+pub use otg::{cxx_allocations, Otg, OtgInput, OtgOutput, OtgResult, OtgState};
+pub use rtc::{guidance_weights, DelayEstimator, InferenceRequest, Schedule, MAX_HORIZON};
+pub use safety::{Event, EventReader, Reason, State};
+pub use scripted::{ScriptedChunkSource, ScriptedConfig, ScriptedSim};
+pub use timing::{Quantiles, TickTiming};

@@ -1,0 +1,197 @@
+//! The safety state machine's vocabulary and its preallocated event ring.
+//!
+//! ```text
+//! STARTING ──fresh joint state + valid chunk──▶ RUNNING ──bad input──▶ HOLD ──hold_to_fault──▶ FAULT
+//!                                                  ▲                     │                       │
+//!                                                  └──── inputs good ────┘          rearm() ─────┘─▶ STARTING
+//! ```
+//! Transitions are recorded (never logged) inside the tick, into a bounded lock-free ring that
+//! another thread drains ([`EventReader::drain`]) and logs.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use chunkrt_ipc::{
+    CONTROLLER_STATE_FAULT, CONTROLLER_STATE_HOLD, CONTROLLER_STATE_RUNNING,
+    CONTROLLER_STATE_STARTING,
+};
+use crossbeam::queue::ArrayQueue;
+
+/// Controller state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum State {
+    /// Waiting for a fresh joint state (and a first chunk); commands hold the measured pose.
+    Starting,
+    /// Executing chunks.
+    Running,
+    /// Braking to zero velocity (jerk-limited) and holding.
+    Hold,
+    /// Braking and holding until [`crate::control::Executor::rearm`].
+    Fault,
+}
+
+impl State {
+    /// The `CONTROLLER_STATE_*` code published in the status.
+    pub fn code(self) -> u32 {
+        match self {
+            Self::Starting => CONTROLLER_STATE_STARTING,
+            Self::Running => CONTROLLER_STATE_RUNNING,
+            Self::Hold => CONTROLLER_STATE_HOLD,
+            Self::Fault => CONTROLLER_STATE_FAULT,
+        }
+    }
+}
+
+/// Why a transition happened.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Reason {
+    /// A fresh joint state and a valid chunk: executing.
+    InputsGood,
+    /// No joint state yet, or the newest is older than `joint_state_max_age_ms`.
+    StaleJointState,
+    /// No chunk has arrived yet.
+    NoChunk,
+    /// Every chunk's last action is in the past.
+    ChunkExpired,
+    /// A chunk (or the sampled target) contained a non-finite value.
+    NonFiniteAction,
+    /// A chunk had the wrong shape (joint count, empty, zero period).
+    BadChunk,
+    /// `overrun_streak` consecutive ticks overran.
+    Overruns,
+    /// HOLD lasted `hold_to_fault_ms`.
+    HoldTimeout,
+    /// The joint state does not match the configured robot (unrecoverable).
+    BadJointState,
+    /// ruckig rejected its input (unrecoverable).
+    GeneratorError,
+    /// Explicit re-arm.
+    Rearm,
+}
+
+impl std::fmt::Display for Reason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let s = match self {
+            Self::InputsGood => "inputs good",
+            Self::StaleJointState => "joint state missing or stale",
+            Self::NoChunk => "no chunk yet",
+            Self::ChunkExpired => "chunk expired",
+            Self::NonFiniteAction => "non-finite action",
+            Self::BadChunk => "malformed chunk",
+            Self::Overruns => "streak of overruns",
+            Self::HoldTimeout => "too long in hold",
+            Self::BadJointState => "joint state does not match the robot",
+            Self::GeneratorError => "trajectory generator error",
+            Self::Rearm => "re-armed",
+        };
+        f.write_str(s)
+    }
+}
+
+/// One state transition.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Event {
+    /// Tick time of the transition (monotonic ns).
+    pub t_ns: u64,
+    /// Previous state.
+    pub from: State,
+    /// New state.
+    pub to: State,
+    /// Why.
+    pub reason: Reason,
+}
+
+impl std::fmt::Display for Event {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} -> {} at {} ns: {}",
+            chunkrt_ipc::controller_state_name(self.from.code()),
+            chunkrt_ipc::controller_state_name(self.to.code()),
+            self.t_ns,
+            self.reason
+        )
+    }
+}
+
+struct Ring {
+    q: ArrayQueue<Event>,
+    dropped: AtomicU64,
+}
+
+/// Producer side of the event ring (the control thread).
+pub struct EventWriter {
+    ring: Arc<Ring>,
+}
+
+/// Consumer side of the event ring (a logging thread). Cloneable.
+#[derive(Clone)]
+pub struct EventReader {
+    ring: Arc<Ring>,
+}
+
+/// Creates an event ring of `capacity` events (allocated here, never later).
+pub fn event_ring(capacity: usize) -> (EventWriter, EventReader) {
+    let ring = Arc::new(Ring {
+        q: ArrayQueue::new(capacity.max(1)),
+        dropped: AtomicU64::new(0),
+    });
+    (EventWriter { ring: ring.clone() }, EventReader { ring })
+}
+
+impl EventWriter {
+    /// Records an event; if the ring is full the event is counted as dropped. Lock-free,
+    /// no allocation.
+    pub fn record(&self, e: Event) {
+        if self.ring.q.push(e).is_err() {
+            self.ring.dropped.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
+
+impl EventReader {
+    /// Calls `f` for every waiting event, oldest first.
+    pub fn drain(&self, mut f: impl FnMut(Event)) {
+        while let Some(e) = self.ring.q.pop() {
+            f(e);
+        }
+    }
+
+    /// Events lost because the ring was full.
+    pub fn dropped(&self) -> u64 {
+        self.ring.dropped.load(Ordering::Relaxed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ring_keeps_order_and_counts_drops() {
+        let (w, r) = event_ring(2);
+        for i in 0..3 {
+            w.record(Event {
+                t_ns: i,
+                from: State::Running,
+                to: State::Hold,
+                reason: Reason::ChunkExpired,
+            });
+        }
+        let mut got = Vec::new();
+        r.drain(|e| got.push(e.t_ns));
+        assert_eq!(got, vec![0, 1]);
+        assert_eq!(r.dropped(), 1);
+        assert_eq!(State::Fault.code(), CONTROLLER_STATE_FAULT);
+        let e = Event {
+            t_ns: 5,
+            from: State::Running,
+            to: State::Hold,
+            reason: Reason::StaleJointState,
+        };
+        assert_eq!(
+            e.to_string(),
+            "running -> hold at 5 ns: joint state missing or stale"
+        );
+    }
+}

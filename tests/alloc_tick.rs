@@ -1,0 +1,108 @@
+//! Zero allocations per control tick in steady state — Rust allocations through a counting
+//! `#[global_allocator]`, C++ allocations (ruckig, libstdc++) through the shim's counting
+//! `operator new` — for every strategy, across chunk switches, request publishing, HOLD and
+//! recovery, timing records and status fills. Chunks are produced by the scripted source
+//! (a test double) outside the measured window, as the inference thread would.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use chunkrt::config::Config;
+use chunkrt::control::{cxx_allocations, Executor, ScriptedChunkSource, ScriptedConfig, State};
+use chunkrt::ipc::{ControllerStatus, JointCommand, JointState};
+
+struct Counting;
+
+static ALLOCS: AtomicU64 = AtomicU64::new(0);
+
+// SAFETY: forwards to the system allocator; only counts.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        System.alloc(l)
+    }
+    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
+        System.dealloc(p, l)
+    }
+    unsafe fn alloc_zeroed(&self, l: Layout) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        System.alloc_zeroed(l)
+    }
+    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        System.realloc(p, l, n)
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+const START_NS: u64 = 10_000_000_000;
+
+/// Runs `ticks` ticks; returns (Rust allocations, C++ allocations, states seen) inside the
+/// measured window (executor calls only) after `warmup` ticks.
+fn measure(strategy: &str, ticks: usize, warmup: usize) -> (u64, u64, [bool; 4]) {
+    let mut cfg = Config::embedded_default();
+    cfg.execution.strategy = strategy.to_string();
+    let mut exec = Executor::new(&cfg).expect("executor builds");
+    let link = exec.connect();
+    let mut src = ScriptedChunkSource::new(ScriptedConfig::demo(100_000_000, 0.05));
+    let mut js = JointState {
+        n_dof: 4,
+        ..Default::default()
+    };
+    js.position[1] = 1.2;
+    js.position[2] = 0.6;
+    let mut cmd = JointCommand::default();
+    let mut status = ControllerStatus::default();
+    let (mut rust, mut cxx) = (0, 0);
+    let mut seen = [false; 4];
+    for k in 0..ticks {
+        let now = START_NS + k as u64 * 1_000_000;
+        // Inference side (allocates freely; not measured).
+        if let Some(req) = link.requests.try_recv() {
+            src.start(&req);
+            link.requests.done(req);
+        }
+        if let Some(c) = src.poll(now) {
+            drop(link.chunks.send(c));
+        }
+        while link.chunks.take_recycled().is_some() {}
+        // A 100 ms gap in the joint state stream → HOLD and recovery, once.
+        let fresh = !(2000..2100).contains(&k);
+        if fresh {
+            js.measurement_time_ns = now;
+            js.position = cmd.position;
+        }
+        // Measured window: what the control thread does every tick.
+        let (r0, c0) = (ALLOCS.load(Ordering::Relaxed), cxx_allocations());
+        let r = exec.tick(now, Some(&js), &mut cmd);
+        exec.record_timing(now, now + 5_000, now + 60_000);
+        if k % 100 == 0 {
+            exec.fill_status(&mut status);
+        }
+        let (r1, c1) = (ALLOCS.load(Ordering::Relaxed), cxx_allocations());
+        if k >= warmup {
+            rust += r1 - r0;
+            cxx += c1 - c0;
+            seen[r.state.code() as usize] = true;
+        }
+    }
+    (rust, cxx, seen)
+}
+
+#[test]
+fn executor_tick_allocates_nothing_in_steady_state() {
+    // The counter really counts C++ allocations (the shim replaced operator new).
+    let before = cxx_allocations();
+    drop(chunkrt::control::Otg::new(0.001).expect("valid dt"));
+    assert!(cxx_allocations() > before, "C++ allocations are counted");
+
+    for strategy in ["replace", "crossfade", "temporal_ensemble", "rtc"] {
+        let (rust, cxx, seen) = measure(strategy, 4000, 300);
+        eprintln!("{strategy}: {rust} Rust and {cxx} C++ allocations in 3700 ticks");
+        assert_eq!(rust, 0, "{strategy}: Rust allocations in the tick");
+        assert_eq!(cxx, 0, "{strategy}: C++ allocations in the tick");
+        assert!(seen[State::Running.code() as usize] && seen[State::Hold.code() as usize]);
+    }
+}

@@ -1,0 +1,177 @@
+//! Every transition strategy, fed by the scripted chunk source (a test double) with inference
+//! latency and disagreeing consecutive chunks, keeps every joint within its position, velocity,
+//! acceleration and jerk limits and publishes a command every tick; the smoothness metrics
+//! show that `crossfade` and `rtc` switch with much smaller discontinuities than `replace`.
+
+use chunkrt::config::Config;
+use chunkrt::control::{ScriptedConfig, ScriptedSim, Smoothness, State, Trace};
+use chunkrt::ipc::{COMMAND_MODE_POSITION, MAX_DOF};
+
+const START_NS: u64 = 10_000_000_000;
+
+fn config(strategy: &str) -> Config {
+    let mut c = Config::embedded_default();
+    c.execution.strategy = strategy.to_string();
+    c.validate("test").expect("valid test config");
+    c
+}
+
+struct Outcome {
+    metrics: Smoothness,
+    chunks: u64,
+    delay: usize,
+}
+
+/// Runs `seconds` of closed loop; checks limits and the every-tick command; returns metrics
+/// over the part after the first chunk started executing.
+fn run(strategy: &str, latency_ms: u64, jump: f64, seconds: f64) -> Outcome {
+    let cfg = config(strategy);
+    let src = ScriptedConfig::demo(latency_ms * 1_000_000, jump);
+    let mut sim = ScriptedSim::new(&cfg, src, START_NS).expect("executor builds");
+    let ticks = (seconds * 1000.0) as usize;
+    sim.run(ticks);
+    let n = cfg.n_dof();
+    let dt = 1e-3;
+    assert_eq!(
+        sim.commands.len(),
+        ticks,
+        "{strategy}: a command every tick"
+    );
+    let first_running = sim
+        .reports
+        .iter()
+        .position(|r| r.state == State::Running)
+        .expect("reaches RUNNING");
+    // Latency plus one tick for the request to reach the source.
+    assert!(
+        first_running <= latency_ms as usize + 3,
+        "{strategy}: {first_running}"
+    );
+    for (k, r) in sim.reports.iter().enumerate().skip(first_running) {
+        assert_eq!(r.state, State::Running, "{strategy}: tick {k} left RUNNING");
+        assert_eq!(sim.commands[k].mode, COMMAND_MODE_POSITION);
+        assert!(sim.commands[k].deadline_ns > sim.commands[k].publish_time_ns);
+    }
+    for (k, c) in sim.commands.iter().enumerate() {
+        for (j, jc) in cfg.robot.joints.iter().enumerate() {
+            let tol = 1e-9;
+            assert!(
+                c.position[j] >= jc.position_min - tol && c.position[j] <= jc.position_max + tol,
+                "{strategy}: tick {k} joint {j} position {}",
+                c.position[j]
+            );
+            assert!(
+                c.velocity[j].abs() <= jc.max_velocity * (1.0 + 1e-9) + tol,
+                "{strategy}: tick {k} joint {j} velocity {}",
+                c.velocity[j]
+            );
+            assert!(
+                c.acceleration[j].abs() <= jc.max_acceleration * (1.0 + 1e-9) + tol,
+                "{strategy}: tick {k} joint {j} acceleration {}",
+                c.acceleration[j]
+            );
+            if k > 0 {
+                let jerk = (c.acceleration[j] - sim.commands[k - 1].acceleration[j]) / dt;
+                assert!(
+                    jerk.abs() <= jc.max_jerk * (1.0 + 1e-6) + 1e-6,
+                    "{strategy}: tick {k} joint {j} jerk {jerk}"
+                );
+                // Positions are consistent with the commanded velocity (no jumps).
+                let v = (c.position[j] - sim.commands[k - 1].position[j]) / dt;
+                assert!(
+                    v.abs() <= jc.max_velocity * 1.01 + 1e-9,
+                    "{strategy}: tick {k} joint {j}"
+                );
+            }
+        }
+    }
+    // Metrics from one second in (after the start-up transient).
+    let from = first_running + 1000;
+    let mut tr = Trace::new(dt, n);
+    tr.skip = sim.trace.skip;
+    for k in from..sim.trace.command.len() {
+        let switched = sim.trace.switches.binary_search(&k).is_ok();
+        tr.push(
+            &sim.trace.target[k],
+            &sim.trace.command[k],
+            Some(&sim.trace.reference[k]),
+            switched,
+        );
+    }
+    let _ = MAX_DOF;
+    Outcome {
+        metrics: tr.smoothness(),
+        chunks: sim.exec.chunk_counts().0,
+        delay: sim.exec.delay_estimate(),
+    }
+}
+
+#[test]
+fn every_strategy_respects_limits_and_rtc_crossfade_switch_smoothly() {
+    let latency_ms = 120; // 6 action steps at 50 Hz
+    let jump = 0.05; // consecutive chunks disagree by 0.1 rad
+    let mut rows = Vec::new();
+    for s in ["replace", "crossfade", "temporal_ensemble", "rtc"] {
+        let o = run(s, latency_ms, jump, 6.0);
+        let m = o.metrics;
+        eprintln!(
+            "{s:>18}: chunks {:>3}, d {:>2}, switches {:>3}, switch jump target {:.5} command {:.2e}, rms jerk {:>8.2}, max jerk {:>7.1}, tracking rms {:.4} max {:.4}",
+            o.chunks,
+            o.delay,
+            m.switches,
+            m.max_switch_jump_target,
+            m.max_switch_jump_command,
+            m.rms_jerk,
+            m.max_jerk,
+            m.tracking_rms,
+            m.tracking_max
+        );
+        assert!(o.chunks >= 10, "{s}: only {} chunks", o.chunks);
+        assert!(m.switches >= 8, "{s}: only {} switches", m.switches);
+        rows.push((s, m));
+    }
+    let get = |name: &str| {
+        rows.iter()
+            .find(|(s, _)| *s == name)
+            .map(|(_, m)| *m)
+            .unwrap()
+    };
+    let (rep, cf, rtc) = (get("replace"), get("crossfade"), get("rtc"));
+    // Replace steps by about the disagreement between chunks (2 * jump).
+    assert!(rep.max_switch_jump_target > 0.05, "{rep:?}");
+    assert!(
+        cf.max_switch_jump_target < 0.25 * rep.max_switch_jump_target,
+        "crossfade {cf:?} vs replace {rep:?}"
+    );
+    assert!(
+        rtc.max_switch_jump_target < 0.25 * rep.max_switch_jump_target,
+        "rtc {rtc:?} vs replace {rep:?}"
+    );
+    // The command itself never jumps: ruckig turns every switch into a jerk-limited move.
+    for (s, m) in &rows {
+        assert!(m.max_switch_jump_command < 1e-4, "{s}: {m:?}");
+    }
+}
+
+#[test]
+fn linear_interpolation_and_continuous_trigger_also_hold_limits() {
+    let mut cfg = config("crossfade");
+    cfg.execution.interpolation = "linear".into();
+    cfg.execution.trigger = "continuous".into();
+    let mut sim = ScriptedSim::new(&cfg, ScriptedConfig::demo(60_000_000, 0.02), START_NS)
+        .expect("executor builds");
+    sim.run(3000);
+    assert_eq!(sim.commands.len(), 3000);
+    // Continuous trigger: a new chunk about every latency (60 ms) → ~45 chunks in 3 s.
+    assert!(
+        sim.exec.chunk_counts().0 > 35,
+        "{:?}",
+        sim.exec.chunk_counts()
+    );
+    for c in &sim.commands {
+        for (j, jc) in cfg.robot.joints.iter().enumerate() {
+            assert!(c.velocity[j].abs() <= jc.max_velocity * (1.0 + 1e-9));
+            assert!(c.acceleration[j].abs() <= jc.max_acceleration * (1.0 + 1e-9));
+        }
+    }
+}

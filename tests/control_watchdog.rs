@@ -1,0 +1,244 @@
+//! Safety state machine: stale joint state, NaN actions, missing chunks and overrun streaks put
+//! the executor in HOLD within the configured time, braking to zero velocity within the
+//! limits; good inputs bring it back to RUNNING; HOLD for too long is a FAULT that only a
+//! re-arm clears. Uses the scripted chunk source (a test double).
+
+use chunkrt::config::Config;
+use chunkrt::control::{Event, Reason, ScriptedConfig, ScriptedSim, State};
+use chunkrt::ipc::{JointCommand, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD};
+
+const START_NS: u64 = 10_000_000_000;
+
+fn sim(hold_to_fault_ms: f64) -> (Config, ScriptedSim) {
+    let mut c = Config::embedded_default();
+    c.execution.strategy = "rtc".into();
+    c.execution.hold_to_fault_ms = hold_to_fault_ms;
+    c.validate("test").expect("valid test config");
+    let s = ScriptedSim::new(&c, ScriptedConfig::demo(80_000_000, 0.02), START_NS)
+        .expect("executor builds");
+    (c, s)
+}
+
+fn events(s: &ScriptedSim) -> Vec<Event> {
+    let mut v = Vec::new();
+    s.exec.events().drain(|e| v.push(e));
+    v
+}
+
+/// Braking between ticks `from..to` of the command log stays within the limits and ends at
+/// rest in COMMAND_MODE_HOLD.
+fn assert_brakes_within_limits(cfg: &Config, cmds: &[JointCommand]) {
+    let dt = 1e-3;
+    for k in 1..cmds.len() {
+        for (j, jc) in cfg.robot.joints.iter().enumerate() {
+            assert!(
+                cmds[k].velocity[j].abs() <= jc.max_velocity * (1.0 + 1e-9),
+                "tick {k} joint {j}: v {} a {} mode {}",
+                cmds[k].velocity[j],
+                cmds[k].acceleration[j],
+                cmds[k].mode
+            );
+            assert!(cmds[k].acceleration[j].abs() <= jc.max_acceleration * (1.0 + 1e-9));
+            let jerk = (cmds[k].acceleration[j] - cmds[k - 1].acceleration[j]) / dt;
+            assert!(
+                jerk.abs() <= jc.max_jerk * (1.0 + 1e-6) + 1e-6,
+                "tick {k} joint {j}: {jerk}"
+            );
+        }
+    }
+    let last = cmds.last().expect("commands");
+    assert_eq!(last.mode, COMMAND_MODE_HOLD, "at rest in the end");
+    assert!(last.velocity.iter().all(|v| *v == 0.0));
+}
+
+/// Limits only (the run may end while moving again).
+fn assert_brakes_within_limits_partial(cfg: &Config, cmds: &[JointCommand]) {
+    let dt = 1e-3;
+    for k in 1..cmds.len() {
+        for (j, jc) in cfg.robot.joints.iter().enumerate() {
+            assert!(cmds[k].velocity[j].abs() <= jc.max_velocity * (1.0 + 1e-9));
+            assert!(cmds[k].acceleration[j].abs() <= jc.max_acceleration * (1.0 + 1e-9));
+            let jerk = (cmds[k].acceleration[j] - cmds[k - 1].acceleration[j]) / dt;
+            assert!(
+                jerk.abs() <= jc.max_jerk * (1.0 + 1e-6) + 1e-6,
+                "tick {k} joint {j}: {jerk}"
+            );
+        }
+    }
+}
+
+#[test]
+fn stale_joint_state_holds_then_recovers() {
+    let (cfg, mut s) = sim(10_000.0);
+    s.run(1500);
+    assert_eq!(s.exec.state(), State::Running);
+    events(&s);
+    // The robot stops reporting: HOLD once the state is older than joint_state_max_age_ms.
+    s.robot_reports = false;
+    let stop_tick = s.reports.len();
+    s.run(600);
+    let hold_tick = s.reports[stop_tick..]
+        .iter()
+        .position(|r| r.state == State::Hold)
+        .expect("enters HOLD");
+    let max_age = cfg.control.joint_state_max_age_ms as usize;
+    // The last report was at stop_tick - 1; stale once older than max_age ms.
+    assert!(
+        hold_tick <= max_age + 1 && hold_tick >= max_age - 1,
+        "HOLD after {hold_tick} ticks, max age {max_age} ms"
+    );
+    assert_brakes_within_limits(&cfg, &s.commands[stop_tick - 2..]);
+    let ev = events(&s);
+    assert_eq!(ev.len(), 1, "{ev:?}");
+    assert_eq!(ev[0].reason, Reason::StaleJointState);
+    assert_eq!((ev[0].from, ev[0].to), (State::Running, State::Hold));
+    let mut st = chunkrt::ipc::ControllerStatus::default();
+    s.exec.fill_status(&mut st);
+    assert_eq!(st.state, CONTROLLER_STATE_HOLD);
+    assert_eq!(st.hold_entries, 1);
+    assert!(st.joint_state_age_ns > 500_000_000);
+    // The robot reports again: back to RUNNING at once (chunks kept coming).
+    s.robot_reports = true;
+    s.step();
+    assert_eq!(s.exec.state(), State::Running);
+    let ev = events(&s);
+    assert_eq!(ev[0].reason, Reason::InputsGood);
+}
+
+#[test]
+fn nan_action_holds_within_a_tick_and_good_chunks_recover() {
+    let (cfg, mut s) = sim(10_000.0);
+    s.run(1500);
+    assert_eq!(s.exec.state(), State::Running);
+    events(&s);
+    s.source.inject_nan = true;
+    let before = s.exec.chunk_counts().1;
+    let base = s.commands.len();
+    let mut hold_at = None;
+    for k in 0..1200 {
+        let r = s.step();
+        if r.state == State::Hold && hold_at.is_none() {
+            hold_at = Some(k);
+            // The NaN chunk was rejected in this very tick.
+            assert_eq!(s.exec.chunk_counts().1, before + 1);
+        }
+        if hold_at.is_some() && r.state == State::Running {
+            break;
+        }
+    }
+    let hold_at = hold_at.expect("a NaN chunk puts the executor in HOLD");
+    assert_eq!(
+        s.exec.state(),
+        State::Running,
+        "the next good chunk recovers"
+    );
+    let ev = events(&s);
+    assert_eq!(ev[0].reason, Reason::NonFiniteAction, "{ev:?}");
+    assert_eq!(ev[1].reason, Reason::InputsGood, "{ev:?}");
+    // While holding, no command carried a NaN and the limits held.
+    for c in &s.commands[base + hold_at - 2..] {
+        assert!(c.position.iter().all(|p| p.is_finite()));
+    }
+    assert_brakes_within_limits_partial(&cfg, &s.commands[base + hold_at - 2..]);
+}
+
+#[test]
+fn missing_chunks_hold_then_fault_and_only_rearm_recovers() {
+    let (cfg, mut s) = sim(500.0);
+    s.run(1500);
+    assert_eq!(s.exec.state(), State::Running);
+    events(&s);
+    // The policy goes silent: the newest chunk expires, then HOLD lasts past hold_to_fault.
+    s.source.enabled = false;
+    let from = s.reports.len();
+    s.run(2000);
+    let rep = &s.reports[from..];
+    let hold = rep
+        .iter()
+        .position(|r| r.state == State::Hold)
+        .expect("HOLD");
+    let fault = rep
+        .iter()
+        .position(|r| r.state == State::Fault)
+        .expect("FAULT");
+    // Chunks last H = 50 actions (1 s); one had just been requested → expiry within ~1 s.
+    assert!(hold < 1100, "hold after {hold} ticks");
+    assert_eq!(
+        fault - hold,
+        500,
+        "FAULT exactly hold_to_fault_ms after HOLD"
+    );
+    assert_brakes_within_limits(&cfg, &s.commands[from + hold - 2..]);
+    let ev = events(&s);
+    assert_eq!(ev[0].reason, Reason::ChunkExpired, "{ev:?}");
+    assert_eq!(ev[1].reason, Reason::HoldTimeout, "{ev:?}");
+    // No requests in FAULT, and good chunks do not leave FAULT.
+    s.source.enabled = true;
+    s.run(500);
+    assert_eq!(s.exec.state(), State::Fault);
+    assert!(s.reports[s.reports.len() - 500..]
+        .iter()
+        .all(|r| !r.requested));
+    // Re-arm: STARTING, then RUNNING once a new chunk arrives.
+    assert!(s.exec.rearm(s.now_ns));
+    s.run(300);
+    assert_eq!(s.exec.state(), State::Running);
+    let ev = events(&s);
+    assert_eq!(ev[0].reason, Reason::Rearm);
+    assert_eq!((ev[1].from, ev[1].to), (State::Starting, State::Running));
+}
+
+#[test]
+fn overrun_streak_holds_and_recovers() {
+    let mut c = Config::embedded_default();
+    c.execution.overrun_streak = 5;
+    let mut s = ScriptedSim::new(&c, ScriptedConfig::demo(80_000_000, 0.02), START_NS)
+        .expect("executor builds");
+    s.run(1500);
+    assert_eq!(s.exec.state(), State::Running);
+    events(&s);
+    s.compute_ns = 1_500_000; // every tick now overruns the 1 ms period
+    s.run(4);
+    assert_eq!(s.exec.state(), State::Running, "4 overruns are tolerated");
+    s.run(2);
+    assert_eq!(s.exec.state(), State::Hold);
+    s.compute_ns = 50_000;
+    s.run(2);
+    assert_eq!(s.exec.state(), State::Running);
+    let ev = events(&s);
+    assert_eq!(ev[0].reason, Reason::Overruns);
+    assert_eq!(s.exec.timing().overruns, 6);
+}
+
+#[test]
+fn starting_waits_for_joint_state_and_bad_robot_faults() {
+    let c = Config::embedded_default();
+    let mut exec = chunkrt::control::Executor::new(&c).expect("executor builds");
+    let mut cmd = JointCommand::default();
+    let r = exec.tick(START_NS, None, &mut cmd);
+    assert_eq!(r.state, State::Starting);
+    assert!(
+        !r.publish,
+        "nothing to command before the first joint state"
+    );
+    // A fresh joint state without chunks: hold the measured pose, still STARTING.
+    let mut js = chunkrt::ipc::JointState {
+        n_dof: 4,
+        measurement_time_ns: START_NS,
+        ..Default::default()
+    };
+    js.position[1] = 0.7;
+    let r = exec.tick(START_NS + 1_000_000, Some(&js), &mut cmd);
+    assert!(r.publish);
+    assert_eq!(r.state, State::Starting);
+    assert!((cmd.position[1] - 0.7).abs() < 1e-12);
+    assert!(r.requested, "the first inference is requested at once");
+    // A joint state for another robot: FAULT.
+    js.n_dof = 3;
+    js.measurement_time_ns = START_NS + 2_000_000;
+    let r = exec.tick(START_NS + 2_000_000, Some(&js), &mut cmd);
+    assert_eq!(r.state, State::Fault);
+    let mut ev = Vec::new();
+    exec.events().drain(|e| ev.push(e));
+    assert_eq!(ev[0].reason, Reason::BadJointState);
+}
