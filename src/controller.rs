@@ -21,11 +21,11 @@ use hdrhistogram::Histogram;
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
     controller_state_name, monotonic_ns, sleep_until_ns, Config, ControllerStatus, JointCommand,
-    JointState, RejectReason, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD, CONTROLLER_STATE_STARTING,
-    MAX_DOF,
+    JointState, RejectReason, CONTROLLER_STATE_HOLD, CONTROLLER_STATE_STARTING,
 };
 
 use crate::chunk::ActionChunk;
+use crate::control::{EventReader, Executor, InferenceLink, InferenceRequest};
 use crate::edge::{
     event_ring, CameraInput, CommandOutput, Counters, EdgeEvent, EventRing, JointStateInput,
     Observation, Source, StatusOutput,
@@ -64,13 +64,19 @@ pub fn load_config(config: Option<&PathBuf>, namespace: Option<&str>) -> anyhow:
     Ok(cfg)
 }
 
-/// Produces action chunks from observations; runs in the observation/inference thread.
-/// The policy implements it; tests use scripted sources.
+/// Produces action chunks from observations; runs in the observation/inference thread when
+/// the control side asks for one (an [`InferenceRequest`]: when to start, and for real-time
+/// chunking the previous chunk's remaining actions and their weights). The policy implements
+/// it; tests use scripted sources.
 pub trait ChunkSource: Send {
     /// Name for logs.
     fn name(&self) -> &str;
     /// Computes the next chunk for `obs`; `Ok(None)` when the source has nothing to execute.
-    fn compute(&mut self, obs: &Observation) -> anyhow::Result<Option<ActionChunk>>;
+    fn compute(
+        &mut self,
+        obs: &Observation,
+        request: &InferenceRequest,
+    ) -> anyhow::Result<Option<ActionChunk>>;
 }
 
 /// The source used when no policy is configured: it never produces a chunk, so the
@@ -81,7 +87,11 @@ impl ChunkSource for HoldSource {
     fn name(&self) -> &str {
         "hold"
     }
-    fn compute(&mut self, _obs: &Observation) -> anyhow::Result<Option<ActionChunk>> {
+    fn compute(
+        &mut self,
+        _obs: &Observation,
+        _request: &InferenceRequest,
+    ) -> anyhow::Result<Option<ActionChunk>> {
         Ok(None)
     }
 }
@@ -107,73 +117,17 @@ pub trait ControlTick: Send {
     ) -> TickOutcome;
 }
 
-/// Holds the robot still: STARTING until a fresh joint state arrives, then commands the
-/// position measured at that moment with zero velocity (latched, so the robot cannot drift
-/// by following its own measurement). A stale joint state re-arms the latch, so a restarted
-/// robot is held where it is, not sent back to where the old one was.
-pub struct HoldTick {
-    n_dof: usize,
-    max_age_ns: u64,
-    target: [f64; MAX_DOF],
-    latched: bool,
-    lo: [f64; MAX_DOF],
-    hi: [f64; MAX_DOF],
-}
-
-impl HoldTick {
-    /// From the configuration's joint count, limits and joint-state age limit.
-    pub fn new(cfg: &Config) -> Self {
-        let mut lo = [0.0; MAX_DOF];
-        let mut hi = [0.0; MAX_DOF];
-        for (i, j) in cfg.robot.joints.iter().enumerate() {
-            lo[i] = j.position_min;
-            hi[i] = j.position_max;
-        }
-        Self {
-            n_dof: cfg.n_dof(),
-            max_age_ns: (cfg.control.joint_state_max_age_ms * 1e6) as u64,
-            target: [0.0; MAX_DOF],
-            latched: false,
-            lo,
-            hi,
-        }
-    }
-}
-
-impl ControlTick for HoldTick {
+impl ControlTick for Executor {
     fn tick(
         &mut self,
         now_ns: u64,
         joint_state: Option<&JointState>,
         cmd: &mut JointCommand,
     ) -> TickOutcome {
-        let fresh = joint_state
-            .filter(|js| now_ns.saturating_sub(js.measurement_time_ns) <= self.max_age_ns);
-        match (fresh, self.latched) {
-            (Some(js), false) => {
-                for i in 0..self.n_dof {
-                    self.target[i] = js.position[i].clamp(self.lo[i], self.hi[i]);
-                }
-                self.latched = true;
-            }
-            (None, true) => self.latched = false,
-            _ => {}
-        }
-        if !self.latched {
-            return TickOutcome {
-                publish: false,
-                state: CONTROLLER_STATE_STARTING,
-            };
-        }
-        cmd.n_dof = self.n_dof as u32;
-        cmd.mode = COMMAND_MODE_HOLD;
-        cmd.chunk_id = 0;
-        cmd.position = self.target;
-        cmd.velocity = [0.0; MAX_DOF];
-        cmd.acceleration = [0.0; MAX_DOF];
+        let r = Executor::tick(self, now_ns, joint_state, cmd);
         TickOutcome {
-            publish: true,
-            state: CONTROLLER_STATE_HOLD,
+            publish: r.publish,
+            state: r.state.code(),
         }
     }
 }
@@ -273,17 +227,21 @@ pub struct Summary {
 /// A running controller.
 pub struct Controller {
     shared: Arc<Shared>,
+    executor_events: EventReader,
     control: Option<JoinHandle<anyhow::Result<Summary>>>,
     observer: Option<JoinHandle<anyhow::Result<()>>>,
 }
 
 impl Controller {
-    /// Starts the observation and control threads.
+    /// Starts the observation/inference thread (running `source` whenever the executor asks
+    /// for a chunk) and the control thread (running the executor every period).
     pub fn start(
         cfg: Config,
-        mut tick: Box<dyn ControlTick>,
+        mut executor: Executor,
         mut source: Box<dyn ChunkSource>,
     ) -> anyhow::Result<Self> {
+        let link = executor.connect();
+        let executor_events = executor.events();
         // clean up shared memory of controllers that died without doing so
         {
             let node = services::node("chunkrt-cleanup")?;
@@ -301,18 +259,19 @@ impl Controller {
             let ready = ready_tx.clone();
             std::thread::Builder::new()
                 .name("chunkrt-observe".into())
-                .spawn(move || observation_thread(&cfg, &shared, source.as_mut(), ready))
+                .spawn(move || observation_thread(&cfg, &shared, source.as_mut(), &link, ready))
                 .context("cannot spawn the observation thread")?
         };
         let control = {
             let shared = shared.clone();
             std::thread::Builder::new()
                 .name("chunkrt-control".into())
-                .spawn(move || control_thread(&cfg, &shared, tick.as_mut(), ready_tx))
+                .spawn(move || control_thread(&cfg, &shared, &mut executor, ready_tx))
                 .context("cannot spawn the control thread")?
         };
         let mut me = Self {
             shared,
+            executor_events,
             control: Some(control),
             observer: Some(observer),
         };
@@ -347,6 +306,7 @@ impl Controller {
     /// Logs the events queued by the real-time threads (at most `max` lines; the rest are
     /// summarised in one line).
     pub fn log_events(&self, cfg: &Config, max: usize) {
+        self.executor_events.drain(|e| tracing::info!("state {e}"));
         let mut logged = 0;
         let mut skipped = 0;
         while let Some(ev) = self.shared.events.pop() {
@@ -413,6 +373,7 @@ fn observation_thread(
     cfg: &Config,
     shared: &Shared,
     source: &mut dyn ChunkSource,
+    link: &InferenceLink,
     ready: crossbeam::channel::Sender<anyhow::Result<()>>,
 ) -> anyhow::Result<()> {
     let ns = cfg.namespace();
@@ -447,16 +408,25 @@ fn observation_thread(
         cams.poll(now, &mut obs.frames, &shared.counters, &shared.events);
         js.poll(now, &private, &private_events);
         while private_events.pop().is_some() {}
+        // chunk buffers the control thread is done with are dropped here, off the RT path
+        while link.chunks.take_recycled().is_some() {}
         let Some(state) = js.latest() else { continue };
+        let Some(request) = link.requests.try_recv() else {
+            continue;
+        };
         obs.joint_state = *state;
         obs.assembled_ns = now;
-        match source.compute(&obs) {
+        let result = source.compute(&obs, &request);
+        link.requests.done(request);
+        match result {
             Ok(Some(chunk)) => {
                 shared.chunks.fetch_add(1, Ordering::Relaxed);
                 shared.last_inference_latency_ns.store(
                     chunk.ready_ns.saturating_sub(chunk.t_obs_ns),
                     Ordering::Relaxed,
                 );
+                // a displaced, never-executed chunk comes back here and is dropped here
+                drop(link.chunks.send(chunk));
             }
             Ok(None) => {}
             Err(e) => {
@@ -712,17 +682,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         cfg.control.rate_hz,
         cfg.policy.kind
     );
-    if cfg.policy.kind != "hold" {
-        anyhow::bail!(
-            "policy.kind = '{}' is not wired into the controller yet; use 'hold'",
-            cfg.policy.kind
-        );
-    }
-    let controller = Controller::start(
-        cfg.clone(),
-        Box::new(HoldTick::new(&cfg)),
-        Box::new(HoldSource),
-    )?;
+    let executor = Executor::new(&cfg).context("invalid execution settings")?;
+    let source: Box<dyn ChunkSource> = match cfg.policy.kind.as_str() {
+        "hold" => Box::new(HoldSource),
+        _ => Box::new(crate::inference::PolicySource::load(&cfg)?),
+    };
+    tracing::info!("chunk source: {}", source.name());
+    let controller = Controller::start(cfg.clone(), executor, source)?;
     let started = std::time::Instant::now();
     let mut last_log = std::time::Instant::now();
     while !stop_flag.load(Ordering::Relaxed) && controller.is_running() {
@@ -754,48 +720,5 @@ fn controller_log_final(cfg: &Config, shared: &Shared) {
             "{total} message(s) rejected on '{}' during the run",
             cfg.robot.namespace
         );
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn js(t: u64, pos: f64) -> JointState {
-        let mut s = JointState {
-            seq: 1,
-            measurement_time_ns: t,
-            n_dof: 4,
-            ..Default::default()
-        };
-        s.position[..4].fill(pos);
-        s
-    }
-
-    #[test]
-    fn hold_latches_and_rearms() {
-        let cfg = Config::embedded_default();
-        let mut h = HoldTick::new(&cfg);
-        let mut cmd = JointCommand::default();
-        let out = h.tick(1_000_000_000, None, &mut cmd);
-        assert!(!out.publish);
-        assert_eq!(out.state, CONTROLLER_STATE_STARTING);
-        let t0 = 1_000_000_000;
-        let out = h.tick(t0, Some(&js(t0, 0.5)), &mut cmd);
-        assert!(out.publish);
-        assert_eq!(cmd.position[0], 0.5);
-        assert_eq!(cmd.mode, COMMAND_MODE_HOLD);
-        // a newer measurement does not move the target: no drift
-        h.tick(t0 + 1_000_000, Some(&js(t0 + 1_000_000, 0.51)), &mut cmd);
-        assert_eq!(cmd.position[0], 0.5);
-        // stale → starting; fresh again → re-latched at the new position
-        let late = t0 + 1_000_000_000;
-        assert!(!h.tick(late, Some(&js(t0, 0.5)), &mut cmd).publish);
-        h.tick(late, Some(&js(late, -0.2)), &mut cmd);
-        assert_eq!(cmd.position[0], -0.2);
-        // targets are clamped to the joint limits (gripper is 0..1)
-        let mut h = HoldTick::new(&cfg);
-        h.tick(late, Some(&js(late, -0.2)), &mut cmd);
-        assert_eq!(cmd.position[3], 0.0);
     }
 }

@@ -9,6 +9,7 @@ use anyhow::Context;
 use chunkrt_ipc::{monotonic_ns, Config};
 
 use crate::chunk::ActionChunk;
+use crate::control::InferenceRequest;
 use crate::controller::ChunkSource;
 use crate::edge::Observation;
 use crate::policy::runtime::{Policy, RawFrame, RawObservation};
@@ -74,7 +75,11 @@ impl ChunkSource for PolicySource {
         "policy"
     }
 
-    fn compute(&mut self, obs: &Observation) -> anyhow::Result<Option<ActionChunk>> {
+    fn compute(
+        &mut self,
+        obs: &Observation,
+        _request: &InferenceRequest,
+    ) -> anyhow::Result<Option<ActionChunk>> {
         let frames = raw_frames(obs);
         let n = self.n_dof.min(obs.joint_state.n_dof as usize);
         let raw = RawObservation {

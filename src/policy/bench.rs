@@ -13,8 +13,14 @@ use super::PolicyError;
 
 /// The bench configurations (same schema as the fixtures' `config.json`).
 pub const CONFIGS: [(&str, &str); 2] = [
-    ("pi0_bench", include_str!("../../benches/data/pi0_bench.json")),
-    ("pi05_bench", include_str!("../../benches/data/pi05_bench.json")),
+    (
+        "pi0_bench",
+        include_str!("../../benches/data/pi0_bench.json"),
+    ),
+    (
+        "pi05_bench",
+        include_str!("../../benches/data/pi05_bench.json"),
+    ),
 ];
 
 /// openpi's PyTorch medians on the same kind of machine (s): π0, π0.5.
@@ -89,7 +95,11 @@ impl std::fmt::Display for BenchReport {
         writeln!(f, "threads: {}", self.threads)?;
         for c in &self.configs {
             writeln!(f, "== {} ==", c.name)?;
-            writeln!(f, "{:<16} {:>5} {:>10} {:>10} {:>9}", "phase", "n", "p50 ms", "p99 ms", "GFLOP/s")?;
+            writeln!(
+                f,
+                "{:<16} {:>5} {:>10} {:>10} {:>9}",
+                "phase", "n", "p50 ms", "p99 ms", "GFLOP/s"
+            )?;
             for p in &c.phases {
                 writeln!(
                     f,
@@ -115,16 +125,22 @@ impl std::fmt::Display for BenchReport {
 
 /// FLOPs of one Gemma layer for `l` queries over `t` keys.
 fn layer_flops(d: &GemmaDims, l: usize, t: usize) -> f64 {
-    let (w, qd, kvd) = (d.width, d.num_heads * d.head_dim, d.num_kv_heads * d.head_dim);
+    let (w, qd, kvd) = (
+        d.width,
+        d.num_heads * d.head_dim,
+        d.num_kv_heads * d.head_dim,
+    );
     let l = l as f64;
-    2.0 * l * (w * (qd + 2 * kvd) + qd * w + 3 * w * d.mlp_dim) as f64 + 4.0 * l * t as f64 * qd as f64
+    2.0 * l * (w * (qd + 2 * kvd) + qd * w + 3 * w * d.mlp_dim) as f64
+        + 4.0 * l * t as f64 * qd as f64
 }
 
 fn vision_flops(c: &ModelConfig) -> f64 {
     let v = &c.vision;
     let t = v.num_tokens() as f64;
     let dv = v.hidden_size as f64;
-    let per_layer = 2.0 * t * (4.0 * dv * dv + 2.0 * dv * v.intermediate_size as f64) + 4.0 * t * t * dv;
+    let per_layer =
+        2.0 * t * (4.0 * dv * dv + 2.0 * dv * v.intermediate_size as f64) + 4.0 * t * t * dv;
     let per_image = per_layer * v.num_hidden_layers as f64
         + 2.0 * t * dv * (3 * v.patch_size * v.patch_size) as f64
         + 2.0 * t * dv * c.paligemma.width as f64;
@@ -169,7 +185,12 @@ pub fn random_model(cfg: &ModelConfig) -> Result<(PiModel, VarMap), PolicyError>
 }
 
 /// Random model-ready inputs with `valid_tokens` valid prompt tokens.
-pub fn random_inputs(cfg: &ModelConfig, batch: usize, valid_tokens: usize, seed: u64) -> Result<ModelInputs, PolicyError> {
+pub fn random_inputs(
+    cfg: &ModelConfig,
+    batch: usize,
+    valid_tokens: usize,
+    seed: u64,
+) -> Result<ModelInputs, PolicyError> {
     let dev = Device::Cpu;
     let s = cfg.vision.image_size;
     let mut images = Vec::new();
@@ -179,7 +200,13 @@ pub fn random_inputs(cfg: &ModelConfig, batch: usize, valid_tokens: usize, seed:
     }
     let lt = cfg.max_token_len;
     let ids: Vec<u32> = (0..batch * lt)
-        .map(|i| if i % lt < valid_tokens { (i * 7919 % cfg.vocab_size) as u32 } else { 0 })
+        .map(|i| {
+            if i % lt < valid_tokens {
+                (i * 7919 % cfg.vocab_size) as u32
+            } else {
+                0
+            }
+        })
         .collect();
     Ok(ModelInputs {
         images,
@@ -195,18 +222,26 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
     let cfg = ModelConfig::from_json_str(json)?;
     let v: serde_json::Value =
         serde_json::from_str(json).map_err(|e| PolicyError::Config(e.to_string()))?;
-    let valid = v["valid_prompt_tokens"].as_u64().unwrap_or(cfg.max_token_len as u64) as usize;
+    let valid = v["valid_prompt_tokens"]
+        .as_u64()
+        .unwrap_or(cfg.max_token_len as u64) as usize;
     let steps = cfg.num_denoise_steps;
     let (model, _vm) = random_model(&cfg)?;
     let inp = random_inputs(&cfg, 1, valid, 1)?;
-    let noise = Tensor::randn(0f32, 1f32, (1, cfg.action_horizon, cfg.action_dim), &Device::Cpu)?;
+    let noise = Tensor::randn(
+        0f32,
+        1f32,
+        (1, cfg.action_horizon, cfg.action_dim),
+        &Device::Cpu,
+    )?;
     let (n_fast, n_slow) = if quick { (3, 1) } else { (20, 5) };
     let p = cfg.prefix_len();
     let s = cfg.suffix_len();
     let prefix_flops = layer_flops(&cfg.paligemma, p, p) * cfg.paligemma.depth as f64;
-    let step_flops = layer_flops(&cfg.action_expert, cfg.action_horizon, p + s) * cfg.action_expert.depth as f64;
-    let unc_step = prefix_flops
-        + layer_flops(&cfg.action_expert, s, p + s) * cfg.action_expert.depth as f64;
+    let step_flops =
+        layer_flops(&cfg.action_expert, cfg.action_horizon, p + s) * cfg.action_expert.depth as f64;
+    let unc_step =
+        prefix_flops + layer_flops(&cfg.action_expert, s, p + s) * cfg.action_expert.depth as f64;
     let vis = vision_flops(&cfg);
     let mut phases = Vec::new();
     phases.push(time_phase("vision", n_fast, vis, || {
@@ -237,10 +272,15 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
         Ok(())
     })?);
     if !quick {
-        phases.push(time_phase("sample_uncached", 2, vis + steps as f64 * unc_step, || {
-            model.sample(&inp, &noise, steps, None)?;
-            Ok(())
-        })?);
+        phases.push(time_phase(
+            "sample_uncached",
+            2,
+            vis + steps as f64 * unc_step,
+            || {
+                model.sample(&inp, &noise, steps, None)?;
+                Ok(())
+            },
+        )?);
     }
     let openpi_s = OPENPI_SAMPLE_S
         .iter()
