@@ -652,13 +652,11 @@ impl Executor {
     }
 
     fn accept(&mut self, chunk: ActionChunk, now_ns: u64) {
-        let verdict = chunk.validate().and_then(|()| {
-            if chunk.n_dof == self.cfg.n {
-                Ok(())
-            } else {
-                Err(ChunkError::NDof(chunk.n_dof))
-            }
-        });
+        let verdict = if chunk.n_dof == self.cfg.n {
+            chunk.validate()
+        } else {
+            Err(ChunkError::NDof(chunk.n_dof))
+        };
         if let Err(e) = verdict {
             self.chunks_rejected += 1;
             self.bad_input = Some(match e {
@@ -735,6 +733,7 @@ impl Executor {
 
     /// Samples the strategy's target at `now` into `self.target`; returns the primary chunk's
     /// (id, observation_seq).
+    #[allow(clippy::needless_range_loop)] // joints index several parallel arrays
     fn evaluate(&mut self, now: i64) -> Option<(u64, u64)> {
         let n = self.cfg.n;
         let (off, mode, step) = (self.cfg.offset_ns, self.cfg.interp, self.cfg.step);
