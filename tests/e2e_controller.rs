@@ -156,7 +156,11 @@ fn controller_holds_the_robot_and_sees_every_camera() {
                 "joint {i} command {} outside limits",
                 c.position[i]
             );
-            assert!(c.velocity[i].abs() < 1e-6, "held joint {i} commanded {} rad/s", c.velocity[i]);
+            assert!(
+                c.velocity[i].abs() < 1e-6,
+                "held joint {i} commanded {} rad/s",
+                c.velocity[i]
+            );
         }
     }
     assert_eq!(js2.status_flags & JOINT_STATUS_LIMIT_CLAMPED, 0);
@@ -363,4 +367,47 @@ fn bad_config_is_a_clear_error() {
         err.contains("bad.toml") && err.contains("control.rate_hz") && err.contains("10..=10000"),
         "{err}"
     );
+}
+
+#[test]
+fn controller_runs_the_real_policy_within_limits() {
+    let _serial = serial();
+    let ns = unique_namespace("policy");
+    let cfg_path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/pi05_tiny.toml");
+    let cfg = Config::load(std::path::Path::new(cfg_path)).unwrap();
+    let robot = start("fake-robot", &ns, &["--config", cfg_path]);
+    let camera = start("fake-camera", &ns, &["--config", cfg_path]);
+    let ctl = start("run", &ns, &["--config", cfg_path, "--log-every", "0"]);
+    let mut w = Watch::new(&ns);
+    w.wait_for(Duration::from_secs(30), "chunks from the policy", |w| {
+        w.last_status.chunks >= 3 && w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING
+    });
+    w.commands.clear();
+    w.pump(Duration::from_secs(1));
+    assert_ne!(w.last_status.state, chunkrt_ipc::CONTROLLER_STATE_FAULT);
+    assert!(
+        w.commands.iter().any(|c| c.chunk_id != 0),
+        "commands come from chunks"
+    );
+    for c in &w.commands {
+        for (i, j) in cfg.robot.joints.iter().enumerate() {
+            assert!(c.position[i] >= j.position_min && c.position[i] <= j.position_max);
+            assert!(
+                c.velocity[i].abs() <= j.max_velocity * 1.0001,
+                "joint {i} v {}",
+                c.velocity[i]
+            );
+            assert!(c.acceleration[i].abs() <= j.max_acceleration * 1.0001);
+        }
+    }
+    let out = ctl.terminate(Duration::from_secs(5));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    let r = robot.terminate(Duration::from_secs(5));
+    assert_eq!(
+        summary_value(&r.stdout, "commands_rejected"),
+        Some(0.0),
+        "{}",
+        r.stdout
+    );
+    drop(camera);
 }

@@ -523,8 +523,13 @@ impl Executor {
                     (self.target.velocity[j], self.target.acceleration[j])
                 };
                 let vl = 0.99 * self.cfg.vmax[j];
-                let al = 0.99 * self.cfg.amax[j];
-                self.otg_in.target_velocity[j] = v.clamp(-vl, vl);
+                let v = v.clamp(-vl, vl);
+                // ruckig rejects a target state that would have to exceed the velocity limit
+                // while its acceleration is ramped to zero at the jerk limit:
+                // |v| + a^2 / (2 j) <= v_max, so bound |a| accordingly (and by a_max)
+                let al = (0.99 * self.cfg.amax[j])
+                    .min((2.0 * 0.99 * self.cfg.jmax[j] * (vl - v.abs()).max(0.0)).sqrt());
+                self.otg_in.target_velocity[j] = v;
                 self.otg_in.target_acceleration[j] = a.clamp(-al, al);
             }
         } else {
