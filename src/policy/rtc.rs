@@ -50,7 +50,9 @@ impl Guidance<'_> {
     ) -> Result<GuidanceTarget, PolicyError> {
         let (h, a) = (cfg.action_horizon, cfg.action_dim);
         if n_dof == 0 || n_dof > a {
-            return Err(PolicyError::Input(format!("guidance: {n_dof} DoF; the model takes 1..={a}")));
+            return Err(PolicyError::Input(format!(
+                "guidance: {n_dof} DoF; the model takes 1..={a}"
+            )));
         }
         if self.prefix.len() != h * n_dof || self.weights.len() != h {
             return Err(PolicyError::Input(format!(
@@ -60,13 +62,20 @@ impl Guidance<'_> {
             )));
         }
         if self.prefix.iter().any(|x| !x.is_finite()) {
-            return Err(PolicyError::Input("guidance: non-finite prefix value".into()));
+            return Err(PolicyError::Input(
+                "guidance: non-finite prefix value".into(),
+            ));
         }
         if self.weights.iter().any(|w| !w.is_finite() || *w < 0.0) {
-            return Err(PolicyError::Input("guidance: weights must be finite and >= 0".into()));
+            return Err(PolicyError::Input(
+                "guidance: weights must be finite and >= 0".into(),
+            ));
         }
         if !self.beta.is_finite() || self.beta < 0.0 {
-            return Err(PolicyError::Input(format!("guidance: beta {} must be finite and >= 0", self.beta)));
+            return Err(PolicyError::Input(format!(
+                "guidance: beta {} must be finite and >= 0",
+                self.beta
+            )));
         }
         let mut y = Vec::with_capacity(h * a);
         let mut row = Vec::with_capacity(a);
@@ -117,9 +126,16 @@ pub struct GuidedVelocity {
 
 /// Soft-mask weights `[H]` over the first `n_dof` of `action_dim` action dims: [1, H, A] with
 /// `w[h]` on dims `< n_dof` and 0 beyond (the padded dims carry no data and are not guided).
-pub fn weight_mask(weights: &[f32], n_dof: usize, action_dim: usize, dev: &Device) -> Result<Tensor, PolicyError> {
+pub fn weight_mask(
+    weights: &[f32],
+    n_dof: usize,
+    action_dim: usize,
+    dev: &Device,
+) -> Result<Tensor, PolicyError> {
     if n_dof == 0 || n_dof > action_dim {
-        return Err(PolicyError::Input(format!("{n_dof} DoF; the model takes 1..={action_dim}")));
+        return Err(PolicyError::Input(format!(
+            "{n_dof} DoF; the model takes 1..={action_dim}"
+        )));
     }
     let mut m = Vec::with_capacity(weights.len() * action_dim);
     for &w in weights {
@@ -163,7 +179,12 @@ pub fn clean_estimate_vjp(
 }
 
 /// Â = x − t·v in differentiable mode, with x a fresh `Var` copy of `x_t`.
-fn clean_estimate(model: &PiModel, cache: &PrefixCache, x_t: &Tensor, t: &[f32]) -> Result<(Tensor, Tensor, Var), PolicyError> {
+fn clean_estimate(
+    model: &PiModel,
+    cache: &PrefixCache,
+    x_t: &Tensor,
+    t: &[f32],
+) -> Result<(Tensor, Tensor, Var), PolicyError> {
     let b = x_t.dim(0)?;
     let x = Var::from_tensor(x_t)?;
     let v = model.velocity_at(cache, x.as_tensor(), t, true)?;
@@ -216,20 +237,39 @@ pub fn guided_velocity(
 fn check_target(model: &PiModel, b: usize, target: &GuidanceTarget) -> Result<bool, PolicyError> {
     let want = [b, model.cfg.action_horizon, model.cfg.action_dim];
     if target.y.dims() != want {
-        return Err(PolicyError::Input(format!("guidance Y: shape {:?}, expected {want:?}", target.y.dims())));
+        return Err(PolicyError::Input(format!(
+            "guidance Y: shape {:?}, expected {want:?}",
+            target.y.dims()
+        )));
     }
     let wd = target.w.dims();
     let ok = wd.len() == 3 && (wd[0] == 1 || wd[0] == b) && wd[1] == want[1] && wd[2] == want[2];
     if !ok {
-        return Err(PolicyError::Input(format!("guidance W: shape {wd:?}, expected [1 or {b}, {}, {}]", want[1], want[2])));
+        return Err(PolicyError::Input(format!(
+            "guidance W: shape {wd:?}, expected [1 or {b}, {}, {}]",
+            want[1], want[2]
+        )));
     }
     if !target.beta.is_finite() || target.beta < 0.0 {
-        return Err(PolicyError::Input(format!("guidance beta {} must be finite and >= 0", target.beta)));
+        return Err(PolicyError::Input(format!(
+            "guidance beta {} must be finite and >= 0",
+            target.beta
+        )));
     }
-    let w = target.w.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
-    let y = target.y.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+    let w = target
+        .w
+        .to_dtype(DType::F32)?
+        .flatten_all()?
+        .to_vec1::<f32>()?;
+    let y = target
+        .y
+        .to_dtype(DType::F32)?
+        .flatten_all()?
+        .to_vec1::<f32>()?;
     if w.iter().chain(y.iter()).any(|x| !x.is_finite()) {
-        return Err(PolicyError::Input("non-finite guidance prefix or weights".into()));
+        return Err(PolicyError::Input(
+            "non-finite guidance prefix or weights".into(),
+        ));
     }
     if w.iter().any(|&x| x < 0.0) {
         return Err(PolicyError::Input("negative guidance weight".into()));
@@ -258,7 +298,10 @@ pub fn sample_guided(
     }
     let want = [b, model.cfg.action_horizon, model.cfg.action_dim];
     if noise.dims() != want {
-        return Err(PolicyError::Input(format!("noise: shape {:?}, expected {want:?}", noise.dims())));
+        return Err(PolicyError::Input(format!(
+            "noise: shape {:?}, expected {want:?}",
+            noise.dims()
+        )));
     }
     let y = target.y.to_dtype(DType::F32)?;
     let w = target.w.to_dtype(DType::F32)?;

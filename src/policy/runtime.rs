@@ -10,11 +10,11 @@ use rand::{Rng, SeedableRng};
 use super::checkpoint;
 use super::config::{ConfigOverrides, ModelKind};
 use super::model::{ModelInputs, PiModel, PrefixCache};
-use super::rtc::{sample_guided, Guidance, GuidanceTarget};
 use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
     NormMode, NormStats, PromptTokenizer,
 };
+use super::rtc::{sample_guided, Guidance, GuidanceTarget};
 use super::PolicyError;
 
 /// One camera frame as received over IPC (fields as in `CameraFrameHeader`).
@@ -143,8 +143,9 @@ impl Policy {
     ) -> Result<Vec<f64>, PolicyError> {
         let inputs = self.prepare(obs)?;
         let n_dof = obs.joint_positions.len();
+        let stats = self.norm.as_ref().map(|n| &n.actions);
         let target = match guidance {
-            Some(g) => Some(g.target(&self.model.cfg, n_dof, self.norm.as_ref().map(|n| &n.actions), self.mode())?),
+            Some(g) => Some(g.target(&self.model.cfg, n_dof, stats, self.mode())?),
             None => None,
         };
         self.run(&inputs, n_dof, target.as_ref())
