@@ -13,6 +13,7 @@ pub mod config;
 pub mod gemma;
 pub mod model;
 pub mod preprocess;
+pub mod rtc;
 pub mod runtime;
 pub mod siglip;
 

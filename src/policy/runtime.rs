@@ -14,6 +14,7 @@ use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
     NormMode, NormStats, PromptTokenizer,
 };
+use super::rtc::{sample_guided, Guidance, GuidanceTarget};
 use super::PolicyError;
 
 /// One camera frame as received over IPC (fields as in `CameraFrameHeader`).
@@ -134,7 +135,26 @@ impl Policy {
     /// the number of joint positions given.
     pub fn infer(&mut self, obs: &RawObservation<'_>) -> Result<Vec<f64>, PolicyError> {
         let inputs = self.prepare(obs)?;
-        self.run(&inputs, obs.joint_positions.len())
+        self.run(&inputs, obs.joint_positions.len(), None)
+    }
+
+    /// Like [`Self::infer`], guided towards `guidance` (real-time chunking, [`super::rtc`]) when
+    /// it is Some. β = 0 or all-zero weights give exactly `infer`'s actions for the same noise.
+    /// The prefix is normalised with the action norm stats and padded to the action dim; the
+    /// padded dims are not guided.
+    pub fn infer_guided(
+        &mut self,
+        obs: &RawObservation<'_>,
+        guidance: Option<&Guidance<'_>>,
+    ) -> Result<Vec<f64>, PolicyError> {
+        let inputs = self.prepare(obs)?;
+        let n_dof = obs.joint_positions.len();
+        let stats = self.norm.as_ref().map(|n| &n.actions);
+        let target = match guidance {
+            Some(g) => Some(g.target(&self.model.cfg, n_dof, stats, self.mode())?),
+            None => None,
+        };
+        self.run(&inputs, n_dof, target.as_ref())
     }
 
     /// Pre-processing only: model-ready inputs (batch 1) for an observation.
@@ -194,7 +214,12 @@ impl Policy {
         Ok(inputs)
     }
 
-    fn run(&mut self, inputs: &ModelInputs, n_dof: usize) -> Result<Vec<f64>, PolicyError> {
+    fn run(
+        &mut self,
+        inputs: &ModelInputs,
+        n_dof: usize,
+        guidance: Option<&GuidanceTarget>,
+    ) -> Result<Vec<f64>, PolicyError> {
         let cfg = self.model.cfg.clone();
         let mode = self.mode();
         let dev = Device::Cpu;
@@ -212,9 +237,12 @@ impl Policy {
         }
         self.noise.truncate(n);
         let noise = Tensor::from_slice(&self.noise, (1, cfg.action_horizon, cfg.action_dim), &dev)?;
-        let out = self
-            .model
-            .sample(inputs, &noise, self.steps, Some(&mut self.cache))?;
+        let out = match guidance {
+            Some(g) => sample_guided(&self.model, inputs, &noise, self.steps, &mut self.cache, g)?,
+            None => self
+                .model
+                .sample(inputs, &noise, self.steps, Some(&mut self.cache))?,
+        };
         let acts = out.actions.squeeze(0)?.to_vec2::<f32>()?;
         let mut res = Vec::with_capacity(cfg.action_horizon * n_dof);
         for row in acts {

@@ -1,0 +1,336 @@
+//! Real-time chunking (Black, Galliker, Levine 2025): inference-time guidance of the flow-matching
+//! sampler towards the actions of the previous chunk that will still be executed while the new
+//! chunk is computed ("inpainting" with a soft mask), in our convention.
+//!
+//! Convention: t = 1 is noise, t = 0 data, Euler `x <- x + dt * v` with `dt = -1/N`; τ = 1 − t.
+//! Per denoising step, with the previous chunk Y [B, H, A] and the weights W [B or 1, H, A]
+//! (already zero beyond the robot's DoF and in the model's normalised space):
+//!
+//! ```text
+//! v  = v(x_t, t)                      action expert against the fixed prefix KV cache
+//! Â  = x_t − t·v                      clean estimate
+//! g  = (∂Â/∂x_t)ᵀ (W ⊙ (Y − Â))       one vector-Jacobian product (candle autograd)
+//! r² = (1 − τ)² / (τ² + (1 − τ)²)
+//! c  = min(β, (1 − τ) / (τ·r²))       (β where the ratio is unbounded: τ → 0 or τ → 1)
+//! v' = v − c·g;   x <- x + dt·v'
+//! ```
+//!
+//! The VJP runs the action expert in its differentiable mode (compositions with a backward), so
+//! a guided step costs one differentiable forward and one backward instead of one fast forward.
+
+use candle_core::{DType, Device, Tensor, Var};
+
+use super::config::ModelConfig;
+use super::model::{ModelInputs, PiModel, PrefixCache, SampleOutput};
+use super::preprocess::{normalize, NormMode, Stats};
+use super::PolicyError;
+
+/// Guidance towards the previous chunk (robot units, [H][n_dof] row-major, right-padded by the
+/// caller) for [`super::Policy::infer_guided`].
+#[derive(Debug, Clone, Copy)]
+pub struct Guidance<'a> {
+    /// Previous chunk's remaining actions, `[H][n_dof]` row-major in robot units.
+    pub prefix: &'a [f64],
+    /// Soft-mask weight per action step, length H, each ≥ 0 (typically 1 on the steps executed
+    /// during inference, decaying to 0).
+    pub weights: &'a [f32],
+    /// Guidance clip β (≥ 0; 0 disables guidance).
+    pub beta: f32,
+}
+
+impl Guidance<'_> {
+    /// The model-space target: Y normalised with the action `stats` / `mode` (as the actions
+    /// are un-normalised) and zero-padded to the action dim, W masked beyond `n_dof`.
+    pub fn target(
+        &self,
+        cfg: &ModelConfig,
+        n_dof: usize,
+        stats: Option<&Stats>,
+        mode: NormMode,
+    ) -> Result<GuidanceTarget, PolicyError> {
+        let (h, a) = (cfg.action_horizon, cfg.action_dim);
+        if n_dof == 0 || n_dof > a {
+            return Err(PolicyError::Input(format!(
+                "guidance: {n_dof} DoF; the model takes 1..={a}"
+            )));
+        }
+        if self.prefix.len() != h * n_dof || self.weights.len() != h {
+            return Err(PolicyError::Input(format!(
+                "guidance: prefix of {} values and {} weights; expected {h}x{n_dof} and {h}",
+                self.prefix.len(),
+                self.weights.len()
+            )));
+        }
+        if self.prefix.iter().any(|x| !x.is_finite()) {
+            return Err(PolicyError::Input(
+                "guidance: non-finite prefix value".into(),
+            ));
+        }
+        if self.weights.iter().any(|w| !w.is_finite() || *w < 0.0) {
+            return Err(PolicyError::Input(
+                "guidance: weights must be finite and >= 0".into(),
+            ));
+        }
+        if !self.beta.is_finite() || self.beta < 0.0 {
+            return Err(PolicyError::Input(format!(
+                "guidance: beta {} must be finite and >= 0",
+                self.beta
+            )));
+        }
+        let mut y = Vec::with_capacity(h * a);
+        let mut row = Vec::with_capacity(a);
+        for r in self.prefix.chunks_exact(n_dof) {
+            row.clear();
+            row.extend(r.iter().map(|&x| x as f32));
+            if let Some(s) = stats {
+                normalize(&mut row, s, mode)?;
+            }
+            row.resize(a, 0.0);
+            y.extend_from_slice(&row);
+        }
+        let dev = Device::Cpu;
+        Ok(GuidanceTarget {
+            y: Tensor::from_vec(y, (1, h, a), &dev)?,
+            w: weight_mask(self.weights, n_dof, a, &dev)?,
+            beta: self.beta,
+        })
+    }
+}
+
+/// Guidance target in the model's space: what [`sample_guided`] pulls the chunk towards.
+#[derive(Debug, Clone)]
+pub struct GuidanceTarget {
+    /// Previous chunk Y [B, H, A], normalised and zero-padded beyond the robot's DoF.
+    pub y: Tensor,
+    /// Weights W broadcastable to [B, H, A] (e.g. [1, H, A] from [`weight_mask`]); zero on the
+    /// action dims that carry no real data.
+    pub w: Tensor,
+    /// Guidance clip β (≥ 0); 0 disables guidance.
+    pub beta: f32,
+}
+
+/// Result of one guided velocity evaluation ([`guided_velocity`]).
+#[derive(Debug, Clone)]
+pub struct GuidedVelocity {
+    /// Guided velocity v' [B, H, A].
+    pub v_guided: Tensor,
+    /// Model velocity v [B, H, A] (differentiable mode).
+    pub v: Tensor,
+    /// Clean estimate Â = x_t − t·v [B, H, A].
+    pub a_hat: Tensor,
+    /// VJP g = (∂Â/∂x_t)ᵀ (W ⊙ (Y − Â)) [B, H, A].
+    pub g: Tensor,
+    /// Guidance scale c = min(β, (1 − τ)/(τ·r²)).
+    pub scale: f32,
+}
+
+/// Soft-mask weights `[H]` over the first `n_dof` of `action_dim` action dims: [1, H, A] with
+/// `w[h]` on dims `< n_dof` and 0 beyond (the padded dims carry no data and are not guided).
+pub fn weight_mask(
+    weights: &[f32],
+    n_dof: usize,
+    action_dim: usize,
+    dev: &Device,
+) -> Result<Tensor, PolicyError> {
+    if n_dof == 0 || n_dof > action_dim {
+        return Err(PolicyError::Input(format!(
+            "{n_dof} DoF; the model takes 1..={action_dim}"
+        )));
+    }
+    let mut m = Vec::with_capacity(weights.len() * action_dim);
+    for &w in weights {
+        m.extend(std::iter::repeat(w).take(n_dof));
+        m.extend(std::iter::repeat(0.0f32).take(action_dim - n_dof));
+    }
+    Ok(Tensor::from_vec(m, (1, weights.len(), action_dim), dev)?)
+}
+
+/// Guidance scale c = min(β, (1 − τ)/(τ·r²)) with r² = (1 − τ)² / (τ² + (1 − τ)²) and τ = 1 − t.
+/// Where the ratio is unbounded or undefined (τ → 0 at the first step, τ → 1) it is β.
+pub fn guidance_scale(t: f32, beta: f32) -> f32 {
+    let tau = 1.0 - t as f64;
+    let one_m = 1.0 - tau;
+    let r2_den = tau * tau + one_m * one_m;
+    // (1 − τ)/(τ·r²) = (τ² + (1 − τ)²) / (τ·(1 − τ))
+    let den = tau * one_m;
+    if den <= 1e-12 || r2_den <= 0.0 {
+        return beta;
+    }
+    let ratio = r2_den / den;
+    if ratio.is_finite() {
+        (beta as f64).min(ratio) as f32
+    } else {
+        beta
+    }
+}
+
+/// The clean estimate Â = x_t − t·v and its VJP with a fixed `cotangent` [B, H, A]:
+/// returns (Â, v, (∂Â/∂x_t)ᵀ·cotangent). `t` [B] host time values.
+pub fn clean_estimate_vjp(
+    model: &PiModel,
+    cache: &PrefixCache,
+    x_t: &Tensor,
+    t: &[f32],
+    cotangent: &Tensor,
+) -> Result<(Tensor, Tensor, Tensor), PolicyError> {
+    let (a_hat, v, x) = clean_estimate(model, cache, x_t, t)?;
+    let g = vjp(&a_hat, &x, cotangent)?;
+    Ok((a_hat.detach(), v.detach(), g))
+}
+
+/// Â = x − t·v in differentiable mode, with x a fresh `Var` copy of `x_t`.
+fn clean_estimate(
+    model: &PiModel,
+    cache: &PrefixCache,
+    x_t: &Tensor,
+    t: &[f32],
+) -> Result<(Tensor, Tensor, Var), PolicyError> {
+    let b = x_t.dim(0)?;
+    let x = Var::from_tensor(x_t)?;
+    let v = model.velocity_at(cache, x.as_tensor(), t, true)?;
+    // t3 [B, 1, 1]
+    let t3 = Tensor::from_slice(t, (b, 1, 1), x_t.device())?;
+    let a_hat = (x.as_tensor() - v.broadcast_mul(&t3)?)?;
+    Ok((a_hat, v, x))
+}
+
+/// (∂a_hat/∂x)ᵀ·cotangent through candle autograd: backward of `sum(a_hat ⊙ stopgrad(cot))`.
+fn vjp(a_hat: &Tensor, x: &Var, cotangent: &Tensor) -> Result<Tensor, PolicyError> {
+    let obj = (a_hat * cotangent.detach())?.sum_all()?;
+    let grads = obj.backward()?;
+    match grads.get(x.as_tensor()) {
+        Some(g) => Ok(g.detach()),
+        // x_t reaches the objective through x − t·v; no gradient only if nothing depended on it
+        None => Ok(x.as_tensor().zeros_like()?),
+    }
+}
+
+/// One guided velocity evaluation at time `t` (the same for the whole batch).
+pub fn guided_velocity(
+    model: &PiModel,
+    cache: &PrefixCache,
+    x_t: &Tensor,
+    t: f32,
+    target: &GuidanceTarget,
+) -> Result<GuidedVelocity, PolicyError> {
+    let b = x_t.dim(0)?;
+    let tv = vec![t; b];
+    let (a_hat, v, x) = clean_estimate(model, cache, x_t, &tv)?;
+    // cotangent W ⊙ (Y − Â), a constant for the VJP
+    let err = (&target.y - a_hat.detach())?;
+    let cot = err.broadcast_mul(&target.w)?;
+    let g = vjp(&a_hat, &x, &cot)?;
+    let scale = guidance_scale(t, target.beta);
+    let v = v.detach();
+    let v_guided = (&v - (&g * scale as f64)?)?;
+    Ok(GuidedVelocity {
+        v_guided,
+        v,
+        a_hat: a_hat.detach(),
+        g,
+        scale,
+    })
+}
+
+/// Checks a guidance target against the sampler's shapes; `Ok(false)` when it guides nothing
+/// (β = 0 or all weights zero) so the plain sampler can run.
+fn check_target(model: &PiModel, b: usize, target: &GuidanceTarget) -> Result<bool, PolicyError> {
+    let want = [b, model.cfg.action_horizon, model.cfg.action_dim];
+    if target.y.dims() != want {
+        return Err(PolicyError::Input(format!(
+            "guidance Y: shape {:?}, expected {want:?}",
+            target.y.dims()
+        )));
+    }
+    let wd = target.w.dims();
+    let ok = wd.len() == 3 && (wd[0] == 1 || wd[0] == b) && wd[1] == want[1] && wd[2] == want[2];
+    if !ok {
+        return Err(PolicyError::Input(format!(
+            "guidance W: shape {wd:?}, expected [1 or {b}, {}, {}]",
+            want[1], want[2]
+        )));
+    }
+    if !target.beta.is_finite() || target.beta < 0.0 {
+        return Err(PolicyError::Input(format!(
+            "guidance beta {} must be finite and >= 0",
+            target.beta
+        )));
+    }
+    let w = target
+        .w
+        .to_dtype(DType::F32)?
+        .flatten_all()?
+        .to_vec1::<f32>()?;
+    let y = target
+        .y
+        .to_dtype(DType::F32)?
+        .flatten_all()?
+        .to_vec1::<f32>()?;
+    if w.iter().chain(y.iter()).any(|x| !x.is_finite()) {
+        return Err(PolicyError::Input(
+            "non-finite guidance prefix or weights".into(),
+        ));
+    }
+    if w.iter().any(|&x| x < 0.0) {
+        return Err(PolicyError::Input("negative guidance weight".into()));
+    }
+    Ok(target.beta > 0.0 && w.iter().any(|&x| x != 0.0))
+}
+
+/// The RTC-guided flow-matching sampler: like [`PiModel::sample`] with a prefix cache (the prefix
+/// runs once into `cache`, reusing its buffers), with each step's velocity replaced by the guided
+/// velocity towards `target`. With β = 0 or all-zero weights it is exactly [`PiModel::sample`].
+/// `noise` [B, H, A]; returns x_0 [B, H, A] (`v_t_step0` is the guided first velocity).
+pub fn sample_guided(
+    model: &PiModel,
+    inputs: &ModelInputs,
+    noise: &Tensor,
+    steps: usize,
+    cache: &mut Option<PrefixCache>,
+    target: &GuidanceTarget,
+) -> Result<SampleOutput, PolicyError> {
+    let b = inputs.batch();
+    if !check_target(model, b, target)? {
+        return model.sample(inputs, noise, steps, Some(cache));
+    }
+    if steps == 0 {
+        return Err(PolicyError::Input("steps must be > 0".into()));
+    }
+    let want = [b, model.cfg.action_horizon, model.cfg.action_dim];
+    if noise.dims() != want {
+        return Err(PolicyError::Input(format!(
+            "noise: shape {:?}, expected {want:?}",
+            noise.dims()
+        )));
+    }
+    let y = target.y.to_dtype(DType::F32)?;
+    let w = target.w.to_dtype(DType::F32)?;
+    let target = GuidanceTarget {
+        y,
+        w,
+        beta: target.beta,
+    };
+    model.fill_cache(inputs, cache, false)?;
+    let c = cache.as_ref().expect("fill_cache stores the cache");
+    // same time grid as `PiModel::sample`: f32 accumulation, loop while t >= -dt/2
+    let dt = -1.0f32 / steps as f32;
+    let mut time = 1.0f32;
+    let mut x = noise.to_dtype(DType::F32)?;
+    let mut v0 = None;
+    let mut times = Vec::with_capacity(steps);
+    while time >= -dt / 2.0 {
+        let gv = guided_velocity(model, c, &x, time, &target)?;
+        x = (x + (&gv.v_guided * dt as f64)?)?;
+        if v0.is_none() {
+            v0 = Some(gv.v_guided);
+        }
+        times.push(time);
+        time += dt;
+    }
+    let v_t_step0 = v0.ok_or_else(|| PolicyError::Input("no denoising step ran".into()))?;
+    Ok(SampleOutput {
+        actions: x,
+        v_t_step0,
+        times,
+    })
+}

@@ -1,0 +1,410 @@
+//! Real-time chunking guidance (`chunkrt::policy::rtc`) on the real pi05_tiny fixture checkpoint:
+//! β = 0 / W = 0 equal the unguided sampler, guidance pulls the frozen steps onto the previous
+//! chunk, the VJP matches finite differences, and the guided step's cost relative to a plain one.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use candle_core::{Device, Tensor};
+use chunkrt::policy::rtc::{
+    clean_estimate_vjp, guidance_scale, guided_velocity, weight_mask, Guidance, GuidanceTarget,
+};
+use chunkrt::policy::{Policy, RawFrame, RawObservation};
+
+fn data(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+/// Camera frames (name, pixels, height, width) and the unpadded state of the pi05_tiny fixture.
+fn fixture() -> (Vec<(String, Vec<u8>, usize, usize)>, Vec<f64>) {
+    let inp: HashMap<String, Tensor> =
+        candle_core::safetensors::load(data("pi05_tiny").join("inputs.safetensors"), &Device::Cpu)
+            .unwrap();
+    let frames = ["base_0_rgb", "left_wrist_0_rgb"]
+        .iter()
+        .map(|c| {
+            let t = &inp[&format!("image_raw_uint8.{c}")];
+            let (_, h, w, _) = t.dims4().unwrap();
+            (
+                c.to_string(),
+                t.flatten_all().unwrap().to_vec1::<u8>().unwrap(),
+                h,
+                w,
+            )
+        })
+        .collect();
+    let state = inp["state_unpadded.0"]
+        .to_vec1::<f32>()
+        .unwrap()
+        .iter()
+        .map(|&x| x as f64)
+        .collect();
+    (frames, state)
+}
+
+fn raw_frames(frames: &[(String, Vec<u8>, usize, usize)]) -> Vec<RawFrame<'_>> {
+    frames
+        .iter()
+        .map(|(c, d, h, w)| RawFrame {
+            camera: c,
+            width: *w as u32,
+            height: *h as u32,
+            stride: (*w * 3) as u32,
+            encoding: chunkrt::ipc::ENCODING_RGB8,
+            data: d,
+        })
+        .collect()
+}
+
+fn policy() -> Policy {
+    let pc = chunkrt::config::PolicyConfig::default();
+    Policy::load(&data("pi05_tiny"), &pc).unwrap()
+}
+
+/// Deterministic N(0,1)-ish noise (sum of uniforms from a fixed LCG) [1, H, A].
+fn noise(h: usize, a: usize, seed: u64) -> Tensor {
+    let mut s = seed;
+    let mut next = || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let v: Vec<f32> = (0..h * a)
+        .map(|_| (0..12).map(|_| next()).sum::<f32>() - 6.0)
+        .collect();
+    Tensor::from_vec(v, (1, h, a), &Device::Cpu).unwrap()
+}
+
+#[test]
+fn beta_zero_or_zero_weights_equal_unguided_exactly() {
+    let (frames, state) = fixture();
+    let raw = raw_frames(&frames);
+    let obs = RawObservation {
+        frames: &raw,
+        joint_positions: &state,
+        prompt: "pick up the red block",
+    };
+    // two policies with the same seed draw the same noise sequence
+    let mut plain = policy();
+    let mut guided = policy();
+    let h = plain.horizon();
+    let n = state.len();
+    let prefix: Vec<f64> = (0..h * n).map(|i| (i as f64 * 0.37).sin()).collect();
+    let ones = vec![1.0f32; h];
+    let zeros = vec![0.0f32; h];
+    let cases = [
+        ("None", None),
+        (
+            "beta = 0",
+            Some(Guidance {
+                prefix: &prefix,
+                weights: &ones,
+                beta: 0.0,
+            }),
+        ),
+        (
+            "W = 0",
+            Some(Guidance {
+                prefix: &prefix,
+                weights: &zeros,
+                beta: 5.0,
+            }),
+        ),
+    ];
+    for (name, g) in cases {
+        let a = plain.infer(&obs).unwrap();
+        let b = guided.infer_guided(&obs, g.as_ref()).unwrap();
+        assert_eq!(a.len(), h * n);
+        assert_eq!(a, b, "{name}: guided differs from infer");
+    }
+    // with guidance on, the same noise gives a different chunk
+    let a = plain.infer(&obs).unwrap();
+    let b = guided
+        .infer_guided(
+            &obs,
+            Some(&Guidance {
+                prefix: &prefix,
+                weights: &ones,
+                beta: 5.0,
+            }),
+        )
+        .unwrap();
+    let d = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    println!("beta = 5, W = 1: max |guided - unguided| = {d:.3}");
+    assert!(d > 1e-2, "guidance had no effect ({d})");
+
+    // model level: with W = 0 the VJP is exactly zero and v' = v
+    let inputs = guided.prepare(&obs).unwrap();
+    let model = guided.model();
+    let mut cache = None;
+    model.fill_cache(&inputs, &mut cache, false).unwrap();
+    let c = cache.as_ref().unwrap();
+    let (hh, aa) = (model.cfg.action_horizon, model.cfg.action_dim);
+    let target = GuidanceTarget {
+        y: noise(hh, aa, 9),
+        w: weight_mask(&zeros, n, aa, &Device::Cpu).unwrap(),
+        beta: 5.0,
+    };
+    let gv = guided_velocity(model, c, &noise(hh, aa, 1), 0.5, &target).unwrap();
+    let gmax: f32 =
+        gv.g.abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar()
+            .unwrap();
+    assert_eq!(gmax, 0.0);
+    let dv: f32 = (&gv.v_guided - &gv.v)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar()
+        .unwrap();
+    assert_eq!(dv, 0.0);
+}
+
+#[test]
+fn guidance_pulls_the_frozen_steps_onto_the_previous_chunk() {
+    let (frames, state) = fixture();
+    let raw = raw_frames(&frames);
+    let obs = RawObservation {
+        frames: &raw,
+        joint_positions: &state,
+        prompt: "pick up the red block",
+    };
+    let mut plain = policy();
+    let mut guided = policy();
+    let h = plain.horizon();
+    let n = state.len();
+    // the unguided chunk for the first noise draw
+    let unguided = plain.infer(&obs).unwrap();
+    // a previous chunk that disagrees with it by ~0.5 on every joint
+    let prefix: Vec<f64> = unguided
+        .iter()
+        .enumerate()
+        .map(|(i, &u)| u + 0.5 * if (i / n + i % n) % 2 == 0 { 1.0 } else { -1.0 })
+        .collect();
+    // W: 1 on the first d steps (executed during inference), linear decay over the next 3, then 0
+    let d = 4;
+    let weights: Vec<f32> = (0..h)
+        .map(|i| {
+            if i < d {
+                1.0
+            } else {
+                (1.0 - (i - d + 1) as f32 / 4.0).max(0.0)
+            }
+        })
+        .collect();
+    let g = Guidance {
+        prefix: &prefix,
+        weights: &weights,
+        beta: 5.0,
+    };
+    let out = guided.infer_guided(&obs, Some(&g)).unwrap();
+    assert!(out.iter().all(|x| x.is_finite()));
+    let err = |a: &[f64], rows: std::ops::Range<usize>| -> f64 {
+        let mut s = 0.0;
+        let mut k = 0;
+        for r in rows {
+            for j in 0..n {
+                s += (a[r * n + j] - prefix[r * n + j]).powi(2);
+                k += 1;
+            }
+        }
+        (s / k as f64).sqrt()
+    };
+    let e_un = err(&unguided, 0..d);
+    let e_g = err(&out, 0..d);
+    let tail_un = err(&unguided, d + 3..h);
+    let tail_g = err(&out, d + 3..h);
+    println!(
+        "first {d} steps: RMS error to the previous chunk unguided {e_un:.4}, guided {e_g:.4} ({:.1}x); \
+         unweighted tail: {tail_un:.4} -> {tail_g:.4}",
+        e_un / e_g
+    );
+    assert!(
+        e_g * 5.0 <= e_un,
+        "guidance reduced the error only {:.2}x",
+        e_un / e_g
+    );
+}
+
+#[test]
+fn vjp_matches_finite_differences_and_guided_step_cost() {
+    let (frames, state) = fixture();
+    let raw = raw_frames(&frames);
+    let obs = RawObservation {
+        frames: &raw,
+        joint_positions: &state,
+        prompt: "pick up the red block",
+    };
+    let mut p = policy();
+    let inputs = p.prepare(&obs).unwrap();
+    let model = p.model();
+    let mut cache = None;
+    model.fill_cache(&inputs, &mut cache, false).unwrap();
+    let c = cache.as_ref().unwrap();
+    let (h, a) = (model.cfg.action_horizon, model.cfg.action_dim);
+    let dev = Device::Cpu;
+    let x = noise(h, a, 3);
+    let t = 0.6f32;
+    let cot = noise(h, a, 4);
+    let (_, _, g) = clean_estimate_vjp(model, c, &x, &[t], &cot).unwrap();
+    // f(x) = <cot, Â(x)> with the fast (non-differentiable) velocity; ∂f/∂x_j = g_j
+    let f = |xx: &Tensor| -> f64 {
+        let v = model.velocity_at(c, xx, &[t], false).unwrap();
+        let a_hat = (xx - (v * t as f64).unwrap()).unwrap();
+        let s: f32 = (a_hat * &cot)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .to_scalar()
+            .unwrap();
+        s as f64
+    };
+    let eps = 1e-2f32;
+    for (i, j) in [(0usize, 0usize), (3, 5), (9, 2)] {
+        let mut bump = vec![0.0f32; h * a];
+        bump[i * a + j] = eps;
+        let bump = Tensor::from_vec(bump, (1, h, a), &dev).unwrap();
+        let fd = (f(&(&x + &bump).unwrap()) - f(&(&x - &bump).unwrap())) / (2.0 * eps as f64);
+        let an = g
+            .get(0)
+            .unwrap()
+            .get(i)
+            .unwrap()
+            .get(j)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap() as f64;
+        println!("vjp [{i},{j}]: analytic {an:.5}, finite difference {fd:.5}");
+        assert!(
+            (an - fd).abs() < 2e-2 * (1.0 + fd.abs()),
+            "vjp [{i},{j}]: {an} vs {fd}"
+        );
+    }
+    // the guidance scale: β at the first step (τ = 0), the bound (τ²+(1−τ)²)/(τ(1−τ)) inside
+    assert_eq!(guidance_scale(1.0, 5.0), 5.0);
+    assert_eq!(guidance_scale(0.0, 5.0), 5.0);
+    assert!((guidance_scale(0.5, 5.0) - 2.0).abs() < 1e-6);
+    assert!((guidance_scale(0.5, 1.0) - 1.0).abs() < 1e-6);
+
+    // cost of a guided step relative to a plain one (median of 15 after a warm-up)
+    let target = GuidanceTarget {
+        y: noise(h, a, 5),
+        w: weight_mask(&[1.0; 10], state.len(), a, &dev).unwrap(),
+        beta: 5.0,
+    };
+    let median = |mut f: Box<dyn FnMut() + '_>| -> f64 {
+        f();
+        let mut ts: Vec<f64> = (0..15)
+            .map(|_| {
+                let t0 = Instant::now();
+                f();
+                t0.elapsed().as_secs_f64()
+            })
+            .collect();
+        ts.sort_by(f64::total_cmp);
+        ts[ts.len() / 2]
+    };
+    let plain = median(Box::new(|| {
+        model.velocity_at(c, &x, &[t], false).unwrap();
+    }));
+    let guided = median(Box::new(|| {
+        guided_velocity(model, c, &x, t, &target).unwrap();
+    }));
+    println!(
+        "step cost: unguided {:.3} ms, guided {:.3} ms, ratio {:.2}x",
+        plain * 1e3,
+        guided * 1e3,
+        guided / plain
+    );
+    assert!(
+        guided > plain && guided < 50.0 * plain,
+        "guided/plain {:.2}",
+        guided / plain
+    );
+}
+
+#[test]
+fn bad_guidance_is_an_error_not_a_panic() {
+    let (frames, state) = fixture();
+    let raw = raw_frames(&frames);
+    let obs = RawObservation {
+        frames: &raw,
+        joint_positions: &state,
+        prompt: "pick up the red block",
+    };
+    let mut p = policy();
+    let h = p.horizon();
+    let n = state.len();
+    let prefix = vec![0.0f64; h * n];
+    let w = vec![1.0f32; h];
+    let mut nan_prefix = prefix.clone();
+    nan_prefix[3] = f64::NAN;
+    let mut neg_w = w.clone();
+    neg_w[0] = -1.0;
+    let bad = [
+        Guidance {
+            prefix: &prefix[1..],
+            weights: &w,
+            beta: 1.0,
+        },
+        Guidance {
+            prefix: &prefix,
+            weights: &w[1..],
+            beta: 1.0,
+        },
+        Guidance {
+            prefix: &nan_prefix,
+            weights: &w,
+            beta: 1.0,
+        },
+        Guidance {
+            prefix: &prefix,
+            weights: &neg_w,
+            beta: 1.0,
+        },
+        Guidance {
+            prefix: &prefix,
+            weights: &w,
+            beta: f32::NAN,
+        },
+        Guidance {
+            prefix: &prefix,
+            weights: &w,
+            beta: -1.0,
+        },
+    ];
+    for g in &bad {
+        assert!(p.infer_guided(&obs, Some(g)).is_err(), "accepted {g:?}");
+    }
+    // still usable afterwards
+    assert_eq!(
+        p.infer_guided(
+            &obs,
+            Some(&Guidance {
+                prefix: &prefix,
+                weights: &w,
+                beta: 1.0
+            })
+        )
+        .unwrap()
+        .len(),
+        h * n
+    );
+}
