@@ -12,6 +12,7 @@ use crate::chunk::ActionChunk;
 use crate::control::InferenceRequest;
 use crate::controller::ChunkSource;
 use crate::edge::Observation;
+use crate::policy::rtc::Guidance;
 use crate::policy::runtime::{Policy, RawFrame, RawObservation};
 
 static NEXT_CHUNK_ID: AtomicU64 = AtomicU64::new(1);
@@ -27,6 +28,8 @@ pub struct PolicySource {
     prompt: String,
     period_ns: u64,
     n_dof: usize,
+    prefix: Vec<f64>,
+    weights: Vec<f32>,
 }
 
 impl PolicySource {
@@ -45,6 +48,8 @@ impl PolicySource {
             prompt: cfg.policy.prompt.clone(),
             period_ns: (1e9 / cfg.policy.action_rate_hz).round() as u64,
             n_dof: cfg.n_dof(),
+            prefix: Vec::new(),
+            weights: Vec::new(),
         })
     }
 
@@ -78,7 +83,7 @@ impl ChunkSource for PolicySource {
     fn compute(
         &mut self,
         obs: &Observation,
-        _request: &InferenceRequest,
+        request: &InferenceRequest,
     ) -> anyhow::Result<Option<ActionChunk>> {
         let frames = raw_frames(obs);
         let n = self.n_dof.min(obs.joint_state.n_dof as usize);
@@ -87,7 +92,27 @@ impl ChunkSource for PolicySource {
             joint_positions: &obs.joint_state.position[..n],
             prompt: &self.prompt,
         };
-        let actions = self.policy.infer(&raw)?;
+        let actions = if request.guided && request.beta > 0.0 {
+            // real-time chunking: guide towards what the robot will execute meanwhile
+            let h = self.policy.horizon().min(request.horizon.max(1));
+            let full_h = self.policy.horizon();
+            self.prefix.clear();
+            self.weights.clear();
+            for i in 0..full_h {
+                let row = &request.prefix[i.min(h - 1)];
+                self.prefix.extend_from_slice(&row[..n]);
+                self.weights
+                    .push(if i < h { request.weights[i] as f32 } else { 0.0 });
+            }
+            let g = Guidance {
+                prefix: &self.prefix,
+                weights: &self.weights,
+                beta: request.beta as f32,
+            };
+            self.policy.infer_guided(&raw, Some(&g))?
+        } else {
+            self.policy.infer(&raw)?
+        };
         let chunk = ActionChunk {
             id: next_chunk_id(),
             observation_seq: obs.joint_state.seq,
