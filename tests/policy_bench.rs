@@ -9,14 +9,31 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
     println!("{r}");
     assert_eq!(r.configs.len(), 2);
     for c in &r.configs {
-        for name in ["vision", "prefix", "step_cached", "step_uncached", "sample_cached"] {
-            let p = c.phase(name).unwrap_or_else(|| panic!("{}: phase {name} missing", c.name));
-            assert!(p.n > 0 && p.p50_ms > 0.0 && p.p99_ms >= p.p50_ms, "{}: {p:?}", c.name);
+        for name in [
+            "vision",
+            "prefix",
+            "step_cached",
+            "step_uncached",
+            "sample_cached",
+        ] {
+            let p = c
+                .phase(name)
+                .unwrap_or_else(|| panic!("{}: phase {name} missing", c.name));
+            assert!(
+                p.n > 0 && p.p50_ms > 0.0 && p.p99_ms >= p.p50_ms,
+                "{}: {p:?}",
+                c.name
+            );
             assert!(p.gflops() > 0.0);
         }
         // a cached step runs the action expert over H tokens only; an uncached one re-runs the
         // whole prefix: it must be clearly cheaper even on a loaded machine
-        assert!(c.step_ratio() > 2.0, "{}: uncached/cached step ratio {}", c.name, c.step_ratio());
+        assert!(
+            c.step_ratio() > 2.0,
+            "{}: uncached/cached step ratio {}",
+            c.name,
+            c.step_ratio()
+        );
         assert!(c.openpi_s > 0.0);
     }
 }

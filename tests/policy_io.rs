@@ -6,12 +6,15 @@ use std::path::PathBuf;
 use candle_core::{DType, Device, Tensor};
 use chunkrt::policy::checkpoint;
 use chunkrt::policy::preprocess::{
-    discretize_state, normalize, pi05_prompt, resize_with_pad, unnormalize, NormMode, PromptTokenizer, Stats,
+    discretize_state, normalize, pi05_prompt, resize_with_pad, unnormalize, NormMode,
+    PromptTokenizer, Stats,
 };
 use chunkrt::policy::{ConfigOverrides, Policy, RawFrame, RawObservation};
 
 fn data(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
 }
 
 fn inputs(name: &str) -> HashMap<String, Tensor> {
@@ -26,10 +29,22 @@ fn resize_with_pad_matches_openpi_within_one_level() {
         let (_, h, w, _) = raw.dims4().unwrap();
         let px = raw.flatten_all().unwrap().to_vec1::<u8>().unwrap();
         let ours = resize_with_pad(&px, h, w, 224, 224).unwrap();
-        let theirs = inp[&format!("image_resized_uint8.{cam}")].flatten_all().unwrap().to_vec1::<u8>().unwrap();
-        let max = ours.iter().zip(&theirs).map(|(a, b)| (*a as i32 - *b as i32).abs()).max().unwrap();
+        let theirs = inp[&format!("image_resized_uint8.{cam}")]
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<u8>()
+            .unwrap();
+        let max = ours
+            .iter()
+            .zip(&theirs)
+            .map(|(a, b)| (*a as i32 - *b as i32).abs())
+            .max()
+            .unwrap();
         let off = ours.iter().zip(&theirs).filter(|(a, b)| a != b).count();
-        println!("{cam} {h}x{w}: max level diff {max}, {off} of {} values differ", ours.len());
+        println!(
+            "{cam} {h}x{w}: max level diff {max}, {off} of {} values differ",
+            ours.len()
+        );
         assert!(max <= 1, "{cam}: max diff {max}");
     }
     // bad buffers are errors, not panics
@@ -44,22 +59,44 @@ fn pi05_state_discretisation_prompt_and_tokens() {
     let want: Vec<i64> = inp["state_discretized.0"].to_vec1().unwrap();
     assert_eq!(bins, want);
     let prompt = pi05_prompt(" pick_up the red block\n", &bins);
-    assert_eq!(prompt, "Task: pick up the red block , State: -1 255 128 19 143 178;\nAction: ".replace(" ,", ","));
+    assert_eq!(
+        prompt,
+        "Task: pick up the red block , State: -1 255 128 19 143 178;\nAction: ".replace(" ,", ",")
+    );
     let tok = PromptTokenizer::ByteStandIn;
-    let (ids, mask) = tok.tokenize("pick up the red block", Some(&bins), 200).unwrap();
-    let want_ids: Vec<i64> = inp["tokenized_prompt"].flatten_all().unwrap().to_vec1().unwrap();
+    let (ids, mask) = tok
+        .tokenize("pick up the red block", Some(&bins), 200)
+        .unwrap();
+    let want_ids: Vec<i64> = inp["tokenized_prompt"]
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
     assert_eq!(ids.iter().map(|&x| x as i64).collect::<Vec<_>>(), want_ids);
-    let want_mask: Vec<u8> = inp["tokenized_prompt_mask"].flatten_all().unwrap().to_vec1().unwrap();
+    let want_mask: Vec<u8> = inp["tokenized_prompt_mask"]
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
     assert_eq!(mask.iter().map(|&m| m as u8).collect::<Vec<_>>(), want_mask);
     // edges: below -1 -> -1, 1.0 -> 255, 0 -> 128
-    assert_eq!(discretize_state(&[-1.5, -1.0, 0.0, 0.9921875, 1.0, 3.0]), vec![-1, 0, 128, 255, 255, 255]);
+    assert_eq!(
+        discretize_state(&[-1.5, -1.0, 0.0, 0.9921875, 1.0, 3.0]),
+        vec![-1, 0, 128, 255, 255, 255]
+    );
 }
 
 #[test]
 fn pi0_prompt_tokens_match_fixture() {
     let inp = inputs("pi0_tiny");
-    let (ids, _) = PromptTokenizer::ByteStandIn.tokenize("pick up the red block", None, 48).unwrap();
-    let want: Vec<i64> = inp["tokenized_prompt"].flatten_all().unwrap().to_vec1().unwrap();
+    let (ids, _) = PromptTokenizer::ByteStandIn
+        .tokenize("pick up the red block", None, 48)
+        .unwrap();
+    let want: Vec<i64> = inp["tokenized_prompt"]
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
     assert_eq!(ids.iter().map(|&x| x as i64).collect::<Vec<_>>(), want);
 }
 
@@ -75,7 +112,11 @@ fn hf_tokenizer_json_is_used_with_bos() {
     let tok = PromptTokenizer::from_file(&path).unwrap();
     let (ids, mask) = tok.tokenize("pick up the block", None, 8).unwrap();
     assert_eq!(&ids[..5], &[2, 4, 5, 6, 7]);
-    assert_eq!(mask.iter().filter(|m| **m).count(), 5, "newline has no token in this vocab");
+    assert_eq!(
+        mask.iter().filter(|m| **m).count(),
+        5,
+        "newline has no token in this vocab"
+    );
     let (ids, _) = tok.tokenize("pick up", Some(&[1, 2]), 16).unwrap();
     assert_eq!(&ids[..13], &[2, 8, 9, 4, 5, 10, 11, 9, 14, 15, 12, 13, 9]);
     let (ids, mask) = tok.tokenize("pick up the block", None, 3).unwrap();
@@ -104,7 +145,12 @@ fn normalisation_round_trips() {
         unnormalize(&mut x, &st, mode).unwrap();
         assert!((x[0] - 1.5).abs() < 1e-5 && x[1].abs() < 1e-5);
     }
-    let no_q = Stats { mean: vec![0.0], std: vec![1.0], q01: None, q99: None };
+    let no_q = Stats {
+        mean: vec![0.0],
+        std: vec![1.0],
+        q01: None,
+        q99: None,
+    };
     assert!(normalize(&mut [0.0], &no_q, NormMode::Quantile).is_err());
 }
 
@@ -117,12 +163,18 @@ fn checkpoint_errors_list_every_bad_tensor_and_lerobot_prefix_and_bf16_load() {
     assert_eq!(cfg.vocab_size, 1024);
     checkpoint::check_tensors(&cfg, &t).unwrap();
     t.remove("action_in_proj.weight");
-    t.insert("time_mlp_in.bias".into(), Tensor::zeros(7, DType::F32, &Device::Cpu).unwrap());
+    t.insert(
+        "time_mlp_in.bias".into(),
+        Tensor::zeros(7, DType::F32, &Device::Cpu).unwrap(),
+    );
     let e = checkpoint::check_tensors(&cfg, &t).unwrap_err().to_string();
     println!("{e}");
     assert!(e.contains("2 problem(s)"), "{e}");
     assert!(e.contains("missing action_in_proj.weight [32, 8]"), "{e}");
-    assert!(e.contains("mismatched time_mlp_in.bias: found [7], expected [32]"), "{e}");
+    assert!(
+        e.contains("mismatched time_mlp_in.bias: found [7], expected [32]"),
+        "{e}"
+    );
 
     // LeRobot naming (model. prefix) in bf16 loads to the same model (within bf16 rounding)
     let tmp = std::env::temp_dir().join(format!("chunkrt_lerobot_{}", std::process::id()));
@@ -141,8 +193,13 @@ fn checkpoint_errors_list_every_bad_tensor_and_lerobot_prefix_and_bf16_load() {
     assert!(report.contains("missing: none"), "{report}");
     // no config.json: the preset (gemma_2b ...) does not fit a tiny checkpoint -> a listed error
     std::fs::remove_file(tmp.join("config.json")).unwrap();
-    let e = checkpoint::load(&tmp, &ConfigOverrides::default()).err().expect("preset must not fit");
-    assert!(e.to_string().contains("width is 2048") || e.to_string().contains("problem(s)"), "{e}");
+    let e = checkpoint::load(&tmp, &ConfigOverrides::default())
+        .err()
+        .expect("preset must not fit");
+    assert!(
+        e.to_string().contains("width is 2048") || e.to_string().contains("problem(s)"),
+        "{e}"
+    );
     std::fs::remove_dir_all(&tmp).ok();
 }
 
@@ -157,7 +214,12 @@ fn runtime_prepares_fixture_inputs_and_infers() {
         .map(|c| {
             let t = &inp[&format!("image_raw_uint8.{c}")];
             let (_, h, w, _) = t.dims4().unwrap();
-            (c.to_string(), t.flatten_all().unwrap().to_vec1::<u8>().unwrap(), h, w)
+            (
+                c.to_string(),
+                t.flatten_all().unwrap().to_vec1::<u8>().unwrap(),
+                h,
+                w,
+            )
         })
         .collect();
     let raw: Vec<RawFrame> = frames
@@ -171,15 +233,40 @@ fn runtime_prepares_fixture_inputs_and_infers() {
             data: d,
         })
         .collect();
-    let state: Vec<f64> = inp["state_unpadded.0"].to_vec1::<f32>().unwrap().iter().map(|&x| x as f64).collect();
-    let obs = RawObservation { frames: &raw, joint_positions: &state, prompt: "pick up the red block" };
+    let state: Vec<f64> = inp["state_unpadded.0"]
+        .to_vec1::<f32>()
+        .unwrap()
+        .iter()
+        .map(|&x| x as f64)
+        .collect();
+    let obs = RawObservation {
+        frames: &raw,
+        joint_positions: &state,
+        prompt: "pick up the red block",
+    };
     let prepared = policy.prepare(&obs).unwrap();
     let ids: Vec<u32> = prepared.tokens.flatten_all().unwrap().to_vec1().unwrap();
-    let want: Vec<i64> = inp["tokenized_prompt"].flatten_all().unwrap().to_vec1().unwrap();
+    let want: Vec<i64> = inp["tokenized_prompt"]
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
     assert_eq!(ids.iter().map(|&x| x as i64).collect::<Vec<_>>(), want);
-    assert_eq!(prepared.image_masks, vec![vec![true], vec![true], vec![false]]);
+    assert_eq!(
+        prepared.image_masks,
+        vec![vec![true], vec![true], vec![false]]
+    );
     let img = &prepared.images[0];
-    let d = (img - &inp["image.base_0_rgb"]).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap();
+    let d = (img - &inp["image.base_0_rgb"])
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
     assert!(d <= 2.0 / 255.0 + 1e-6, "model image differs by {d}");
     let acts = policy.infer(&obs).unwrap();
     assert_eq!(acts.len(), 10 * 6);
@@ -187,18 +274,37 @@ fn runtime_prepares_fixture_inputs_and_infers() {
     // the cache buffers survive across calls and bad input is an error
     let acts2 = policy.infer(&obs).unwrap();
     assert_eq!(acts2.len(), acts.len());
-    let bad = RawFrame { stride: 3, ..raw[0] };
+    let bad = RawFrame {
+        stride: 3,
+        ..raw[0]
+    };
     let frames_bad = [bad];
-    assert!(policy.infer(&RawObservation { frames: &frames_bad, ..obs }).is_err());
-    assert!(policy.infer(&RawObservation { joint_positions: &[f64::NAN], ..obs }).is_err());
-    assert!(policy.infer(&RawObservation { joint_positions: &[0.0; 9], ..obs }).is_err());
+    assert!(policy
+        .infer(&RawObservation {
+            frames: &frames_bad,
+            ..obs
+        })
+        .is_err());
+    assert!(policy
+        .infer(&RawObservation {
+            joint_positions: &[f64::NAN],
+            ..obs
+        })
+        .is_err());
+    assert!(policy
+        .infer(&RawObservation {
+            joint_positions: &[0.0; 9],
+            ..obs
+        })
+        .is_err());
 }
 
 #[test]
 fn cli_sample_and_inspect() {
     let exe = env!("CARGO_BIN_EXE_chunkrt");
     let dir = data("pi0_tiny");
-    let out = std::env::temp_dir().join(format!("chunkrt_sample_{}.safetensors", std::process::id()));
+    let out =
+        std::env::temp_dir().join(format!("chunkrt_sample_{}.safetensors", std::process::id()));
     for extra in [&[][..], &["--no-cache"][..]] {
         let st = std::process::Command::new(exe)
             .args(["sample", "--checkpoint"])
@@ -210,17 +316,42 @@ fn cli_sample_and_inspect() {
             .args(extra)
             .output()
             .unwrap();
-        assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+        assert!(
+            st.status.success(),
+            "{}",
+            String::from_utf8_lossy(&st.stderr)
+        );
         let got = candle_core::safetensors::load(&out, &Device::Cpu).unwrap();
-        let want = candle_core::safetensors::load(dir.join("outputs.safetensors"), &Device::Cpu).unwrap();
-        let d = (&got["actions"] - &want["actions"]).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap();
+        let want =
+            candle_core::safetensors::load(dir.join("outputs.safetensors"), &Device::Cpu).unwrap();
+        let d = (&got["actions"] - &want["actions"])
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
         assert!(d < 5e-4, "cli actions {extra:?} differ by {d}");
         assert_eq!(got["v_t_step0"].dims(), &[1, 10, 8]);
     }
     std::fs::remove_file(&out).ok();
-    let st = std::process::Command::new(exe).arg("inspect").arg(&dir).output().unwrap();
+    let st = std::process::Command::new(exe)
+        .arg("inspect")
+        .arg(&dir)
+        .output()
+        .unwrap();
     let s = String::from_utf8_lossy(&st.stdout);
-    assert!(st.status.success() && s.contains("kind: pi0") && s.contains("missing: none"), "{s}");
-    let st = std::process::Command::new(exe).arg("inspect").arg(data("nope")).output().unwrap();
+    assert!(
+        st.status.success() && s.contains("kind: pi0") && s.contains("missing: none"),
+        "{s}"
+    );
+    let st = std::process::Command::new(exe)
+        .arg("inspect")
+        .arg(data("nope"))
+        .output()
+        .unwrap();
     assert!(!st.status.success());
 }

@@ -10,7 +10,9 @@ use chunkrt::policy::model::{att_2d_mask, time_embedding, ModelInputs, PiModel};
 use chunkrt::policy::ConfigOverrides;
 
 fn data(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
 }
 
 struct Fixture {
@@ -37,14 +39,23 @@ fn load(name: &str) -> Fixture {
     let loaded = checkpoint::load(&dir, &ConfigOverrides::default()).expect("fixture loads");
     let model = loaded.model;
     let raw = candle_core::safetensors::load(dir.join("inputs.safetensors"), &Device::Cpu).unwrap();
-    let out = candle_core::safetensors::load(dir.join("outputs.safetensors"), &Device::Cpu).unwrap();
+    let out =
+        candle_core::safetensors::load(dir.join("outputs.safetensors"), &Device::Cpu).unwrap();
     let cams = model.cfg.cameras.clone();
-    let images = cams.iter().map(|c| raw[&format!("image.{c}")].clone()).collect();
-    let image_masks = cams.iter().map(|c| mask_vec(&raw[&format!("image_mask.{c}")])).collect();
+    let images = cams
+        .iter()
+        .map(|c| raw[&format!("image.{c}")].clone())
+        .collect();
+    let image_masks = cams
+        .iter()
+        .map(|c| mask_vec(&raw[&format!("image_mask.{c}")]))
+        .collect();
     let tm = &raw["tokenized_prompt_mask"];
     let (b, lt) = tm.dims2().unwrap();
     let flat = mask_vec(tm);
-    let token_mask = (0..b).map(|i| flat[i * lt..(i + 1) * lt].to_vec()).collect();
+    let token_mask = (0..b)
+        .map(|i| flat[i * lt..(i + 1) * lt].to_vec())
+        .collect();
     let inputs = ModelInputs {
         images,
         image_masks,
@@ -102,87 +113,186 @@ fn parity(name: &str) {
     // vision and prefix embeddings
     let (hidden, emb) = m.vision(&f.inputs).unwrap();
     for (i, c) in cfg.cameras.iter().enumerate() {
-        check(&format!("vision_last_hidden.{c}"), &hidden[i], &f.out[&format!("vision_last_hidden.{c}")], 1e-4);
-        check(&format!("img_emb.{c}"), &emb[i], &f.out[&format!("img_emb.{c}")], 1e-4);
+        check(
+            &format!("vision_last_hidden.{c}"),
+            &hidden[i],
+            &f.out[&format!("vision_last_hidden.{c}")],
+            1e-4,
+        );
+        check(
+            &format!("img_emb.{c}"),
+            &emb[i],
+            &f.out[&format!("img_emb.{c}")],
+            1e-4,
+        );
     }
     let embs = m.embed_prefix(&f.inputs).unwrap();
     check("prefix_embs", &embs, &f.out["prefix_embs"], 1e-4);
 
     // masks and positions, exact
     let layout = m.prefix_layout(&f.inputs);
-    assert_eq!(layout.pad[0], mask_vec(&f.out["prefix_pad_masks"]), "prefix_pad_masks");
-    let pos: Vec<i64> = f.out["prefix_position_ids"].flatten_all().unwrap().to_vec1().unwrap();
+    assert_eq!(
+        layout.pad[0],
+        mask_vec(&f.out["prefix_pad_masks"]),
+        "prefix_pad_masks"
+    );
+    let pos: Vec<i64> = f.out["prefix_position_ids"]
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
     assert_eq!(layout.pos[0], pos, "prefix_position_ids");
     let ar = vec![false; p];
-    assert_eq!(att_2d_mask(&layout.pad[0], &ar), mask_vec(&f.out["prefix_att_2d_masks"]), "prefix_att_2d_masks");
+    assert_eq!(
+        att_2d_mask(&layout.pad[0], &ar),
+        mask_vec(&f.out["prefix_att_2d_masks"]),
+        "prefix_att_2d_masks"
+    );
     let s = cfg.suffix_len();
     let mut pad = layout.pad[0].clone();
     pad.extend(std::iter::repeat_n(true, s));
     let mut ar_full = ar.clone();
     ar_full.extend(m.suffix_ar());
-    assert_eq!(att_2d_mask(&pad, &ar_full), mask_vec(&f.out["train_att_2d_masks"]), "train_att_2d_masks");
+    assert_eq!(
+        att_2d_mask(&pad, &ar_full),
+        mask_vec(&f.out["train_att_2d_masks"]),
+        "train_att_2d_masks"
+    );
     let sar = mask_vec(&f.out["suffix_att_masks_step0"]);
     assert_eq!(m.suffix_ar(), sar, "suffix_att_masks");
     let full = att_2d_mask(&pad, &ar_full);
     let suffix_rows: Vec<bool> = full[p * (p + s)..].to_vec();
-    assert_eq!(suffix_rows, mask_vec(&f.out["suffix_att_2d_masks_step0"]), "suffix_att_2d_masks_step0");
-    let spos: Vec<i64> = f.out["suffix_position_ids_step0"].flatten_all().unwrap().to_vec1().unwrap();
+    assert_eq!(
+        suffix_rows,
+        mask_vec(&f.out["suffix_att_2d_masks_step0"]),
+        "suffix_att_2d_masks_step0"
+    );
+    let spos: Vec<i64> = f.out["suffix_position_ids_step0"]
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
     let n = layout.n_valid[0] as i64;
-    assert_eq!(spos, (0..s as i64).map(|i| n + i).collect::<Vec<_>>(), "suffix_position_ids");
+    assert_eq!(
+        spos,
+        (0..s as i64).map(|i| n + i).collect::<Vec<_>>(),
+        "suffix_position_ids"
+    );
 
     // prefix pass and KV cache (valid positions)
     let mut cache = None;
     let po = m.fill_cache(&f.inputs, &mut cache, true).unwrap().unwrap();
     let valid = &layout.pad[0];
     let nv = layout.n_valid[0];
-    check("prefix_out (valid rows)", &po.narrow(1, 0, nv).unwrap(), &valid_rows(&f.out["prefix_out"], 1, valid), 2e-4);
+    check(
+        "prefix_out (valid rows)",
+        &po.narrow(1, 0, nv).unwrap(),
+        &valid_rows(&f.out["prefix_out"], 1, valid),
+        2e-4,
+    );
     let c = cache.as_ref().unwrap();
     for li in 0..cfg.paligemma.depth {
         let k = c.k[li].narrow(2, 0, nv).unwrap();
         let v = c.v[li].narrow(2, 0, nv).unwrap();
-        check(&format!("kv_cache.layer{li}.k"), &k, &valid_rows(&f.out[&format!("kv_cache.layer{li}.k")], 2, valid), 2e-4);
-        check(&format!("kv_cache.layer{li}.v"), &v, &valid_rows(&f.out[&format!("kv_cache.layer{li}.v")], 2, valid), 2e-4);
+        check(
+            &format!("kv_cache.layer{li}.k"),
+            &k,
+            &valid_rows(&f.out[&format!("kv_cache.layer{li}.k")], 2, valid),
+            2e-4,
+        );
+        check(
+            &format!("kv_cache.layer{li}.v"),
+            &v,
+            &valid_rows(&f.out[&format!("kv_cache.layer{li}.v")], 2, valid),
+            2e-4,
+        );
     }
 
     // time embedding, suffix, first velocity
     let te = time_embedding(&[1.0], cfg.action_expert.width, 4e-3, 4.0, &Device::Cpu).unwrap();
     check("time_emb_step0", &te, &f.out["time_emb_step0"], 1e-6);
     if let Some(cond) = m.adarms_cond(&[1.0]).unwrap() {
-        check("adarms_cond_step0", &cond, &f.out["adarms_cond_step0"], 1e-4);
+        check(
+            "adarms_cond_step0",
+            &cond,
+            &f.out["adarms_cond_step0"],
+            1e-4,
+        );
     }
     let noise = &f.raw["noise"];
     let se = m.suffix_embeddings(&f.inputs.state, noise, &[1.0]).unwrap();
     check("suffix_embs_step0", &se, &f.out["suffix_embs_step0"], 3e-4);
-    let (_, so) = m.joint_forward(&f.inputs, &embs, noise, &[1.0], false).unwrap();
-    check("suffix_out_step0 (joint)", &so, &f.out["suffix_out_step0"], 3e-4);
+    let (_, so) = m
+        .joint_forward(&f.inputs, &embs, noise, &[1.0], false)
+        .unwrap();
+    check(
+        "suffix_out_step0 (joint)",
+        &so,
+        &f.out["suffix_out_step0"],
+        3e-4,
+    );
     let v0 = m.velocity_at(c, noise, &[1.0], false).unwrap();
     check("v_t_step0 (cached)", &v0, &f.out["v_t_step0"], 3e-4);
     let v0d = m.velocity_at(c, noise, &[1.0], true).unwrap();
-    check("v_t_step0 (cached, differentiable ops)", &v0d, &f.out["v_t_step0"], 3e-4);
+    check(
+        "v_t_step0 (cached, differentiable ops)",
+        &v0d,
+        &f.out["v_t_step0"],
+        3e-4,
+    );
 
     // sampling, cached and uncached
     let steps = cfg.num_denoise_steps;
     let mut cache2 = None;
-    let sc = m.sample(&f.inputs, noise, steps, Some(&mut cache2)).unwrap();
+    let sc = m
+        .sample(&f.inputs, noise, steps, Some(&mut cache2))
+        .unwrap();
     let times: Vec<f32> = f.out["denoise_times"].to_vec1().unwrap();
     assert_eq!(sc.times, times, "denoise_times (f32 accumulation)");
     check("actions (cached)", &sc.actions, &f.out["actions"], 5e-4);
-    check("v_t_step0 (sample)", &sc.v_t_step0, &f.out["v_t_step0"], 3e-4);
+    check(
+        "v_t_step0 (sample)",
+        &sc.v_t_step0,
+        &f.out["v_t_step0"],
+        3e-4,
+    );
     let su = m.sample(&f.inputs, noise, steps, None).unwrap();
     check("actions (uncached)", &su.actions, &f.out["actions"], 5e-4);
     check("cached vs uncached", &sc.actions, &su.actions, 5e-5);
 
     // training loss
     let lo = m
-        .loss(&f.inputs, &f.raw["loss_actions"], &f.raw["loss_noise"], &f.raw["loss_time"], false)
+        .loss(
+            &f.inputs,
+            &f.raw["loss_actions"],
+            &f.raw["loss_noise"],
+            &f.raw["loss_time"],
+            false,
+        )
         .unwrap();
     check("loss_v_t", &lo.v_t, &f.out["loss_v_t"], 3e-4);
-    check("loss_per_element", &lo.per_element, &f.out["loss_per_element"], 1e-3);
+    check(
+        "loss_per_element",
+        &lo.per_element,
+        &f.out["loss_per_element"],
+        1e-3,
+    );
     check("loss_mean", &lo.mean, &f.out["loss_mean"], 1e-4);
     let lod = m
-        .loss(&f.inputs, &f.raw["loss_actions"], &f.raw["loss_noise"], &f.raw["loss_time"], true)
+        .loss(
+            &f.inputs,
+            &f.raw["loss_actions"],
+            &f.raw["loss_noise"],
+            &f.raw["loss_time"],
+            true,
+        )
         .unwrap();
-    check("loss_per_element (differentiable ops)", &lod.per_element, &f.out["loss_per_element"], 1e-3);
+    check(
+        "loss_per_element (differentiable ops)",
+        &lod.per_element,
+        &f.out["loss_per_element"],
+        1e-3,
+    );
 }
 
 #[test]

@@ -27,7 +27,9 @@ fn inputs(cfg: &ModelConfig) -> ModelInputs {
     let images = (0..cfg.cameras.len())
         .map(|_| Tensor::rand(-1f32, 1f32, (b, 3, s, s), &dev).unwrap())
         .collect();
-    let ids: Vec<u32> = (0..b * cfg.max_token_len).map(|i| (i * 7 % 50) as u32).collect();
+    let ids: Vec<u32> = (0..b * cfg.max_token_len)
+        .map(|i| (i * 7 % 50) as u32)
+        .collect();
     ModelInputs {
         images,
         // row 1 has its wrist camera masked
@@ -43,7 +45,11 @@ fn inputs(cfg: &ModelConfig) -> ModelInputs {
 
 fn row(inp: &ModelInputs, i: usize) -> ModelInputs {
     ModelInputs {
-        images: inp.images.iter().map(|t| t.narrow(0, i, 1).unwrap()).collect(),
+        images: inp
+            .images
+            .iter()
+            .map(|t| t.narrow(0, i, 1).unwrap())
+            .collect(),
         image_masks: inp.image_masks.iter().map(|m| vec![m[i]]).collect(),
         tokens: inp.tokens.narrow(0, i, 1).unwrap(),
         token_mask: vec![inp.token_mask[i].clone()],
@@ -52,28 +58,65 @@ fn row(inp: &ModelInputs, i: usize) -> ModelInputs {
 }
 
 fn maxdiff(a: &Tensor, b: &Tensor) -> f32 {
-    (a - b).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar().unwrap()
+    (a - b)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar()
+        .unwrap()
 }
 
 fn check_kind(pi05: bool) {
     let cfg = small_config(pi05);
     let (model, _vm): (PiModel, _) = random_model(&cfg).unwrap();
     let inp = inputs(&cfg);
-    let noise = Tensor::randn(0f32, 1f32, (2, cfg.action_horizon, cfg.action_dim), &Device::Cpu).unwrap();
+    let noise = Tensor::randn(
+        0f32,
+        1f32,
+        (2, cfg.action_horizon, cfg.action_dim),
+        &Device::Cpu,
+    )
+    .unwrap();
     let mut cache = None;
     let cached = model.sample(&inp, &noise, 5, Some(&mut cache)).unwrap();
     let uncached = model.sample(&inp, &noise, 5, None).unwrap();
     let d = maxdiff(&cached.actions, &uncached.actions);
     println!("pi05={pi05}: cached vs uncached {d:.2e}");
     assert!(d < 1e-4, "cached vs uncached {d}");
-    assert!(cached.actions.abs().unwrap().max_keepdim(2).unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap() > 0.0);
+    assert!(
+        cached
+            .actions
+            .abs()
+            .unwrap()
+            .max_keepdim(2)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+            > 0.0
+    );
     // the cache buffers are reused across observations
     let k0 = cache.as_ref().unwrap().k[0].clone();
     let again = model.sample(&inp, &noise, 5, Some(&mut cache)).unwrap();
-    assert!(cache.as_ref().unwrap().k[0].id() == k0.id(), "cache buffers reallocated");
+    assert!(
+        cache.as_ref().unwrap().k[0].id() == k0.id(),
+        "cache buffers reallocated"
+    );
     assert!(maxdiff(&again.actions, &cached.actions) < 1e-6);
     for i in 0..2 {
-        let single = model.sample(&row(&inp, i), &noise.narrow(0, i, 1).unwrap(), 5, Some(&mut None)).unwrap();
+        let single = model
+            .sample(
+                &row(&inp, i),
+                &noise.narrow(0, i, 1).unwrap(),
+                5,
+                Some(&mut None),
+            )
+            .unwrap();
         let d = maxdiff(&single.actions, &cached.actions.narrow(0, i, 1).unwrap());
         println!("pi05={pi05}: row {i} vs single {d:.2e}");
         assert!(d < 1e-4, "row {i} vs single run {d}");
@@ -95,15 +138,36 @@ fn check_kind(pi05: bool) {
     // finite-difference check of one entry
     let eps = 1e-2f64;
     let bump = Tensor::zeros(noise.dims(), DType::F32, &Device::Cpu).unwrap();
-    let bump = bump.slice_assign(&[0..1, 1..2, 2..3], &Tensor::full(eps as f32, (1, 1, 1), &Device::Cpu).unwrap()).unwrap();
+    let bump = bump
+        .slice_assign(
+            &[0..1, 1..2, 2..3],
+            &Tensor::full(eps as f32, (1, 1, 1), &Device::Cpu).unwrap(),
+        )
+        .unwrap();
     let f = |xx: &Tensor| -> f64 {
         let v = model.velocity(c, xx, &t, false).unwrap();
-        (xx - v.broadcast_mul(&t3).unwrap()).unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap() as f64
+        (xx - v.broadcast_mul(&t3).unwrap())
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap() as f64
     };
     let fd = (f(&(&noise + &bump).unwrap()) - f(&(&noise - &bump).unwrap())) / (2.0 * eps);
-    let an = g.get(0).unwrap().get(1).unwrap().get(2).unwrap().to_scalar::<f32>().unwrap() as f64;
+    let an = g
+        .get(0)
+        .unwrap()
+        .get(1)
+        .unwrap()
+        .get(2)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap() as f64;
     println!("pi05={pi05}: vjp analytic {an:.5} finite-difference {fd:.5}");
-    assert!((an - fd).abs() < 2e-2 * (1.0 + fd.abs()), "vjp {an} vs fd {fd}");
+    assert!(
+        (an - fd).abs() < 2e-2 * (1.0 + fd.abs()),
+        "vjp {an} vs fd {fd}"
+    );
 }
 
 #[test]
@@ -132,13 +196,25 @@ fn loss_is_differentiable_end_to_end_for_the_transformer() {
     let vars = vm.data().lock().unwrap();
     let with_grad = vars
         .iter()
-        .filter(|(k, _)| k.contains("gemma_expert") || k.starts_with("action") || k.starts_with("time_mlp") || k.contains("language_model.layers.0."))
+        .filter(|(k, _)| {
+            k.contains("gemma_expert")
+                || k.starts_with("action")
+                || k.starts_with("time_mlp")
+                || k.contains("language_model.layers.0.")
+        })
         .filter(|(_, v)| grads.get(v.as_tensor()).is_some())
         .count();
     let total = vars
         .keys()
-        .filter(|k| k.contains("gemma_expert") || k.starts_with("action") || k.starts_with("time_mlp") || k.contains("language_model.layers.0."))
+        .filter(|k| {
+            k.contains("gemma_expert")
+                || k.starts_with("action")
+                || k.starts_with("time_mlp")
+                || k.contains("language_model.layers.0.")
+        })
         .count();
-    println!("action expert / heads / first VLM layer parameters with a gradient: {with_grad}/{total}");
+    println!(
+        "action expert / heads / first VLM layer parameters with a gradient: {with_grad}/{total}"
+    );
     assert_eq!(with_grad, total);
 }

@@ -13,8 +13,14 @@ use super::PolicyError;
 
 /// The bench configurations (same schema as the fixtures' `config.json`).
 pub const CONFIGS: [(&str, &str); 2] = [
-    ("pi0_bench", include_str!("../../benches/data/pi0_bench.json")),
-    ("pi05_bench", include_str!("../../benches/data/pi05_bench.json")),
+    (
+        "pi0_bench",
+        include_str!("../../benches/data/pi0_bench.json"),
+    ),
+    (
+        "pi05_bench",
+        include_str!("../../benches/data/pi05_bench.json"),
+    ),
 ];
 
 /// openpi's PyTorch medians on the same kind of machine (s): π0, π0.5.
@@ -33,6 +39,8 @@ pub struct Phase {
     pub p99_ms: f64,
     /// Analytic matmul FLOPs of one run.
     pub flops: f64,
+    /// Median process CPU time of one run (ms, all threads): robust to a loaded machine.
+    pub cpu_ms: f64,
 }
 
 impl Phase {
@@ -89,16 +97,22 @@ impl std::fmt::Display for BenchReport {
         writeln!(f, "threads: {}", self.threads)?;
         for c in &self.configs {
             writeln!(f, "== {} ==", c.name)?;
-            writeln!(f, "{:<16} {:>5} {:>10} {:>10} {:>9}", "phase", "n", "p50 ms", "p99 ms", "GFLOP/s")?;
+            writeln!(
+                f,
+                "{:<16} {:>5} {:>10} {:>10} {:>9} {:>10} {:>12}",
+                "phase", "n", "p50 ms", "p99 ms", "GFLOP/s", "cpu ms", "GFLOP/cpu-s"
+            )?;
             for p in &c.phases {
                 writeln!(
                     f,
-                    "{:<16} {:>5} {:>10.2} {:>10.2} {:>9.1}",
+                    "{:<16} {:>5} {:>10.2} {:>10.2} {:>9.1} {:>10.2} {:>12.1}",
                     p.name,
                     p.n,
                     p.p50_ms,
                     p.p99_ms,
-                    p.gflops()
+                    p.gflops(),
+                    p.cpu_ms,
+                    p.flops / (p.cpu_ms * 1e-3) / 1e9
                 )?;
             }
             writeln!(
@@ -115,16 +129,22 @@ impl std::fmt::Display for BenchReport {
 
 /// FLOPs of one Gemma layer for `l` queries over `t` keys.
 fn layer_flops(d: &GemmaDims, l: usize, t: usize) -> f64 {
-    let (w, qd, kvd) = (d.width, d.num_heads * d.head_dim, d.num_kv_heads * d.head_dim);
+    let (w, qd, kvd) = (
+        d.width,
+        d.num_heads * d.head_dim,
+        d.num_kv_heads * d.head_dim,
+    );
     let l = l as f64;
-    2.0 * l * (w * (qd + 2 * kvd) + qd * w + 3 * w * d.mlp_dim) as f64 + 4.0 * l * t as f64 * qd as f64
+    2.0 * l * (w * (qd + 2 * kvd) + qd * w + 3 * w * d.mlp_dim) as f64
+        + 4.0 * l * t as f64 * qd as f64
 }
 
 fn vision_flops(c: &ModelConfig) -> f64 {
     let v = &c.vision;
     let t = v.num_tokens() as f64;
     let dv = v.hidden_size as f64;
-    let per_layer = 2.0 * t * (4.0 * dv * dv + 2.0 * dv * v.intermediate_size as f64) + 4.0 * t * t * dv;
+    let per_layer =
+        2.0 * t * (4.0 * dv * dv + 2.0 * dv * v.intermediate_size as f64) + 4.0 * t * t * dv;
     let per_image = per_layer * v.num_hidden_layers as f64
         + 2.0 * t * dv * (3 * v.patch_size * v.patch_size) as f64
         + 2.0 * t * dv * c.paligemma.width as f64;
@@ -136,6 +156,20 @@ fn histogram() -> Result<Histogram<u64>, PolicyError> {
         .map_err(|e| PolicyError::Config(format!("histogram: {e}")))
 }
 
+/// Process CPU time (all threads) in microseconds.
+fn cpu_us() -> u64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes into the timespec we own; CLOCK_PROCESS_CPUTIME_ID is valid.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+    if rc != 0 {
+        return 0;
+    }
+    ts.tv_sec as u64 * 1_000_000 + ts.tv_nsec as u64 / 1000
+}
+
 fn time_phase(
     name: &str,
     n: usize,
@@ -144,10 +178,14 @@ fn time_phase(
 ) -> Result<Phase, PolicyError> {
     f()?; // warm-up
     let mut h = histogram()?;
+    let mut cpu = histogram()?;
     for _ in 0..n {
         let t0 = Instant::now();
+        let c0 = cpu_us();
         f()?;
         let us = t0.elapsed().as_micros().max(1) as u64;
+        cpu.record(cpu_us().saturating_sub(c0).clamp(1, 600_000_000))
+            .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
         h.record(us.min(600_000_000))
             .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
     }
@@ -157,6 +195,7 @@ fn time_phase(
         p50_ms: h.value_at_quantile(0.5) as f64 / 1e3,
         p99_ms: h.value_at_quantile(0.99) as f64 / 1e3,
         flops,
+        cpu_ms: cpu.value_at_quantile(0.5) as f64 / 1e3,
     })
 }
 
@@ -169,7 +208,12 @@ pub fn random_model(cfg: &ModelConfig) -> Result<(PiModel, VarMap), PolicyError>
 }
 
 /// Random model-ready inputs with `valid_tokens` valid prompt tokens.
-pub fn random_inputs(cfg: &ModelConfig, batch: usize, valid_tokens: usize, seed: u64) -> Result<ModelInputs, PolicyError> {
+pub fn random_inputs(
+    cfg: &ModelConfig,
+    batch: usize,
+    valid_tokens: usize,
+    seed: u64,
+) -> Result<ModelInputs, PolicyError> {
     let dev = Device::Cpu;
     let s = cfg.vision.image_size;
     let mut images = Vec::new();
@@ -179,7 +223,13 @@ pub fn random_inputs(cfg: &ModelConfig, batch: usize, valid_tokens: usize, seed:
     }
     let lt = cfg.max_token_len;
     let ids: Vec<u32> = (0..batch * lt)
-        .map(|i| if i % lt < valid_tokens { (i * 7919 % cfg.vocab_size) as u32 } else { 0 })
+        .map(|i| {
+            if i % lt < valid_tokens {
+                (i * 7919 % cfg.vocab_size) as u32
+            } else {
+                0
+            }
+        })
         .collect();
     Ok(ModelInputs {
         images,
@@ -195,18 +245,26 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
     let cfg = ModelConfig::from_json_str(json)?;
     let v: serde_json::Value =
         serde_json::from_str(json).map_err(|e| PolicyError::Config(e.to_string()))?;
-    let valid = v["valid_prompt_tokens"].as_u64().unwrap_or(cfg.max_token_len as u64) as usize;
+    let valid = v["valid_prompt_tokens"]
+        .as_u64()
+        .unwrap_or(cfg.max_token_len as u64) as usize;
     let steps = cfg.num_denoise_steps;
     let (model, _vm) = random_model(&cfg)?;
     let inp = random_inputs(&cfg, 1, valid, 1)?;
-    let noise = Tensor::randn(0f32, 1f32, (1, cfg.action_horizon, cfg.action_dim), &Device::Cpu)?;
+    let noise = Tensor::randn(
+        0f32,
+        1f32,
+        (1, cfg.action_horizon, cfg.action_dim),
+        &Device::Cpu,
+    )?;
     let (n_fast, n_slow) = if quick { (3, 1) } else { (20, 5) };
     let p = cfg.prefix_len();
     let s = cfg.suffix_len();
     let prefix_flops = layer_flops(&cfg.paligemma, p, p) * cfg.paligemma.depth as f64;
-    let step_flops = layer_flops(&cfg.action_expert, cfg.action_horizon, p + s) * cfg.action_expert.depth as f64;
-    let unc_step = prefix_flops
-        + layer_flops(&cfg.action_expert, s, p + s) * cfg.action_expert.depth as f64;
+    let step_flops =
+        layer_flops(&cfg.action_expert, cfg.action_horizon, p + s) * cfg.action_expert.depth as f64;
+    let unc_step =
+        prefix_flops + layer_flops(&cfg.action_expert, s, p + s) * cfg.action_expert.depth as f64;
     let vis = vision_flops(&cfg);
     let mut phases = Vec::new();
     phases.push(time_phase("vision", n_fast, vis, || {
@@ -237,10 +295,15 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
         Ok(())
     })?);
     if !quick {
-        phases.push(time_phase("sample_uncached", 2, vis + steps as f64 * unc_step, || {
-            model.sample(&inp, &noise, steps, None)?;
-            Ok(())
-        })?);
+        phases.push(time_phase(
+            "sample_uncached",
+            2,
+            vis + steps as f64 * unc_step,
+            || {
+                model.sample(&inp, &noise, steps, None)?;
+                Ok(())
+            },
+        )?);
     }
     let openpi_s = OPENPI_SAMPLE_S
         .iter()
@@ -252,6 +315,15 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
         phases,
         openpi_s,
     })
+}
+
+/// Runs one configuration by name (`pi0_bench` / `pi05_bench`).
+pub fn run_named(name: &str, quick: bool) -> Result<ConfigReport, PolicyError> {
+    let (n, json) = CONFIGS
+        .iter()
+        .find(|(n, _)| *n == name)
+        .ok_or_else(|| PolicyError::Config(format!("unknown bench config {name}")))?;
+    run_config(n, json, quick)
 }
 
 /// Runs both bench configurations (`quick`: few iterations, no uncached full sample).

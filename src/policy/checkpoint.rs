@@ -27,7 +27,10 @@ pub fn expected_tensors(cfg: &ModelConfig) -> Vec<(String, Vec<usize>)> {
         vec![dv, 3, vis.patch_size, vis.patch_size],
     ));
     v.push((format!("{vp}.embeddings.patch_embedding.bias"), vec![dv]));
-    v.push((format!("{vp}.embeddings.position_embedding.weight"), vec![vis.num_tokens(), dv]));
+    v.push((
+        format!("{vp}.embeddings.position_embedding.weight"),
+        vec![vis.num_tokens(), dv],
+    ));
     for i in 0..vis.num_hidden_layers {
         let l = format!("{vp}.encoder.layers.{i}");
         for n in ["layer_norm1", "layer_norm2"] {
@@ -38,21 +41,37 @@ pub fn expected_tensors(cfg: &ModelConfig) -> Vec<(String, Vec<usize>)> {
             v.push((format!("{l}.self_attn.{n}.weight"), vec![dv, dv]));
             v.push((format!("{l}.self_attn.{n}.bias"), vec![dv]));
         }
-        v.push((format!("{l}.mlp.fc1.weight"), vec![vis.intermediate_size, dv]));
+        v.push((
+            format!("{l}.mlp.fc1.weight"),
+            vec![vis.intermediate_size, dv],
+        ));
         v.push((format!("{l}.mlp.fc1.bias"), vec![vis.intermediate_size]));
-        v.push((format!("{l}.mlp.fc2.weight"), vec![dv, vis.intermediate_size]));
+        v.push((
+            format!("{l}.mlp.fc2.weight"),
+            vec![dv, vis.intermediate_size],
+        ));
         v.push((format!("{l}.mlp.fc2.bias"), vec![dv]));
     }
     v.push((format!("{vp}.post_layernorm.weight"), vec![dv]));
     v.push((format!("{vp}.post_layernorm.bias"), vec![dv]));
     let w = cfg.paligemma.width;
-    v.push((format!("{PG}.model.multi_modal_projector.linear.weight"), vec![w, dv]));
-    v.push((format!("{PG}.model.multi_modal_projector.linear.bias"), vec![w]));
+    v.push((
+        format!("{PG}.model.multi_modal_projector.linear.weight"),
+        vec![w, dv],
+    ));
+    v.push((
+        format!("{PG}.model.multi_modal_projector.linear.bias"),
+        vec![w],
+    ));
     v.push((LM_HEAD.to_string(), vec![cfg.vocab_size, w]));
     let pi05 = cfg.kind == ModelKind::Pi05;
     for (prefix, d, ada) in [
         (format!("{PG}.model.language_model"), &cfg.paligemma, false),
-        ("paligemma_with_expert.gemma_expert.model".to_string(), &cfg.action_expert, pi05),
+        (
+            "paligemma_with_expert.gemma_expert.model".to_string(),
+            &cfg.action_expert,
+            pi05,
+        ),
     ] {
         let w = d.width;
         let qd = d.num_heads * d.head_dim;
@@ -105,7 +124,9 @@ pub fn expected_tensors(cfg: &ModelConfig) -> Vec<(String, Vec<usize>)> {
 pub fn load_tensors(path: &Path) -> Result<(HashMap<String, Tensor>, Vec<DType>), PolicyError> {
     let raw = candle_core::safetensors::load(path, &Device::Cpu)
         .map_err(|e| PolicyError::Io(format!("{}: {e}", path.display())))?;
-    let lerobot = raw.keys().any(|k| k.starts_with("model.paligemma_with_expert."));
+    let lerobot = raw
+        .keys()
+        .any(|k| k.starts_with("model.paligemma_with_expert."));
     let mut out = HashMap::with_capacity(raw.len());
     let mut dtypes = Vec::new();
     for (k, t) in raw {
@@ -148,9 +169,10 @@ pub fn check_tensors(cfg: &ModelConfig, t: &HashMap<String, Tensor>) -> Result<(
     for (name, shape) in expected_tensors(cfg) {
         match t.get(&name) {
             None => problems.push(format!("missing {name} {shape:?}")),
-            Some(x) if x.dims() != shape.as_slice() => {
-                problems.push(format!("mismatched {name}: found {:?}, expected {shape:?}", x.dims()))
-            }
+            Some(x) if x.dims() != shape.as_slice() => problems.push(format!(
+                "mismatched {name}: found {:?}, expected {shape:?}",
+                x.dims()
+            )),
             _ => {}
         }
     }
@@ -238,9 +260,18 @@ pub fn inspect(dir: &Path) -> Result<String, PolicyError> {
     let _ = writeln!(
         s,
         "vision: SigLIP width {} depth {} heads {} mlp {} patch {} image {} -> {} tokens/camera",
-        v.hidden_size, v.num_hidden_layers, v.num_attention_heads, v.intermediate_size, v.patch_size, v.image_size, v.num_tokens()
+        v.hidden_size,
+        v.num_hidden_layers,
+        v.num_attention_heads,
+        v.intermediate_size,
+        v.patch_size,
+        v.image_size,
+        v.num_tokens()
     );
-    for (n, g) in [("paligemma", &cfg.paligemma), ("action expert", &cfg.action_expert)] {
+    for (n, g) in [
+        ("paligemma", &cfg.paligemma),
+        ("action expert", &cfg.action_expert),
+    ] {
         let _ = writeln!(
             s,
             "{n}: width {} depth {} mlp {} heads {} kv heads {} head_dim {}",
@@ -272,7 +303,10 @@ pub fn inspect(dir: &Path) -> Result<String, PolicyError> {
     let _ = writeln!(s, "stored dtypes: {dtypes:?} ({} tensors)", tensors.len());
     let expected = expected_tensors(&cfg);
     let names: std::collections::HashSet<&str> = expected.iter().map(|(n, _)| n.as_str()).collect();
-    let unused: Vec<&String> = tensors.keys().filter(|k| !names.contains(k.as_str())).collect();
+    let unused: Vec<&String> = tensors
+        .keys()
+        .filter(|k| !names.contains(k.as_str()))
+        .collect();
     if !unused.is_empty() {
         let _ = writeln!(s, "unused tensors (ignored): {}", unused.len());
         for u in unused.iter().take(10) {
@@ -281,7 +315,11 @@ pub fn inspect(dir: &Path) -> Result<String, PolicyError> {
     }
     match check_tensors(&cfg, &tensors) {
         Ok(()) => {
-            let _ = writeln!(s, "missing: none (all {} tensors present with the right shapes)", expected.len());
+            let _ = writeln!(
+                s,
+                "missing: none (all {} tensors present with the right shapes)",
+                expected.len()
+            );
         }
         Err(e) => {
             let _ = writeln!(s, "{e}");

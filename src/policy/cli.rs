@@ -70,7 +70,10 @@ pub fn inputs_from_map(
     };
     let token_mask = match m.get("tokenized_prompt_mask") {
         Some(t) => {
-            anyhow::ensure!(t.dims() == [b, lt], "tokenized_prompt_mask must be [{b}, {lt}]");
+            anyhow::ensure!(
+                t.dims() == [b, lt],
+                "tokenized_prompt_mask must be [{b}, {lt}]"
+            );
             let f = mask_rows(t)?;
             (0..b).map(|i| f[i * lt..(i + 1) * lt].to_vec()).collect()
         }
@@ -81,11 +84,17 @@ pub fn inputs_from_map(
     let mut image_masks = Vec::new();
     for cam in &cfg.cameras {
         let (img, present) = if let Some(t) = m.get(&format!("image.{cam}")) {
-            anyhow::ensure!(t.dims() == [b, 3, s, s], "image.{cam} must be [{b}, 3, {s}, {s}]");
+            anyhow::ensure!(
+                t.dims() == [b, 3, s, s],
+                "image.{cam} must be [{b}, 3, {s}, {s}]"
+            );
             (t.to_dtype(DType::F32)?, true)
         } else if let Some(t) = m.get(&format!("image_raw_uint8.{cam}")) {
             let (tb, h, w, c) = t.dims4().context("image_raw_uint8 must be [B, H, W, 3]")?;
-            anyhow::ensure!(tb == b && c == 3 && t.dtype() == DType::U8, "image_raw_uint8.{cam} must be U8 [{b}, H, W, 3]");
+            anyhow::ensure!(
+                tb == b && c == 3 && t.dtype() == DType::U8,
+                "image_raw_uint8.{cam} must be U8 [{b}, H, W, 3]"
+            );
             let mut out = Vec::with_capacity(b * 3 * s * s);
             for bi in 0..b {
                 let px = t.get(bi)?.flatten_all()?.to_vec1::<u8>()?;
@@ -144,7 +153,12 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
     let b = inputs.batch();
     let noise = match noise {
         Some(n) => n,
-        None => Tensor::randn(0f32, 1f32, (b, model.cfg.action_horizon, model.cfg.action_dim), &Device::Cpu)?,
+        None => Tensor::randn(
+            0f32,
+            1f32,
+            (b, model.cfg.action_horizon, model.cfg.action_dim),
+            &Device::Cpu,
+        )?,
     };
     let steps = args.steps.unwrap_or(model.cfg.num_denoise_steps);
     let t0 = std::time::Instant::now();
@@ -165,7 +179,11 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
         out.actions.dims(),
         dt.as_secs_f64() * 1e3,
         steps,
-        if args.no_cache { "no cache" } else { "prefix KV cache" },
+        if args.no_cache {
+            "no cache"
+        } else {
+            "prefix KV cache"
+        },
         args.output.display()
     );
     Ok(())

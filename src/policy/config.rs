@@ -153,8 +153,8 @@ pub const DEFAULT_CAMERAS: [&str; 3] = ["base_0_rgb", "left_wrist_0_rgb", "right
 impl ModelConfig {
     /// Parses a `config.json` in the fixtures' schema.
     pub fn from_json_str(s: &str) -> Result<Self, PolicyError> {
-        let f: FileConfig =
-            serde_json::from_str(s).map_err(|e| PolicyError::Config(format!("config.json: {e}")))?;
+        let f: FileConfig = serde_json::from_str(s)
+            .map_err(|e| PolicyError::Config(format!("config.json: {e}")))?;
         let kind = match (f.model_kind.as_deref(), f.pi05) {
             (Some("pi05"), _) | (None, Some(true)) => ModelKind::Pi05,
             (Some("pi0"), _) | (None, Some(false)) | (None, None) => ModelKind::Pi0,
@@ -257,14 +257,18 @@ impl ModelConfig {
     pub fn validate(&self) -> Result<(), PolicyError> {
         let mut errs = Vec::new();
         let (p, e) = (&self.paligemma, &self.action_expert);
-        if p.depth != e.depth || p.num_heads != e.num_heads || p.num_kv_heads != e.num_kv_heads
+        if p.depth != e.depth
+            || p.num_heads != e.num_heads
+            || p.num_kv_heads != e.num_kv_heads
             || p.head_dim != e.head_dim
         {
             errs.push("both experts must share depth, num_heads, num_kv_heads and head_dim".into());
         }
         for (n, g) in [("paligemma", p), ("action_expert", e)] {
             if g.num_kv_heads == 0 || g.num_heads % g.num_kv_heads != 0 {
-                errs.push(format!("{n}: num_heads must be a multiple of num_kv_heads (>0)"));
+                errs.push(format!(
+                    "{n}: num_heads must be a multiple of num_kv_heads (>0)"
+                ));
             }
             if g.head_dim == 0 || g.head_dim % 2 != 0 {
                 errs.push(format!("{n}: head_dim must be even and > 0"));

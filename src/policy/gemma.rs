@@ -105,7 +105,11 @@ impl Norm {
 }
 
 /// `x + y * gate` (gate absent: `x + y`).
-pub fn gated_residual(x: &Tensor, y: &Tensor, gate: Option<&Tensor>) -> candle_core::Result<Tensor> {
+pub fn gated_residual(
+    x: &Tensor,
+    y: &Tensor,
+    gate: Option<&Tensor>,
+) -> candle_core::Result<Tensor> {
     match gate {
         None => x + y,
         Some(g) => x + y.broadcast_mul(g)?,

@@ -150,7 +150,11 @@ pub fn time_embedding(
 }
 
 /// Additive bias from a boolean mask: 0 where visible, [`MASK_VALUE`] elsewhere.
-fn bias_tensor(vis: Vec<bool>, shape: (usize, usize, usize, usize), dev: &Device) -> candle_core::Result<Tensor> {
+fn bias_tensor(
+    vis: Vec<bool>,
+    shape: (usize, usize, usize, usize),
+    dev: &Device,
+) -> candle_core::Result<Tensor> {
     let v: Vec<f32> = vis
         .into_iter()
         .map(|b| if b { 0.0 } else { MASK_VALUE })
@@ -248,22 +252,39 @@ impl PiModel {
             return bad("empty batch".into());
         }
         if inp.images.len() != c || inp.image_masks.len() != c {
-            return bad(format!("expected {c} cameras, got {} images / {} masks", inp.images.len(), inp.image_masks.len()));
+            return bad(format!(
+                "expected {c} cameras, got {} images / {} masks",
+                inp.images.len(),
+                inp.image_masks.len()
+            ));
         }
         for (i, im) in inp.images.iter().enumerate() {
             if im.dims() != [b, 3, s, s] {
-                return bad(format!("image {i}: shape {:?}, expected [{b}, 3, {s}, {s}]", im.dims()));
+                return bad(format!(
+                    "image {i}: shape {:?}, expected [{b}, 3, {s}, {s}]",
+                    im.dims()
+                ));
             }
             if inp.image_masks[i].len() != b {
-                return bad(format!("image mask {i}: {} entries for batch {b}", inp.image_masks[i].len()));
+                return bad(format!(
+                    "image mask {i}: {} entries for batch {b}",
+                    inp.image_masks[i].len()
+                ));
             }
         }
         let lt = self.cfg.max_token_len;
         if inp.tokens.dims() != [b, lt] || inp.token_mask.iter().any(|m| m.len() != lt) {
-            return bad(format!("tokens: shape {:?}, expected [{b}, {lt}]", inp.tokens.dims()));
+            return bad(format!(
+                "tokens: shape {:?}, expected [{b}, {lt}]",
+                inp.tokens.dims()
+            ));
         }
         if inp.state.dims() != [b, self.cfg.action_dim] {
-            return bad(format!("state: shape {:?}, expected [{b}, {}]", inp.state.dims(), self.cfg.action_dim));
+            return bad(format!(
+                "state: shape {:?}, expected [{b}, {}]",
+                inp.state.dims(),
+                self.cfg.action_dim
+            ));
         }
         Ok(b)
     }
@@ -319,7 +340,11 @@ impl PiModel {
 
     /// `skip_masked`: cameras masked in every batch row get zeros instead of a vision pass (their
     /// tokens are padding and never reach valid tokens).
-    fn embed_prefix_inner(&self, inp: &ModelInputs, skip_masked: bool) -> Result<Tensor, PolicyError> {
+    fn embed_prefix_inner(
+        &self,
+        inp: &ModelInputs,
+        skip_masked: bool,
+    ) -> Result<Tensor, PolicyError> {
         let b = self.check_inputs(inp)?;
         let run: Vec<usize> = (0..inp.images.len())
             .filter(|&c| !skip_masked || inp.image_masks[c].iter().any(|&m| m))
@@ -446,13 +471,20 @@ impl PiModel {
                     self.cfg.time_max_period,
                     &self.device,
                 )?;
-                Ok(Some(time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?))
+                Ok(Some(
+                    time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?,
+                ))
             }
         }
     }
 
     /// `embed_suffix` output at time `t` (π0: state token first) [B, S, We].
-    pub fn suffix_embeddings(&self, state: &Tensor, x_t: &Tensor, t: &[f32]) -> Result<Tensor, PolicyError> {
+    pub fn suffix_embeddings(
+        &self,
+        state: &Tensor,
+        x_t: &Tensor,
+        t: &[f32],
+    ) -> Result<Tensor, PolicyError> {
         Ok(self.embed_suffix(state, x_t, t, true)?.0)
     }
 
@@ -492,8 +524,16 @@ impl PiModel {
             let mut ks = Vec::with_capacity(d.depth);
             let mut vs = Vec::with_capacity(d.depth);
             for _ in 0..d.depth {
-                ks.push(Tensor::zeros((b, d.num_kv_heads, total, d.head_dim), DType::F32, &self.device)?);
-                vs.push(Tensor::zeros((b, d.num_kv_heads, total, d.head_dim), DType::F32, &self.device)?);
+                ks.push(Tensor::zeros(
+                    (b, d.num_kv_heads, total, d.head_dim),
+                    DType::F32,
+                    &self.device,
+                )?);
+                vs.push(Tensor::zeros(
+                    (b, d.num_kv_heads, total, d.head_dim),
+                    DType::F32,
+                    &self.device,
+                )?);
             }
             (ks, vs)
         };
@@ -514,7 +554,11 @@ impl PiModel {
                     .map(|j| j as u32),
             );
             cpad.push((0..pc).map(|i| i < layout.n_valid[bi]).collect::<Vec<_>>());
-            cpos.push(idx.iter().map(|&j| layout.pos[bi][j as usize]).collect::<Vec<_>>());
+            cpos.push(
+                idx.iter()
+                    .map(|&j| layout.pos[bi][j as usize])
+                    .collect::<Vec<_>>(),
+            );
             rows.push(idx);
         }
         let x = if pc == p {
@@ -652,7 +696,11 @@ impl PiModel {
         differentiable: bool,
     ) -> Result<Tensor, PolicyError> {
         let (b, h, a) = x_t.dims3()?;
-        if b != cache.batch || h != self.cfg.action_horizon || a != self.cfg.action_dim || t.len() != b {
+        if b != cache.batch
+            || h != self.cfg.action_horizon
+            || a != self.cfg.action_dim
+            || t.len() != b
+        {
             return Err(PolicyError::Input(format!(
                 "x_t {:?} / t [{}] do not match the cache (batch {}, H {}, A {})",
                 x_t.dims(),
@@ -683,7 +731,11 @@ impl PiModel {
                 differentiable,
             )?;
         }
-        let out = self.expert.norm.forward(&st[0].x, cond.as_ref(), differentiable)?.0;
+        let out = self
+            .expert
+            .norm
+            .forward(&st[0].x, cond.as_ref(), differentiable)?
+            .0;
         Ok(self.action_out_proj.forward(&out)?)
     }
 
@@ -737,7 +789,11 @@ impl PiModel {
             joint_layer(li, &mut streams, &bias, KvMode::Own { store: None }, diff)?;
         }
         let po = self.vlm.norm.forward(&streams[0].x, None, diff)?.0;
-        let so = self.expert.norm.forward(&streams[1].x, cond.as_ref(), diff)?.0;
+        let so = self
+            .expert
+            .norm
+            .forward(&streams[1].x, cond.as_ref(), diff)?
+            .0;
         Ok((po, so))
     }
 
@@ -773,7 +829,10 @@ impl PiModel {
         }
         let want = [b, self.cfg.action_horizon, self.cfg.action_dim];
         if noise.dims() != want {
-            return Err(PolicyError::Input(format!("noise: shape {:?}, expected {want:?}", noise.dims())));
+            return Err(PolicyError::Input(format!(
+                "noise: shape {:?}, expected {want:?}",
+                noise.dims()
+            )));
         }
         let dt = -1.0f32 / steps as f32;
         let mut time = 1.0f32;

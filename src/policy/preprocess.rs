@@ -25,7 +25,9 @@ impl Encoding {
             c if c == chunkrt_ipc::ENCODING_RGB8 => Ok(Encoding::Rgb8),
             c if c == chunkrt_ipc::ENCODING_BGR8 => Ok(Encoding::Bgr8),
             c if c == chunkrt_ipc::ENCODING_MONO8 => Ok(Encoding::Mono8),
-            other => Err(PolicyError::Input(format!("unknown frame encoding {other}"))),
+            other => Err(PolicyError::Input(format!(
+                "unknown frame encoding {other}"
+            ))),
         }
     }
 
@@ -211,9 +213,14 @@ impl NormStats {
             .map_err(|e| PolicyError::Io(format!("{}: {e}", path.display())))?;
         let f: NormFile = serde_json::from_str(&s)
             .map_err(|e| PolicyError::Config(format!("{}: {e}", path.display())))?;
-        for (n, st) in [("state", &f.norm_stats.state), ("actions", &f.norm_stats.actions)] {
+        for (n, st) in [
+            ("state", &f.norm_stats.state),
+            ("actions", &f.norm_stats.actions),
+        ] {
             if st.mean.len() != st.std.len() {
-                return Err(PolicyError::Config(format!("norm_stats {n}: mean/std lengths differ")));
+                return Err(PolicyError::Config(format!(
+                    "norm_stats {n}: mean/std lengths differ"
+                )));
             }
         }
         Ok(f.norm_stats)
@@ -295,7 +302,11 @@ pub fn clean_prompt(p: &str) -> String {
 /// The π0.5 prompt: `Task: {cleaned}, State: {bins};\nAction: `.
 pub fn pi05_prompt(prompt: &str, bins: &[i64]) -> String {
     let b: Vec<String> = bins.iter().map(|x| x.to_string()).collect();
-    format!("Task: {}, State: {};\nAction: ", clean_prompt(prompt), b.join(" "))
+    format!(
+        "Task: {}, State: {};\nAction: ",
+        clean_prompt(prompt),
+        b.join(" ")
+    )
 }
 
 /// Tokenizer of prompts.

@@ -85,14 +85,20 @@ impl Policy {
         let tokenizer = if tok_path.exists() {
             PromptTokenizer::from_file(&tok_path)?
         } else {
-            tracing::warn!("no tokenizer.json in {}: using the byte stand-in tokenizer", checkpoint_dir.display());
+            tracing::warn!(
+                "no tokenizer.json in {}: using the byte stand-in tokenizer",
+                checkpoint_dir.display()
+            );
             PromptTokenizer::ByteStandIn
         };
         let ns_path = checkpoint_dir.join("norm_stats.json");
         let norm = if ns_path.exists() {
             Some(NormStats::from_file(&ns_path)?)
         } else {
-            tracing::warn!("no norm_stats.json in {}: state/actions are not normalised", checkpoint_dir.display());
+            tracing::warn!(
+                "no norm_stats.json in {}: state/actions are not normalised",
+                checkpoint_dir.display()
+            );
             None
         };
         Ok(Policy {
@@ -175,9 +181,9 @@ impl Policy {
             }
             images.push(Tensor::from_slice(&self.images, (1, 3, s, s), &dev)?);
         }
-        let (ids, tmask) = self
-            .tokenizer
-            .tokenize(obs.prompt, bins.as_deref(), cfg.max_token_len)?;
+        let (ids, tmask) =
+            self.tokenizer
+                .tokenize(obs.prompt, bins.as_deref(), cfg.max_token_len)?;
         let inputs = ModelInputs {
             images,
             image_masks: masks,
@@ -199,8 +205,10 @@ impl Policy {
             let u1: f64 = self.rng.gen_range(f64::MIN_POSITIVE..1.0);
             let u2: f64 = self.rng.gen();
             let r = (-2.0 * u1.ln()).sqrt();
-            self.noise.push((r * (2.0 * std::f64::consts::PI * u2).cos()) as f32);
-            self.noise.push((r * (2.0 * std::f64::consts::PI * u2).sin()) as f32);
+            self.noise
+                .push((r * (2.0 * std::f64::consts::PI * u2).cos()) as f32);
+            self.noise
+                .push((r * (2.0 * std::f64::consts::PI * u2).sin()) as f32);
         }
         self.noise.truncate(n);
         let noise = Tensor::from_slice(&self.noise, (1, cfg.action_horizon, cfg.action_dim), &dev)?;
@@ -217,7 +225,9 @@ impl Policy {
             res.extend(r.iter().take(n_dof).map(|&x| x as f64));
         }
         if res.iter().any(|x| !x.is_finite()) {
-            return Err(PolicyError::Input("model produced non-finite actions".into()));
+            return Err(PolicyError::Input(
+                "model produced non-finite actions".into(),
+            ));
         }
         Ok(res)
     }
