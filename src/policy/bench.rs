@@ -39,6 +39,8 @@ pub struct Phase {
     pub p99_ms: f64,
     /// Analytic matmul FLOPs of one run.
     pub flops: f64,
+    /// Median process CPU time of one run (ms, all threads): robust to a loaded machine.
+    pub cpu_ms: f64,
 }
 
 impl Phase {
@@ -97,18 +99,20 @@ impl std::fmt::Display for BenchReport {
             writeln!(f, "== {} ==", c.name)?;
             writeln!(
                 f,
-                "{:<16} {:>5} {:>10} {:>10} {:>9}",
-                "phase", "n", "p50 ms", "p99 ms", "GFLOP/s"
+                "{:<16} {:>5} {:>10} {:>10} {:>9} {:>10} {:>12}",
+                "phase", "n", "p50 ms", "p99 ms", "GFLOP/s", "cpu ms", "GFLOP/cpu-s"
             )?;
             for p in &c.phases {
                 writeln!(
                     f,
-                    "{:<16} {:>5} {:>10.2} {:>10.2} {:>9.1}",
+                    "{:<16} {:>5} {:>10.2} {:>10.2} {:>9.1} {:>10.2} {:>12.1}",
                     p.name,
                     p.n,
                     p.p50_ms,
                     p.p99_ms,
-                    p.gflops()
+                    p.gflops(),
+                    p.cpu_ms,
+                    p.flops / (p.cpu_ms * 1e-3) / 1e9
                 )?;
             }
             writeln!(
@@ -152,6 +156,20 @@ fn histogram() -> Result<Histogram<u64>, PolicyError> {
         .map_err(|e| PolicyError::Config(format!("histogram: {e}")))
 }
 
+/// Process CPU time (all threads) in microseconds.
+fn cpu_us() -> u64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes into the timespec we own; CLOCK_PROCESS_CPUTIME_ID is valid.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+    if rc != 0 {
+        return 0;
+    }
+    ts.tv_sec as u64 * 1_000_000 + ts.tv_nsec as u64 / 1000
+}
+
 fn time_phase(
     name: &str,
     n: usize,
@@ -160,10 +178,14 @@ fn time_phase(
 ) -> Result<Phase, PolicyError> {
     f()?; // warm-up
     let mut h = histogram()?;
+    let mut cpu = histogram()?;
     for _ in 0..n {
         let t0 = Instant::now();
+        let c0 = cpu_us();
         f()?;
         let us = t0.elapsed().as_micros().max(1) as u64;
+        cpu.record(cpu_us().saturating_sub(c0).clamp(1, 600_000_000))
+            .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
         h.record(us.min(600_000_000))
             .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
     }
@@ -173,6 +195,7 @@ fn time_phase(
         p50_ms: h.value_at_quantile(0.5) as f64 / 1e3,
         p99_ms: h.value_at_quantile(0.99) as f64 / 1e3,
         flops,
+        cpu_ms: cpu.value_at_quantile(0.5) as f64 / 1e3,
     })
 }
 
@@ -292,6 +315,15 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
         phases,
         openpi_s,
     })
+}
+
+/// Runs one configuration by name (`pi0_bench` / `pi05_bench`).
+pub fn run_named(name: &str, quick: bool) -> Result<ConfigReport, PolicyError> {
+    let (n, json) = CONFIGS
+        .iter()
+        .find(|(n, _)| *n == name)
+        .ok_or_else(|| PolicyError::Config(format!("unknown bench config {name}")))?;
+    run_config(n, json, quick)
 }
 
 /// Runs both bench configurations (`quick`: few iterations, no uncached full sample).

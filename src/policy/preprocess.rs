@@ -296,7 +296,7 @@ pub fn discretize_state(state: &[f32]) -> Vec<i64> {
 
 /// openpi's prompt cleaning: `strip()`, `_` -> space, newline -> space.
 pub fn clean_prompt(p: &str) -> String {
-    p.trim().replace('_', " ").replace('\n', " ")
+    p.trim().replace(['_', '\n'], " ")
 }
 
 /// The π0.5 prompt: `Task: {cleaned}, State: {bins};\nAction: `.
