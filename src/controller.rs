@@ -47,6 +47,10 @@ pub struct RunArgs {
     /// Seconds between status log lines (0: none).
     #[arg(long, default_value_t = 1.0)]
     pub log_every: f64,
+    /// On exit, write the lateness and tick-time histograms to this HdrHistogram interval log
+    /// (render with `chunkrt report DIR`).
+    #[arg(long, value_name = "FILE")]
+    pub histogram_log: Option<PathBuf>,
 }
 
 /// Loads the configuration named by `--config` (or the embedded default) and applies
@@ -191,8 +195,15 @@ pub struct Shared {
     pub compute_max_ns: AtomicU64,
 }
 
+impl Default for Shared {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 impl Shared {
-    fn new() -> Self {
+    /// Fresh counters and state.
+    pub fn new() -> Self {
         Self {
             counters: Counters::default(),
             events: event_ring(1024),
@@ -446,6 +457,137 @@ fn observation_thread(
     Ok(())
 }
 
+/// The control thread's ports and per-tick state: one [`ControlLoop::step`] is one control
+/// tick (receive joint states, run the tick, publish the command and, every status period,
+/// the status). Public so that tests can drive real ticks over real IPC without the thread.
+pub struct ControlLoop {
+    js: JointStateInput,
+    cmd_out: CommandOutput,
+    status_out: StatusOutput,
+    /// Latency histograms (lateness, tick compute time).
+    pub hist: TickHistograms,
+    cmd: JointCommand,
+    status: ControllerStatus,
+    state: u32,
+    ticks: u64,
+    overruns: u64,
+    deadline_ns: u64,
+    status_every: u64,
+}
+
+impl ControlLoop {
+    /// Creates the ports (call in the thread that will tick).
+    pub fn new(
+        node: &iceoryx2::prelude::Node<services::Ipc>,
+        cfg: &Config,
+    ) -> anyhow::Result<Self> {
+        let ns = cfg.namespace();
+        Ok(Self {
+            js: JointStateInput::new(node, &ns, cfg)?,
+            cmd_out: CommandOutput::new(node, &ns)?,
+            status_out: StatusOutput::new(node, &ns)?,
+            hist: TickHistograms::new(),
+            cmd: JointCommand::default(),
+            status: ControllerStatus {
+                n_dof: cfg.n_dof() as u32,
+                ..Default::default()
+            },
+            state: CONTROLLER_STATE_STARTING,
+            ticks: 0,
+            overruns: 0,
+            deadline_ns: (cfg.control.command_deadline_ms * 1e6) as u64,
+            status_every: ((cfg.control.rate_hz / cfg.control.status_rate_hz).round() as u64)
+                .max(1),
+        })
+    }
+
+    /// One control tick that was due at `scheduled_ns` and woke at `wake_ns`. Returns the
+    /// time the tick's work ended. No allocation but the one iceoryx2 makes per loan.
+    pub fn step(
+        &mut self,
+        scheduled_ns: u64,
+        wake_ns: u64,
+        shared: &Shared,
+        tick: &mut dyn ControlTick,
+    ) -> u64 {
+        self.hist
+            .lateness
+            .saturating_record(wake_ns.saturating_sub(scheduled_ns).max(1));
+        self.js.poll(wake_ns, &shared.counters, &shared.events);
+        let out = tick.tick(wake_ns, self.js.latest(), &mut self.cmd);
+        if out.publish {
+            self.cmd.seq += 1;
+            self.cmd.deadline_ns = wake_ns + self.deadline_ns;
+            if self.cmd_out.publish(&self.cmd, monotonic_ns()) {
+                shared.commands.fetch_add(1, Ordering::Relaxed);
+            } else {
+                shared
+                    .counters
+                    .publish_errors
+                    .fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        if out.state != self.state {
+            if out.state == CONTROLLER_STATE_HOLD {
+                shared.hold_entries.fetch_add(1, Ordering::Relaxed);
+            }
+            self.state = out.state;
+            shared.state.store(self.state, Ordering::Relaxed);
+        }
+        self.ticks += 1;
+        shared.ticks.store(self.ticks, Ordering::Relaxed);
+        if self.ticks % self.status_every == 0 {
+            self.publish_status(wake_ns, shared);
+        }
+        let end = monotonic_ns();
+        self.hist
+            .compute
+            .saturating_record(end.saturating_sub(wake_ns).max(1));
+        end
+    }
+
+    /// Counts a tick that ended after the next deadline.
+    pub fn count_overrun(&mut self, shared: &Shared) {
+        self.overruns += 1;
+        shared.overruns.store(self.overruns, Ordering::Relaxed);
+    }
+
+    fn publish_status(&mut self, wake_ns: u64, shared: &Shared) {
+        let h = &self.hist;
+        let st = &mut self.status;
+        st.seq += 1;
+        st.state = self.state;
+        st.ticks = self.ticks;
+        st.overruns = self.overruns;
+        st.chunks = shared.chunks.load(Ordering::Relaxed);
+        st.joint_states = shared.counters.joint_states.load(Ordering::Relaxed);
+        st.frames = shared.counters.frames.load(Ordering::Relaxed);
+        st.rejected = shared.counters.rejected_snapshot();
+        st.last_inference_latency_ns = shared.last_inference_latency_ns.load(Ordering::Relaxed);
+        st.lateness_p50_ns = h.lateness.value_at_quantile(0.5);
+        st.lateness_p99_ns = h.lateness.value_at_quantile(0.99);
+        st.lateness_max_ns = h.lateness.max();
+        st.compute_p50_ns = h.compute.value_at_quantile(0.5);
+        st.compute_p99_ns = h.compute.value_at_quantile(0.99);
+        st.compute_max_ns = h.compute.max();
+        st.joint_state_age_ns = self
+            .js
+            .latest()
+            .map(|s| wake_ns.saturating_sub(s.measurement_time_ns))
+            .unwrap_or(u64::MAX);
+        st.hold_entries = shared.hold_entries.load(Ordering::Relaxed);
+        st.publish_time_ns = monotonic_ns();
+        self.status_out.publish(st);
+        let store = |a: &AtomicU64, v: u64| a.store(v, Ordering::Relaxed);
+        store(&shared.lateness_p50_ns, st.lateness_p50_ns);
+        store(&shared.lateness_p99_ns, st.lateness_p99_ns);
+        store(&shared.lateness_max_ns, st.lateness_max_ns);
+        store(&shared.compute_p50_ns, st.compute_p50_ns);
+        store(&shared.compute_p99_ns, st.compute_p99_ns);
+        store(&shared.compute_max_ns, st.compute_max_ns);
+    }
+}
+
 fn control_thread(
     cfg: &Config,
     shared: &Shared,
@@ -462,15 +604,12 @@ fn control_thread(
     } else {
         tracing::warn!("control thread not fully real-time: {outcome}");
     }
-    let ns = cfg.namespace();
     let setup = || -> anyhow::Result<_> {
         let node = services::node("chunkrt-control")?;
-        let js = JointStateInput::new(&node, &ns, cfg)?;
-        let cmd_out = CommandOutput::new(&node, &ns)?;
-        let status_out = StatusOutput::new(&node, &ns)?;
-        Ok((node, js, cmd_out, status_out))
+        let lp = ControlLoop::new(&node, cfg)?;
+        Ok((node, lp))
     };
-    let (_node, mut js, cmd_out, status_out) = match setup() {
+    let (_node, mut lp) = match setup() {
         Ok(v) => {
             let _ = ready.send(Ok(()));
             v
@@ -481,112 +620,24 @@ fn control_thread(
             anyhow::bail!(msg);
         }
     };
-
     let period = cfg.control_period_ns();
-    let deadline_ns = (cfg.control.command_deadline_ms * 1e6) as u64;
-    let status_every = ((cfg.control.rate_hz / cfg.control.status_rate_hz).round() as u64).max(1);
-    let mut hist = TickHistograms::new();
-    let mut cmd = JointCommand::default();
-    let mut status = ControllerStatus {
-        n_dof: cfg.n_dof() as u32,
-        ..Default::default()
-    };
-    let mut state = CONTROLLER_STATE_STARTING;
-    let mut ticks: u64 = 0;
-    let mut overruns: u64 = 0;
     let start = monotonic_ns();
     let mut next = start + period;
-
     while !shared.stop.load(Ordering::Relaxed) {
         sleep_until_ns(next);
         let wake = monotonic_ns();
-        hist.lateness
-            .saturating_record(wake.saturating_sub(next).max(1));
-
-        js.poll(wake, &shared.counters, &shared.events);
-        let out = tick.tick(wake, js.latest(), &mut cmd);
-        if out.publish {
-            cmd.seq += 1;
-            cmd.deadline_ns = wake + deadline_ns;
-            if cmd_out.publish(&cmd, monotonic_ns()) {
-                shared.commands.fetch_add(1, Ordering::Relaxed);
-            } else {
-                shared
-                    .counters
-                    .publish_errors
-                    .fetch_add(1, Ordering::Relaxed);
-            }
-        }
-        if out.state != state {
-            if out.state == CONTROLLER_STATE_HOLD {
-                shared.hold_entries.fetch_add(1, Ordering::Relaxed);
-            }
-            state = out.state;
-            shared.state.store(state, Ordering::Relaxed);
-        }
-        ticks += 1;
-        shared.ticks.store(ticks, Ordering::Relaxed);
-
-        if ticks % status_every == 0 {
-            status.seq += 1;
-            status.state = state;
-            status.ticks = ticks;
-            status.overruns = overruns;
-            status.chunks = shared.chunks.load(Ordering::Relaxed);
-            status.joint_states = shared.counters.joint_states.load(Ordering::Relaxed);
-            status.frames = shared.counters.frames.load(Ordering::Relaxed);
-            status.rejected = shared.counters.rejected_snapshot();
-            status.last_inference_latency_ns =
-                shared.last_inference_latency_ns.load(Ordering::Relaxed);
-            status.lateness_p50_ns = hist.lateness.value_at_quantile(0.5);
-            status.lateness_p99_ns = hist.lateness.value_at_quantile(0.99);
-            status.lateness_max_ns = hist.lateness.max();
-            status.compute_p50_ns = hist.compute.value_at_quantile(0.5);
-            status.compute_p99_ns = hist.compute.value_at_quantile(0.99);
-            status.compute_max_ns = hist.compute.max();
-            status.joint_state_age_ns = js
-                .latest()
-                .map(|s| wake.saturating_sub(s.measurement_time_ns))
-                .unwrap_or(u64::MAX);
-            status.hold_entries = shared.hold_entries.load(Ordering::Relaxed);
-            status.publish_time_ns = monotonic_ns();
-            status_out.publish(&status);
-            shared
-                .lateness_p50_ns
-                .store(status.lateness_p50_ns, Ordering::Relaxed);
-            shared
-                .lateness_p99_ns
-                .store(status.lateness_p99_ns, Ordering::Relaxed);
-            shared
-                .lateness_max_ns
-                .store(status.lateness_max_ns, Ordering::Relaxed);
-            shared
-                .compute_p50_ns
-                .store(status.compute_p50_ns, Ordering::Relaxed);
-            shared
-                .compute_p99_ns
-                .store(status.compute_p99_ns, Ordering::Relaxed);
-            shared
-                .compute_max_ns
-                .store(status.compute_max_ns, Ordering::Relaxed);
-        }
-
-        let end = monotonic_ns();
-        hist.compute
-            .saturating_record(end.saturating_sub(wake).max(1));
+        let end = lp.step(next, wake, shared, tick);
         next += period;
         if end > next {
             // finished after the next deadline: count it, and skip the ticks already missed
             // instead of bursting to catch up
-            overruns += 1;
-            shared.overruns.store(overruns, Ordering::Relaxed);
-            let missed = (end - next) / period;
-            next += missed * period;
+            lp.count_overrun(shared);
+            next += ((end - next) / period) * period;
         }
     }
     Ok(Summary {
         seconds: (monotonic_ns() - start) as f64 / 1e9,
-        histograms: hist,
+        histograms: lp.hist,
         rt: outcome.to_string(),
     })
 }
@@ -710,6 +761,19 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     controller_log_final(&cfg, &shared);
     print_summary(&shared, &summary);
     println!("  frames per camera: {}", frames_per_camera(&cfg, &shared));
+    if let Some(path) = &args.histogram_log {
+        let series = [
+            crate::report::Series::new("control_lateness", summary.histograms.lateness.clone()),
+            crate::report::Series::new("control_tick", summary.histograms.compute.clone()),
+        ];
+        crate::report::write_interval_log(
+            path,
+            &series,
+            Duration::from_secs_f64(summary.seconds),
+            &format!("chunkrt run on '{}': {}", cfg.robot.namespace, summary.rt),
+        )?;
+        println!("  histograms written to {}", path.display());
+    }
     Ok(())
 }
 

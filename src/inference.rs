@@ -101,8 +101,11 @@ impl ChunkSource for PolicySource {
             for i in 0..full_h {
                 let row = &request.prefix[i.min(h - 1)];
                 self.prefix.extend_from_slice(&row[..n]);
-                self.weights
-                    .push(if i < h { request.weights[i] as f32 } else { 0.0 });
+                self.weights.push(if i < h {
+                    request.weights[i] as f32
+                } else {
+                    0.0
+                });
             }
             let g = Guidance {
                 prefix: &self.prefix,
