@@ -1,0 +1,103 @@
+//! Chunk transitions with the real model: the pi0.5 fixture checkpoint (random weights, so
+//! consecutive chunks disagree: each is sampled from fresh noise) computes every chunk, guided
+//! by the executor's RTC request when the strategy is `rtc`. Time is simulated at 1 kHz and
+//! each chunk is delivered `DELAY_STEPS` action steps after its request, so the comparison
+//! measures the strategies, not this machine's load. `crossfade` and `rtc` must have clearly
+//! smaller switch discontinuities in the target than `replace`.
+
+use chunkrt::config::Config;
+use chunkrt::control::{Executor, Trace};
+use chunkrt::controller::ChunkSource;
+use chunkrt::edge::Observation;
+use chunkrt::inference::PolicySource;
+use chunkrt::ipc::{JointCommand, JointState};
+
+const DELAY_STEPS: u64 = 3;
+const START_NS: u64 = 10_000_000_000;
+
+fn run(strategy: &str, seconds: f64) -> (chunkrt::control::Smoothness, usize) {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/pi05_tiny.toml");
+    let mut cfg = Config::load(std::path::Path::new(path)).unwrap();
+    cfg.execution.strategy = strategy.to_string();
+    let mut exec = Executor::new(&cfg).unwrap();
+    let link = exec.connect();
+    let mut policy = PolicySource::load(&cfg).unwrap();
+    let period_ns = (1e9 / cfg.policy.action_rate_hz) as u64;
+    let mut obs = Observation::new(&cfg);
+    let mut js = JointState {
+        n_dof: cfg.n_dof() as u32,
+        ..Default::default()
+    };
+    for (i, j) in cfg.robot.joints.iter().enumerate() {
+        js.position[i] = j.initial_position;
+    }
+    let mut cmd = JointCommand::default();
+    let mut trace = Trace::new(0.001, cfg.n_dof());
+    // the gripper is a step channel: never blended, so not part of the comparison
+    for (i, j) in cfg.robot.joints.iter().enumerate() {
+        trace.skip[i] = j.step;
+    }
+    let mut pending: Vec<(u64, chunkrt::chunk::ActionChunk)> = Vec::new();
+    let mut chunks = 0;
+    let ticks = (seconds * 1000.0) as u64;
+    for k in 0..ticks {
+        let now = START_NS + k * 1_000_000;
+        // the inference side, in simulated time
+        if let Some(req) = link.requests.try_recv() {
+            obs.joint_state = js;
+            obs.joint_state.measurement_time_ns = now;
+            obs.assembled_ns = now;
+            if let Some(mut c) = policy.compute(&obs, &req).unwrap() {
+                c.t_obs_ns = now;
+                c.ready_ns = now + DELAY_STEPS * period_ns;
+                pending.push((c.ready_ns, c));
+                chunks += 1;
+            }
+            link.requests.done(req);
+        }
+        if let Some(i) = pending.iter().position(|(t, _)| *t <= now) {
+            let (_, c) = pending.remove(i);
+            drop(link.chunks.send(c));
+        }
+        while link.chunks.take_recycled().is_some() {}
+        // the robot follows the command exactly
+        js.measurement_time_ns = now;
+        let r = exec.tick(now, Some(&js), &mut cmd);
+        js.position = cmd.position;
+        if r.state == chunkrt::control::State::Running {
+            trace.push(&r.target, &cmd.position, None, r.switched);
+        }
+    }
+    (trace.smoothness(), chunks)
+}
+
+#[test]
+fn rtc_and_crossfade_switch_more_smoothly_than_replace_with_the_real_model() {
+    let (replace, n_replace) = run("replace", 4.0);
+    let (crossfade, _) = run("crossfade", 4.0);
+    let (rtc, n_rtc) = run("rtc", 4.0);
+    for (name, m) in [
+        ("replace", &replace),
+        ("crossfade", &crossfade),
+        ("rtc", &rtc),
+    ] {
+        eprintln!(
+            "{name:<10} switches {:>3}  max target jump {:.4}  max command jump {:.6}  rms jerk {:.1}",
+            m.switches, m.max_switch_jump_target, m.max_switch_jump_command, m.rms_jerk
+        );
+    }
+    assert!(n_replace >= 4 && n_rtc >= 4, "chunks: {n_replace}, {n_rtc}");
+    assert!(replace.switches >= 3 && rtc.switches >= 3);
+    assert!(
+        crossfade.max_switch_jump_target < 0.5 * replace.max_switch_jump_target,
+        "crossfade {} vs replace {}",
+        crossfade.max_switch_jump_target,
+        replace.max_switch_jump_target
+    );
+    assert!(
+        rtc.max_switch_jump_target < 0.5 * replace.max_switch_jump_target,
+        "rtc {} vs replace {}",
+        rtc.max_switch_jump_target,
+        replace.max_switch_jump_target
+    );
+}
