@@ -18,8 +18,11 @@ fn data(name: &str) -> PathBuf {
         .join(name)
 }
 
+/// One fixture camera frame: (name, pixels, height, width).
+type Frame = (String, Vec<u8>, usize, usize);
+
 /// Camera frames (name, pixels, height, width) and the unpadded state of the pi05_tiny fixture.
-fn fixture() -> (Vec<(String, Vec<u8>, usize, usize)>, Vec<f64>) {
+fn fixture() -> (Vec<Frame>, Vec<f64>) {
     let inp: HashMap<String, Tensor> =
         candle_core::safetensors::load(data("pi05_tiny").join("inputs.safetensors"), &Device::Cpu)
             .unwrap();
@@ -45,7 +48,7 @@ fn fixture() -> (Vec<(String, Vec<u8>, usize, usize)>, Vec<f64>) {
     (frames, state)
 }
 
-fn raw_frames(frames: &[(String, Vec<u8>, usize, usize)]) -> Vec<RawFrame<'_>> {
+fn raw_frames(frames: &[Frame]) -> Vec<RawFrame<'_>> {
     frames
         .iter()
         .map(|(c, d, h, w)| RawFrame {

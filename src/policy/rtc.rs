@@ -139,8 +139,8 @@ pub fn weight_mask(
     }
     let mut m = Vec::with_capacity(weights.len() * action_dim);
     for &w in weights {
-        m.extend(std::iter::repeat(w).take(n_dof));
-        m.extend(std::iter::repeat(0.0f32).take(action_dim - n_dof));
+        m.extend(std::iter::repeat_n(w, n_dof));
+        m.extend(std::iter::repeat_n(0.0f32, action_dim - n_dof));
     }
     Ok(Tensor::from_vec(m, (1, weights.len(), action_dim), dev)?)
 }
