@@ -387,6 +387,15 @@ fn observation_thread(
     link: &InferenceLink,
     ready: crossbeam::channel::Sender<anyhow::Result<()>>,
 ) -> anyhow::Result<()> {
+    // the inference thread gets a core of its own when there is one besides the control core
+    let control_core = cfg.control.cpu.unwrap_or_else(rt::default_control_core);
+    if rt::available_cores() > 1 {
+        let core = if control_core == 0 { 1 } else { 0 };
+        match rt::pin_current_thread(core) {
+            Ok(c) => tracing::info!("observation/inference thread: pinned to core {c}"),
+            Err(e) => tracing::warn!("observation/inference thread not pinned: {e}"),
+        }
+    }
     let ns = cfg.namespace();
     let setup = || -> anyhow::Result<_> {
         let node = services::node("chunkrt-observe")?;
