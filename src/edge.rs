@@ -256,15 +256,13 @@ impl CameraInput {
                 let payload: &[u8] = sample.payload();
                 let (max_w, max_h) = self.limits[i];
                 let result = validate_frame(&header, payload.len(), max_w, max_h)
-                    .and_then(|()| {
-                        if header.camera_id as usize == i {
-                            Ok(())
-                        } else {
-                            Err(ValidationError::WrongCamera {
-                                got: header.camera_id,
-                                expected: i as u32,
-                            })
-                        }
+                    .and(if header.camera_id as usize == i {
+                        Ok(())
+                    } else {
+                        Err(ValidationError::WrongCamera {
+                            got: header.camera_id,
+                            expected: i as u32,
+                        })
                     })
                     .and_then(|()| {
                         self.guards[i].check(

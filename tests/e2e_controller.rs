@@ -48,6 +48,8 @@ struct Watch {
     js: iceoryx2::port::subscriber::Subscriber<Ipc, JointState, ()>,
     cmd: iceoryx2::port::subscriber::Subscriber<Ipc, JointCommand, ()>,
     last_status: ControllerStatus,
+    /// The robot's newest joint-state seq seen when `last_status` arrived (aligns windows).
+    js_seq_at_status: u64,
     last_js: JointState,
     commands: Vec<JointCommand>,
 }
@@ -77,6 +79,7 @@ impl Watch {
             js,
             cmd,
             last_status: ControllerStatus::default(),
+            js_seq_at_status: 0,
             last_js: JointState::default(),
             commands: Vec::new(),
         }
@@ -86,11 +89,12 @@ impl Watch {
     fn pump(&mut self, d: Duration) {
         let t0 = Instant::now();
         while t0.elapsed() < d {
-            while let Ok(Some(s)) = self.status.receive() {
-                self.last_status = *s.payload();
-            }
             while let Ok(Some(s)) = self.js.receive() {
                 self.last_js = *s.payload();
+            }
+            while let Ok(Some(s)) = self.status.receive() {
+                self.last_status = *s.payload();
+                self.js_seq_at_status = self.last_js.seq;
             }
             while let Ok(Some(s)) = self.cmd.receive() {
                 self.commands.push(*s.payload());
@@ -124,13 +128,15 @@ fn controller_holds_the_robot_and_sees_every_camera() {
     });
     w.pump(Duration::from_millis(200));
     // steady state window of about 2 s
-    let (s1, js1, t1) = (w.last_status, w.last_js, monotonic_ns());
+    let (s1, js1, t1, seq1) = (w.last_status, w.last_js, monotonic_ns(), w.js_seq_at_status);
     w.commands.clear();
     w.pump(Duration::from_secs(2));
-    let (s2, js2, t2) = (w.last_status, w.last_js, monotonic_ns());
+    let (s2, js2, t2, seq2) = (w.last_status, w.last_js, monotonic_ns(), w.js_seq_at_status);
 
-    // ≥ 95 % of the joint states the robot published were received and accepted
-    let published = (js2.seq - js1.seq) as f64;
+    // ≥ 95 % of the joint states the robot published were received and accepted, over the
+    // window between two status messages (the status is published every 100 ms, so its counts
+    // are compared with the robot's seq seen when each status arrived)
+    let published = (seq2 - seq1) as f64;
     let received = (s2.joint_states - s1.joint_states) as f64;
     assert!(published > 1000.0, "robot published only {published}");
     assert!(
