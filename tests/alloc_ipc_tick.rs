@@ -4,8 +4,7 @@
 //! iceoryx2 0.10 makes per publish loan, which is counted and must equal the number of
 //! publishes. Chunks come from the scripted source (a test double) outside the measured window.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 
 use chunkrt::config::Config;
 use chunkrt::control::{cxx_allocations, Executor, ScriptedChunkSource, ScriptedConfig, State};
@@ -13,31 +12,9 @@ use chunkrt::controller::{ControlLoop, Shared};
 use chunkrt::ipc::services;
 use chunkrt::ipc::{monotonic_ns, JointState};
 
-struct Counting;
-
-static ALLOCS: AtomicU64 = AtomicU64::new(0);
-
-// SAFETY: forwards to the system allocator; only counts.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
-        System.alloc(l)
-    }
-    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
-        System.dealloc(p, l)
-    }
-    unsafe fn alloc_zeroed(&self, l: Layout) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
-        System.alloc_zeroed(l)
-    }
-    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
-        System.realloc(p, l, n)
-    }
-}
-
-#[global_allocator]
-static GLOBAL: Counting = Counting;
+#[path = "common/counting_alloc.rs"]
+mod counting_alloc;
+use counting_alloc::allocations;
 
 #[test]
 fn control_tick_with_ipc_allocates_only_the_iceoryx2_loan() {
@@ -86,9 +63,9 @@ fn control_tick_with_ipc_allocates_only_the_iceoryx2_loan() {
             publishes_before = shared.commands.load(Ordering::Relaxed);
         }
         // measured: one tick exactly as the control thread runs it
-        let (a0, c0) = (ALLOCS.load(Ordering::Relaxed), cxx_allocations());
+        let (a0, c0) = (allocations(), cxx_allocations());
         lp.step(now, monotonic_ns(), &shared, &mut exec);
-        let (a1, c1) = (ALLOCS.load(Ordering::Relaxed), cxx_allocations());
+        let (a1, c1) = (allocations(), cxx_allocations());
         if k >= warmup {
             allocs += a1 - a0;
             cxx += c1 - c0;

@@ -4,38 +4,13 @@
 //! recovery, timing records and status fills. Chunks are produced by the scripted source
 //! (a test double) outside the measured window, as the inference thread would.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicU64, Ordering};
-
 use chunkrt::config::Config;
 use chunkrt::control::{cxx_allocations, Executor, ScriptedChunkSource, ScriptedConfig, State};
 use chunkrt::ipc::{ControllerStatus, JointCommand, JointState};
 
-struct Counting;
-
-static ALLOCS: AtomicU64 = AtomicU64::new(0);
-
-// SAFETY: forwards to the system allocator; only counts.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
-        System.alloc(l)
-    }
-    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
-        System.dealloc(p, l)
-    }
-    unsafe fn alloc_zeroed(&self, l: Layout) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
-        System.alloc_zeroed(l)
-    }
-    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
-        System.realloc(p, l, n)
-    }
-}
-
-#[global_allocator]
-static GLOBAL: Counting = Counting;
+#[path = "common/counting_alloc.rs"]
+mod counting_alloc;
+use counting_alloc::allocations;
 
 const START_NS: u64 = 10_000_000_000;
 
@@ -75,13 +50,13 @@ fn measure(strategy: &str, ticks: usize, warmup: usize) -> (u64, u64, [bool; 4])
             js.position = cmd.position;
         }
         // Measured window: what the control thread does every tick.
-        let (r0, c0) = (ALLOCS.load(Ordering::Relaxed), cxx_allocations());
+        let (r0, c0) = (allocations(), cxx_allocations());
         let r = exec.tick(now, Some(&js), &mut cmd);
         exec.record_timing(now, now + 5_000, now + 60_000);
         if k % 100 == 0 {
             exec.fill_status(&mut status);
         }
-        let (r1, c1) = (ALLOCS.load(Ordering::Relaxed), cxx_allocations());
+        let (r1, c1) = (allocations(), cxx_allocations());
         if k >= warmup {
             rust += r1 - r0;
             cxx += c1 - c0;
