@@ -739,17 +739,7 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
             super::machine_line()
         ),
     )?;
-    println!(
-        "wrote {}, {} and {}",
-        outputs.hlog.display(),
-        outputs
-            .pngs
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect::<Vec<_>>()
-            .join(", "),
-        outputs.md.display()
-    );
+    println!("{outputs}");
     println!("{line}");
     Ok(Summary {
         cases: summaries,

@@ -131,6 +131,17 @@ pub struct Outputs {
     pub md: PathBuf,
 }
 
+impl std::fmt::Display for Outputs {
+    /// `wrote <hlog>, <png>, <png> and <md>`, the line every bench prints.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "wrote {}", self.hlog.display())?;
+        for p in &self.pngs {
+            write!(f, ", {}", p.display())?;
+        }
+        write!(f, " and {}", self.md.display())
+    }
+}
+
 /// Writes `<out>/<name>.hlog` (all series), `<out>/<name>.md` (the table) and one PNG per
 /// `(file stem, title, series names)` plot request.
 pub fn write_outputs(
