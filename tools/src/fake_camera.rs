@@ -17,6 +17,7 @@ use chunkrt_ipc::*;
 use rand::{Rng, SeedableRng};
 
 use crate::common::{check_rate, end_time_ns, open_node, sleep_until_or_stop, CommonArgs};
+use crate::scene::ReachScene;
 use crate::shutdown;
 
 /// Command-line arguments.
@@ -43,6 +44,13 @@ pub struct Args {
     /// Stop after this many seconds (default: run until SIGINT / SIGTERM).
     #[arg(long, value_name = "SECONDS")]
     pub duration: Option<f64>,
+    /// What the frames show: `pattern` (the stamped test pattern) or `reach` (the reach task's
+    /// arm and targets, rendered from the robot's joint states; rgb8 cameras only).
+    #[arg(long, value_name = "SCENE", default_value = "pattern", value_parser = ["pattern", "reach"])]
+    pub scene: String,
+    /// Episode seed of the reach scene (places the targets).
+    #[arg(long, value_name = "SEED", default_value_t = 0)]
+    pub scene_seed: u64,
 }
 
 impl Default for Args {
@@ -56,6 +64,8 @@ impl Default for Args {
             height: None,
             seed: 0,
             duration: None,
+            scene: "pattern".to_string(),
+            scene_seed: 0,
         }
     }
 }
@@ -262,6 +272,34 @@ pub fn publish(args: &Args) -> anyhow::Result<Summary> {
     let (cfg, ns) = args.common.load()?;
     let plans = plan(&cfg.cameras, args)?;
     let node = open_node("chunkrt-fake-camera")?;
+    // The reach scene follows the robot: the newest valid joint state (initially the
+    // configured initial positions).
+    let scene = match args.scene.as_str() {
+        "reach" => {
+            for p in &plans {
+                anyhow::ensure!(
+                    p.format.encoding == ENCODING_RGB8,
+                    "camera {}: the reach scene renders rgb8 only",
+                    p.name
+                );
+            }
+            anyhow::ensure!(
+                cfg.n_dof() >= 3,
+                "the reach scene needs an arm of at least 3 joints, the configuration has {}",
+                cfg.n_dof()
+            );
+            let service = services::joint_state_service(&node, &ns.joint_state())?;
+            let sub = services::subscriber(&service, &ns.joint_state())?;
+            tracing::info!("fake-camera: reach scene, episode seed {}", args.scene_seed);
+            Some((ReachScene::from_seed(args.scene_seed), sub))
+        }
+        _ => None,
+    };
+    let mut q = [0.0f64; MAX_DOF];
+    for (i, j) in cfg.robot.joints.iter().enumerate().take(MAX_DOF) {
+        q[i] = j.initial_position;
+    }
+    let n_dof = cfg.n_dof().min(MAX_DOF);
 
     struct Live {
         plan: CameraPlan,
@@ -309,13 +347,30 @@ pub fn publish(args: &Args) -> anyhow::Result<Summary> {
         if !sleep_until_or_stop(due, stop) {
             break;
         }
+        if let Some((_, sub)) = &scene {
+            while let Ok(Some(s)) = sub.receive() {
+                let m = s.payload();
+                if m.n_dof as usize == n_dof && validate_joint_state(m, None).is_ok() {
+                    q[..n_dof].copy_from_slice(&m.position[..n_dof]);
+                }
+            }
+        }
         let cam = &mut cams[i];
         let capture = monotonic_ns();
         let f = cam.plan.format;
         match cam.publisher.loan_slice(f.bytes()) {
             Ok(mut sample) => {
                 cam.seq += 1;
-                render_frame(sample.payload_mut(), &f, &cam.pattern, cam.seq);
+                match &scene {
+                    Some((sc, _)) => sc.render_rgb(
+                        &q[..n_dof],
+                        f.width as usize,
+                        f.height as usize,
+                        f.stride as usize,
+                        sample.payload_mut(),
+                    ),
+                    None => render_frame(sample.payload_mut(), &f, &cam.pattern, cam.seq),
+                }
                 *sample.user_header_mut() = CameraFrameHeader {
                     seq: cam.seq,
                     capture_time_ns: capture,
@@ -418,6 +473,8 @@ mod tests {
             height: None,
             seed: 0,
             duration: None,
+            scene: "pattern".to_string(),
+            scene_seed: 0,
         };
         let p = plan(&cfg.cameras, &args).unwrap();
         assert_eq!(p.len(), cfg.cameras.len());

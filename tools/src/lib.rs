@@ -6,5 +6,6 @@ pub mod common;
 pub mod fake_camera;
 pub mod fake_robot;
 pub mod monitor;
+pub mod scene;
 pub mod shutdown;
 pub mod testing;
