@@ -181,7 +181,7 @@ fn pi0_batch2_gqa2_cached_uncached_rows_and_vjp() {
 }
 
 #[test]
-fn loss_is_differentiable_end_to_end_for_the_transformer() {
+fn loss_is_differentiable_end_to_end_through_vision_and_transformer() {
     let cfg = small_config(true);
     let (model, vm) = random_model(&cfg).unwrap();
     let inp = inputs(&cfg);
@@ -201,6 +201,8 @@ fn loss_is_differentiable_end_to_end_for_the_transformer() {
                 || k.starts_with("action")
                 || k.starts_with("time_mlp")
                 || k.contains("language_model.layers.0.")
+                || k.contains("vision_tower")
+                || k.contains("multi_modal_projector")
         })
         .filter(|(_, v)| grads.get(v.as_tensor()).is_some())
         .count();
@@ -211,10 +213,13 @@ fn loss_is_differentiable_end_to_end_for_the_transformer() {
                 || k.starts_with("action")
                 || k.starts_with("time_mlp")
                 || k.contains("language_model.layers.0.")
+                || k.contains("vision_tower")
+                || k.contains("multi_modal_projector")
         })
         .count();
     println!(
-        "action expert / heads / first VLM layer parameters with a gradient: {with_grad}/{total}"
+        "vision / projector / first VLM layer / action expert / heads parameters with a gradient: \
+         {with_grad}/{total}"
     );
     assert_eq!(with_grad, total);
 }

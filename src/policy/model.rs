@@ -335,7 +335,12 @@ impl PiModel {
 
     /// `embed_prefix`: concat(image embeddings per camera, embed(ids) * sqrt(W)) [B, P, W].
     pub fn embed_prefix(&self, inp: &ModelInputs) -> Result<Tensor, PolicyError> {
-        self.embed_prefix_inner(inp, false)
+        self.embed_prefix_inner(inp, false, false)
+    }
+
+    /// [`Self::embed_prefix`]; `diff` selects ops with a backward (training).
+    pub fn embed_prefix_with(&self, inp: &ModelInputs, diff: bool) -> Result<Tensor, PolicyError> {
+        self.embed_prefix_inner(inp, false, diff)
     }
 
     /// `skip_masked`: cameras masked in every batch row get zeros instead of a vision pass (their
@@ -344,6 +349,7 @@ impl PiModel {
         &self,
         inp: &ModelInputs,
         skip_masked: bool,
+        diff: bool,
     ) -> Result<Tensor, PolicyError> {
         let b = self.check_inputs(inp)?;
         let run: Vec<usize> = (0..inp.images.len())
@@ -356,7 +362,7 @@ impl PiModel {
             None
         } else {
             let imgs: Vec<&Tensor> = run.iter().map(|&c| &inp.images[c]).collect();
-            Some(self.vision.forward(&Tensor::cat(&imgs, 0)?)?)
+            Some(self.vision.forward_with(&Tensor::cat(&imgs, 0)?, diff)?)
         };
         let mut parts = Vec::with_capacity(inp.images.len() + 1);
         for c in 0..inp.images.len() {
@@ -498,7 +504,7 @@ impl PiModel {
         cache: &mut Option<PrefixCache>,
         want_out: bool,
     ) -> Result<Option<Tensor>, PolicyError> {
-        let embs = self.embed_prefix_inner(inp, !want_out)?;
+        let embs = self.embed_prefix_inner(inp, !want_out, false)?;
         self.fill_cache_from_embs(inp, &embs, cache, want_out)
     }
 
@@ -889,7 +895,7 @@ impl PiModel {
         let t3 = time.to_dtype(DType::F32)?.reshape((tv.len(), 1, 1))?;
         let x_t = (noise.broadcast_mul(&t3)? + actions.broadcast_mul(&(t3.neg()? + 1.0)?)?)?;
         let u = (noise - actions)?;
-        let embs = self.embed_prefix(inp)?;
+        let embs = self.embed_prefix_inner(inp, false, diff)?;
         let v_t = self.velocity_uncached(inp, &embs, &x_t, &tv, diff)?;
         let per_element = (u - &v_t)?.sqr()?;
         let mean = per_element.mean_all()?;

@@ -1,49 +1,226 @@
 //! SigLIP vision tower + PaliGemma multi-modal projector.
 //!
-//! The tower is `candle_transformers::models::siglip::VisionModel` without its pooling head (its
-//! math and key names are openpi's: conv patch embedding with bias, learned position embedding,
-//! pre-LN encoder with gelu-tanh MLP, `post_layernorm`). The projector is `Linear(Dv -> W, bias)`.
-//! Image tokens are not scaled (openpi removes PaliGemma's `/ sqrt(W)`).
+//! The math and key names are openpi's (HF `SiglipVisionModel` without pooling head): a
+//! non-overlapping conv patch embedding with bias, a learned position embedding, pre-LN encoder
+//! layers (attention without mask, gelu-tanh MLP), `post_layernorm`, then the projector
+//! `Linear(Dv -> W, bias)`. Image tokens are not scaled (openpi removes PaliGemma's `/ sqrt(W)`).
+//!
+//! Written out here rather than reused from `candle_transformers::models::siglip` for two
+//! reasons: every op has a differentiable path (`diff`: compositions with a backward instead of
+//! candle's fused layer-norm / softmax kernels) so the tower can be trained, and the fast path
+//! runs the patch embedding as one matmul over flattened patches and the Q/K/V projections as
+//! one fused matmul over all tokens of all images.
+//!
+//! Shapes: N images, S image size, p patch, g = S/p, T = g² tokens, Dv width, nH heads, hd head
+//! dim, W the language model width.
 
-use candle_core::{Module, Tensor};
-use candle_nn::{Linear, VarBuilder};
-use candle_transformers::models::siglip;
+use candle_core::{Tensor, D};
+use candle_nn::{Init, VarBuilder};
 
 use super::config::VisionDims;
+
+/// `x @ w^T + b` over the last dim, any leading dims (one 2-D matmul).
+fn linear(x: &Tensor, w: &Tensor, b: &Tensor) -> candle_core::Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let k = dims[dims.len() - 1];
+    let rows: usize = dims[..dims.len() - 1].iter().product();
+    let y = x.reshape((rows, k))?.matmul(&w.t()?)?.broadcast_add(b)?;
+    let mut out = dims;
+    let last = out.len() - 1;
+    out[last] = w.dim(0)?;
+    y.reshape(out)
+}
+
+/// LayerNorm weights.
+#[derive(Debug, Clone)]
+struct LayerNorm {
+    w: Tensor,
+    b: Tensor,
+    eps: f64,
+}
+
+impl LayerNorm {
+    fn new(d: usize, eps: f64, vb: VarBuilder) -> candle_core::Result<Self> {
+        Ok(Self {
+            w: vb.get_with_hints(d, "weight", Init::Const(1.0))?,
+            b: vb.get_with_hints(d, "bias", Init::Const(0.0))?,
+            eps,
+        })
+    }
+
+    fn forward(&self, x: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
+        if diff {
+            let mu = x.mean_keepdim(D::Minus1)?;
+            let xc = x.broadcast_sub(&mu)?;
+            let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+            xc.broadcast_div(&(var + self.eps)?.sqrt()?)?
+                .broadcast_mul(&self.w)?
+                .broadcast_add(&self.b)
+        } else {
+            candle_nn::ops::layer_norm(&x.contiguous()?, &self.w, &self.b, self.eps as f32)
+        }
+    }
+}
+
+/// A dense layer's weight [out, in] and bias [out].
+#[derive(Debug, Clone)]
+struct Dense {
+    w: Tensor,
+    b: Tensor,
+}
+
+impl Dense {
+    fn new(i: usize, o: usize, vb: VarBuilder) -> candle_core::Result<Self> {
+        let l = candle_nn::linear(i, o, vb)?;
+        let b = l
+            .bias()
+            .cloned()
+            .ok_or_else(|| candle_core::Error::Msg("linear without bias".into()))?;
+        Ok(Self {
+            w: l.weight().clone(),
+            b,
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        linear(x, &self.w, &self.b)
+    }
+}
+
+#[derive(Debug, Clone)]
+struct EncoderLayer {
+    ln1: LayerNorm,
+    /// Q, K, V stacked: [3 Dv, Dv], [3 Dv].
+    qkv: Dense,
+    out: Dense,
+    ln2: LayerNorm,
+    fc1: Dense,
+    fc2: Dense,
+}
 
 /// Vision tower and projector.
 #[derive(Debug, Clone)]
 pub struct Vision {
-    tower: siglip::VisionModel,
-    projector: Linear,
+    dims: VisionDims,
+    /// Patch embedding as a matrix over flattened (c, y, x) patches: [Dv, 3 p²], bias [Dv].
+    patch: Dense,
+    /// [T, Dv].
+    pos: Tensor,
+    layers: Vec<EncoderLayer>,
+    post_ln: LayerNorm,
+    projector: Dense,
 }
 
 impl Vision {
     /// `vb` at `paligemma_with_expert.paligemma.model`.
     pub fn new(dims: &VisionDims, width: usize, vb: VarBuilder) -> candle_core::Result<Self> {
-        let cfg = siglip::VisionConfig {
-            hidden_size: dims.hidden_size,
-            intermediate_size: dims.intermediate_size,
-            num_hidden_layers: dims.num_hidden_layers,
-            num_attention_heads: dims.num_attention_heads,
-            num_channels: 3,
-            image_size: dims.image_size,
-            patch_size: dims.patch_size,
-            hidden_act: candle_nn::Activation::GeluPytorchTanh,
-            layer_norm_eps: dims.layer_norm_eps,
-        };
-        let tower = siglip::VisionModel::new(&cfg, false, vb.pp("vision_tower.vision_model"))?;
-        let projector = candle_nn::linear(
-            dims.hidden_size,
-            width,
-            vb.pp("multi_modal_projector.linear"),
+        let d = dims.hidden_size;
+        let p = dims.patch_size;
+        let t = dims.num_tokens();
+        let eps = dims.layer_norm_eps;
+        let vm = vb.pp("vision_tower.vision_model");
+        let emb = vm.pp("embeddings");
+        // conv weight [Dv, 3, p, p] -> [Dv, 3 p²] (row-major: c, then y, then x)
+        let pw = emb.pp("patch_embedding").get_with_hints(
+            (d, 3, p, p),
+            "weight",
+            candle_nn::init::DEFAULT_KAIMING_NORMAL,
         )?;
-        Ok(Vision { tower, projector })
+        let pb = emb
+            .pp("patch_embedding")
+            .get_with_hints(d, "bias", Init::Const(0.0))?;
+        let pos = emb.pp("position_embedding").get_with_hints(
+            (t, d),
+            "weight",
+            Init::Randn {
+                mean: 0.0,
+                stdev: 0.02,
+            },
+        )?;
+        let mut layers = Vec::with_capacity(dims.num_hidden_layers);
+        for i in 0..dims.num_hidden_layers {
+            let l = vm.pp(format!("encoder.layers.{i}"));
+            let a = l.pp("self_attn");
+            let q = Dense::new(d, d, a.pp("q_proj"))?;
+            let k = Dense::new(d, d, a.pp("k_proj"))?;
+            let v = Dense::new(d, d, a.pp("v_proj"))?;
+            let qkv = Dense {
+                w: Tensor::cat(&[&q.w, &k.w, &v.w], 0)?,
+                b: Tensor::cat(&[&q.b, &k.b, &v.b], 0)?,
+            };
+            layers.push(EncoderLayer {
+                ln1: LayerNorm::new(d, eps, l.pp("layer_norm1"))?,
+                qkv,
+                out: Dense::new(d, d, a.pp("out_proj"))?,
+                ln2: LayerNorm::new(d, eps, l.pp("layer_norm2"))?,
+                fc1: Dense::new(d, dims.intermediate_size, l.pp("mlp.fc1"))?,
+                fc2: Dense::new(dims.intermediate_size, d, l.pp("mlp.fc2"))?,
+            });
+        }
+        Ok(Vision {
+            dims: dims.clone(),
+            patch: Dense {
+                w: pw.reshape((d, 3 * p * p))?,
+                b: pb,
+            },
+            pos,
+            layers,
+            post_ln: LayerNorm::new(d, eps, vm.pp("post_layernorm"))?,
+            projector: Dense::new(d, width, vb.pp("multi_modal_projector.linear"))?,
+        })
     }
 
     /// SigLIP last hidden state: images [N, 3, S, S] in [-1, 1] -> [N, T, Dv].
     pub fn tower(&self, images: &Tensor) -> candle_core::Result<Tensor> {
-        self.tower.forward(images)
+        self.tower_with(images, false)
+    }
+
+    /// [`Self::tower`]; `diff` selects ops with a backward.
+    pub fn tower_with(&self, images: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
+        let (n, c, s, _) = images.dims4()?;
+        let p = self.dims.patch_size;
+        let g = s / p;
+        let d = self.dims.hidden_size;
+        let nh = self.dims.num_attention_heads;
+        let hd = d / nh;
+        // [N, 3, g, p, g, p] -> [N, g, g, 3, p, p] -> [N, T, 3 p²]
+        let patches = images
+            .reshape((n, c, g, p, g, p))?
+            .permute((0, 2, 4, 1, 3, 5))?
+            .contiguous()?
+            .reshape((n, g * g, c * p * p))?;
+        // [N, T, Dv]
+        let mut x = self.patch.forward(&patches)?.broadcast_add(&self.pos)?;
+        let t = g * g;
+        let scale = (hd as f64).powf(-0.5);
+        for l in &self.layers {
+            let h = l.ln1.forward(&x, diff)?;
+            // [N, T, 3, nH, hd] -> 3 x [N, nH, T, hd]
+            let qkv = l.qkv.forward(&h)?.reshape((n, t, 3, nh, hd))?;
+            let head = |i: usize| -> candle_core::Result<Tensor> {
+                qkv.narrow(2, i, 1)?
+                    .squeeze(2)?
+                    .transpose(1, 2)?
+                    .contiguous()
+            };
+            let q = (head(0)? * scale)?;
+            let k = head(1)?;
+            let v = head(2)?;
+            // [N, nH, T, T]
+            let sc = q.matmul(&k.t()?)?;
+            let pr = if diff {
+                candle_nn::ops::softmax(&sc, D::Minus1)?
+            } else {
+                candle_nn::ops::softmax_last_dim(&sc)?
+            };
+            // [N, nH, T, hd] -> [N, T, Dv]
+            let o = pr.matmul(&v)?.transpose(1, 2)?.reshape((n, t, d))?;
+            x = (x + l.out.forward(&o)?)?;
+            let h = l.ln2.forward(&x, diff)?;
+            let m = l.fc2.forward(&l.fc1.forward(&h)?.gelu()?)?;
+            x = (x + m)?;
+        }
+        self.post_ln.forward(&x, diff)
     }
 
     /// Projector: [N, T, Dv] -> [N, T, W].
@@ -53,6 +230,11 @@ impl Vision {
 
     /// Image token embeddings: [N, 3, S, S] -> [N, T, W].
     pub fn forward(&self, images: &Tensor) -> candle_core::Result<Tensor> {
-        self.projector.forward(&self.tower(images)?)
+        self.forward_with(images, false)
+    }
+
+    /// [`Self::forward`]; `diff` selects ops with a backward.
+    pub fn forward_with(&self, images: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
+        self.projector.forward(&self.tower_with(images, diff)?)
     }
 }
