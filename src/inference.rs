@@ -57,6 +57,64 @@ impl PolicySource {
     pub fn horizon(&self) -> usize {
         self.policy.horizon()
     }
+
+    /// Sets the prompt given to the policy from now on.
+    pub fn set_prompt(&mut self, prompt: &str) {
+        self.prompt = prompt.to_string();
+    }
+
+    /// One chunk from frames and a joint state observed at `t_obs_ns`, guided by `request` when
+    /// it asks for real-time chunking. (The inference thread's `compute`, and in-process
+    /// closed-loop evaluation.)
+    pub fn infer_chunk(
+        &mut self,
+        frames: &[RawFrame<'_>],
+        joint_state: &chunkrt_ipc::JointState,
+        t_obs_ns: u64,
+        request: &InferenceRequest,
+    ) -> anyhow::Result<ActionChunk> {
+        let n = self.n_dof.min(joint_state.n_dof as usize);
+        let raw = RawObservation {
+            frames,
+            joint_positions: &joint_state.position[..n],
+            prompt: &self.prompt,
+        };
+        let actions = if request.guided && request.beta > 0.0 {
+            // real-time chunking: guide towards what the robot will execute meanwhile
+            let h = self.policy.horizon().min(request.horizon.max(1));
+            let full_h = self.policy.horizon();
+            self.prefix.clear();
+            self.weights.clear();
+            for i in 0..full_h {
+                let row = &request.prefix[i.min(h - 1)];
+                self.prefix.extend_from_slice(&row[..n]);
+                self.weights.push(if i < h {
+                    request.weights[i] as f32
+                } else {
+                    0.0
+                });
+            }
+            let g = Guidance {
+                prefix: &self.prefix,
+                weights: &self.weights,
+                beta: request.beta as f32,
+            };
+            self.policy.infer_guided(&raw, Some(&g))?
+        } else {
+            self.policy.infer(&raw)?
+        };
+        let chunk = ActionChunk {
+            id: next_chunk_id(),
+            observation_seq: joint_state.seq,
+            t_obs_ns,
+            period_ns: self.period_ns,
+            n_dof: n,
+            actions,
+            ready_ns: monotonic_ns(),
+        };
+        chunk.validate()?;
+        Ok(chunk)
+    }
 }
 
 /// The policy's view of an observation: borrowed frames, no copies.
@@ -86,46 +144,11 @@ impl ChunkSource for PolicySource {
         request: &InferenceRequest,
     ) -> anyhow::Result<Option<ActionChunk>> {
         let frames = raw_frames(obs);
-        let n = self.n_dof.min(obs.joint_state.n_dof as usize);
-        let raw = RawObservation {
-            frames: &frames,
-            joint_positions: &obs.joint_state.position[..n],
-            prompt: &self.prompt,
-        };
-        let actions = if request.guided && request.beta > 0.0 {
-            // real-time chunking: guide towards what the robot will execute meanwhile
-            let h = self.policy.horizon().min(request.horizon.max(1));
-            let full_h = self.policy.horizon();
-            self.prefix.clear();
-            self.weights.clear();
-            for i in 0..full_h {
-                let row = &request.prefix[i.min(h - 1)];
-                self.prefix.extend_from_slice(&row[..n]);
-                self.weights.push(if i < h {
-                    request.weights[i] as f32
-                } else {
-                    0.0
-                });
-            }
-            let g = Guidance {
-                prefix: &self.prefix,
-                weights: &self.weights,
-                beta: request.beta as f32,
-            };
-            self.policy.infer_guided(&raw, Some(&g))?
-        } else {
-            self.policy.infer(&raw)?
-        };
-        let chunk = ActionChunk {
-            id: next_chunk_id(),
-            observation_seq: obs.joint_state.seq,
-            t_obs_ns: obs.t_obs_ns(),
-            period_ns: self.period_ns,
-            n_dof: n,
-            actions,
-            ready_ns: monotonic_ns(),
-        };
-        chunk.validate()?;
-        Ok(Some(chunk))
+        Ok(Some(self.infer_chunk(
+            &frames,
+            &obs.joint_state,
+            obs.t_obs_ns(),
+            request,
+        )?))
     }
 }

@@ -22,10 +22,13 @@ pub mod control;
 pub mod controller;
 pub mod demo;
 pub mod edge;
+pub mod eval;
 pub mod inference;
 pub mod policy;
 pub mod report;
 pub mod rt;
+pub mod task;
+pub mod train;
 
 pub use chunkrt_ipc as ipc;
 pub use chunkrt_ipc::config;

@@ -169,7 +169,7 @@ pub fn to_model_chw(rgb: &[u8], h: usize, w: usize, out: &mut Vec<f32>) {
 }
 
 /// Statistics of one quantity in openpi's `norm_stats.json`.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize, PartialEq)]
 pub struct Stats {
     /// Mean.
     pub mean: Vec<f32>,
@@ -184,7 +184,7 @@ pub struct Stats {
 }
 
 /// openpi `norm_stats.json`: `{"norm_stats": {"state": Stats, "actions": Stats}}`.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize, PartialEq)]
 pub struct NormStats {
     /// State statistics.
     pub state: Stats,
@@ -207,6 +207,12 @@ pub enum NormMode {
 }
 
 impl NormStats {
+    /// The `norm_stats.json` text (openpi's layout).
+    pub fn to_json(&self) -> String {
+        let v = serde_json::json!({ "norm_stats": self });
+        serde_json::to_string_pretty(&v).unwrap_or_default()
+    }
+
     /// Reads a `norm_stats.json`.
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
         let s = std::fs::read_to_string(path)

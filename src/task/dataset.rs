@@ -1,0 +1,394 @@
+//! Expert demonstrations of the reach task, recorded at the policy rate as chunks.
+//!
+//! Every scene (two targets, a random start pose) gives two episodes, one per prompt, so the
+//! data shows the same picture with both instructions. At each policy step `k` the recorder
+//! stores what the robot would send the policy (the rendered camera frame, the joint positions,
+//! the prompt) and the expert's next `H` positions as the action chunk (action 0 is the
+//! position at the observed instant, as on the controller's chunk timeline). A share of the
+//! episodes is knocked off the expert's path once (joint noise, then a new plan from there), so
+//! the data also shows how to recover.
+//!
+//! File format (`dataset.safetensors`, documented in `docs/dataset.md`): N samples, E episodes,
+//! image H×W, horizon Hz, D joints.
+//! - `image` u8 [N, H, W, 3] (RGB rows), `state` f32 [N, D], `actions` f32 [N, Hz, D],
+//!   `episode` u32 [N] (index into the episode tensors);
+//! - `episode_scene_seed` u64 [E], `episode_color` u8 [E] (0 red, 1 blue);
+//! - metadata: `format` = `chunkrt.reach_dataset.v1`, `action_rate_hz`, `camera`, `prompts`
+//!   (JSON list indexed by colour).
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use rand::{Rng, SeedableRng};
+
+use super::expert::Reach;
+use super::{ReachScene, TargetColor, ARM_JOINTS, TASK_DOF};
+
+/// Format tag in the file's metadata.
+pub const FORMAT: &str = "chunkrt.reach_dataset.v1";
+/// Scene seeds of the training data start here; held-out scenes (validation, evaluation, the
+/// demo) use seeds below it.
+pub const TRAIN_SEED_BASE: u64 = 1 << 32;
+
+/// What to record.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DatasetSpec {
+    /// Scenes (two episodes each).
+    pub scenes: usize,
+    /// Seed of the start poses and perturbations.
+    pub seed: u64,
+    /// Actions per chunk.
+    pub horizon: usize,
+    /// Policy rate (Hz).
+    pub action_rate_hz: f64,
+    /// Camera name and frame size.
+    pub camera: String,
+    pub width: usize,
+    pub height: usize,
+    /// Steps recorded after arrival (the robot holding on the target).
+    pub hold_steps: usize,
+    /// Share of episodes perturbed once.
+    pub perturb_share: f64,
+    /// Joint noise of a perturbation (rad, standard deviation).
+    pub perturb_std: f64,
+    /// The robot's home pose (some episodes start there, like the demo).
+    pub home: [f64; TASK_DOF],
+}
+
+/// Recorded samples (see the module documentation for the layout).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Dataset {
+    pub width: usize,
+    pub height: usize,
+    pub horizon: usize,
+    pub n_dof: usize,
+    pub action_rate_hz: f64,
+    pub camera: String,
+    pub image: Vec<u8>,
+    pub state: Vec<f32>,
+    pub actions: Vec<f32>,
+    pub episode: Vec<u32>,
+    pub episode_scene_seed: Vec<u64>,
+    pub episode_color: Vec<u8>,
+}
+
+/// A standard normal sample (Box-Muller).
+fn gaussian(rng: &mut impl Rng) -> f64 {
+    let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
+    let u2: f64 = rng.gen();
+    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+}
+
+/// A start pose: random over the workspace, or the home pose (one in five).
+pub fn random_start(rng: &mut impl Rng, home: &[f64; TASK_DOF]) -> [f64; TASK_DOF] {
+    if rng.gen_bool(0.2) {
+        return *home;
+    }
+    [
+        rng.gen_range(-2.2..2.2),
+        rng.gen_range(0.2..2.3),
+        rng.gen_range(-1.8..1.8),
+        if rng.gen_bool(0.5) { 0.0 } else { 1.0 },
+    ]
+}
+
+impl Dataset {
+    /// Samples.
+    pub fn len(&self) -> usize {
+        self.episode.len()
+    }
+
+    /// No samples.
+    pub fn is_empty(&self) -> bool {
+        self.episode.is_empty()
+    }
+
+    /// Episodes.
+    pub fn episodes(&self) -> usize {
+        self.episode_color.len()
+    }
+
+    /// Colour of sample `i`'s target.
+    pub fn color(&self, i: usize) -> TargetColor {
+        TargetColor::ALL[self.episode_color[self.episode[i] as usize] as usize % 2]
+    }
+
+    /// RGB frame of sample `i`.
+    pub fn frame(&self, i: usize) -> &[u8] {
+        let n = self.width * self.height * 3;
+        &self.image[i * n..(i + 1) * n]
+    }
+
+    /// Joint positions of sample `i`.
+    pub fn state_of(&self, i: usize) -> &[f32] {
+        &self.state[i * self.n_dof..(i + 1) * self.n_dof]
+    }
+
+    /// Action chunk of sample `i`, row-major [horizon][n_dof].
+    pub fn actions_of(&self, i: usize) -> &[f32] {
+        let n = self.horizon * self.n_dof;
+        &self.actions[i * n..(i + 1) * n]
+    }
+
+    /// Records the expert. `progress(done, total)` is called after each scene.
+    pub fn generate(spec: &DatasetSpec, mut progress: impl FnMut(usize, usize)) -> Self {
+        let mut ds = Dataset {
+            width: spec.width,
+            height: spec.height,
+            horizon: spec.horizon,
+            n_dof: TASK_DOF,
+            action_rate_hz: spec.action_rate_hz,
+            camera: spec.camera.clone(),
+            ..Default::default()
+        };
+        let dt = 1.0 / spec.action_rate_hz;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(spec.seed);
+        let frame = spec.width * spec.height * 3;
+        for si in 0..spec.scenes {
+            let seed = TRAIN_SEED_BASE + si as u64;
+            let scene = ReachScene::from_seed(seed);
+            let q0 = random_start(&mut rng, &spec.home);
+            for (ci, color) in TargetColor::ALL.iter().enumerate() {
+                let Some(mut reach) = Reach::plan(&q0, &scene, *color, 0.0) else {
+                    continue;
+                };
+                let ep = ds.episode_color.len() as u32;
+                ds.episode_scene_seed.push(seed);
+                ds.episode_color.push(ci as u8);
+                let steps = (reach.duration / dt).ceil() as usize + spec.hold_steps;
+                let perturb_at = (steps > 6 && rng.gen_bool(spec.perturb_share))
+                    .then(|| rng.gen_range(1..steps - 4));
+                let hold = spec.hold_steps as f64 * dt;
+                let mut k = 0;
+                loop {
+                    let t = k as f64 * dt;
+                    if Some(k) == perturb_at {
+                        let mut q = reach.at(t);
+                        for v in q.iter_mut().take(ARM_JOINTS) {
+                            *v += spec.perturb_std * gaussian(&mut rng);
+                        }
+                        q[1] = q[1].clamp(0.05, 2.5);
+                        if let Some(r) = Reach::plan(&q, &scene, *color, t) {
+                            reach = r;
+                        }
+                    }
+                    let q = reach.at(t);
+                    let start = ds.image.len();
+                    ds.image.resize(start + frame, 0);
+                    scene.render_rgb(
+                        &q,
+                        spec.width,
+                        spec.height,
+                        3 * spec.width,
+                        &mut ds.image[start..],
+                    );
+                    ds.state.extend(q.iter().map(|&v| v as f32));
+                    for i in 0..spec.horizon {
+                        ds.actions
+                            .extend(reach.at(t + i as f64 * dt).iter().map(|&v| v as f32));
+                    }
+                    ds.episode.push(ep);
+                    k += 1;
+                    // until the (possibly re-planned) reach has arrived and held
+                    if t >= reach.end() + hold - 1e-9 {
+                        break;
+                    }
+                }
+            }
+            progress(si + 1, spec.scenes);
+        }
+        ds
+    }
+
+    /// Writes the dataset as safetensors.
+    pub fn save(&self, path: &Path) -> anyhow::Result<()> {
+        use safetensors::tensor::{Dtype, TensorView};
+        let n = self.len();
+        let bytes_f32 = |v: &[f32]| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
+        let state = bytes_f32(&self.state);
+        let actions = bytes_f32(&self.actions);
+        let episode: Vec<u8> = self.episode.iter().flat_map(|x| x.to_le_bytes()).collect();
+        let seeds: Vec<u8> = self
+            .episode_scene_seed
+            .iter()
+            .flat_map(|x| x.to_le_bytes())
+            .collect();
+        let e = self.episodes();
+        let views = vec![
+            (
+                "image",
+                TensorView::new(Dtype::U8, vec![n, self.height, self.width, 3], &self.image)?,
+            ),
+            (
+                "state",
+                TensorView::new(Dtype::F32, vec![n, self.n_dof], &state)?,
+            ),
+            (
+                "actions",
+                TensorView::new(Dtype::F32, vec![n, self.horizon, self.n_dof], &actions)?,
+            ),
+            ("episode", TensorView::new(Dtype::U32, vec![n], &episode)?),
+            (
+                "episode_scene_seed",
+                TensorView::new(Dtype::U64, vec![e], &seeds)?,
+            ),
+            (
+                "episode_color",
+                TensorView::new(Dtype::U8, vec![e], &self.episode_color)?,
+            ),
+        ];
+        let prompts: Vec<&str> = TargetColor::ALL.iter().map(|c| c.prompt()).collect();
+        let meta: HashMap<String, String> = [
+            ("format".to_string(), FORMAT.to_string()),
+            (
+                "action_rate_hz".to_string(),
+                self.action_rate_hz.to_string(),
+            ),
+            ("camera".to_string(), self.camera.clone()),
+            ("prompts".to_string(), serde_json::to_string(&prompts)?),
+        ]
+        .into_iter()
+        .collect();
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        safetensors::tensor::serialize_to_file(views, Some(meta), path)?;
+        Ok(())
+    }
+
+    /// Reads a dataset written by [`Self::save`], checking every tensor's type and shape.
+    pub fn load(path: &Path) -> anyhow::Result<Self> {
+        use safetensors::tensor::Dtype;
+        let bytes = std::fs::read(path)
+            .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
+        let st = safetensors::SafeTensors::deserialize(&bytes)
+            .map_err(|e| anyhow::anyhow!("{}: not a safetensors file: {e}", path.display()))?;
+        let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes)?;
+        let meta = meta.metadata().clone().unwrap_or_default();
+        anyhow::ensure!(
+            meta.get("format").map(String::as_str) == Some(FORMAT),
+            "{}: not a {FORMAT} file (format {:?})",
+            path.display(),
+            meta.get("format")
+        );
+        let get = |name: &str, dtype: Dtype, rank: usize| -> anyhow::Result<(Vec<usize>, &[u8])> {
+            let t = st
+                .tensor(name)
+                .map_err(|e| anyhow::anyhow!("{}: tensor {name}: {e}", path.display()))?;
+            anyhow::ensure!(
+                t.dtype() == dtype && t.shape().len() == rank,
+                "{}: tensor {name} is {:?} {:?}, expected {dtype:?} of rank {rank}",
+                path.display(),
+                t.dtype(),
+                t.shape()
+            );
+            Ok((t.shape().to_vec(), t.data()))
+        };
+        let f32s = |b: &[u8]| -> Vec<f32> {
+            b.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
+        };
+        let (ish, image) = get("image", Dtype::U8, 4)?;
+        let (ssh, state) = get("state", Dtype::F32, 2)?;
+        let (ash, actions) = get("actions", Dtype::F32, 3)?;
+        let (esh, episode) = get("episode", Dtype::U32, 1)?;
+        let (_, seeds) = get("episode_scene_seed", Dtype::U64, 1)?;
+        let (csh, colors) = get("episode_color", Dtype::U8, 1)?;
+        let n = ish[0];
+        anyhow::ensure!(
+            ssh[0] == n && ash[0] == n && esh[0] == n && ssh[1] == ash[2] && ish[3] == 3,
+            "{}: inconsistent shapes image {ish:?} state {ssh:?} actions {ash:?} episode {esh:?}",
+            path.display()
+        );
+        let episode: Vec<u32> = episode
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        anyhow::ensure!(
+            episode.iter().all(|&e| (e as usize) < csh[0]),
+            "{}: episode index out of range",
+            path.display()
+        );
+        let action_rate_hz: f64 = meta
+            .get("action_rate_hz")
+            .and_then(|s| s.parse().ok())
+            .filter(|r: &f64| r.is_finite() && *r > 0.0)
+            .ok_or_else(|| anyhow::anyhow!("{}: bad action_rate_hz", path.display()))?;
+        Ok(Dataset {
+            width: ish[2],
+            height: ish[1],
+            horizon: ash[1],
+            n_dof: ssh[1],
+            action_rate_hz,
+            camera: meta.get("camera").cloned().unwrap_or_default(),
+            image: image.to_vec(),
+            state: f32s(state),
+            actions: f32s(actions),
+            episode,
+            episode_scene_seed: seeds
+                .chunks_exact(8)
+                .map(|c| u64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
+                .collect(),
+            episode_color: colors.to_vec(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec() -> DatasetSpec {
+        DatasetSpec {
+            scenes: 6,
+            seed: 1,
+            horizon: 10,
+            action_rate_hz: 10.0,
+            camera: "base_0_rgb".into(),
+            width: 32,
+            height: 32,
+            hold_steps: 3,
+            perturb_share: 0.5,
+            perturb_std: 0.15,
+            home: [0.0, 1.2, 0.6, 0.0],
+        }
+    }
+
+    #[test]
+    fn chunks_follow_the_expert_and_end_on_the_target() {
+        let ds = Dataset::generate(&spec(), |_, _| {});
+        assert_eq!(ds.episodes(), 12);
+        assert!(ds.len() > 12 * 10, "{}", ds.len());
+        for i in 0..ds.len() {
+            let s = ds.state_of(i);
+            let a = ds.actions_of(i);
+            // action 0 is the observed position
+            for j in 0..TASK_DOF {
+                assert!((a[j] - s[j]).abs() < 1e-6, "sample {i} joint {j}");
+            }
+        }
+        // the last sample of every episode sits on its target with the gripper closed
+        for e in 0..ds.episodes() {
+            let last = (0..ds.len())
+                .rev()
+                .find(|&i| ds.episode[i] as usize == e)
+                .unwrap();
+            let q: Vec<f64> = ds.state_of(last).iter().map(|&v| v as f64).collect();
+            let scene = ReachScene::from_seed(ds.episode_scene_seed[e]);
+            assert!(scene.distance(&q, ds.color(last)) < 1e-3);
+            assert_eq!(q[3], 1.0);
+        }
+    }
+
+    #[test]
+    fn save_and_load_round_trip() {
+        let ds = Dataset::generate(&spec(), |_, _| {});
+        let dir = std::env::temp_dir().join(format!("chunkrt-ds-{}", std::process::id()));
+        let path = dir.join("d.safetensors");
+        ds.save(&path).unwrap();
+        let back = Dataset::load(&path).unwrap();
+        std::fs::remove_dir_all(&dir).ok();
+        assert_eq!(back, ds);
+    }
+}

@@ -1,0 +1,96 @@
+//! The scripted expert: inverse kinematics to the prompted target, then a minimum-jerk motion in
+//! joint space from the current position, the gripper closing on arrival.
+
+use super::{inverse_kinematics, ReachScene, TargetColor, ARM_JOINTS, TASK_DOF};
+
+/// Peak joint velocity of the expert's motion (rad/s); the duration follows from the largest
+/// joint displacement.
+pub const PEAK_VELOCITY: f64 = 1.2;
+/// Shortest motion (s).
+pub const MIN_DURATION: f64 = 0.8;
+
+/// `s³ (10 − 15 s + 6 s²)`: minimum-jerk progress for `s` in [0, 1].
+pub fn min_jerk(s: f64) -> f64 {
+    let s = s.clamp(0.0, 1.0);
+    s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
+}
+
+/// One planned reach: from `start` at time `t0` to `goal` in `duration`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Reach {
+    pub start: [f64; TASK_DOF],
+    pub goal: [f64; TASK_DOF],
+    pub t0: f64,
+    pub duration: f64,
+}
+
+impl Reach {
+    /// Plans the reach for `color` from joint positions `q` at time `t0`; `None` if the target
+    /// has no inverse-kinematics solution.
+    pub fn plan(q: &[f64], scene: &ReachScene, color: TargetColor, t0: f64) -> Option<Self> {
+        let ik = inverse_kinematics(scene.target(color))?;
+        let mut start = [0.0; TASK_DOF];
+        start.copy_from_slice(&q[..TASK_DOF]);
+        let mut goal = start;
+        goal[..ARM_JOINTS].copy_from_slice(&ik);
+        goal[ARM_JOINTS] = 1.0;
+        let d = (0..ARM_JOINTS)
+            .map(|j| (goal[j] - start[j]).abs())
+            .fold(0.0, f64::max);
+        // min-jerk peak velocity is 1.875 · distance / duration
+        let duration = (1.875 * d / PEAK_VELOCITY).max(MIN_DURATION);
+        Some(Reach {
+            start,
+            goal,
+            t0,
+            duration,
+        })
+    }
+
+    /// Arrival time.
+    pub fn end(&self) -> f64 {
+        self.t0 + self.duration
+    }
+
+    /// The expert's joint positions at time `t`: the arm on the min-jerk path, the gripper open
+    /// (0) while moving and closed (1) from arrival on.
+    pub fn at(&self, t: f64) -> [f64; TASK_DOF] {
+        let s = min_jerk((t - self.t0) / self.duration);
+        let mut q = [0.0; TASK_DOF];
+        for (j, v) in q.iter_mut().enumerate().take(ARM_JOINTS) {
+            *v = self.start[j] + (self.goal[j] - self.start[j]) * s;
+        }
+        q[ARM_JOINTS] = if t >= self.end() { 1.0 } else { 0.0 };
+        q
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reach_ends_on_the_target_smoothly() {
+        let scene = ReachScene::from_seed(11);
+        let q0 = [0.0, 1.2, 0.6, 0.0];
+        for c in TargetColor::ALL {
+            let r = Reach::plan(&q0, &scene, c, 0.5).unwrap();
+            assert_eq!(r.at(0.5)[..3], q0[..3]);
+            assert!(scene.distance(&r.at(r.end()), c) < 1e-9);
+            assert_eq!(r.at(r.end() - 1e-3)[3], 0.0);
+            assert_eq!(r.at(r.end())[3], 1.0);
+            // peak velocity within the plan's limit
+            let dt = 1e-3;
+            let mut vmax = 0.0f64;
+            let mut t = r.t0;
+            while t < r.end() {
+                let (a, b) = (r.at(t), r.at(t + dt));
+                for j in 0..3 {
+                    vmax = vmax.max((b[j] - a[j]).abs() / dt);
+                }
+                t += dt;
+            }
+            assert!(vmax <= PEAK_VELOCITY * 1.001, "{vmax}");
+        }
+    }
+}

@@ -1,0 +1,39 @@
+//! The reach task on the controller side: scripted expert demonstrations, the dataset they are
+//! recorded into, and closed-loop episodes in simulated time (training validation, `chunkrt
+//! eval`). The scene itself (geometry, targets, rendering) lives in `chunkrt_tools::scene`, so
+//! the fake camera renders exactly the pixels the policy was trained on.
+
+pub mod dataset;
+pub mod expert;
+pub mod sim;
+pub mod vocab;
+
+pub use chunkrt_tools::scene::{
+    end_effector, inverse_kinematics, ReachScene, TargetColor, TARGET_RADIUS,
+};
+
+use chunkrt_ipc::config::{CameraConfig, Config};
+
+/// Arm joints of the task robot (then the gripper).
+pub const ARM_JOINTS: usize = 3;
+/// Joints of the task robot: 3 arm joints and the gripper.
+pub const TASK_DOF: usize = 4;
+
+/// The camera the task is seen through: the configuration's first camera, which must be rgb8.
+pub fn task_camera(cfg: &Config) -> anyhow::Result<&CameraConfig> {
+    let cam = cfg.cameras.first().ok_or_else(|| {
+        anyhow::anyhow!("the reach task needs a camera; the configuration has none")
+    })?;
+    anyhow::ensure!(
+        cam.encoding == "rgb8",
+        "camera {}: the reach task renders rgb8, the configuration says {}",
+        cam.name,
+        cam.encoding
+    );
+    anyhow::ensure!(
+        cfg.n_dof() == TASK_DOF,
+        "the reach task drives {TASK_DOF} joints (3 arm joints + gripper), the configuration has {}",
+        cfg.n_dof()
+    );
+    Ok(cam)
+}

@@ -1,0 +1,211 @@
+//! Closed-loop episodes of the reach task in simulated time: the real executor (chunk timeline,
+//! transition strategy, ruckig, safety state machine) ticks at the control rate, the real
+//! policy computes every chunk from the rendered frame and joint state, and each chunk is
+//! delivered `delay_steps` action periods after its observation — so the figures measure the
+//! strategies, not this machine's load. The robot follows the command exactly.
+//!
+//! `synchronous` reproduces openpi's `ActionChunkBroker`: the robot executes `s` actions of a
+//! chunk, then stands still while the next chunk is computed (no overlap, no blending).
+
+use chunkrt_ipc::config::Config;
+use chunkrt_ipc::{JointCommand, JointState, ENCODING_RGB8};
+
+use super::{task_camera, ReachScene, TargetColor, TASK_DOF};
+use crate::chunk::ActionChunk;
+use crate::control::{Executor, InferenceRequest, Smoothness, State, Trace};
+use crate::inference::PolicySource;
+use crate::policy::runtime::RawFrame;
+
+/// Simulated time starts here (ns), far from 0 so no timestamp saturates.
+const START_NS: u64 = 1_000_000_000;
+
+/// One episode to run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EpisodeSpec {
+    /// Scene seed (target placement).
+    pub scene_seed: u64,
+    /// Prompted target.
+    pub color: TargetColor,
+    /// Start joint positions.
+    pub start: [f64; TASK_DOF],
+}
+
+/// How the episode is run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimSettings {
+    /// Inference delay in action steps (observation → chunk available).
+    pub delay_steps: u64,
+    /// Give up after this long (s).
+    pub max_seconds: f64,
+    /// Synchronous execution instead of the configured strategy.
+    pub synchronous: bool,
+    /// Keep the joint trajectory and chunk switch times.
+    pub record: bool,
+}
+
+/// The joint trajectory of an episode (every `stride` ticks) and when chunks took effect.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Recording {
+    /// Time (s) and joint positions.
+    pub samples: Vec<(f64, [f64; TASK_DOF])>,
+    /// Times (s) a new chunk took effect.
+    pub switches: Vec<f64>,
+}
+
+/// What happened.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeOutcome {
+    /// The end effector reached the prompted target within the time limit.
+    pub success: bool,
+    /// When it first got there (s).
+    pub time_to_target: Option<f64>,
+    /// It touched the other target first.
+    pub wrong_target: bool,
+    /// Closest approach to the prompted target (m).
+    pub min_distance: f64,
+    /// Switch jumps and jerk of the command while RUNNING.
+    pub smoothness: Smoothness,
+    /// Chunks computed.
+    pub chunks: usize,
+    /// Ticks spent in HOLD.
+    pub hold_ticks: u64,
+    /// Trajectory, when recorded.
+    pub recording: Option<Recording>,
+}
+
+/// Runs one episode with `policy` under `cfg` (its `execution.strategy` unless synchronous).
+pub fn run_episode(
+    cfg: &Config,
+    policy: &mut PolicySource,
+    spec: &EpisodeSpec,
+    settings: &SimSettings,
+) -> anyhow::Result<EpisodeOutcome> {
+    let cam = task_camera(cfg)?.clone();
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let scene = ReachScene::from_seed(spec.scene_seed);
+    let other = TargetColor::ALL
+        .into_iter()
+        .find(|c| *c != spec.color)
+        .unwrap_or(spec.color);
+    let mut cfg = cfg.clone();
+    if settings.synchronous {
+        cfg.execution.strategy = "replace".into();
+    }
+    let mut exec = Executor::new(&cfg)?;
+    let link = exec.connect();
+    policy.set_prompt(spec.color.prompt());
+    let period_ns = (1e9 / cfg.policy.action_rate_hz).round() as u64;
+    let control_ns = cfg.control_period_ns();
+    let s = cfg.execution.execute_horizon.max(1);
+    let delay_ns = settings.delay_steps * period_ns;
+
+    let mut js = JointState {
+        n_dof: TASK_DOF as u32,
+        ..Default::default()
+    };
+    js.position[..TASK_DOF].copy_from_slice(&spec.start);
+    let mut cmd = JointCommand::default();
+    let mut trace = Trace::new(control_ns as f64 * 1e-9, TASK_DOF);
+    trace.skip[TASK_DOF - 1] = true; // the gripper is a step channel
+    let mut image = vec![0u8; w * h * 3];
+    let mut pending: Vec<ActionChunk> = Vec::new();
+    let mut next_sync_obs = START_NS;
+    let mut out = EpisodeOutcome {
+        success: false,
+        time_to_target: None,
+        wrong_target: false,
+        min_distance: f64::INFINITY,
+        smoothness: Smoothness::default(),
+        chunks: 0,
+        hold_ticks: 0,
+        recording: settings.record.then(Recording::default),
+    };
+    let ticks = (settings.max_seconds * 1e9 / control_ns as f64).ceil() as u64;
+    for k in 0..ticks {
+        let now = START_NS + k * control_ns;
+        let t = (now - START_NS) as f64 * 1e-9;
+        js.seq += 1;
+        js.measurement_time_ns = now;
+        let mut observe =
+            |js: &JointState, req: &InferenceRequest| -> anyhow::Result<ActionChunk> {
+                scene.render_rgb(&js.position[..TASK_DOF], w, h, 3 * w, &mut image);
+                let frames = [RawFrame {
+                    camera: &cam.name,
+                    width: w as u32,
+                    height: h as u32,
+                    stride: 3 * w as u32,
+                    encoding: ENCODING_RGB8,
+                    data: &image,
+                }];
+                policy.infer_chunk(&frames, js, now, req)
+            };
+        if settings.synchronous {
+            // the executor's own requests are not used: the broker asks when the robot is done
+            while let Some(req) = link.requests.try_recv() {
+                link.requests.done(req);
+            }
+            if pending.is_empty() && now >= next_sync_obs {
+                let mut c = observe(&js, &InferenceRequest::default())?;
+                out.chunks += 1;
+                // the robot waits: the chunk starts when it arrives; s actions, then it holds
+                // the last of them until the next chunk (which arrives after the delay)
+                let ready = now + delay_ns;
+                let keep = s.min(c.horizon());
+                let last = c.action(keep - 1).to_vec();
+                c.actions.truncate(keep * c.n_dof);
+                for _ in 0..settings.delay_steps + 1 {
+                    c.actions.extend_from_slice(&last);
+                }
+                c.t_obs_ns = ready;
+                c.ready_ns = ready;
+                next_sync_obs = ready + s as u64 * period_ns;
+                pending.push(c);
+            }
+        } else if let Some(req) = link.requests.try_recv() {
+            let mut c = observe(&js, &req)?;
+            out.chunks += 1;
+            c.t_obs_ns = now;
+            c.ready_ns = now + delay_ns;
+            pending.push(c);
+            link.requests.done(req);
+        }
+        while let Some(i) = pending.iter().position(|c| c.ready_ns <= now) {
+            let c = pending.remove(i);
+            drop(link.chunks.send(c));
+        }
+        while link.chunks.take_recycled().is_some() {}
+
+        let r = exec.tick(now, Some(&js), &mut cmd);
+        if r.publish {
+            js.position = cmd.position;
+        }
+        if r.state == State::Running {
+            trace.push(&r.target, &cmd.position, None, r.switched);
+        } else if r.state == State::Hold {
+            out.hold_ticks += 1;
+        }
+        if let Some(rec) = out.recording.as_mut() {
+            if k % 10 == 0 {
+                let mut q = [0.0; TASK_DOF];
+                q.copy_from_slice(&js.position[..TASK_DOF]);
+                rec.samples.push((t, q));
+            }
+            if r.switched {
+                rec.switches.push(t);
+            }
+        }
+        let q = &js.position[..TASK_DOF];
+        let d = scene.distance(q, spec.color);
+        out.min_distance = out.min_distance.min(d);
+        if d <= super::TARGET_RADIUS {
+            out.success = true;
+            out.time_to_target = Some(t);
+            break;
+        }
+        if !out.wrong_target && scene.distance(q, other) <= super::TARGET_RADIUS {
+            out.wrong_target = true;
+        }
+    }
+    out.smoothness = trace.smoothness();
+    Ok(out)
+}
