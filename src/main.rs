@@ -28,6 +28,12 @@ enum Command {
     Inspect(chunkrt::policy::cli::InspectArgs),
     /// Render a folder of HdrHistogram logs into a PNG plot and a Markdown table.
     Report(chunkrt::report::ReportArgs),
+    /// Train the reach task's π0.5 with the flow-matching loss (expert demonstrations,
+    /// AdamW, closed-loop validation); writes an openpi-format checkpoint.
+    Train(chunkrt::train::TrainArgs),
+    /// Closed-loop delay sweep of the chunk strategies (and synchronous execution) on the
+    /// reach task: success rate, time to target, switch jumps, jerk.
+    Eval(chunkrt::eval::EvalArgs),
 }
 
 fn main() {
@@ -42,6 +48,8 @@ fn main() {
         Command::Sample(a) => chunkrt::policy::cli::sample(a),
         Command::Inspect(a) => chunkrt::policy::cli::inspect(a),
         Command::Report(a) => chunkrt::report::run(a),
+        Command::Train(a) => chunkrt::train::run(a),
+        Command::Eval(a) => chunkrt::eval::run(a),
     };
     if let Err(e) = result {
         eprintln!("chunkrt: error: {e:#}");

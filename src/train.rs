@@ -1,0 +1,596 @@
+//! `chunkrt train`: trains the reach task's π0.5 with chunkrt's own flow-matching loss.
+//!
+//! 1. The dataset (expert demonstrations, `task::dataset`) is loaded, or recorded when missing.
+//! 2. openpi's recipe: quantile norm stats of state and actions, the π0.5 prompt with the
+//!    discretised state, t ~ Beta(1.5, 1)·0.999 + 0.001, x_t = t·ε + (1 − t)·a, loss
+//!    ‖(ε − a) − v(x_t, t)‖², AdamW with warm-up, cosine decay and gradient clipping at 1.
+//!    Every op runs in its differentiable form (SigLIP, both experts, the heads).
+//! 3. Every `--val-every-min` minutes the weights are written as a checkpoint (openpi key names,
+//!    `config.json`, `norm_stats.json`, the task's `tokenizer.json`) and driven closed-loop
+//!    through held-out episodes by the real executor (`task::sim`); the best one so far is kept
+//!    in `--out`.
+//!
+//! A progress line shows step, loss, samples/s, time and the last validation.
+
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context;
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use rand::{Rng, SeedableRng};
+
+use chunkrt_ipc::config::Config;
+
+use crate::inference::PolicySource;
+use crate::policy::config::ModelConfig;
+use crate::policy::model::{ModelInputs, PiModel};
+use crate::policy::preprocess::{
+    discretize_state, normalize, resize_with_pad, to_model_chw, NormMode, NormStats,
+    PromptTokenizer, Stats,
+};
+use crate::task::dataset::{random_start, Dataset, DatasetSpec};
+use crate::task::sim::{run_episode, EpisodeSpec, SimSettings};
+use crate::task::{task_camera, vocab, TargetColor, TASK_DOF};
+
+/// The model configuration of the embedded default policy.
+pub const MODEL_CONFIG: &str = include_str!("../config/reach_model.json");
+
+/// `chunkrt train`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct TrainArgs {
+    /// Robot / control configuration (default: the embedded demo robot).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Model dimensions, a `config.json` in the fixtures' schema (default:
+    /// `config/reach_model.json`, embedded).
+    #[arg(long, value_name = "FILE")]
+    pub model_config: Option<PathBuf>,
+    /// Where the checkpoint goes (the best one by validation).
+    #[arg(long, default_value = "models/reach_pi05")]
+    pub out: PathBuf,
+    /// Dataset file; recorded with `--scenes` scenes when missing.
+    #[arg(long, default_value = "target/chunkrt-train/dataset.safetensors")]
+    pub dataset: PathBuf,
+    /// Scenes to record when the dataset is missing (two episodes each).
+    #[arg(long, default_value_t = 600)]
+    pub scenes: usize,
+    /// Training time budget (minutes).
+    #[arg(long, default_value_t = 25.0)]
+    pub minutes: f64,
+    /// Stop after this many optimiser steps.
+    #[arg(long, default_value_t = 1_000_000)]
+    pub max_steps: usize,
+    /// Batch size.
+    #[arg(long, default_value_t = 32)]
+    pub batch: usize,
+    /// Peak learning rate.
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    /// Validate (and checkpoint) every this many minutes.
+    #[arg(long, default_value_t = 4.0)]
+    pub val_every_min: f64,
+    /// Held-out closed-loop episodes per validation.
+    #[arg(long, default_value_t = 12)]
+    pub val_episodes: usize,
+    /// Seed of the initialisation, batches and noise.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Data-parallel training workers (threads), each running candle on one core.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// A smoke run: 3 scenes, 6 steps, 1 validation episode (for the tests).
+    #[arg(long)]
+    pub quick: bool,
+}
+
+/// A standard normal sample (Box-Muller).
+fn gaussian(rng: &mut impl Rng) -> f32 {
+    let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
+    let u2: f64 = rng.gen();
+    ((-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()) as f32
+}
+
+/// Mean, std and 1 % / 99 % quantiles of each of `dim` columns of row-major `values`.
+pub fn column_stats(values: &[f32], dim: usize) -> Stats {
+    let mut st = Stats {
+        mean: Vec::with_capacity(dim),
+        std: Vec::with_capacity(dim),
+        q01: Some(Vec::with_capacity(dim)),
+        q99: Some(Vec::with_capacity(dim)),
+    };
+    for j in 0..dim {
+        let mut col: Vec<f32> = values.iter().skip(j).step_by(dim).copied().collect();
+        let n = col.len().max(1) as f64;
+        let mean = col.iter().map(|&v| v as f64).sum::<f64>() / n;
+        let var = col.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
+        col.sort_by(|a, b| a.total_cmp(b));
+        let q = |p: f64| col[((p * (col.len() - 1) as f64).round() as usize).min(col.len() - 1)];
+        st.mean.push(mean as f32);
+        st.std.push(var.sqrt() as f32);
+        if let (Some(a), Some(b)) = (st.q01.as_mut(), st.q99.as_mut()) {
+            a.push(q(0.01));
+            b.push(q(0.99));
+        }
+    }
+    st
+}
+
+/// Model-ready training data: everything but the images is precomputed.
+struct Batcher<'a> {
+    ds: &'a Dataset,
+    cfg: ModelConfig,
+    tokens: Vec<u32>,
+    token_mask: Vec<bool>,
+    state: Vec<f32>,
+    actions: Vec<f32>,
+}
+
+impl<'a> Batcher<'a> {
+    fn new(
+        ds: &'a Dataset,
+        cfg: &ModelConfig,
+        norm: &NormStats,
+        tok: &PromptTokenizer,
+    ) -> anyhow::Result<Self> {
+        let (d, a, h, l) = (
+            ds.n_dof,
+            cfg.action_dim,
+            cfg.action_horizon,
+            cfg.max_token_len,
+        );
+        anyhow::ensure!(
+            d <= a && ds.horizon >= h,
+            "dataset has {d} joints and horizon {}; the model takes ≤ {a} joints and horizon {h}",
+            ds.horizon
+        );
+        let n = ds.len();
+        let mut b = Batcher {
+            ds,
+            cfg: cfg.clone(),
+            tokens: Vec::with_capacity(n * l),
+            token_mask: Vec::with_capacity(n * l),
+            state: Vec::with_capacity(n * a),
+            actions: Vec::with_capacity(n * h * a),
+        };
+        for i in 0..n {
+            let mut s = ds.state_of(i).to_vec();
+            normalize(&mut s, &norm.state, NormMode::Quantile)?;
+            let bins = discretize_state(&s);
+            let (ids, mask) = tok.tokenize(ds.color(i).prompt(), Some(&bins), l)?;
+            b.tokens.extend(ids);
+            b.token_mask.extend(mask);
+            s.resize(a, 0.0);
+            b.state.extend(s);
+            let acts = ds.actions_of(i);
+            for k in 0..h {
+                let mut row = acts[k * d..(k + 1) * d].to_vec();
+                normalize(&mut row, &norm.actions, NormMode::Quantile)?;
+                row.resize(a, 0.0);
+                b.actions.extend(row);
+            }
+        }
+        Ok(b)
+    }
+
+    /// Inputs and normalised actions [B, H, A] of samples `idx`.
+    fn batch(&self, idx: &[usize]) -> anyhow::Result<(ModelInputs, Tensor)> {
+        let dev = Device::Cpu;
+        let c = &self.cfg;
+        let (s, l, a, h) = (
+            c.vision.image_size,
+            c.max_token_len,
+            c.action_dim,
+            c.action_horizon,
+        );
+        let b = idx.len();
+        let mut img = Vec::with_capacity(b * 3 * s * s);
+        let (mut ids, mut st, mut acts) = (
+            Vec::with_capacity(b * l),
+            Vec::with_capacity(b * a),
+            Vec::with_capacity(b * h * a),
+        );
+        let mut masks = Vec::with_capacity(b);
+        for &i in idx {
+            let f = self.ds.frame(i);
+            if self.ds.height == s && self.ds.width == s {
+                to_model_chw(f, s, s, &mut img);
+            } else {
+                let r = resize_with_pad(f, self.ds.height, self.ds.width, s, s)?;
+                to_model_chw(&r, s, s, &mut img);
+            }
+            ids.extend_from_slice(&self.tokens[i * l..(i + 1) * l]);
+            masks.push(self.token_mask[i * l..(i + 1) * l].to_vec());
+            st.extend_from_slice(&self.state[i * a..(i + 1) * a]);
+            acts.extend_from_slice(&self.actions[i * h * a..(i + 1) * h * a]);
+        }
+        let mut images = vec![Tensor::from_vec(img, (b, 3, s, s), &dev)?];
+        let mut image_masks = vec![vec![true; b]];
+        // cameras the task does not have: black and masked, as at inference
+        for _ in 1..c.cameras.len() {
+            images.push(Tensor::full(-1f32, (b, 3, s, s), &dev)?);
+            image_masks.push(vec![false; b]);
+        }
+        Ok((
+            ModelInputs {
+                images,
+                image_masks,
+                tokens: Tensor::from_vec(ids, (b, l), &dev)?,
+                token_mask: masks,
+                state: Tensor::from_vec(st, (b, a), &dev)?,
+            },
+            Tensor::from_vec(acts, (b, h, a), &dev)?,
+        ))
+    }
+}
+
+/// Writes a checkpoint directory: `model.safetensors` (openpi key names), `config.json`,
+/// `norm_stats.json`, `tokenizer.json`.
+pub fn write_checkpoint(
+    dir: &Path,
+    vm: &VarMap,
+    model_config_json: &str,
+    norm: &NormStats,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    vm.save(dir.join("model.safetensors"))?;
+    std::fs::write(dir.join("config.json"), model_config_json)?;
+    std::fs::write(dir.join("norm_stats.json"), norm.to_json())?;
+    std::fs::write(dir.join("tokenizer.json"), vocab::tokenizer_json())?;
+    Ok(())
+}
+
+/// Held-out validation / evaluation episodes: scenes `first..first + n`, alternating prompts,
+/// start poses from `seed`.
+pub fn held_out_episodes(cfg: &Config, first: u64, n: usize, seed: u64) -> Vec<EpisodeSpec> {
+    let mut home = [0.0; TASK_DOF];
+    for (i, j) in cfg.robot.joints.iter().take(TASK_DOF).enumerate() {
+        home[i] = j.initial_position;
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    (0..n)
+        .map(|i| EpisodeSpec {
+            scene_seed: first + (i / 2) as u64,
+            color: TargetColor::ALL[i % 2],
+            start: random_start(&mut rng, &home),
+        })
+        .collect()
+}
+
+/// Closed-loop success of the checkpoint in `dir` over `episodes` (strategy `replace`, no
+/// delay, at most `max_seconds` each). Returns (successes, mean time to target of successes).
+pub fn validate(
+    cfg: &Config,
+    dir: &Path,
+    episodes: &[EpisodeSpec],
+    max_seconds: f64,
+) -> anyhow::Result<(usize, f64)> {
+    let mut c = cfg.clone();
+    c.policy.checkpoint = Some(std::fs::canonicalize(dir)?);
+    c.policy.kind = "pi05".into();
+    c.execution.strategy = "replace".into();
+    let mut policy = PolicySource::load(&c)?;
+    let settings = SimSettings {
+        delay_steps: 0,
+        max_seconds,
+        synchronous: false,
+        record: false,
+    };
+    let mut ok = 0;
+    let mut t = 0.0;
+    for e in episodes {
+        let r = run_episode(&c, &mut policy, e, &settings)?;
+        if r.success {
+            ok += 1;
+            t += r.time_to_target.unwrap_or(0.0);
+        }
+    }
+    Ok((ok, if ok > 0 { t / ok as f64 } else { f64::NAN }))
+}
+
+fn fmt_min(s: f64) -> String {
+    format!("{}:{:02}", (s / 60.0) as u64, (s % 60.0) as u64)
+}
+
+/// Runs `chunkrt train`.
+pub fn run(args: TrainArgs) -> anyhow::Result<()> {
+    // Data parallel over `--threads` workers, each running candle single-threaded: the model's
+    // matrices are too small for candle's spinning thread pool to pay (5x slower per step with
+    // 2 pool threads than with 1 on this 2-core machine under load).
+    std::env::set_var("RAYON_NUM_THREADS", "1");
+    let workers = args.threads.max(1);
+    let cfg = match &args.config {
+        Some(p) => Config::load(p)?,
+        None => Config::embedded_default(),
+    };
+    let cam = task_camera(&cfg)?.clone();
+    let model_json = match &args.model_config {
+        Some(p) => {
+            std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?
+        }
+        None => MODEL_CONFIG.to_string(),
+    };
+    let mcfg = ModelConfig::from_json_str(&model_json)?;
+    anyhow::ensure!(
+        mcfg.vocab_size >= vocab::vocab_len(),
+        "model vocab_size {} < the task vocabulary {}",
+        mcfg.vocab_size,
+        vocab::vocab_len()
+    );
+    anyhow::ensure!(
+        mcfg.cameras.first() == Some(&cam.name),
+        "the model's first camera is {:?}, the task camera is {}",
+        mcfg.cameras.first(),
+        cam.name
+    );
+    let (scenes, budget_s, max_steps, batch, val_n) = if args.quick {
+        (3, 0.0, 6.min(args.max_steps), args.batch.min(4), 1)
+    } else {
+        (
+            args.scenes,
+            args.minutes * 60.0,
+            args.max_steps,
+            args.batch,
+            args.val_episodes,
+        )
+    };
+    anyhow::ensure!(batch > 0, "--batch must be > 0");
+
+    // 1. data
+    let ds = if args.dataset.exists() && !args.quick {
+        eprintln!("[train] dataset {}", args.dataset.display());
+        Dataset::load(&args.dataset)?
+    } else {
+        let mut home = [0.0; TASK_DOF];
+        for (i, j) in cfg.robot.joints.iter().take(TASK_DOF).enumerate() {
+            home[i] = j.initial_position;
+        }
+        let spec = DatasetSpec {
+            scenes,
+            seed: args.seed,
+            horizon: mcfg.action_horizon,
+            action_rate_hz: cfg.policy.action_rate_hz,
+            camera: cam.name.clone(),
+            width: cam.width as usize,
+            height: cam.height as usize,
+            hold_steps: 5,
+            perturb_share: 0.5,
+            perturb_std: 0.2,
+            home,
+        };
+        let t0 = Instant::now();
+        let ds = Dataset::generate(&spec, |done, total| {
+            if done % 50 == 0 || done == total {
+                eprint!("\r[train] recording expert demonstrations: {done}/{total} scenes");
+            }
+        });
+        eprintln!(
+            "\n[train] {} samples from {} episodes in {:.1} s",
+            ds.len(),
+            ds.episodes(),
+            t0.elapsed().as_secs_f64()
+        );
+        ds.save(&args.dataset)?;
+        eprintln!("[train] dataset written to {}", args.dataset.display());
+        ds
+    };
+    anyhow::ensure!(!ds.is_empty(), "the dataset is empty");
+    anyhow::ensure!(
+        (ds.action_rate_hz - cfg.policy.action_rate_hz).abs() < 1e-9,
+        "dataset recorded at {} Hz, the configuration's policy runs at {} Hz",
+        ds.action_rate_hz,
+        cfg.policy.action_rate_hz
+    );
+
+    // 2. normalisation, tokenizer, model
+    let norm = NormStats {
+        state: column_stats(&ds.state, ds.n_dof),
+        actions: column_stats(&ds.actions, ds.n_dof),
+    };
+    let tok_dir = std::env::temp_dir().join(format!("chunkrt-tok-{}", std::process::id()));
+    std::fs::create_dir_all(&tok_dir)?;
+    std::fs::write(tok_dir.join("tokenizer.json"), vocab::tokenizer_json())?;
+    let tok = PromptTokenizer::from_file(&tok_dir.join("tokenizer.json"))?;
+    std::fs::remove_dir_all(&tok_dir).ok();
+    let batcher = Batcher::new(&ds, &mcfg, &norm, &tok)?;
+
+    let dev = Device::Cpu;
+    let vm = VarMap::new();
+    let model = PiModel::new(&mcfg, VarBuilder::from_varmap(&vm, DType::F32, &dev))?;
+    let n_params: usize = vm.all_vars().iter().map(|v| v.elem_count()).sum();
+    eprintln!(
+        "[train] π0.5 {}: {n_params} parameters ({:.1} MB f32), batch {batch}, lr {}, budget {}",
+        args.out.display(),
+        n_params as f64 * 4.0 / 1e6,
+        args.lr,
+        fmt_min(budget_s)
+    );
+    let mut opt = AdamW::new(
+        vm.all_vars(),
+        ParamsAdamW {
+            lr: args.lr,
+            beta1: 0.9,
+            beta2: 0.95,
+            eps: 1e-8,
+            weight_decay: 1e-4,
+        },
+    )?;
+
+    let val_eps = held_out_episodes(&cfg, 1_000, val_n, args.seed ^ 0xbeef);
+    let val_seconds = if args.quick { 0.5 } else { 6.0 };
+    let log_dir = args
+        .dataset
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("."));
+    std::fs::create_dir_all(&log_dir)?;
+    let log_path = log_dir.join("train_log.csv");
+    let mut log = std::fs::File::create(&log_path)?;
+    writeln!(log, "step,elapsed_s,loss,lr,val_success,val_episodes")?;
+    let candidate = args.out.with_extension("candidate");
+    let tty = std::io::stderr().is_terminal();
+
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
+    let t0 = Instant::now();
+    let mut ema = f64::NAN;
+    let mut best: Option<usize> = None;
+    let mut last_val = String::from("-");
+    let mut next_val = args.val_every_min * 60.0;
+    let mut last_print = 0.0;
+    let warmup = 200usize;
+    let mut step = 0usize;
+    loop {
+        let elapsed = t0.elapsed().as_secs_f64();
+        let done = step >= max_steps || (budget_s > 0.0 && elapsed >= budget_s);
+        if done || elapsed >= next_val {
+            // validation + checkpoint
+            write_checkpoint(&candidate, &vm, &model_json, &norm)?;
+            let (ok, ttt) = validate(&cfg, &candidate, &val_eps, val_seconds)?;
+            last_val = format!("{ok}/{} (t {:.2} s)", val_eps.len(), ttt);
+            writeln!(log, "{step},{elapsed:.1},{ema:.5},,{ok},{}", val_eps.len())?;
+            let better = best.is_none_or(|b| ok >= b);
+            if better {
+                best = Some(ok);
+                write_checkpoint(&args.out, &vm, &model_json, &norm)?;
+            }
+            eprintln!(
+                "{}[train] step {step}  {}  loss {ema:.4}  validation: {last_val} success{}",
+                if tty { "\n" } else { "" },
+                fmt_min(elapsed),
+                if better { "  -> kept" } else { "" }
+            );
+            next_val = t0.elapsed().as_secs_f64() + args.val_every_min * 60.0;
+            if done {
+                break;
+            }
+        }
+        // learning rate: linear warm-up, then cosine to 10 % over the budget
+        let progress = if budget_s > 0.0 {
+            (elapsed / budget_s).max(step as f64 / max_steps as f64)
+        } else {
+            step as f64 / max_steps.max(1) as f64
+        }
+        .min(1.0);
+        let lr = if step < warmup {
+            args.lr * (step + 1) as f64 / warmup as f64
+        } else {
+            args.lr * (0.1 + 0.9 * 0.5 * (1.0 + (std::f64::consts::PI * progress).cos()))
+        };
+        opt.set_learning_rate(lr);
+
+        let idx: Vec<usize> = (0..batch).map(|_| rng.gen_range(0..ds.len())).collect();
+        let (h, a) = (mcfg.action_horizon, mcfg.action_dim);
+        // noise and times from the seeded generator (deterministic for a given seed)
+        let noise: Vec<f32> = (0..batch * h * a).map(|_| gaussian(&mut rng)).collect();
+        let time: Vec<f32> = (0..batch)
+            .map(|_| {
+                let u: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
+                // Beta(1.5, 1) by inversion: F(x) = x^1.5
+                (u.powf(1.0 / 1.5) * 0.999 + 0.001) as f32
+            })
+            .collect();
+        // data parallel: each worker runs forward + backward on its share of the batch
+        let share = batch.div_ceil(workers);
+        let results: Vec<anyhow::Result<(candle_core::backprop::GradStore, f64, usize)>> =
+            std::thread::scope(|sc| {
+                let handles: Vec<_> = (0..batch)
+                    .step_by(share)
+                    .map(|lo| {
+                        let hi = (lo + share).min(batch);
+                        let (model, batcher, idx) = (&model, &batcher, &idx);
+                        let (noise, time) = (&noise[lo * h * a..hi * h * a], &time[lo..hi]);
+                        sc.spawn(move || -> anyhow::Result<_> {
+                            let n = hi - lo;
+                            let (inp, actions) = batcher.batch(&idx[lo..hi])?;
+                            let noise = Tensor::from_slice(noise, (n, h, a), &Device::Cpu)?;
+                            let time = Tensor::from_slice(time, n, &Device::Cpu)?;
+                            let loss = model.loss(&inp, &actions, &noise, &time, true)?.mean;
+                            let l = loss.to_scalar::<f32>()? as f64;
+                            Ok((loss.backward()?, l, n))
+                        })
+                    })
+                    .collect();
+                handles
+                    .into_iter()
+                    .map(|h| {
+                        h.join()
+                            .unwrap_or_else(|_| Err(anyhow::anyhow!("training worker panicked")))
+                    })
+                    .collect()
+            });
+        let mut parts = Vec::with_capacity(results.len());
+        for r in results {
+            parts.push(r?);
+        }
+        let l = parts.iter().map(|(_, l, n)| l * *n as f64).sum::<f64>() / batch as f64;
+        // batch-mean gradient, then global-norm clipping at 1
+        let vars = vm.all_vars();
+        let mut rest = parts.split_off(1);
+        let Some((mut grads, _, n0)) = parts.pop() else {
+            anyhow::bail!("no training worker ran");
+        };
+        let mut sq = 0f64;
+        for v in &vars {
+            let Some(g0) = grads.remove(v.as_tensor()) else {
+                continue;
+            };
+            let mut g = (g0 * (n0 as f64 / batch as f64))?;
+            for (gs, _, n) in rest.iter_mut() {
+                if let Some(gi) = gs.remove(v.as_tensor()) {
+                    g = (g + (gi * (*n as f64 / batch as f64))?)?;
+                }
+            }
+            sq += g.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
+            grads.insert(v.as_tensor(), g);
+        }
+        let norm_g = sq.sqrt();
+        if norm_g > 1.0 {
+            for v in &vars {
+                if let Some(g) = grads.remove(v.as_tensor()) {
+                    grads.insert(v.as_tensor(), (g / norm_g)?);
+                }
+            }
+        }
+        opt.step(&grads)?;
+        anyhow::ensure!(l.is_finite(), "loss became {l} at step {step}");
+        ema = if ema.is_nan() {
+            l
+        } else {
+            0.98 * ema + 0.02 * l
+        };
+        step += 1;
+        if step % 50 == 0 {
+            writeln!(
+                log,
+                "{step},{:.1},{ema:.5},{lr:.6},,",
+                t0.elapsed().as_secs_f64()
+            )?;
+        }
+        let now = t0.elapsed().as_secs_f64();
+        if now - last_print >= if tty { 1.0 } else { 30.0 } {
+            last_print = now;
+            let sps = step as f64 * batch as f64 / now.max(1e-9);
+            let line = format!(
+                "[train] step {step}  loss {ema:.4}  lr {lr:.2e}  {sps:.0} samples/s  {} / {}  last validation {last_val}",
+                fmt_min(now),
+                fmt_min(budget_s)
+            );
+            if tty {
+                eprint!("\r{line}\x1b[K");
+            } else {
+                eprintln!("{line}");
+            }
+        }
+    }
+    std::fs::remove_dir_all(&candidate).ok();
+    eprintln!(
+        "[train] done: {step} steps in {}, best validation {}/{} episodes; checkpoint {}; log {}",
+        fmt_min(t0.elapsed().as_secs_f64()),
+        best.unwrap_or(0),
+        val_eps.len(),
+        args.out.display(),
+        log_path.display()
+    );
+    Ok(())
+}
