@@ -1,0 +1,405 @@
+//! `chunkrt eval`: the closed-loop delay sweep of the RTC paper, on the reach task.
+//!
+//! For each injected inference delay d = 0 … N action steps and each way of executing chunks
+//! (`replace`, `crossfade`, `temporal_ensemble`, `rtc`, and `sync`: the robot waits for every
+//! chunk, as openpi's `ActionChunkBroker`), the same K held-out episodes run in simulated time
+//! (`task::sim`: real executor, real policy, real ruckig). Reported per cell: success rate with
+//! a 95 % Wilson interval, mean time to target of the successes, the largest jump of the target
+//! at a chunk switch, and the RMS jerk of the command — as a table (stdout and Markdown), a CSV
+//! and a PNG.
+
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context;
+
+use chunkrt_ipc::config::Config;
+
+use crate::inference::PolicySource;
+use crate::task::sim::{run_episode, EpisodeOutcome, SimSettings};
+use crate::train::held_out_episodes;
+
+/// Every way of executing chunks the sweep knows.
+pub const STRATEGIES: [&str; 5] = ["sync", "replace", "crossfade", "temporal_ensemble", "rtc"];
+/// First scene seed of the evaluation episodes (validation uses 1000.., training ≥ 2³²).
+pub const EVAL_SCENE_BASE: u64 = 2_000;
+
+/// `chunkrt eval`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct EvalArgs {
+    /// Robot / execution configuration (default: the embedded demo robot).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Checkpoint (default: the configuration's `policy.checkpoint`).
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Largest injected delay (action steps); the sweep runs 0..=N.
+    #[arg(long, default_value_t = 4)]
+    pub max_delay: u64,
+    /// Strategies, comma separated (sync, replace, crossfade, temporal_ensemble, rtc).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "sync,replace,crossfade,temporal_ensemble,rtc"
+    )]
+    pub strategies: Vec<String>,
+    /// Episodes per cell.
+    #[arg(long, default_value_t = 30)]
+    pub episodes: usize,
+    /// Episode time limit (s).
+    #[arg(long, default_value_t = 8.0)]
+    pub max_seconds: f64,
+    /// Output folder (eval.md, eval.csv, eval.png).
+    #[arg(long, default_value = "target/chunkrt-eval")]
+    pub out: PathBuf,
+    /// A smoke run: delays 0 and 2, 2 episodes per cell, 3 s limit.
+    #[arg(long)]
+    pub quick: bool,
+}
+
+/// One cell of the sweep.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Cell {
+    pub strategy: String,
+    pub delay: u64,
+    pub episodes: usize,
+    pub successes: usize,
+    /// 95 % Wilson interval of the success rate.
+    pub ci: (f64, f64),
+    /// Mean time to target of the successes (s; NaN when none).
+    pub time_to_target: f64,
+    /// Largest target jump at a chunk switch over the cell's episodes (rad).
+    pub max_jump: f64,
+    /// Mean over episodes of the command's RMS jerk (rad/s³).
+    pub rms_jerk: f64,
+    /// Mean share of ticks in HOLD.
+    pub hold_ticks: f64,
+}
+
+impl Cell {
+    /// Success rate.
+    pub fn rate(&self) -> f64 {
+        self.successes as f64 / self.episodes.max(1) as f64
+    }
+}
+
+/// 95 % Wilson score interval of `k` successes in `n` trials.
+pub fn wilson(k: usize, n: usize) -> (f64, f64) {
+    if n == 0 {
+        return (0.0, 1.0);
+    }
+    let (n, p, z) = (n as f64, k as f64 / n as f64, 1.96f64);
+    let den = 1.0 + z * z / n;
+    let centre = (p + z * z / (2.0 * n)) / den;
+    let half = z * (p * (1.0 - p) / n + z * z / (4.0 * n * n)).sqrt() / den;
+    ((centre - half).max(0.0), (centre + half).min(1.0))
+}
+
+fn summarise(strategy: &str, delay: u64, outs: &[EpisodeOutcome]) -> Cell {
+    let n = outs.len();
+    let k = outs.iter().filter(|o| o.success).count();
+    let t: Vec<f64> = outs.iter().filter_map(|o| o.time_to_target).collect();
+    Cell {
+        strategy: strategy.to_string(),
+        delay,
+        episodes: n,
+        successes: k,
+        ci: wilson(k, n),
+        time_to_target: if t.is_empty() {
+            f64::NAN
+        } else {
+            t.iter().sum::<f64>() / t.len() as f64
+        },
+        max_jump: outs
+            .iter()
+            .map(|o| o.smoothness.max_switch_jump_target)
+            .fold(0.0, f64::max),
+        rms_jerk: outs.iter().map(|o| o.smoothness.rms_jerk).sum::<f64>() / n.max(1) as f64,
+        hold_ticks: outs.iter().map(|o| o.hold_ticks as f64).sum::<f64>() / n.max(1) as f64,
+    }
+}
+
+/// The Markdown table of a sweep.
+pub fn markdown(cells: &[Cell]) -> String {
+    let mut s = String::from(
+        "| strategy | delay (steps) | success | 95 % CI | time to target (s) | max switch jump (rad) | RMS jerk (rad/s³) |\n\
+         |---|---:|---:|---|---:|---:|---:|\n",
+    );
+    for c in cells {
+        s.push_str(&format!(
+            "| {} | {} | {}/{} ({:.0} %) | {:.0}–{:.0} % | {:.2} | {:.4} | {:.0} |\n",
+            c.strategy,
+            c.delay,
+            c.successes,
+            c.episodes,
+            100.0 * c.rate(),
+            100.0 * c.ci.0,
+            100.0 * c.ci.1,
+            c.time_to_target,
+            c.max_jump,
+            c.rms_jerk
+        ));
+    }
+    s
+}
+
+/// Runs the sweep; `progress(done, total, cell so far)` after each episode.
+pub fn sweep(
+    cfg: &Config,
+    strategies: &[String],
+    delays: &[u64],
+    episodes: usize,
+    max_seconds: f64,
+    mut progress: impl FnMut(usize, usize, &str, u64),
+) -> anyhow::Result<Vec<Cell>> {
+    for s in strategies {
+        anyhow::ensure!(
+            STRATEGIES.contains(&s.as_str()),
+            "unknown strategy {s:?}: one of {}",
+            STRATEGIES.join(", ")
+        );
+    }
+    let specs = held_out_episodes(cfg, EVAL_SCENE_BASE, episodes, 0xe7a1);
+    let mut policy = PolicySource::load(cfg)?;
+    let total = strategies.len() * delays.len() * episodes;
+    let mut done = 0;
+    let mut cells = Vec::new();
+    for &d in delays {
+        for s in strategies {
+            let mut c = cfg.clone();
+            let sync = s == "sync";
+            if !sync {
+                c.execution.strategy = s.clone();
+            }
+            // the executor's delay estimate starts at the injected delay
+            c.execution.initial_delay_steps = d as usize;
+            let settings = SimSettings {
+                delay_steps: d,
+                max_seconds,
+                synchronous: sync,
+                record: false,
+            };
+            let mut outs = Vec::with_capacity(episodes);
+            for e in &specs {
+                outs.push(run_episode(&c, &mut policy, e, &settings)?);
+                done += 1;
+                progress(done, total, s, d);
+            }
+            cells.push(summarise(s, d, &outs));
+        }
+    }
+    Ok(cells)
+}
+
+/// Success rate (with the 95 % intervals) and max switch jump against the delay, one line per
+/// strategy.
+pub fn plot(path: &Path, cells: &[Cell]) -> anyhow::Result<()> {
+    use plotters::prelude::*;
+    let strategies: Vec<&str> = {
+        let mut v: Vec<&str> = Vec::new();
+        for c in cells {
+            if !v.contains(&c.strategy.as_str()) {
+                v.push(&c.strategy);
+            }
+        }
+        v
+    };
+    let dmax = cells.iter().map(|c| c.delay).max().unwrap_or(1).max(1) as f64;
+    let jmax = cells.iter().map(|c| c.max_jump).fold(1e-3, f64::max) * 1.1;
+    let root = BitMapBackend::new(path, (1100, 460)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let (left, right) = root.split_horizontally(550);
+    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot {}: {e}", path.display());
+    let mut a = ChartBuilder::on(&left)
+        .caption("success rate vs inference delay", ("sans-serif", 18))
+        .margin(10)
+        .x_label_area_size(40)
+        .y_label_area_size(50)
+        .build_cartesian_2d(-0.3f64..dmax + 0.3, 0f64..1.05)
+        .map_err(|e| err(&e))?;
+    a.configure_mesh()
+        .x_desc("injected delay (action steps)")
+        .y_desc("success rate (95 % CI)")
+        .draw()
+        .map_err(|e| err(&e))?;
+    let mut b = ChartBuilder::on(&right)
+        .caption("largest target jump at a chunk switch", ("sans-serif", 18))
+        .margin(10)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(-0.3f64..dmax + 0.3, 0f64..jmax)
+        .map_err(|e| err(&e))?;
+    b.configure_mesh()
+        .x_desc("injected delay (action steps)")
+        .y_desc("rad")
+        .draw()
+        .map_err(|e| err(&e))?;
+    let n = strategies.len().max(1) as f64;
+    for (i, s) in strategies.iter().enumerate() {
+        let color = Palette99::pick(i).to_rgba();
+        // small horizontal offsets keep the error bars apart
+        let dx = (i as f64 - (n - 1.0) / 2.0) * 0.06;
+        let mine: Vec<&Cell> = cells.iter().filter(|c| c.strategy == *s).collect();
+        a.draw_series(LineSeries::new(
+            mine.iter().map(|c| (c.delay as f64 + dx, c.rate())),
+            color.stroke_width(2),
+        ))
+        .map_err(|e| err(&e))?
+        .label(*s)
+        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+        a.draw_series(mine.iter().map(|c| {
+            ErrorBar::new_vertical(
+                c.delay as f64 + dx,
+                c.ci.0,
+                c.rate(),
+                c.ci.1,
+                color.stroke_width(1),
+                6,
+            )
+        }))
+        .map_err(|e| err(&e))?;
+        b.draw_series(LineSeries::new(
+            mine.iter().map(|c| (c.delay as f64, c.max_jump)),
+            color.stroke_width(2),
+        ))
+        .map_err(|e| err(&e))?;
+        b.draw_series(
+            mine.iter()
+                .map(|c| Circle::new((c.delay as f64, c.max_jump), 3, color.filled())),
+        )
+        .map_err(|e| err(&e))?;
+    }
+    a.configure_series_labels()
+        .position(SeriesLabelPosition::LowerLeft)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 14))
+        .margin(8)
+        .draw()
+        .map_err(|e| err(&e))?;
+    root.present().map_err(|e| err(&e))?;
+    Ok(())
+}
+
+/// Runs `chunkrt eval`.
+pub fn run(args: EvalArgs) -> anyhow::Result<()> {
+    let mut cfg = match &args.config {
+        Some(p) => Config::load(p)?,
+        None => Config::embedded_default(),
+    };
+    if let Some(c) = &args.checkpoint {
+        cfg.policy.checkpoint = Some(
+            std::fs::canonicalize(c)
+                .with_context(|| format!("checkpoint {} does not exist", c.display()))?,
+        );
+        if cfg.policy.kind == "hold" {
+            cfg.policy.kind = "pi05".into();
+        }
+    }
+    let (delays, episodes, max_seconds): (Vec<u64>, usize, f64) = if args.quick {
+        (vec![0, 2.min(args.max_delay)], 2, 3.0)
+    } else {
+        (
+            (0..=args.max_delay).collect(),
+            args.episodes,
+            args.max_seconds,
+        )
+    };
+    anyhow::ensure!(episodes > 0, "--episodes must be > 0");
+    let tty = std::io::stderr().is_terminal();
+    let t0 = Instant::now();
+    let mut last = 0.0;
+    let cells = sweep(
+        &cfg,
+        &args.strategies,
+        &delays,
+        episodes,
+        max_seconds,
+        |done, total, s, d| {
+            let now = t0.elapsed().as_secs_f64();
+            if done == total || now - last >= if tty { 0.5 } else { 20.0 } {
+                last = now;
+                let eta = now / done as f64 * (total - done) as f64;
+                let line = format!(
+                    "[eval] {done}/{total} episodes  now: {s} at delay {d}  elapsed {now:.0} s  eta {eta:.0} s"
+                );
+                if tty {
+                    eprint!("\r{line}\x1b[K");
+                } else {
+                    eprintln!("{line}");
+                }
+            }
+        },
+    )?;
+    if tty {
+        eprintln!();
+    }
+    let md = markdown(&cells);
+    println!("{md}");
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    std::fs::write(args.out.join("eval.md"), &md)?;
+    let mut csv = std::fs::File::create(args.out.join("eval.csv"))?;
+    writeln!(
+        csv,
+        "strategy,delay_steps,episodes,successes,ci_low,ci_high,time_to_target_s,max_switch_jump_rad,rms_jerk,hold_ticks"
+    )?;
+    for c in &cells {
+        writeln!(
+            csv,
+            "{},{},{},{},{:.4},{:.4},{:.4},{:.6},{:.2},{:.1}",
+            c.strategy,
+            c.delay,
+            c.episodes,
+            c.successes,
+            c.ci.0,
+            c.ci.1,
+            c.time_to_target,
+            c.max_jump,
+            c.rms_jerk,
+            c.hold_ticks
+        )?;
+    }
+    let png = args.out.join("eval.png");
+    match plot(&png, &cells) {
+        Ok(()) => println!("plot: {}", png.display()),
+        Err(e) => eprintln!("[eval] no plot: {e}"),
+    }
+    // one line: the best strategy at the largest delay vs synchronous execution
+    let dmax = *delays.last().unwrap_or(&0);
+    let at = |s: &str| cells.iter().find(|c| c.strategy == s && c.delay == dmax);
+    if let (Some(rtc), Some(sync)) = (at("rtc"), at("sync")) {
+        println!(
+            "at delay {dmax}: rtc {}/{} in {:.2} s vs sync {}/{} in {:.2} s ({:.2}x the time); {:.0} s for {} episodes",
+            rtc.successes,
+            rtc.episodes,
+            rtc.time_to_target,
+            sync.successes,
+            sync.episodes,
+            sync.time_to_target,
+            sync.time_to_target / rtc.time_to_target,
+            t0.elapsed().as_secs_f64(),
+            cells.len() * episodes
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wilson_interval_matches_known_values() {
+        // 8/10: 0.490–0.943 (standard tables)
+        let (lo, hi) = wilson(8, 10);
+        assert!(
+            (lo - 0.490).abs() < 0.002 && (hi - 0.943).abs() < 0.002,
+            "{lo} {hi}"
+        );
+        let (lo, hi) = wilson(0, 20);
+        assert!(lo == 0.0 && (hi - 0.161).abs() < 0.002, "{hi}");
+        assert_eq!(wilson(0, 0), (0.0, 1.0));
+    }
+}
