@@ -51,6 +51,12 @@ pub struct RunArgs {
     /// (render with `chunkrt report DIR`).
     #[arg(long, value_name = "FILE")]
     pub histogram_log: Option<PathBuf>,
+    /// Override `policy.prompt` (the task the policy is asked to do).
+    #[arg(long)]
+    pub prompt: Option<String>,
+    /// Override `policy.kind` (`hold` runs without a model: the robot is held where it is).
+    #[arg(long, value_parser = ["hold", "pi0", "pi05"])]
+    pub policy: Option<String>,
 }
 
 /// Loads the configuration named by `--config` (or the embedded default) and applies
@@ -731,7 +737,13 @@ pub fn frames_per_camera(cfg: &Config, shared: &Shared) -> String {
 
 /// `chunkrt run`: the controller until SIGINT / SIGTERM or `--duration`.
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
-    let cfg = load_config(args.config.as_ref(), args.namespace.as_deref())?;
+    let mut cfg = load_config(args.config.as_ref(), args.namespace.as_deref())?;
+    if let Some(p) = &args.prompt {
+        cfg.policy.prompt = p.clone();
+    }
+    if let Some(k) = &args.policy {
+        cfg.policy.kind = k.clone();
+    }
     let stop_flag = chunkrt_tools::shutdown::flag();
     tracing::info!(
         "chunkrt run: robot '{}' ({} joints) on '{}', {} camera(s), control at {} Hz, policy '{}'",

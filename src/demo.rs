@@ -1,6 +1,13 @@
-//! `chunkrt demo`: starts the fake camera, the simulated robot and the controller as separate
-//! processes over real iceoryx2 services, shows a live status line, and stops them cleanly
-//! after `--duration` or Ctrl-C with a summary.
+//! `chunkrt demo`: the whole system on the reach task. The simulated robot, the fake camera
+//! (rendering the arm and two targets from the robot's joint states) and the controller (with
+//! the trained π0.5) run as separate processes over real iceoryx2 services. One episode per
+//! prompt: the controller is started with the prompt, a live status line shows its state, chunk
+//! latency, tick p99 and the distance to the prompted target, and the episode ends on reaching
+//! the target (or at the time limit). Then a report: success, time to target, latency
+//! percentiles, and a PNG of the joint trajectories with chunk boundaries marked.
+//!
+//! With `policy.kind = "hold"` (or a configuration that is not the reach task) the processes
+//! simply run for `--duration` and the summary shows what the controller did.
 
 use std::fs::File;
 use std::io::Write;
@@ -12,8 +19,11 @@ use anyhow::Context;
 
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
-    controller_state_name, monotonic_ns, ControllerStatus, JointState, RejectReason,
+    controller_state_name, ControllerStatus, JointCommand, JointState, RejectReason,
 };
+
+use crate::report::{fmt_us, latency_histogram};
+use crate::task::{ReachScene, TargetColor, TARGET_RADIUS};
 
 /// `chunkrt demo`.
 #[derive(Debug, clap::Args)]
@@ -21,9 +31,25 @@ pub struct DemoArgs {
     /// Configuration file (default: the embedded demo robot).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Seconds to run (Ctrl-C stops earlier).
+    /// Seconds to run without a task policy (Ctrl-C stops earlier).
     #[arg(long, default_value_t = 6.0)]
     pub duration: f64,
+    /// Scene seed: where the two targets are.
+    #[arg(long, default_value_t = 7)]
+    pub seed: u64,
+    /// Prompts, one episode each (comma separated).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "reach the red target,reach the blue target"
+    )]
+    pub prompts: Vec<String>,
+    /// Time limit of an episode (s).
+    #[arg(long, default_value_t = 10.0)]
+    pub episode_seconds: f64,
+    /// Where the report (demo.md) and plot (demo.png) go.
+    #[arg(long, default_value = "target/chunkrt-demo")]
+    pub out: PathBuf,
     /// Service namespace (default: `<robot.namespace>-<pid>`, so a demo never collides with
     /// another running chunkrt).
     #[arg(long)]
@@ -77,6 +103,270 @@ fn stop(p: &mut Proc, timeout: Duration) -> String {
     }
 }
 
+/// One episode as the demo saw it over IPC.
+#[derive(Debug, Clone, Default)]
+pub struct EpisodeReport {
+    pub prompt: String,
+    /// The end effector reached the prompted target.
+    pub success: bool,
+    /// From the first command sampled from a chunk to reaching the target (s).
+    pub time_to_target: Option<f64>,
+    /// When the target was reached, since the controller started (s).
+    pub reached_at: Option<f64>,
+    /// Closest approach to the prompted target (m).
+    pub min_distance: f64,
+    /// Per-chunk inference latency (observation → chunk ready), as the status reports it (ns).
+    pub chunk_latency_ns: Vec<u64>,
+    /// The controller's last status (tick quantiles, overruns, hold entries, ...).
+    pub status: ControllerStatus,
+    /// Time since the episode started (s) and joint positions.
+    pub trajectory: Vec<(f64, Vec<f64>)>,
+    /// Times (s) the command switched to a new chunk.
+    pub switches: Vec<f64>,
+    /// How the controller process ended.
+    pub controller_exit: String,
+}
+
+struct Ports {
+    status: iceoryx2::port::subscriber::Subscriber<services::Ipc, ControllerStatus, ()>,
+    js: iceoryx2::port::subscriber::Subscriber<services::Ipc, JointState, ()>,
+    cmd: iceoryx2::port::subscriber::Subscriber<services::Ipc, JointCommand, ()>,
+}
+
+fn live(line: &str, tty: bool, last: &mut f64, now: f64) {
+    if tty {
+        print!("\r{line}\x1b[K");
+        let _ = std::io::stdout().flush();
+    } else if now - *last >= 1.0 {
+        println!("{line}");
+        *last = now;
+    }
+}
+
+/// Runs one episode: starts the controller with `prompt`, follows it until the target is
+/// reached (plus a short settle) or `limit_s`, stops it.
+#[allow(clippy::too_many_arguments)]
+fn episode(
+    exe: &Path,
+    run_args: &[String],
+    log_dir: &Path,
+    ports: &Ports,
+    scene: Option<&ReachScene>,
+    prompt: &str,
+    limit_s: f64,
+    label: &str,
+    stop_flag: &std::sync::atomic::AtomicBool,
+) -> anyhow::Result<EpisodeReport> {
+    let mut args = run_args.to_vec();
+    args.extend(["--prompt".to_string(), prompt.to_string()]);
+    let mut ctl = spawn(exe, "controller", &args, log_dir)?;
+    let color = TargetColor::from_prompt(prompt);
+    let t0 = Instant::now();
+    let tty = std::io::IsTerminal::is_terminal(&std::io::stdout());
+    let mut rep = EpisodeReport {
+        prompt: prompt.to_string(),
+        min_distance: f64::INFINITY,
+        ..Default::default()
+    };
+    let mut js = JointState::default();
+    let mut last_chunk = 0u64;
+    let mut last_chunks_count = 0u64;
+    let mut motion_start: Option<f64> = None;
+    let mut settle_until: Option<f64> = None;
+    let mut last_line = -1.0;
+    let mut dist = f64::NAN;
+    loop {
+        std::thread::sleep(Duration::from_millis(2));
+        let now = t0.elapsed().as_secs_f64();
+        while let Ok(Some(s)) = ports.status.receive() {
+            let st = *s.payload();
+            if st.chunks > last_chunks_count && st.last_inference_latency_ns > 0 {
+                rep.chunk_latency_ns.push(st.last_inference_latency_ns);
+            }
+            last_chunks_count = st.chunks;
+            rep.status = st;
+        }
+        while let Ok(Some(s)) = ports.cmd.receive() {
+            let c = s.payload();
+            if c.chunk_id != 0 && c.chunk_id != last_chunk {
+                if last_chunk != 0 {
+                    rep.switches.push(now);
+                }
+                last_chunk = c.chunk_id;
+                motion_start.get_or_insert(now);
+            }
+        }
+        let mut fresh = false;
+        while let Ok(Some(s)) = ports.js.receive() {
+            js = *s.payload();
+            fresh = true;
+        }
+        let n = (js.n_dof as usize).min(chunkrt_ipc::MAX_DOF);
+        if fresh && n > 0 {
+            let q = js.position[..n].to_vec();
+            if let (Some(sc), Some(c)) = (scene, color) {
+                dist = sc.distance(&q, c);
+                rep.min_distance = rep.min_distance.min(dist);
+                if dist <= TARGET_RADIUS && !rep.success {
+                    rep.success = true;
+                    rep.time_to_target = Some(now - motion_start.unwrap_or(now));
+                    rep.reached_at = Some(now);
+                    settle_until = Some(now + 0.8);
+                }
+            }
+            if rep.trajectory.last().is_none_or(|(t, _)| now - t >= 0.01) {
+                rep.trajectory.push((now, q));
+            }
+        }
+        let st = &rep.status;
+        let line = format!(
+            "[{label} {now:>4.1}s] {:<8} chunks {:>3}  chunk latency {:>5.1} ms  tick p99 {:>6} us  lateness p99 {:>6} us  distance to {} {:.3} m{}",
+            controller_state_name(st.state),
+            st.chunks,
+            st.last_inference_latency_ns as f64 / 1e6,
+            fmt_us(st.compute_p99_ns),
+            fmt_us(st.lateness_p99_ns),
+            color.map(|c| c.name()).unwrap_or("target"),
+            dist,
+            if rep.success { "  REACHED" } else { "" }
+        );
+        live(&line, tty, &mut last_line, now);
+        if !matches!(ctl.child.try_wait(), Ok(None)) {
+            rep.controller_exit = stop(&mut ctl, Duration::from_secs(1));
+            anyhow::bail!(
+                "the controller exited early ({}); its log: {}\n{}",
+                rep.controller_exit,
+                ctl.log.display(),
+                std::fs::read_to_string(&ctl.log).unwrap_or_default()
+            );
+        }
+        if settle_until.is_some_and(|t| now >= t)
+            || now >= limit_s
+            || stop_flag.load(std::sync::atomic::Ordering::Relaxed)
+        {
+            break;
+        }
+    }
+    if tty {
+        println!();
+    }
+    rep.controller_exit = stop(&mut ctl, Duration::from_secs(5));
+    Ok(rep)
+}
+
+/// Joint trajectories of every episode, one panel each, with chunk switches as thin vertical
+/// lines and the moment the target was reached as a thick one.
+pub fn plot_episodes(path: &Path, joints: &[String], eps: &[EpisodeReport]) -> anyhow::Result<()> {
+    use plotters::prelude::*;
+    if let Some(d) = path.parent() {
+        std::fs::create_dir_all(d)?;
+    }
+    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot {}: {e}", path.display());
+    let h = 300 * eps.len().max(1) as u32;
+    let root = BitMapBackend::new(path, (1000, h)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let panels = root.split_evenly((eps.len().max(1), 1));
+    for (ep, area) in eps.iter().zip(panels.iter()) {
+        let t_end = ep.trajectory.last().map(|p| p.0).unwrap_or(1.0).max(0.5);
+        let (lo, hi) = ep
+            .trajectory
+            .iter()
+            .flat_map(|(_, q)| q.iter().copied())
+            .fold((f64::MAX, f64::MIN), |(a, b), v| (a.min(v), b.max(v)));
+        let (lo, hi) = if lo <= hi {
+            (lo - 0.2, hi + 0.2)
+        } else {
+            (-1.0, 1.0)
+        };
+        let title = format!(
+            "\"{}\": {}",
+            ep.prompt,
+            match ep.time_to_target {
+                Some(t) if ep.success => format!("reached in {t:.2} s"),
+                _ => format!("not reached (closest {:.3} m)", ep.min_distance),
+            }
+        );
+        let mut chart = ChartBuilder::on(area)
+            .caption(title, ("sans-serif", 18))
+            .margin(10)
+            .x_label_area_size(35)
+            .y_label_area_size(50)
+            .build_cartesian_2d(0f64..t_end, lo..hi)
+            .map_err(|e| err(&e))?;
+        chart
+            .configure_mesh()
+            .x_desc("time since the controller started (s)")
+            .y_desc("position (rad / gripper 0..1)")
+            .draw()
+            .map_err(|e| err(&e))?;
+        chart
+            .draw_series(ep.switches.iter().map(|&t| {
+                PathElement::new(vec![(t, lo), (t, hi)], BLACK.mix(0.25).stroke_width(1))
+            }))
+            .map_err(|e| err(&e))?
+            .label("chunk switch")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.mix(0.25)));
+        let n = ep.trajectory.first().map(|p| p.1.len()).unwrap_or(0);
+        for j in 0..n {
+            let color = Palette99::pick(j).to_rgba();
+            let name = joints
+                .get(j)
+                .cloned()
+                .unwrap_or_else(|| format!("joint {j}"));
+            chart
+                .draw_series(LineSeries::new(
+                    ep.trajectory.iter().map(|(t, q)| (*t, q[j])),
+                    color.stroke_width(2),
+                ))
+                .map_err(|e| err(&e))?
+                .label(name)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                });
+        }
+        if let Some(t) = ep.reached_at {
+            chart
+                .draw_series(std::iter::once(PathElement::new(
+                    vec![(t, lo), (t, hi)],
+                    GREEN.mix(0.8).stroke_width(3),
+                )))
+                .map_err(|e| err(&e))?
+                .label("target reached")
+                .legend(|(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], GREEN.stroke_width(3))
+                });
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 13))
+            .draw()
+            .map_err(|e| err(&e))?;
+    }
+    root.present().map_err(|e| err(&e))?;
+    Ok(())
+}
+
+fn quantiles_line(name: &str, values: &[u64]) -> String {
+    let mut h = latency_histogram();
+    for &v in values {
+        let _ = h.record(v.max(1));
+    }
+    if h.is_empty() {
+        return format!("{name}: no samples");
+    }
+    let ms = |v: u64| v as f64 / 1e6;
+    format!(
+        "{name}: n {}  p50 {:.1} ms  p99 {:.1} ms  max {:.1} ms",
+        h.len(),
+        ms(h.value_at_quantile(0.5)),
+        ms(h.value_at_quantile(0.99)),
+        ms(h.max())
+    )
+}
+
 /// Runs the demo.
 pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let stop_flag = chunkrt_tools::shutdown::flag();
@@ -92,6 +382,8 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     });
     std::fs::create_dir_all(&log_dir)
         .with_context(|| format!("cannot create {}", log_dir.display()))?;
+    let task = crate::task::task_camera(&cfg).is_ok() && cfg.policy.kind != "hold";
+    let scene = task.then(|| ReachScene::from_seed(args.seed));
 
     let mut common = vec!["--namespace".to_string(), ns.clone()];
     if let Some(c) = &args.config {
@@ -103,91 +395,98 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         v
     };
     println!(
-        "chunkrt demo: robot '{}' ({} joints), {} camera(s), namespace '{ns}', logs in {}",
+        "chunkrt demo: robot '{}' ({} joints), {} camera(s), policy '{}', namespace '{ns}', logs in {}",
         cfg.robot.name,
         cfg.n_dof(),
         cfg.cameras.len(),
+        cfg.policy.kind,
         log_dir.display()
     );
-    let mut procs = vec![
+    let mut cam_args = with("fake-camera");
+    if task {
+        cam_args.extend([
+            "--scene".into(),
+            "reach".into(),
+            "--scene-seed".into(),
+            args.seed.to_string(),
+        ]);
+        if let Some(sc) = &scene {
+            println!(
+                "scene {}: red target at ({:+.2}, {:+.2}) m, blue target at ({:+.2}, {:+.2}) m",
+                args.seed, sc.targets[0][0], sc.targets[0][1], sc.targets[1][0], sc.targets[1][1]
+            );
+        }
+    }
+    let mut procs = [
         spawn(&exe, "fake-robot", &with("fake-robot"), &log_dir)?,
-        spawn(&exe, "fake-camera", &with("fake-camera"), &log_dir)?,
+        spawn(&exe, "fake-camera", &cam_args, &log_dir)?,
     ];
-    let mut run_args = with("run");
-    run_args.extend(["--log-every".into(), "0".into()]);
-    procs.push(spawn(&exe, "controller", &run_args, &log_dir)?);
-
     let node = services::node(&format!("chunkrt-demo-{}", std::process::id()))?;
     let nsp = cfg.namespace();
-    let status_sub = services::subscriber(
-        &services::status_service(&node, &nsp.status())?,
-        &nsp.status(),
-    )?;
-    let js_sub = services::subscriber(
-        &services::joint_state_service(&node, &nsp.joint_state())?,
-        &nsp.joint_state(),
-    )?;
-
+    let ports = Ports {
+        status: services::subscriber(
+            &services::status_service(&node, &nsp.status())?,
+            &nsp.status(),
+        )?,
+        js: services::subscriber(
+            &services::joint_state_service(&node, &nsp.joint_state())?,
+            &nsp.joint_state(),
+        )?,
+        cmd: services::subscriber(
+            &services::joint_command_service(&node, &nsp.joint_command())?,
+            &nsp.joint_command(),
+        )?,
+    };
+    let mut run_args = with("run");
+    run_args.extend(["--log-every".into(), "0".into()]);
     let started = Instant::now();
-    let mut status = ControllerStatus::default();
-    let mut js = JointState::default();
-    let mut first_js: Option<JointState> = None;
-    let mut early_exit = None;
-    let tty = std::io::IsTerminal::is_terminal(&std::io::stdout());
-    let mut last_line = -1.0f64;
-    while started.elapsed().as_secs_f64() < args.duration
-        && !stop_flag.load(std::sync::atomic::Ordering::Relaxed)
-    {
-        std::thread::sleep(Duration::from_millis(100));
-        while let Ok(Some(s)) = status_sub.receive() {
-            status = *s.payload();
+    let prompts: Vec<String> = if task {
+        args.prompts.clone()
+    } else {
+        vec![cfg.policy.prompt.clone()]
+    };
+    let limit = if task {
+        args.episode_seconds
+    } else {
+        args.duration
+    };
+    let mut reports = Vec::new();
+    let mut failure = None;
+    for (i, p) in prompts.iter().enumerate() {
+        if stop_flag.load(std::sync::atomic::Ordering::Relaxed) {
+            break;
         }
-        while let Ok(Some(s)) = js_sub.receive() {
-            js = *s.payload();
-            if first_js.is_none() {
-                first_js = Some(js);
+        if task {
+            println!("-- episode {}/{}: \"{p}\"", i + 1, prompts.len());
+        }
+        let label = format!("{}/{}", i + 1, prompts.len());
+        match episode(
+            &exe,
+            &run_args,
+            &log_dir,
+            &ports,
+            scene.as_ref(),
+            p,
+            limit,
+            &label,
+            stop_flag,
+        ) {
+            Ok(r) => reports.push(r),
+            Err(e) => {
+                failure = Some(e);
+                break;
             }
         }
         if let Some(p) = procs
             .iter_mut()
             .find_map(|p| (!matches!(p.child.try_wait(), Ok(None))).then_some(p.name))
         {
-            early_exit = Some(p);
+            failure = Some(anyhow::anyhow!("{p} exited early; see its log"));
             break;
         }
-        let n = (js.n_dof as usize).min(chunkrt_ipc::MAX_DOF);
-        let pos: Vec<String> = js.position[..n]
-            .iter()
-            .map(|p| format!("{p:+.3}"))
-            .collect();
-        let age_ms = if js.measurement_time_ns == 0 {
-            f64::NAN
-        } else {
-            monotonic_ns().saturating_sub(js.measurement_time_ns) as f64 / 1e6
-        };
-        let line = format!(
-            "[{:>5.1}s] {:<8} ticks {:>6} overruns {:>3} lateness p99 {:>6.0} us  q=[{}] age {:.1} ms   ",
-            started.elapsed().as_secs_f64(),
-            controller_state_name(status.state),
-            status.ticks,
-            status.overruns,
-            status.lateness_p99_ns as f64 / 1e3,
-            pos.join(" "),
-            age_ms,
-        );
-        if tty {
-            print!("\r{line}");
-            let _ = std::io::stdout().flush();
-        } else if (started.elapsed().as_secs_f64() - last_line).abs() >= 1.0 {
-            println!("{line}");
-            last_line = started.elapsed().as_secs_f64().floor();
-        }
     }
-    println!();
-    // stop the controller first, so the robot sees commands stop and holds by itself
     let mut outcomes = Vec::new();
-    for i in [2usize, 1, 0] {
-        let p = &mut procs[i];
+    for p in procs.iter_mut().rev() {
         let how = stop(p, Duration::from_secs(5));
         outcomes.push((p.name, how, p.log.clone()));
     }
@@ -201,31 +500,76 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
             println!("   {line}");
         }
     }
-    if status.ticks > 0 {
-        let rejected: u64 = status.rejected.iter().sum();
-        println!(
-            "controller: {} ticks, {} overruns, {} joint states, {} frames, {} rejected ({})",
-            status.ticks,
-            status.overruns,
-            status.joint_states,
-            status.frames,
-            rejected,
-            RejectReason::ALL
-                .iter()
-                .map(|r| format!("{}={}", r.name(), status.rejected[r.code()]))
-                .collect::<Vec<_>>()
-                .join(" ")
-        );
+    let mut md = String::from(
+        "| episode | prompt | result | time to target | chunks | chunk latency | tick p50 / p99 / max (µs) | lateness p99 (µs) | overruns | hold entries |\n\
+         |---:|---|---|---:|---:|---|---|---:|---:|---:|\n",
+    );
+    let mut all_latency = Vec::new();
+    for (i, r) in reports.iter().enumerate() {
+        let st = &r.status;
+        let lat = quantiles_line("", &r.chunk_latency_ns);
+        all_latency.extend_from_slice(&r.chunk_latency_ns);
+        let result = if !task {
+            controller_state_name(st.state).to_string()
+        } else if r.success {
+            "reached".to_string()
+        } else {
+            format!("not reached ({:.3} m)", r.min_distance)
+        };
+        md.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} / {} / {} | {} | {} | {} |\n",
+            i + 1,
+            r.prompt,
+            result,
+            r.time_to_target
+                .map(|t| format!("{t:.2} s"))
+                .unwrap_or_else(|| "-".into()),
+            st.chunks,
+            lat.trim_start_matches(": "),
+            fmt_us(st.compute_p50_ns),
+            fmt_us(st.compute_p99_ns),
+            fmt_us(st.compute_max_ns),
+            fmt_us(st.lateness_p99_ns),
+            st.overruns,
+            st.hold_entries
+        ));
+        let rejected: u64 = st.rejected.iter().sum();
+        if rejected > 0 {
+            println!(
+                "episode {}: rejected inputs: {}",
+                i + 1,
+                RejectReason::ALL
+                    .iter()
+                    .map(|r| format!("{}={}", r.name(), st.rejected[r.code()]))
+                    .collect::<Vec<_>>()
+                    .join(" ")
+            );
+        }
     }
-    if let (Some(a), true) = (first_js, js.n_dof > 0) {
-        let n = (js.n_dof as usize).min(chunkrt_ipc::MAX_DOF);
-        let drift = (0..n)
-            .map(|i| (js.position[i] - a.position[i]).abs())
-            .fold(0.0, f64::max);
-        println!("robot drift while held: {drift:.2e} rad (max over joints)");
+    println!("\n{md}");
+    println!(
+        "{}",
+        quantiles_line("chunk latency (all episodes)", &all_latency)
+    );
+    if task && !reports.is_empty() {
+        let ok = reports.iter().filter(|r| r.success).count();
+        println!("success: {ok}/{} episodes", reports.len());
     }
-    if let Some(name) = early_exit {
-        anyhow::bail!("{name} exited early; see its log above");
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    std::fs::write(args.out.join("demo.md"), &md)?;
+    let png = args.out.join("demo.png");
+    let names: Vec<String> = cfg.robot.joints.iter().map(|j| j.name.clone()).collect();
+    match plot_episodes(&png, &names, &reports) {
+        Ok(()) => println!(
+            "report: {}  plot: {}",
+            args.out.join("demo.md").display(),
+            png.display()
+        ),
+        Err(e) => println!("no plot: {e}"),
+    }
+    if let Some(e) = failure {
+        return Err(e);
     }
     Ok(())
 }

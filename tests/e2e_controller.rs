@@ -119,7 +119,7 @@ fn controller_holds_the_robot_and_sees_every_camera() {
     let cfg = Config::embedded_default();
     let robot = start("fake-robot", &ns, &[]);
     let camera = start("fake-camera", &ns, &[]);
-    let ctl = start("run", &ns, &["--log-every", "0"]);
+    let ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
     let mut w = Watch::new(&ns);
     // without a policy the executor initialises its generator from the measured state and
     // holds there, waiting for a first chunk (STARTING), publishing every tick
@@ -212,7 +212,7 @@ fn controller_survives_robot_and_camera_restarts() {
     let ns = unique_namespace("restart");
     let robot = start("fake-robot", &ns, &[]);
     let camera = start("fake-camera", &ns, &[]);
-    let mut ctl = start("run", &ns, &["--log-every", "0"]);
+    let mut ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
     let mut w = Watch::new(&ns);
     w.wait_for(Duration::from_secs(15), "hold", |w| {
         holding(&w.last_status) && w.last_status.joint_states > 100
@@ -253,7 +253,7 @@ fn controller_survives_robot_and_camera_restarts() {
 fn malformed_messages_are_rejected_and_counted() {
     let _serial = serial();
     let ns = unique_namespace("bad");
-    let ctl = start("run", &ns, &["--log-every", "0"]);
+    let ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
     let mut w = Watch::new(&ns);
     w.wait_for(Duration::from_secs(15), "the controller's status", |w| {
         w.last_status.seq > 0

@@ -30,7 +30,19 @@ fn python_robot_client_is_controlled_by_chunkrt_run() {
         return;
     }
     let ns = unique_namespace("py");
-    let ctl = ChildGuard::spawn(EXE, &["run", "--namespace", &ns, "--log-every", "0"]).unwrap();
+    let ctl = ChildGuard::spawn(
+        EXE,
+        &[
+            "run",
+            "--namespace",
+            &ns,
+            "--log-every",
+            "0",
+            "--policy",
+            "hold",
+        ],
+    )
+    .unwrap();
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/python/robot_client.py");
     let out = Command::new("python3")
         .args([

@@ -355,3 +355,81 @@ fn cli_sample_and_inspect() {
         .unwrap();
     assert!(!st.status.success());
 }
+
+#[test]
+fn presets_have_openpi_dimensions_and_parameter_counts() {
+    use chunkrt::policy::config::{ModelConfig, ModelKind};
+    let count = |cfg: &ModelConfig| -> f64 {
+        checkpoint::expected_tensors(cfg)
+            .iter()
+            .map(|(_, s)| s.iter().product::<usize>() as f64)
+            .sum()
+    };
+    let pi0 = ModelConfig::preset("pi0").unwrap();
+    let pi05 = ModelConfig::preset("pi05").unwrap();
+    assert_eq!(pi0.kind, ModelKind::Pi0);
+    assert_eq!(pi05.kind, ModelKind::Pi05);
+    for c in [&pi0, &pi05] {
+        // SigLIP So400m/14 at 224, gemma_2b + gemma_300m, 50 x 32 actions
+        assert_eq!(
+            (
+                c.vision.hidden_size,
+                c.vision.num_hidden_layers,
+                c.vision.num_tokens()
+            ),
+            (1152, 27, 256)
+        );
+        assert_eq!(
+            (c.paligemma.width, c.paligemma.depth, c.paligemma.mlp_dim),
+            (2048, 18, 16_384)
+        );
+        assert_eq!(
+            (c.action_expert.width, c.action_expert.mlp_dim),
+            (1024, 4096)
+        );
+        assert_eq!(
+            (c.action_horizon, c.action_dim, c.vocab_size),
+            (50, 32, 257_152)
+        );
+        c.validate().unwrap();
+    }
+    assert_eq!((pi0.max_token_len, pi05.max_token_len), (48, 200));
+    // openpi's π0 has about 3.3 B parameters (PaliGemma 2.9 B + the 300 M action expert)
+    let n = count(&pi0);
+    assert!((3.2e9..3.6e9).contains(&n), "{n}");
+    let n05 = count(&pi05);
+    assert!((3.2e9..3.7e9).contains(&n05), "{n05}");
+    assert!(ModelConfig::preset("pi1").is_err());
+}
+
+#[test]
+fn toml_model_overrides_reach_the_loaded_model() {
+    let text = std::fs::read_to_string(
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/pi05_tiny.toml"),
+    )
+    .unwrap()
+    .replace(
+        "[execution]",
+        "[policy.model]\naction_horizon = 6\ncameras = [\"base_0_rgb\", \"left_wrist_0_rgb\"]\n\n[execution]",
+    );
+    let dir = std::env::temp_dir().join(format!("chunkrt-ovr-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join("config")).unwrap();
+    let path = dir.join("config/over.toml");
+    std::fs::write(&path, &text).unwrap();
+    let mut cfg = chunkrt::config::Config::load(&path).unwrap();
+    cfg.policy.checkpoint = Some(data("pi05_tiny"));
+    let p = Policy::load(&data("pi05_tiny"), &cfg.policy).unwrap();
+    assert_eq!(p.horizon(), 6);
+    assert_eq!(p.model().cfg.cameras.len(), 2);
+    // out-of-range values are rejected at the boundary, naming the key
+    let bad = text.replace("action_horizon = 6", "action_horizon = 0");
+    std::fs::write(&path, &bad).unwrap();
+    let e = chunkrt::config::Config::load(&path)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("policy.model.action_horizon"), "{e}");
+    let bad = text.replace("action_horizon = 6", "horizon = 6");
+    std::fs::write(&path, &bad).unwrap();
+    assert!(chunkrt::config::Config::load(&path).is_err());
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -193,6 +193,25 @@ pub struct PolicyConfig {
     /// Threads for the model (0: all cores but the control core).
     #[serde(default)]
     pub threads: usize,
+    /// Overrides of the checkpoint's model dimensions (`[policy.model]`), for real openpi /
+    /// LeRobot checkpoints that ship no `config.json` (their dimensions come from the preset of
+    /// the detected kind).
+    #[serde(default)]
+    pub model: ModelOverrides,
+}
+
+/// `[policy.model]`: what may differ from the checkpoint's `config.json` or preset.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelOverrides {
+    /// Actions per chunk the checkpoint was trained with.
+    pub action_horizon: Option<usize>,
+    /// Padded action dimension.
+    pub action_dim: Option<usize>,
+    /// Prompt length in tokens.
+    pub max_token_len: Option<usize>,
+    /// Image keys in the model's order (config cameras are matched by name).
+    pub cameras: Option<Vec<String>>,
 }
 
 fn default_policy_kind() -> String {
@@ -214,6 +233,7 @@ impl Default for PolicyConfig {
             num_steps: default_steps(),
             action_rate_hz: default_action_rate_hz(),
             threads: 0,
+            model: ModelOverrides::default(),
         }
     }
 }
@@ -395,9 +415,16 @@ impl Config {
     }
 
     /// The embedded default configuration (the demo robot).
+    /// Relative paths in it (the policy checkpoint) resolve against the repository's `config/`
+    /// folder this binary was built from.
     pub fn embedded_default() -> Self {
-        Self::parse(DEFAULT_TOML, "config/default.toml (embedded)")
-            .expect("the embedded default configuration is valid (checked by tests)")
+        let mut cfg = Self::parse(DEFAULT_TOML, "config/default.toml (embedded)")
+            .expect("the embedded default configuration is valid (checked by tests)");
+        cfg.source = PathBuf::from(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../config/default.toml"
+        ));
+        cfg
     }
 
     /// Parses and validates TOML text; `file` names it in errors.
@@ -512,6 +539,23 @@ impl Config {
         c.range("policy.num_steps", p.num_steps as f64, 1.0, 1000.0)?;
         c.range("policy.action_rate_hz", p.action_rate_hz, 1.0, 1000.0)?;
         c.range("policy.threads", p.threads as f64, 0.0, 1024.0)?;
+        if let Some(v) = p.model.action_horizon {
+            c.range("policy.model.action_horizon", v as f64, 1.0, 1000.0)?;
+        }
+        if let Some(v) = p.model.action_dim {
+            c.range("policy.model.action_dim", v as f64, 1.0, 1024.0)?;
+        }
+        if let Some(v) = p.model.max_token_len {
+            c.range("policy.model.max_token_len", v as f64, 1.0, 8192.0)?;
+        }
+        if let Some(cams) = &p.model.cameras {
+            if cams.is_empty() {
+                return Err(c.fail("policy.model.cameras", "[]", "at least one camera"));
+            }
+            for n in cams {
+                c.name("policy.model.cameras", n)?;
+            }
+        }
         let e = &self.execution;
         c.one_of(
             "execution.strategy",

@@ -70,7 +70,14 @@ impl Policy {
             // candle sizes its CPU thread pool from this variable on first use
             std::env::set_var("RAYON_NUM_THREADS", cfg.threads.to_string());
         }
-        let loaded = checkpoint::load(checkpoint_dir, &ConfigOverrides::default())?;
+        let overrides = ConfigOverrides {
+            action_horizon: cfg.model.action_horizon,
+            action_dim: cfg.model.action_dim,
+            max_token_len: cfg.model.max_token_len,
+            cameras: cfg.model.cameras.clone(),
+            num_denoise_steps: Some(cfg.num_steps),
+        };
+        let loaded = checkpoint::load(checkpoint_dir, &overrides)?;
         let model = loaded.model;
         match (cfg.kind.as_str(), model.cfg.kind) {
             ("pi0", ModelKind::Pi05) | ("pi05", ModelKind::Pi0) => {

@@ -15,7 +15,7 @@ use rand::{Rng, SeedableRng};
 /// Link lengths (m).
 pub const LINKS: [f64; 3] = [0.45, 0.35, 0.15];
 /// Radius of a target disk (m); the end effector inside it counts as reached.
-pub const TARGET_RADIUS: f64 = 0.08;
+pub const TARGET_RADIUS: f64 = 0.1;
 /// Half-width of the square the camera sees (m).
 pub const VIEW_HALF_WIDTH: f64 = 1.05;
 /// Joint ranges a solution must stay inside (rad), with margin to the robot's limits.
@@ -133,7 +133,7 @@ impl ReachScene {
     /// [`inverse_kinematics`], between 0.4 and 0.85 m from the base.
     pub fn from_seed(seed: u64) -> Self {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x7a3e_91c4_d2b8_5f06);
-        let mut sample = |rng: &mut rand_chacha::ChaCha8Rng| loop {
+        let sample = |rng: &mut rand_chacha::ChaCha8Rng| loop {
             let r = rng.gen_range(0.4..0.85);
             let a = rng.gen_range(-std::f64::consts::PI..std::f64::consts::PI);
             let p = [r * a.cos(), r * a.sin()];
