@@ -2,10 +2,13 @@
 //! 1 kHz, idle and with a candle matmul load saturating the other core, next to `cyclictest` on
 //! the same core under the same load (the platform's floor).
 //!
-//! The tick body is pluggable ([`TickFactory`]); until the controller lands the bench runs
-//! [`SyntheticTick`], a scripted test double of a control tick.
+//! The tick body is pluggable ([`TickFactory`]). By default it is the controller's real tick,
+//! [`ExecutorTick`]: the executor (chunk timeline, rtc transitions, ruckig, safety state
+//! machine) of the embedded demo robot, fed by a scripted chunk source (a test double of the
+//! policy, named as such) answering its inference requests from another thread through the
+//! real hand-off channels. [`SyntheticTick`] (a few hundred flops) remains as the floor.
 
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -13,7 +16,9 @@ use super::cyclictest::{self, CyclictestConfig};
 use super::load::MatmulLoad;
 use super::periodic::{run_periodic, PeriodicConfig, SyntheticTick, TickBody};
 use super::{geomean, write_outputs, BenchError, BenchOpts, Outputs};
+use crate::control::{Executor, ScriptedChunkSource, ScriptedConfig};
 use crate::report::{fmt_us, LatencyRow, LatencyTable, Series};
+use chunkrt_ipc::{JointCommand, JointState};
 
 /// Makes a fresh tick body for each scenario.
 pub type TickFactory = Box<dyn Fn() -> Box<dyn TickBody>>;
@@ -50,7 +55,7 @@ pub struct Options {
 
 impl Options {
     /// Defaults: 500 Hz and 1 kHz, 60 s per scenario (quick: 10 s), cyclictest a third of that
-    /// (quick: the same), control on core 1, load on core 0, SCHED_FIFO 80, synthetic tick.
+    /// (quick: the same), control on core 1, load on core 0, SCHED_FIFO 80, the executor tick.
     pub fn new(bench: BenchOpts) -> Self {
         let quick = bench.quick;
         let d = Duration::from_secs(if quick { 10 } else { 60 });
@@ -64,7 +69,96 @@ impl Options {
             load_size: 256,
             fifo_priority: Some(80),
             cyclictest: true,
-            tick: Box::new(|| Box::new(SyntheticTick::default())),
+            tick: Box::new(|| Box::new(ExecutorTick::new())),
+        }
+    }
+
+    /// The same with the synthetic tick body (the floor of the harness itself).
+    pub fn synthetic(mut self) -> Self {
+        self.tick = Box::new(|| Box::new(SyntheticTick::default()));
+        self
+    }
+}
+
+/// The controller's control tick without the IPC edge: [`Executor::tick`] on the embedded demo
+/// robot (rtc, 50 Hz chunks of 50 actions, s = 25), the robot following the command exactly.
+/// Chunks come from a [`ScriptedChunkSource`] (test double of the policy, 5 ms latency) served
+/// by a thread of its own through the executor's real inference hand-off.
+pub struct ExecutorTick {
+    exec: Executor,
+    js: JointState,
+    cmd: JointCommand,
+    stop: Arc<AtomicBool>,
+    server: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ExecutorTick {
+    /// Builds the executor and starts the chunk server thread.
+    pub fn new() -> Self {
+        let mut cfg = chunkrt_ipc::config::Config::embedded_default();
+        cfg.policy.action_rate_hz = 50.0;
+        cfg.execution.execute_horizon = 25;
+        cfg.execution.initial_delay_steps = 1;
+        let exec = Executor::new(&cfg).expect("the embedded configuration is valid");
+        let link = exec.connect();
+        let stop = Arc::new(AtomicBool::new(false));
+        let stop2 = stop.clone();
+        let server = std::thread::Builder::new()
+            .name("scripted-chunks".into())
+            .spawn(move || {
+                let mut src = ScriptedChunkSource::new(ScriptedConfig::demo(5_000_000, 0.02));
+                while !stop2.load(Ordering::Relaxed) {
+                    if let Some(req) = link.requests.try_recv() {
+                        src.start(&req);
+                        link.requests.done(req);
+                    }
+                    if let Some(c) = src.poll(chunkrt_ipc::monotonic_ns()) {
+                        drop(link.chunks.send(c));
+                    }
+                    while link.chunks.take_recycled().is_some() {}
+                    std::thread::sleep(Duration::from_micros(500));
+                }
+            })
+            .ok();
+        let mut js = JointState {
+            n_dof: cfg.n_dof() as u32,
+            ..Default::default()
+        };
+        for (i, j) in cfg.robot.joints.iter().enumerate() {
+            js.position[i] = j.initial_position;
+        }
+        Self {
+            exec,
+            js,
+            cmd: JointCommand::default(),
+            stop,
+            server,
+        }
+    }
+}
+
+impl Default for ExecutorTick {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Drop for ExecutorTick {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(h) = self.server.take() {
+            let _ = h.join();
+        }
+    }
+}
+
+impl TickBody for ExecutorTick {
+    fn tick(&mut self, _index: u64, deadline_ns: u64) {
+        self.js.seq += 1;
+        self.js.measurement_time_ns = deadline_ns;
+        let r = self.exec.tick(deadline_ns, Some(&self.js), &mut self.cmd);
+        if r.publish {
+            self.js.position = self.cmd.position;
         }
     }
 }

@@ -13,6 +13,7 @@
 
 pub mod control_loop;
 pub mod cyclictest;
+pub mod end_to_end;
 pub mod ipc_latency;
 pub mod load;
 pub mod periodic;
