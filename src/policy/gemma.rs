@@ -13,6 +13,7 @@ use candle_core::{DType, Device, Module, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
 
 use super::config::GemmaDims;
+use super::fastops;
 
 /// Additive attention mask value used by openpi (not `-inf`).
 pub const MASK_VALUE: f32 = -2.381_976_3e38;
@@ -262,16 +263,23 @@ pub enum KvMode<'a> {
     },
 }
 
-/// Attention `softmax(q k^T + bias) v` with GQA.
-/// `q` [B, nH, L, hd] (pre-scaled), `k`, `v` [B, nKV, T, hd], `bias` [B, 1, L or 1, T].
-/// Returns [B, L, nH*hd].
+/// Attention `softmax(scale q k^T + bias) v` with GQA.
+/// `q` [B, nH, L, hd], `k`, `v` [B, nKV, T, hd], `bias` [B, 1, L or 1, T].
+/// Returns [B, L, nH*hd]. The fast path is one fused kernel ([`fastops::attention`]).
 pub fn attention(
     q: &Tensor,
     k: &Tensor,
     v: &Tensor,
     bias: &Tensor,
+    scale: f64,
     diff: bool,
 ) -> candle_core::Result<Tensor> {
+    if !diff {
+        if let Some(o) = fastops::attention(q, k, v, bias, scale as f32)? {
+            return Ok(o);
+        }
+    }
+    let q = (q * scale)?;
     let (b, nh, l, hd) = q.dims4()?;
     let nkv = k.dim(1)?;
     let t = k.dim(2)?;
@@ -298,10 +306,15 @@ pub fn attention(
 }
 
 /// `down(gelu_tanh(gate(x)) * up(x))`.
-fn mlp(layer: &ExpertLayer, x: &Tensor) -> candle_core::Result<Tensor> {
-    let g = layer.gate.forward(x)?.gelu()?;
+fn mlp(layer: &ExpertLayer, x: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
+    let g = layer.gate.forward(x)?;
     let u = layer.up.forward(x)?;
-    layer.down.forward(&(g * u)?)
+    if !diff {
+        if let Some(h) = fastops::gelu_mul(&g, &u)? {
+            return layer.down.forward(&h);
+        }
+    }
+    layer.down.forward(&(g.gelu()? * u)?)
 }
 
 /// `[B, L, n*hd]` -> `[B, n, L, hd]`.
@@ -340,14 +353,16 @@ pub fn joint_layer(
     let mut ks = Vec::with_capacity(streams.len());
     let mut vs = Vec::with_capacity(streams.len());
     let mut gates = Vec::with_capacity(streams.len());
+    // all streams share the head dimension (one joint attention)
+    let hd = streams.first().map_or(1, |s| s.expert.dims.head_dim);
+    let scale = (hd as f64).powf(-0.5);
     for s in streams.iter() {
         let layer = &s.expert.layers[li];
         let d = &s.expert.dims;
         let (h, gate) = layer.input_norm.forward(&s.x, s.cond, diff)?;
-        let scale = (d.head_dim as f64).powf(-0.5);
         // [B, nH, L, hd], [B, nKV, L, hd]
         let q = heads(&layer.q.forward(&h)?, d.num_heads, d.head_dim)?;
-        let q = (s.rope.apply(&q, diff)? * scale)?;
+        let q = s.rope.apply(&q, diff)?;
         let k = heads(&layer.k.forward(&h)?, d.num_kv_heads, d.head_dim)?;
         let k = s.rope.apply(&k, diff)?;
         let v = heads(&layer.v.forward(&h)?, d.num_kv_heads, d.head_dim)?;
@@ -372,7 +387,7 @@ pub fn joint_layer(
                 kb.slice_set(&k.contiguous()?, 2, 0)?;
                 vb.slice_set(&v.contiguous()?, 2, 0)?;
             }
-            attention(&q, &k, &v, bias, diff)?
+            attention(&q, &k, &v, bias, scale, diff)?
         }
         KvMode::Cached {
             k: kb,
@@ -393,11 +408,11 @@ pub fn joint_layer(
                 } else {
                     (kk, vv)
                 };
-                attention(&q, &kk, &vv, bias, diff)?
+                attention(&q, &kk, &vv, bias, scale, diff)?
             } else {
                 kb.slice_set(&k.contiguous()?, 2, offset)?;
                 vb.slice_set(&v.contiguous()?, 2, offset)?;
-                attention(&q, kb, vb, bias, diff)?
+                attention(&q, kb, vb, bias, scale, diff)?
             }
         }
     };
@@ -415,7 +430,7 @@ pub fn joint_layer(
         let o = layer.o.forward(&o)?;
         let x1 = gated_residual(&s.x, &o, gate.as_ref())?;
         let (h, gate2) = layer.post_norm.forward(&x1, s.cond, diff)?;
-        let m = mlp(layer, &h)?;
+        let m = mlp(layer, &h, diff)?;
         s.x = gated_residual(&x1, &m, gate2.as_ref())?;
     }
     Ok(())
