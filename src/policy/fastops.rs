@@ -185,6 +185,114 @@ pub fn gelu_mul(g: &Tensor, u: &Tensor) -> Result<Option<Tensor>> {
     }
 }
 
+/// `gelu_tanh(y[.., :f]) * y[.., f:]` for a contiguous f32 CPU tensor `y` [.., 2f] (the output
+/// of a fused gate/up projection). Returns [.., f].
+pub fn gelu_mul_fused(y: &Tensor, f: usize) -> Result<Option<Tensor>> {
+    let dims = y.dims();
+    if !y.is_contiguous() || dims.last() != Some(&(2 * f)) || f == 0 {
+        return Ok(None);
+    }
+    let rows = y.elem_count() / (2 * f);
+    let r = cpu_f32(y, |ys, _| {
+        let mut out = vec![0f32; rows * f];
+        let ys = &ys[..rows * 2 * f];
+        let per = (1 << 14) / f + 1;
+        if threads() > 1 && rows * f > 1 << 16 {
+            out.par_chunks_mut(per * f)
+                .zip(ys.par_chunks(per * 2 * f))
+                .for_each(|(o, y)| {
+                    for (o, y) in o.chunks_exact_mut(f).zip(y.chunks_exact(2 * f)) {
+                        gelu_mul_slice(&y[..f], &y[f..], o);
+                    }
+                });
+        } else {
+            for (o, y) in out.chunks_exact_mut(f).zip(ys.chunks_exact(2 * f)) {
+                gelu_mul_slice(&y[..f], &y[f..], o);
+            }
+        }
+        Ok(out)
+    })?;
+    match r {
+        Some(out) => {
+            let mut shape = dims.to_vec();
+            *shape.last_mut().expect("checked rank") = f;
+            Ok(Some(Tensor::from_vec(out, shape, &Device::Cpu)?))
+        }
+        None => Ok(None),
+    }
+}
+
+/// Columns `col .. col + n * hd` of `x` [B, L, C] (unit column stride, any row stride) as heads
+/// [B, n, L, hd], rotated when `rope` = (cos, sin) [B, L, hd / 2] is given (rotate-half, the same
+/// arithmetic as `candle_nn::rotary_emb::rope`). Replaces narrow + reshape + transpose +
+/// contiguous + rope (three copies) with one pass.
+pub fn split_heads(
+    x: &Tensor,
+    col: usize,
+    n: usize,
+    hd: usize,
+    rope: Option<(&Tensor, &Tensor)>,
+) -> Result<Option<Tensor>> {
+    let (b, l, c) = x.dims3()?;
+    let st = x.stride();
+    if st[2] != 1 || col + n * hd > c || hd % 2 != 0 {
+        return Ok(None);
+    }
+    let (sb, sl) = (st[0], st[1]);
+    let half = hd / 2;
+    let mut out = vec![0f32; b * n * l * hd];
+    let copy = |xs: &[f32], out: &mut [f32], cs: Option<(&[f32], &[f32])>| {
+        for bi in 0..b {
+            for h in 0..n {
+                for li in 0..l {
+                    let src = &xs[bi * sb + li * sl + col + h * hd..][..hd];
+                    let dst = &mut out[((bi * n + h) * l + li) * hd..][..hd];
+                    match cs {
+                        None => dst.copy_from_slice(src),
+                        Some((cos, sin)) => {
+                            let cos = &cos[(bi * l + li) * half..][..half];
+                            let sin = &sin[(bi * l + li) * half..][..half];
+                            let (d1, d2) = dst.split_at_mut(half);
+                            let (s1, s2) = src.split_at(half);
+                            for i in 0..half {
+                                d1[i] = s1[i] * cos[i] - s2[i] * sin[i];
+                                d2[i] = s1[i] * sin[i] + s2[i] * cos[i];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    };
+    let done = cpu_f32(x, |xs, _| match rope {
+        None => {
+            copy(xs, &mut out, None);
+            Ok(Some(()))
+        }
+        Some((cos, sin)) => {
+            let want = [b, l, half];
+            if cos.dims() != want
+                || sin.dims() != want
+                || !cos.is_contiguous()
+                || !sin.is_contiguous()
+            {
+                return Ok(None);
+            }
+            cpu_f32(cos, |cs, _| {
+                cpu_f32(sin, |ss, _| {
+                    copy(xs, &mut out, Some((cs, ss)));
+                    Ok(())
+                })
+            })
+            .map(|r| r.flatten())
+        }
+    })?;
+    if done.flatten().is_none() {
+        return Ok(None);
+    }
+    Ok(Some(Tensor::from_vec(out, (b, n, l, hd), &Device::Cpu)?))
+}
+
 /// A raw pointer that may cross threads (each task writes a disjoint part of the buffer).
 #[derive(Clone, Copy)]
 struct SendPtr(*mut f32);
@@ -363,6 +471,36 @@ mod tests {
         let want = (g.gelu().unwrap() * &u).unwrap();
         let got = gelu_mul(&g, &u).unwrap().unwrap();
         assert!(maxdiff(&want, &got) < 1e-5);
+    }
+
+    #[test]
+    fn fused_gelu_and_heads_match_candle() {
+        let dev = Device::Cpu;
+        let y = Tensor::randn(0f32, 2f32, (2, 7, 2 * 24), &dev).unwrap();
+        let g = y.narrow(2, 0, 24).unwrap();
+        let u = y.narrow(2, 24, 24).unwrap();
+        let want = (g.gelu().unwrap() * &u).unwrap();
+        let got = gelu_mul_fused(&y, 24).unwrap().unwrap();
+        assert!(maxdiff(&want, &got) < 1e-5);
+        // heads with and without rope from a strided (narrowed) input
+        let x = Tensor::randn(0f32, 1f32, (2, 7, 3 * 16 + 8), &dev).unwrap();
+        let cos = Tensor::rand(-1f32, 1f32, (2, 7, 4), &dev).unwrap();
+        let sin = Tensor::rand(-1f32, 1f32, (2, 7, 4), &dev).unwrap();
+        let part = x.narrow(2, 8, 16).unwrap();
+        let heads = part
+            .reshape((2, 7, 2, 8))
+            .unwrap()
+            .transpose(1, 2)
+            .unwrap()
+            .contiguous()
+            .unwrap();
+        let got = split_heads(&x, 8, 2, 8, None).unwrap().unwrap();
+        assert_eq!(maxdiff(&heads, &got), 0.0);
+        let want = candle_nn::rotary_emb::rope(&heads, &cos, &sin).unwrap();
+        let got = split_heads(&x, 8, 2, 8, Some((&cos, &sin)))
+            .unwrap()
+            .unwrap();
+        assert_eq!(maxdiff(&want, &got), 0.0);
     }
 
     #[test]
