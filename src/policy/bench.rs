@@ -207,6 +207,23 @@ pub fn random_model(cfg: &ModelConfig) -> Result<(PiModel, VarMap), PolicyError>
     Ok((m, vm))
 }
 
+/// A model with random weights held the way a loaded checkpoint holds them (plain tensors, not
+/// trainable variables), so the inference fast path (fused projections) is the one measured.
+pub fn random_inference_model(cfg: &ModelConfig) -> Result<PiModel, PolicyError> {
+    let (_, vm) = random_model(cfg)?;
+    let tensors: std::collections::HashMap<String, Tensor> = vm
+        .data()
+        .lock()
+        .map_err(|_| PolicyError::Config("poisoned VarMap".into()))?
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_detached_tensor()))
+        .collect();
+    PiModel::new(
+        cfg,
+        VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu),
+    )
+}
+
 /// Random model-ready inputs with `valid_tokens` valid prompt tokens.
 pub fn random_inputs(
     cfg: &ModelConfig,
@@ -249,7 +266,7 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
         .as_u64()
         .unwrap_or(cfg.max_token_len as u64) as usize;
     let steps = cfg.num_denoise_steps;
-    let (model, _vm) = random_model(&cfg)?;
+    let model = random_inference_model(&cfg)?;
     let inp = random_inputs(&cfg, 1, valid, 1)?;
     let noise = Tensor::randn(
         0f32,

@@ -13,6 +13,7 @@ use candle_core::{DType, Device, Module, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
 
 use super::config::GemmaDims;
+use super::fastops;
 
 /// Additive attention mask value used by openpi (not `-inf`).
 pub const MASK_VALUE: f32 = -2.381_976_3e38;
@@ -185,6 +186,58 @@ pub struct ExpertLayer {
     gate: Linear,
     up: Linear,
     down: Linear,
+    /// Fast path of inference models (weights that are not trainable variables): the Q/K/V
+    /// projections side by side, [W, qd + 2 kvd] row-major, and gate/up, [W, 2 mlp]. `q`..`up`
+    /// are views into these, so the memory is not doubled.
+    qkv: Option<Tensor>,
+    gate_up: Option<Tensor>,
+}
+
+/// `x` [.., K] times `w` [K, N] (any strides) as one 2-D matmul: [.., N].
+fn matmul_2d(x: &Tensor, w: &Tensor) -> candle_core::Result<Tensor> {
+    let dims = x.dims();
+    let k = dims.last().copied().unwrap_or(1);
+    let rows = x.elem_count() / k.max(1);
+    let y = x.contiguous()?.reshape((rows, k))?.matmul(w)?;
+    let mut shape = dims.to_vec();
+    if let Some(last) = shape.last_mut() {
+        *last = w.dim(1)?;
+    }
+    y.reshape(shape)
+}
+
+/// The weights `[N, K]` of `ls` stacked as one row-major `[K, sum N]` matrix, and each `Linear`
+/// rebuilt as a (column-major) view into it. gemm then reads the weights with unit stride along N
+/// and skips the repacking a row-major `[N, K]` weight needs, and the projections of one input
+/// become one matmul.
+fn fuse(ls: &mut [&mut Linear]) -> candle_core::Result<Tensor> {
+    let ts: Vec<Tensor> = ls
+        .iter()
+        .map(|l| l.weight().t())
+        .collect::<Result<_, _>>()?;
+    let w = Tensor::cat(&ts, 1)?;
+    let mut off = 0;
+    for l in ls.iter_mut() {
+        let n = l.weight().dim(0)?;
+        **l = Linear::new(w.narrow(1, off, n)?.t()?, l.bias().cloned());
+        off += n;
+    }
+    Ok(w)
+}
+
+impl ExpertLayer {
+    /// Builds the fused fast-path weights unless the weights are trainable variables (a `VarMap`
+    /// model: the copies would go stale when an optimiser updates the variables).
+    fn with_fused(mut self) -> candle_core::Result<Self> {
+        if self.q.weight().is_variable() {
+            return Ok(self);
+        }
+        self.qkv = Some(fuse(&mut [&mut self.q, &mut self.k, &mut self.v])?);
+        self.gate_up = Some(fuse(&mut [&mut self.gate, &mut self.up])?);
+        fuse(&mut [&mut self.o])?;
+        fuse(&mut [&mut self.down])?;
+        Ok(self)
+    }
 }
 
 /// One Gemma expert (`layers.i.*` and the final `norm`).
@@ -209,17 +262,22 @@ impl Expert {
             let vb = vb.pp(format!("layers.{i}"));
             let a = vb.pp("self_attn");
             let m = vb.pp("mlp");
-            layers.push(ExpertLayer {
-                input_norm: Norm::new(w, ada, eps, vb.pp("input_layernorm"))?,
-                post_norm: Norm::new(w, ada, eps, vb.pp("post_attention_layernorm"))?,
-                q: candle_nn::linear_no_bias(w, qd, a.pp("q_proj"))?,
-                k: candle_nn::linear_no_bias(w, kvd, a.pp("k_proj"))?,
-                v: candle_nn::linear_no_bias(w, kvd, a.pp("v_proj"))?,
-                o: candle_nn::linear_no_bias(qd, w, a.pp("o_proj"))?,
-                gate: candle_nn::linear_no_bias(w, dims.mlp_dim, m.pp("gate_proj"))?,
-                up: candle_nn::linear_no_bias(w, dims.mlp_dim, m.pp("up_proj"))?,
-                down: candle_nn::linear_no_bias(dims.mlp_dim, w, m.pp("down_proj"))?,
-            });
+            layers.push(
+                ExpertLayer {
+                    input_norm: Norm::new(w, ada, eps, vb.pp("input_layernorm"))?,
+                    post_norm: Norm::new(w, ada, eps, vb.pp("post_attention_layernorm"))?,
+                    q: candle_nn::linear_no_bias(w, qd, a.pp("q_proj"))?,
+                    k: candle_nn::linear_no_bias(w, kvd, a.pp("k_proj"))?,
+                    v: candle_nn::linear_no_bias(w, kvd, a.pp("v_proj"))?,
+                    o: candle_nn::linear_no_bias(qd, w, a.pp("o_proj"))?,
+                    gate: candle_nn::linear_no_bias(w, dims.mlp_dim, m.pp("gate_proj"))?,
+                    up: candle_nn::linear_no_bias(w, dims.mlp_dim, m.pp("up_proj"))?,
+                    down: candle_nn::linear_no_bias(dims.mlp_dim, w, m.pp("down_proj"))?,
+                    qkv: None,
+                    gate_up: None,
+                }
+                .with_fused()?,
+            );
         }
         let norm = Norm::new(w, ada, eps, vb.pp("norm"))?;
         Ok(Expert {
@@ -262,16 +320,23 @@ pub enum KvMode<'a> {
     },
 }
 
-/// Attention `softmax(q k^T + bias) v` with GQA.
-/// `q` [B, nH, L, hd] (pre-scaled), `k`, `v` [B, nKV, T, hd], `bias` [B, 1, L or 1, T].
-/// Returns [B, L, nH*hd].
+/// Attention `softmax(scale q k^T + bias) v` with GQA.
+/// `q` [B, nH, L, hd], `k`, `v` [B, nKV, T, hd], `bias` [B, 1, L or 1, T].
+/// Returns [B, L, nH*hd]. The fast path is one fused kernel ([`fastops::attention`]).
 pub fn attention(
     q: &Tensor,
     k: &Tensor,
     v: &Tensor,
     bias: &Tensor,
+    scale: f64,
     diff: bool,
 ) -> candle_core::Result<Tensor> {
+    if !diff {
+        if let Some(o) = fastops::attention(q, k, v, bias, scale as f32)? {
+            return Ok(o);
+        }
+    }
+    let q = (q * scale)?;
     let (b, nh, l, hd) = q.dims4()?;
     let nkv = k.dim(1)?;
     let t = k.dim(2)?;
@@ -298,16 +363,64 @@ pub fn attention(
 }
 
 /// `down(gelu_tanh(gate(x)) * up(x))`.
-fn mlp(layer: &ExpertLayer, x: &Tensor) -> candle_core::Result<Tensor> {
-    let g = layer.gate.forward(x)?.gelu()?;
+fn mlp(layer: &ExpertLayer, x: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
+    if let (false, Some(gu)) = (diff, &layer.gate_up) {
+        let y = matmul_2d(x, gu)?;
+        if let Some(h) = fastops::gelu_mul_fused(&y, gu.dim(1)? / 2)? {
+            return layer.down.forward(&h);
+        }
+    }
+    let g = layer.gate.forward(x)?;
     let u = layer.up.forward(x)?;
-    layer.down.forward(&(g * u)?)
+    if !diff {
+        if let Some(h) = fastops::gelu_mul(&g, &u)? {
+            return layer.down.forward(&h);
+        }
+    }
+    layer.down.forward(&(g.gelu()? * u)?)
 }
 
 /// `[B, L, n*hd]` -> `[B, n, L, hd]`.
 fn heads(x: &Tensor, n: usize, hd: usize) -> candle_core::Result<Tensor> {
     let (b, l, _) = x.dims3()?;
     x.reshape((b, l, n, hd))?.transpose(1, 2)?.contiguous()
+}
+
+/// Fast path: Q, K, V heads [B, n, L, hd] of the normed `h` [B, L, W] from the fused projection
+/// (Q and K rotated; `with_q` false skips Q). `None` when the layer has no fused weights.
+#[allow(clippy::type_complexity)]
+fn qkv_fused(
+    layer: &ExpertLayer,
+    d: &GemmaDims,
+    h: &Tensor,
+    rope: &Rope,
+    with_q: bool,
+) -> candle_core::Result<Option<(Option<Tensor>, Tensor, Tensor)>> {
+    let Some(w) = &layer.qkv else {
+        return Ok(None);
+    };
+    let qd = d.num_heads * d.head_dim;
+    let kvd = d.num_kv_heads * d.head_dim;
+    let (y, kcol) = if with_q {
+        (matmul_2d(h, w)?, qd)
+    } else {
+        (matmul_2d(h, &w.narrow(1, qd, 2 * kvd)?)?, 0)
+    };
+    let cs = Some((&rope.cos, &rope.sin));
+    let q = if with_q {
+        match fastops::split_heads(&y, 0, d.num_heads, d.head_dim, cs)? {
+            Some(q) => Some(q),
+            None => return Ok(None),
+        }
+    } else {
+        None
+    };
+    let k = fastops::split_heads(&y, kcol, d.num_kv_heads, d.head_dim, cs)?;
+    let v = fastops::split_heads(&y, kcol + kvd, d.num_kv_heads, d.head_dim, None)?;
+    Ok(match (k, v) {
+        (Some(k), Some(v)) => Some((q, k, v)),
+        _ => None,
+    })
 }
 
 /// Only the post-RoPE K/V of layer `li` for one stream (the last prefix layer: its attention
@@ -321,6 +434,10 @@ pub fn kv_only_layer(
     let layer = &s.expert.layers[li];
     let d = &s.expert.dims;
     let (h, _) = layer.input_norm.forward(&s.x, s.cond, false)?;
+    if let Some((_, k, v)) = qkv_fused(layer, d, &h, s.rope, false)? {
+        kb.slice_set(&k, 2, 0)?;
+        return vb.slice_set(&v, 2, 0);
+    }
     let k = heads(&layer.k.forward(&h)?, d.num_kv_heads, d.head_dim)?;
     let k = s.rope.apply(&k, false)?;
     let v = heads(&layer.v.forward(&h)?, d.num_kv_heads, d.head_dim)?;
@@ -340,21 +457,31 @@ pub fn joint_layer(
     let mut ks = Vec::with_capacity(streams.len());
     let mut vs = Vec::with_capacity(streams.len());
     let mut gates = Vec::with_capacity(streams.len());
+    // all streams share the head dimension (one joint attention)
+    let hd = streams.first().map_or(1, |s| s.expert.dims.head_dim);
+    let scale = (hd as f64).powf(-0.5);
     for s in streams.iter() {
         let layer = &s.expert.layers[li];
         let d = &s.expert.dims;
         let (h, gate) = layer.input_norm.forward(&s.x, s.cond, diff)?;
-        let scale = (d.head_dim as f64).powf(-0.5);
+        gates.push(gate);
+        if !diff {
+            if let Some((Some(q), k, v)) = qkv_fused(layer, d, &h, s.rope, true)? {
+                qs.push(q);
+                ks.push(k);
+                vs.push(v);
+                continue;
+            }
+        }
         // [B, nH, L, hd], [B, nKV, L, hd]
         let q = heads(&layer.q.forward(&h)?, d.num_heads, d.head_dim)?;
-        let q = (s.rope.apply(&q, diff)? * scale)?;
+        let q = s.rope.apply(&q, diff)?;
         let k = heads(&layer.k.forward(&h)?, d.num_kv_heads, d.head_dim)?;
         let k = s.rope.apply(&k, diff)?;
         let v = heads(&layer.v.forward(&h)?, d.num_kv_heads, d.head_dim)?;
         qs.push(q);
         ks.push(k);
         vs.push(v);
-        gates.push(gate);
     }
     let cat = |xs: &[Tensor]| -> candle_core::Result<Tensor> {
         if xs.len() == 1 {
@@ -372,7 +499,7 @@ pub fn joint_layer(
                 kb.slice_set(&k.contiguous()?, 2, 0)?;
                 vb.slice_set(&v.contiguous()?, 2, 0)?;
             }
-            attention(&q, &k, &v, bias, diff)?
+            attention(&q, &k, &v, bias, scale, diff)?
         }
         KvMode::Cached {
             k: kb,
@@ -393,11 +520,11 @@ pub fn joint_layer(
                 } else {
                     (kk, vv)
                 };
-                attention(&q, &kk, &vv, bias, diff)?
+                attention(&q, &kk, &vv, bias, scale, diff)?
             } else {
                 kb.slice_set(&k.contiguous()?, 2, offset)?;
                 vb.slice_set(&v.contiguous()?, 2, offset)?;
-                attention(&q, kb, vb, bias, diff)?
+                attention(&q, kb, vb, bias, scale, diff)?
             }
         }
     };
@@ -415,7 +542,7 @@ pub fn joint_layer(
         let o = layer.o.forward(&o)?;
         let x1 = gated_residual(&s.x, &o, gate.as_ref())?;
         let (h, gate2) = layer.post_norm.forward(&x1, s.cond, diff)?;
-        let m = mlp(layer, &h)?;
+        let m = mlp(layer, &h, diff)?;
         s.x = gated_residual(&x1, &m, gate2.as_ref())?;
     }
     Ok(())

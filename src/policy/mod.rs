@@ -10,6 +10,7 @@ pub mod bench;
 pub mod checkpoint;
 pub mod cli;
 pub mod config;
+pub mod fastops;
 pub mod gemma;
 pub mod model;
 pub mod preprocess;

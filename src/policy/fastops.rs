@@ -1,0 +1,555 @@
+//! Fused CPU kernels for the fast (non-differentiable) inference path.
+//!
+//! candle's CPU backend runs `gelu` and the softmax `exp` through scalar libm calls and
+//! materialises every intermediate (bias-added scores, probabilities, transposed heads). These
+//! kernels do the same math on f32 slices in one pass each, vectorised (AVX-512 / AVX2 picked at
+//! run time, plain code otherwise), calling the `gemm` crate directly for the matrix products.
+//! Results agree with the candle compositions to float rounding (a few ulp); the differentiable
+//! path keeps using candle's ops.
+//!
+//! Every entry point returns `Ok(None)` when its inputs are not contiguous f32 CPU tensors of the
+//! expected layout, so callers fall back to the candle composition.
+
+use candle_core::{CpuStorage, Device, Layout, Result, Storage, Tensor};
+use rayon::prelude::*;
+
+/// Compiles `$body` three times (AVX-512, AVX2+FMA, baseline) and picks the best variant the CPU
+/// supports at run time. The body must only call `#[inline(always)]` helpers so they are compiled
+/// with the variant's features.
+macro_rules! multiversion {
+    ($(#[$m:meta])* fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $body:block) => {
+        $(#[$m])*
+        fn $name($($arg: $ty),*) {
+            #[inline(always)]
+            fn imp($($arg: $ty),*) $body
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+                unsafe fn v4($($arg: $ty),*) {
+                    imp($($arg),*)
+                }
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn v3($($arg: $ty),*) {
+                    imp($($arg),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx512f") {
+                    // SAFETY: the CPU supports the features `v4` is compiled for.
+                    return unsafe { v4($($arg),*) };
+                }
+                if std::arch::is_x86_feature_detected!("avx2")
+                    && std::arch::is_x86_feature_detected!("fma")
+                {
+                    // SAFETY: the CPU supports the features `v3` is compiled for.
+                    return unsafe { v3($($arg),*) };
+                }
+            }
+            imp($($arg),*)
+        }
+    };
+}
+
+/// Lanes of the explicit reductions (one AVX-512 register of f32).
+const LANES: usize = 16;
+
+/// `exp(x)` in f32 (Cephes `expf`: `2^n * p(r)`, |r| <= ln 2 / 2, about 1 ulp); 0 below -87.
+/// Branch-free so that loops over it vectorise.
+#[inline(always)]
+fn exp_f32(x: f32) -> f32 {
+    const LOG2E: f32 = std::f32::consts::LOG2_E;
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    // round-to-nearest through the 1.5 * 2^23 trick (no libm `roundf` call)
+    const MAGIC: f32 = 12_582_912.0;
+    let xc = x.clamp(-87.0, 88.0);
+    let t = xc * LOG2E + MAGIC;
+    let n = t - MAGIC;
+    let r = (xc - n * LN2_HI) - n * LN2_LO;
+    let mut p = 1.987_569_1e-4f32;
+    p = p * r + 1.398_199_9e-3;
+    p = p * r + 8.333_452e-3;
+    p = p * r + 4.166_579_6e-2;
+    p = p * r + 1.666_666_5e-1;
+    p = p * r + 0.5;
+    let y = p * r * r + r + 1.0;
+    // n in [-126, 127]: the low bits of `t` hold n + 0x40_0000
+    let ni = (t.to_bits() as i32).wrapping_sub(0x4B40_0000);
+    let scale = f32::from_bits(((ni + 127) << 23) as u32);
+    if x < -87.0 {
+        0.0
+    } else {
+        y * scale
+    }
+}
+
+/// gelu with the tanh approximation, `0.5 x (1 + tanh(u)) = x * sigmoid(2u)`,
+/// `u = sqrt(2/pi) (x + 0.044715 x^3)`.
+#[inline(always)]
+fn gelu_tanh(x: f32) -> f32 {
+    const C: f32 = 0.797_884_6;
+    let u = C * (x + 0.044_715 * x * x * x);
+    x / (1.0 + exp_f32(-2.0 * u))
+}
+
+multiversion! {
+    /// `out = gelu_tanh(g) * u`.
+    fn gelu_mul_slice(g: &[f32], u: &[f32], out: &mut [f32]) {
+        for ((o, &g), &u) in out.iter_mut().zip(g).zip(u) {
+            *o = gelu_tanh(g) * u;
+        }
+    }
+}
+
+multiversion! {
+    /// Row-wise `softmax(s + bias)` in place over the `t` columns of `rows` (bias: one row of `t`
+    /// shared by all rows when `bias.len() == t`, else one per row).
+    fn softmax_bias_rows(rows: &mut [f32], bias: &[f32], t: usize) {
+        for (ri, row) in rows.chunks_exact_mut(t).enumerate() {
+            let b = if bias.len() == t { bias } else { &bias[ri * t..(ri + 1) * t] };
+            let mut mx = [f32::NEG_INFINITY; LANES];
+            let mut rc = row.chunks_exact_mut(LANES);
+            let mut bc = b.chunks_exact(LANES);
+            for (r, b) in (&mut rc).zip(&mut bc) {
+                for i in 0..LANES {
+                    let v = r[i] + b[i];
+                    r[i] = v;
+                    mx[i] = if v > mx[i] { v } else { mx[i] };
+                }
+            }
+            for (r, b) in rc.into_remainder().iter_mut().zip(bc.remainder()) {
+                let v = *r + *b;
+                *r = v;
+                mx[0] = if v > mx[0] { v } else { mx[0] };
+            }
+            let m = mx.iter().fold(f32::NEG_INFINITY, |a, &b| if b > a { b } else { a });
+            let mut sm = [0f32; LANES];
+            let mut rc = row.chunks_exact_mut(LANES);
+            for r in &mut rc {
+                for i in 0..LANES {
+                    let e = exp_f32(r[i] - m);
+                    r[i] = e;
+                    sm[i] += e;
+                }
+            }
+            for r in rc.into_remainder() {
+                let e = exp_f32(*r - m);
+                *r = e;
+                sm[0] += e;
+            }
+            let s: f32 = sm.iter().sum();
+            for r in row.iter_mut() {
+                *r /= s;
+            }
+        }
+    }
+}
+
+/// Number of threads for the fused kernels (candle's setting, `RAYON_NUM_THREADS`).
+fn threads() -> usize {
+    candle_core::utils::get_num_threads()
+}
+
+/// The f32 data of a CPU tensor from its start offset, with its layout.
+fn cpu_f32<R>(t: &Tensor, f: impl FnOnce(&[f32], &Layout) -> Result<R>) -> Result<Option<R>> {
+    let (s, l) = t.storage_and_layout();
+    match &*s {
+        Storage::Cpu(CpuStorage::F32(v)) => Ok(Some(f(&v[l.start_offset()..], l)?)),
+        _ => Ok(None),
+    }
+}
+
+/// `gelu_tanh(g) * u` for contiguous f32 CPU tensors of the same shape.
+pub fn gelu_mul(g: &Tensor, u: &Tensor) -> Result<Option<Tensor>> {
+    if g.dims() != u.dims() || !g.is_contiguous() || !u.is_contiguous() {
+        return Ok(None);
+    }
+    let n = g.elem_count();
+    let r = cpu_f32(g, |gs, _| {
+        cpu_f32(u, |us, _| {
+            let mut out = vec![0f32; n];
+            let (gs, us) = (&gs[..n], &us[..n]);
+            const CHUNK: usize = 1 << 14;
+            if threads() > 1 && n > 4 * CHUNK {
+                out.par_chunks_mut(CHUNK)
+                    .zip(gs.par_chunks(CHUNK).zip(us.par_chunks(CHUNK)))
+                    .for_each(|(o, (g, u))| gelu_mul_slice(g, u, o));
+            } else {
+                gelu_mul_slice(gs, us, &mut out);
+            }
+            Ok(out)
+        })
+    })?
+    .flatten();
+    match r {
+        Some(out) => Ok(Some(Tensor::from_vec(out, g.shape(), &Device::Cpu)?)),
+        None => Ok(None),
+    }
+}
+
+/// `gelu_tanh(y[.., :f]) * y[.., f:]` for a contiguous f32 CPU tensor `y` [.., 2f] (the output
+/// of a fused gate/up projection). Returns [.., f].
+pub fn gelu_mul_fused(y: &Tensor, f: usize) -> Result<Option<Tensor>> {
+    let dims = y.dims();
+    if !y.is_contiguous() || dims.last() != Some(&(2 * f)) || f == 0 {
+        return Ok(None);
+    }
+    let rows = y.elem_count() / (2 * f);
+    let r = cpu_f32(y, |ys, _| {
+        let mut out = vec![0f32; rows * f];
+        let ys = &ys[..rows * 2 * f];
+        let per = (1 << 14) / f + 1;
+        if threads() > 1 && rows * f > 1 << 16 {
+            out.par_chunks_mut(per * f)
+                .zip(ys.par_chunks(per * 2 * f))
+                .for_each(|(o, y)| {
+                    for (o, y) in o.chunks_exact_mut(f).zip(y.chunks_exact(2 * f)) {
+                        gelu_mul_slice(&y[..f], &y[f..], o);
+                    }
+                });
+        } else {
+            for (o, y) in out.chunks_exact_mut(f).zip(ys.chunks_exact(2 * f)) {
+                gelu_mul_slice(&y[..f], &y[f..], o);
+            }
+        }
+        Ok(out)
+    })?;
+    match r {
+        Some(out) => {
+            let mut shape = dims.to_vec();
+            *shape.last_mut().expect("checked rank") = f;
+            Ok(Some(Tensor::from_vec(out, shape, &Device::Cpu)?))
+        }
+        None => Ok(None),
+    }
+}
+
+/// Columns `col .. col + n * hd` of `x` [B, L, C] (unit column stride, any row stride) as heads
+/// [B, n, L, hd], rotated when `rope` = (cos, sin) [B, L, hd / 2] is given (rotate-half, the same
+/// arithmetic as `candle_nn::rotary_emb::rope`). Replaces narrow + reshape + transpose +
+/// contiguous + rope (three copies) with one pass.
+pub fn split_heads(
+    x: &Tensor,
+    col: usize,
+    n: usize,
+    hd: usize,
+    rope: Option<(&Tensor, &Tensor)>,
+) -> Result<Option<Tensor>> {
+    let (b, l, c) = x.dims3()?;
+    let st = x.stride();
+    if st[2] != 1 || col + n * hd > c || hd % 2 != 0 {
+        return Ok(None);
+    }
+    let (sb, sl) = (st[0], st[1]);
+    let half = hd / 2;
+    let mut out = vec![0f32; b * n * l * hd];
+    let copy = |xs: &[f32], out: &mut [f32], cs: Option<(&[f32], &[f32])>| {
+        for bi in 0..b {
+            for h in 0..n {
+                for li in 0..l {
+                    let src = &xs[bi * sb + li * sl + col + h * hd..][..hd];
+                    let dst = &mut out[((bi * n + h) * l + li) * hd..][..hd];
+                    match cs {
+                        None => dst.copy_from_slice(src),
+                        Some((cos, sin)) => {
+                            let cos = &cos[(bi * l + li) * half..][..half];
+                            let sin = &sin[(bi * l + li) * half..][..half];
+                            let (d1, d2) = dst.split_at_mut(half);
+                            let (s1, s2) = src.split_at(half);
+                            for i in 0..half {
+                                d1[i] = s1[i] * cos[i] - s2[i] * sin[i];
+                                d2[i] = s1[i] * sin[i] + s2[i] * cos[i];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    };
+    let done = cpu_f32(x, |xs, _| match rope {
+        None => {
+            copy(xs, &mut out, None);
+            Ok(Some(()))
+        }
+        Some((cos, sin)) => {
+            let want = [b, l, half];
+            if cos.dims() != want
+                || sin.dims() != want
+                || !cos.is_contiguous()
+                || !sin.is_contiguous()
+            {
+                return Ok(None);
+            }
+            cpu_f32(cos, |cs, _| {
+                cpu_f32(sin, |ss, _| {
+                    copy(xs, &mut out, Some((cs, ss)));
+                    Ok(())
+                })
+            })
+            .map(|r| r.flatten())
+        }
+    })?;
+    if done.flatten().is_none() {
+        return Ok(None);
+    }
+    Ok(Some(Tensor::from_vec(out, (b, n, l, hd), &Device::Cpu)?))
+}
+
+/// A raw pointer that may cross threads (each task writes a disjoint part of the buffer).
+#[derive(Clone, Copy)]
+struct SendPtr(*mut f32);
+// SAFETY: only used for disjoint writes, see `attention`.
+unsafe impl Send for SendPtr {}
+unsafe impl Sync for SendPtr {}
+
+thread_local! {
+    static SCORES: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Masked attention `softmax(scale * q k^T + bias) v` with GQA, heads written straight into the
+/// token-major output.
+///
+/// `q` [B, nH, L, hd] contiguous; `k`, `v` [B, nKV, T, hd] with contiguous rows (a narrow over T
+/// is fine); `bias` [B, 1, L or 1, T] contiguous; query heads are kv-head-major (head `h` uses kv
+/// head `h / (nH / nKV)`). Returns [B, L, nH * hd]. One task per (batch row, head), spread over
+/// the threads; each runs two single-threaded gemms and the fused bias + softmax in between.
+pub fn attention(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    bias: &Tensor,
+    scale: f32,
+) -> Result<Option<Tensor>> {
+    let (b, nh, l, hd) = q.dims4()?;
+    let (kb, nkv, t, khd) = k.dims4()?;
+    if kb != b
+        || khd != hd
+        || v.dims() != k.dims()
+        || nkv == 0
+        || nh % nkv != 0
+        || !q.is_contiguous()
+        || !bias.is_contiguous()
+    {
+        return Ok(None);
+    }
+    let (bb, b1, bl, bt) = bias.dims4()?;
+    if bb != b || b1 != 1 || (bl != l && bl != 1) || bt != t {
+        return Ok(None);
+    }
+    let (ks, vs) = (k.stride(), v.stride());
+    if ks[3] != 1 || vs[3] != 1 {
+        return Ok(None);
+    }
+    let (k_b, k_h, k_r) = (ks[0], ks[1], ks[2]);
+    let (v_b, v_h, v_r) = (vs[0], vs[1], vs[2]);
+    let g = nh / nkv;
+    let width = nh * hd;
+    let mut out = vec![0f32; b * l * width];
+    let dst = SendPtr(out.as_mut_ptr());
+    let done = cpu_f32(q, |qs, _| {
+        cpu_f32(k, |kd, _| {
+            cpu_f32(v, |vd, _| {
+                cpu_f32(bias, |bs, _| {
+                    let task = |i: usize| {
+                        let (bi, h) = (i / nh, i % nh);
+                        let kv = h / g;
+                        let qp = &qs[(bi * nh + h) * l * hd..];
+                        let kp = &kd[bi * k_b + kv * k_h..];
+                        let vp = &vd[bi * v_b + kv * v_h..];
+                        let brow = &bs[bi * bl * t..(bi + 1) * bl * t];
+                        SCORES.with(|sc| {
+                            let mut sc = sc.borrow_mut();
+                            if sc.len() < l * t {
+                                sc.resize(l * t, 0.0);
+                            }
+                            let s = &mut sc[..l * t];
+                            // SAFETY: the operands hold the strided extents passed (checked
+                            // dims / strides above), `s` is L x T, and the output block of task
+                            // (bi, h) (rows of batch bi, columns h*hd..(h+1)*hd) is written by
+                            // this task only.
+                            unsafe {
+                                gemm::gemm(
+                                    l,
+                                    t,
+                                    hd,
+                                    s.as_mut_ptr(),
+                                    1,
+                                    t as isize,
+                                    false,
+                                    qp.as_ptr(),
+                                    1,
+                                    hd as isize,
+                                    kp.as_ptr(),
+                                    k_r as isize,
+                                    1,
+                                    0.0,
+                                    scale,
+                                    false,
+                                    false,
+                                    false,
+                                    gemm::Parallelism::None,
+                                );
+                            }
+                            softmax_bias_rows(s, brow, t);
+                            let d = dst;
+                            unsafe {
+                                gemm::gemm(
+                                    l,
+                                    hd,
+                                    t,
+                                    d.0.add(bi * l * width + h * hd),
+                                    1,
+                                    width as isize,
+                                    false,
+                                    s.as_ptr(),
+                                    1,
+                                    t as isize,
+                                    vp.as_ptr(),
+                                    1,
+                                    v_r as isize,
+                                    0.0,
+                                    1.0,
+                                    false,
+                                    false,
+                                    false,
+                                    gemm::Parallelism::None,
+                                );
+                            }
+                        });
+                    };
+                    if threads() > 1 && b * nh > 1 {
+                        (0..b * nh).into_par_iter().for_each(task);
+                    } else {
+                        (0..b * nh).for_each(task);
+                    }
+                    Ok(())
+                })
+            })
+        })
+    })?;
+    if done.flatten().flatten().flatten().is_none() {
+        return Ok(None);
+    }
+    Ok(Some(Tensor::from_vec(out, (b, l, width), &Device::Cpu)?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::D;
+
+    fn maxdiff(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    }
+
+    #[test]
+    fn exp_matches_libm() {
+        let mut worst = 0f32;
+        let mut x = -87.0f32;
+        while x < 88.0 {
+            let (a, b) = (exp_f32(x), x.exp());
+            worst = worst.max(((a - b) / b).abs());
+            x += 0.013;
+        }
+        assert!(worst < 4e-7, "relative error {worst}");
+        assert_eq!(exp_f32(-1e30), 0.0);
+        assert_eq!(exp_f32(f32::NEG_INFINITY), 0.0);
+    }
+
+    #[test]
+    fn gelu_mul_matches_candle() {
+        let dev = Device::Cpu;
+        let g = (Tensor::randn(0f32, 3f32, (3, 70_001), &dev).unwrap() * 1.0).unwrap();
+        let u = Tensor::randn(0f32, 1f32, (3, 70_001), &dev).unwrap();
+        let want = (g.gelu().unwrap() * &u).unwrap();
+        let got = gelu_mul(&g, &u).unwrap().unwrap();
+        assert!(maxdiff(&want, &got) < 1e-5);
+    }
+
+    #[test]
+    fn fused_gelu_and_heads_match_candle() {
+        let dev = Device::Cpu;
+        let y = Tensor::randn(0f32, 2f32, (2, 7, 2 * 24), &dev).unwrap();
+        let g = y.narrow(2, 0, 24).unwrap();
+        let u = y.narrow(2, 24, 24).unwrap();
+        let want = (g.gelu().unwrap() * &u).unwrap();
+        let got = gelu_mul_fused(&y, 24).unwrap().unwrap();
+        assert!(maxdiff(&want, &got) < 1e-5);
+        // heads with and without rope from a strided (narrowed) input
+        let x = Tensor::randn(0f32, 1f32, (2, 7, 3 * 16 + 8), &dev).unwrap();
+        let cos = Tensor::rand(-1f32, 1f32, (2, 7, 4), &dev).unwrap();
+        let sin = Tensor::rand(-1f32, 1f32, (2, 7, 4), &dev).unwrap();
+        let part = x.narrow(2, 8, 16).unwrap();
+        let heads = part
+            .reshape((2, 7, 2, 8))
+            .unwrap()
+            .transpose(1, 2)
+            .unwrap()
+            .contiguous()
+            .unwrap();
+        let got = split_heads(&x, 8, 2, 8, None).unwrap().unwrap();
+        assert_eq!(maxdiff(&heads, &got), 0.0);
+        let want = candle_nn::rotary_emb::rope(&heads, &cos, &sin).unwrap();
+        let got = split_heads(&x, 8, 2, 8, Some((&cos, &sin)))
+            .unwrap()
+            .unwrap();
+        assert_eq!(maxdiff(&want, &got), 0.0);
+    }
+
+    #[test]
+    fn attention_matches_candle() {
+        let dev = Device::Cpu;
+        for &(b, nh, nkv, l, t, bl) in &[(2, 8, 2, 5, 37, 5), (1, 4, 1, 50, 70, 1)] {
+            let q = Tensor::randn(0f32, 1f32, (b, nh, l, 16), &dev).unwrap();
+            let kf = Tensor::randn(0f32, 1f32, (b, nkv, t + 3, 16), &dev).unwrap();
+            let vf = Tensor::randn(0f32, 1f32, (b, nkv, t + 3, 16), &dev).unwrap();
+            // a narrow over T, as with the cache buffers
+            let k = kf.narrow(2, 0, t).unwrap();
+            let v = vf.narrow(2, 0, t).unwrap();
+            let mask = Tensor::rand(0f32, 1f32, (b, 1, bl, t), &dev).unwrap();
+            let bias = mask
+                .ge(0.3)
+                .unwrap()
+                .where_cond(
+                    &Tensor::zeros((b, 1, bl, t), candle_core::DType::F32, &dev).unwrap(),
+                    &Tensor::full(-2.381_976_3e38f32, (b, 1, bl, t), &dev).unwrap(),
+                )
+                .unwrap();
+            let scale = 0.25f32;
+            let g = nh / nkv;
+            let qs = (&q * scale as f64)
+                .unwrap()
+                .reshape((b, nkv, g * l, 16))
+                .unwrap();
+            let s = qs.matmul(&k.t().unwrap()).unwrap();
+            let s = s
+                .reshape((b, nkv, g, l, t))
+                .unwrap()
+                .broadcast_add(&bias.reshape((b, 1, 1, bl, t)).unwrap())
+                .unwrap();
+            let p = candle_nn::ops::softmax(&s, D::Minus1).unwrap();
+            let o = p
+                .reshape((b, nkv, g * l, t))
+                .unwrap()
+                .matmul(&v.contiguous().unwrap())
+                .unwrap();
+            let want = o
+                .reshape((b, nh, l, 16))
+                .unwrap()
+                .transpose(1, 2)
+                .unwrap()
+                .reshape((b, l, nh * 16))
+                .unwrap();
+            let got = attention(&q, &k, &v, &bias, scale).unwrap().unwrap();
+            let d = maxdiff(&want, &got);
+            assert!(d < 1e-5, "attention {d}");
+        }
+    }
+}
