@@ -23,7 +23,7 @@ use chunkrt_ipc::{
 };
 
 use crate::report::{fmt_us, latency_histogram};
-use crate::task::{ReachScene, TargetColor, TARGET_RADIUS};
+use crate::task::{ReachScene, TargetColor, REACH_TOLERANCE};
 
 /// `chunkrt demo`.
 #[derive(Debug, clap::Args)]
@@ -207,7 +207,7 @@ fn episode(
             if let (Some(sc), Some(c)) = (scene, color) {
                 dist = sc.distance(&q, c);
                 rep.min_distance = rep.min_distance.min(dist);
-                if dist <= TARGET_RADIUS && !rep.success {
+                if dist <= REACH_TOLERANCE && !rep.success {
                     rep.success = true;
                     rep.time_to_target = Some(now - motion_start.unwrap_or(now));
                     rep.reached_at = Some(now);

@@ -459,7 +459,9 @@ pub fn plot_percentiles(
         chart
             .draw_series(LineSeries::new(pts.iter().copied(), color))
             .map_err(|e| perr(e.to_string()))?
-            .label(*name)
+            // leading space: plotters clips glyphs with a negative left bearing (the j of
+            // "joint_state") at the start of a label
+            .label(format!(" {name}"))
             .legend(move |(x, y)| {
                 PathElement::new(
                     vec![(x, y), (x + 20, y)],

@@ -100,6 +100,15 @@ multiversion! {
 }
 
 multiversion! {
+    /// `out = gelu_tanh(x)`.
+    fn gelu_slice(x: &[f32], out: &mut [f32]) {
+        for (o, &x) in out.iter_mut().zip(x) {
+            *o = gelu_tanh(x);
+        }
+    }
+}
+
+multiversion! {
     /// Row-wise `softmax(s + bias)` in place over the `t` columns of `rows` (bias: one row of `t`
     /// shared by all rows when `bias.len() == t`, else one per row).
     fn softmax_bias_rows(rows: &mut [f32], bias: &[f32], t: usize) {
@@ -154,6 +163,31 @@ fn cpu_f32<R>(t: &Tensor, f: impl FnOnce(&[f32], &Layout) -> Result<R>) -> Resul
     match &*s {
         Storage::Cpu(CpuStorage::F32(v)) => Ok(Some(f(&v[l.start_offset()..], l)?)),
         _ => Ok(None),
+    }
+}
+
+/// `gelu_tanh(x)` for a contiguous f32 CPU tensor (SigLIP's MLP).
+pub fn gelu(x: &Tensor) -> Result<Option<Tensor>> {
+    if !x.is_contiguous() {
+        return Ok(None);
+    }
+    let n = x.elem_count();
+    let r = cpu_f32(x, |xs, _| {
+        let mut out = vec![0f32; n];
+        let xs = &xs[..n];
+        const CHUNK: usize = 1 << 14;
+        if threads() > 1 && n > 4 * CHUNK {
+            out.par_chunks_mut(CHUNK)
+                .zip(xs.par_chunks(CHUNK))
+                .for_each(|(o, x)| gelu_slice(x, o));
+        } else {
+            gelu_slice(xs, &mut out);
+        }
+        Ok(out)
+    })?;
+    match r {
+        Some(out) => Ok(Some(Tensor::from_vec(out, x.shape(), &Device::Cpu)?)),
+        None => Ok(None),
     }
 }
 

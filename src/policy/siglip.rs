@@ -18,6 +18,28 @@ use candle_core::{Tensor, D};
 use candle_nn::{Init, VarBuilder};
 
 use super::config::VisionDims;
+use super::fastops;
+
+/// The fast path's attention over a fused `[N, T, 3 Dv]` Q/K/V output: heads split in one pass
+/// each and `fastops::attention` (no mask). `None` when the kernels do not apply.
+fn fast_attention(
+    qkv: &Tensor,
+    nh: usize,
+    hd: usize,
+    scale: f64,
+) -> candle_core::Result<Option<Tensor>> {
+    let d = nh * hd;
+    let (Some(q), Some(k), Some(v)) = (
+        fastops::split_heads(qkv, 0, nh, hd, None)?,
+        fastops::split_heads(qkv, d, nh, hd, None)?,
+        fastops::split_heads(qkv, 2 * d, nh, hd, None)?,
+    ) else {
+        return Ok(None);
+    };
+    let (n, _, t, _) = q.dims4()?;
+    let bias = Tensor::zeros((n, 1, 1, t), candle_core::DType::F32, qkv.device())?;
+    fastops::attention(&q, &k, &v, &bias, scale as f32)
+}
 
 /// `x @ w^T + b` over the last dim, any leading dims (one 2-D matmul).
 fn linear(x: &Tensor, w: &Tensor, b: &Tensor) -> candle_core::Result<Tensor> {
@@ -195,30 +217,41 @@ impl Vision {
         let scale = (hd as f64).powf(-0.5);
         for l in &self.layers {
             let h = l.ln1.forward(&x, diff)?;
-            // [N, T, 3, nH, hd] -> 3 x [N, nH, T, hd]
-            let qkv = l.qkv.forward(&h)?.reshape((n, t, 3, nh, hd))?;
-            let head = |i: usize| -> candle_core::Result<Tensor> {
-                qkv.narrow(2, i, 1)?
-                    .squeeze(2)?
-                    .transpose(1, 2)?
-                    .contiguous()
+            // [N, T, 3 Dv]
+            let qkv = l.qkv.forward(&h)?;
+            let o = match if diff { None } else { fast_attention(&qkv, nh, hd, scale)? } {
+                Some(o) => o,
+                None => {
+                    // [N, T, 3, nH, hd] -> 3 x [N, nH, T, hd]
+                    let qkv = qkv.reshape((n, t, 3, nh, hd))?;
+                    let head = |i: usize| -> candle_core::Result<Tensor> {
+                        qkv.narrow(2, i, 1)?
+                            .squeeze(2)?
+                            .transpose(1, 2)?
+                            .contiguous()
+                    };
+                    let q = (head(0)? * scale)?;
+                    let k = head(1)?;
+                    let v = head(2)?;
+                    // [N, nH, T, T]
+                    let sc = q.matmul(&k.t()?)?;
+                    let pr = if diff {
+                        candle_nn::ops::softmax(&sc, D::Minus1)?
+                    } else {
+                        candle_nn::ops::softmax_last_dim(&sc)?
+                    };
+                    // [N, nH, T, hd] -> [N, T, Dv]
+                    pr.matmul(&v)?.transpose(1, 2)?.reshape((n, t, d))?
+                }
             };
-            let q = (head(0)? * scale)?;
-            let k = head(1)?;
-            let v = head(2)?;
-            // [N, nH, T, T]
-            let sc = q.matmul(&k.t()?)?;
-            let pr = if diff {
-                candle_nn::ops::softmax(&sc, D::Minus1)?
-            } else {
-                candle_nn::ops::softmax_last_dim(&sc)?
-            };
-            // [N, nH, T, hd] -> [N, T, Dv]
-            let o = pr.matmul(&v)?.transpose(1, 2)?.reshape((n, t, d))?;
             x = (x + l.out.forward(&o)?)?;
             let h = l.ln2.forward(&x, diff)?;
-            let m = l.fc2.forward(&l.fc1.forward(&h)?.gelu()?)?;
-            x = (x + m)?;
+            let f = l.fc1.forward(&h)?;
+            let f = match if diff { None } else { fastops::gelu(&f)? } {
+                Some(g) => g,
+                None => f.gelu()?,
+            };
+            x = (x + l.fc2.forward(&f)?)?;
         }
         self.post_ln.forward(&x, diff)
     }

@@ -9,7 +9,7 @@ pub mod sim;
 pub mod vocab;
 
 pub use chunkrt_tools::scene::{
-    end_effector, inverse_kinematics, ReachScene, TargetColor, TARGET_RADIUS,
+    end_effector, inverse_kinematics, ReachScene, TargetColor, REACH_TOLERANCE, TARGET_RADIUS,
 };
 
 use chunkrt_ipc::config::{CameraConfig, Config};

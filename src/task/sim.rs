@@ -197,12 +197,12 @@ pub fn run_episode(
         let q = &js.position[..TASK_DOF];
         let d = scene.distance(q, spec.color);
         out.min_distance = out.min_distance.min(d);
-        if d <= super::TARGET_RADIUS {
+        if d <= super::REACH_TOLERANCE {
             out.success = true;
             out.time_to_target = Some(t);
             break;
         }
-        if !out.wrong_target && scene.distance(q, other) <= super::TARGET_RADIUS {
+        if !out.wrong_target && scene.distance(q, other) <= super::REACH_TOLERANCE {
             out.wrong_target = true;
         }
     }

@@ -14,8 +14,13 @@ use rand::{Rng, SeedableRng};
 
 /// Link lengths (m).
 pub const LINKS: [f64; 3] = [0.45, 0.35, 0.15];
-/// Radius of a target disk (m); the end effector inside it counts as reached.
+/// Radius of a target disk (m).
 pub const TARGET_RADIUS: f64 = 0.1;
+/// Radius of the rendered end-effector (gripper) marker (m).
+pub const END_EFFECTOR_RADIUS: f64 = 0.045;
+/// A target counts as reached when the gripper marker touches its disk: the end effector is
+/// within this distance of the target's centre (m).
+pub const REACH_TOLERANCE: f64 = TARGET_RADIUS + END_EFFECTOR_RADIUS;
 /// Half-width of the square the camera sees (m).
 pub const VIEW_HALF_WIDTH: f64 = 1.05;
 /// Joint ranges a solution must stay inside (rad), with margin to the robot's limits.
@@ -190,7 +195,7 @@ impl ReachScene {
         let r_target = TARGET_RADIUS * scale;
         let half_link = 0.028 * scale;
         let r_joint = 0.04 * scale;
-        let r_ee = 0.045 * scale;
+        let r_ee = END_EFFECTOR_RADIUS * scale;
         let ee_rgb = [240.0, 215.0 - 110.0 * grip, 60.0 + 20.0 * grip];
         for y in 0..height {
             let row = &mut out[y * stride..y * stride + 3 * width];
