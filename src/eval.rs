@@ -218,8 +218,16 @@ pub fn plot(path: &Path, cells: &[Cell]) -> anyhow::Result<()> {
         .y_label_area_size(50)
         .build_cartesian_2d(-0.3f64..dmax + 0.3, 0f64..1.05)
         .map_err(|e| err(&e))?;
+    let int_ticks = |x: &f64| {
+        if (x - x.round()).abs() < 1e-6 {
+            format!("{:.0}", x)
+        } else {
+            String::new()
+        }
+    };
     a.configure_mesh()
-        .x_desc("injected delay (action steps)")
+        .x_label_formatter(&int_ticks)
+        .x_desc("inference delay (action steps)")
         .y_desc("success rate (95 % CI)")
         .draw()
         .map_err(|e| err(&e))?;
@@ -231,7 +239,8 @@ pub fn plot(path: &Path, cells: &[Cell]) -> anyhow::Result<()> {
         .build_cartesian_2d(-0.3f64..dmax + 0.3, 0f64..jmax)
         .map_err(|e| err(&e))?;
     b.configure_mesh()
-        .x_desc("injected delay (action steps)")
+        .x_label_formatter(&int_ticks)
+        .x_desc("inference delay (action steps)")
         .y_desc("rad")
         .draw()
         .map_err(|e| err(&e))?;

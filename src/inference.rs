@@ -30,6 +30,10 @@ pub struct PolicySource {
     n_dof: usize,
     prefix: Vec<f64>,
     weights: Vec<f32>,
+    /// Per joint: `Some((open, closed))` for step channels (their state is snapped to the
+    /// nearer end before it reaches the policy), `None` for ordinary joints.
+    step_ends: Vec<Option<(f64, f64)>>,
+    state: Vec<f64>,
 }
 
 impl PolicySource {
@@ -50,6 +54,13 @@ impl PolicySource {
             n_dof: cfg.n_dof(),
             prefix: Vec::new(),
             weights: Vec::new(),
+            step_ends: cfg
+                .robot
+                .joints
+                .iter()
+                .map(|j| j.step.then_some((j.position_min, j.position_max)))
+                .collect(),
+            state: Vec::new(),
         })
     }
 
@@ -74,9 +85,24 @@ impl PolicySource {
         request: &InferenceRequest,
     ) -> anyhow::Result<ActionChunk> {
         let n = self.n_dof.min(joint_state.n_dof as usize);
+        // A step channel (a gripper) is open or closed: the policy sees it as one of its two
+        // ends, as in its training data, not the in-between values a real gripper passes through.
+        self.state.clear();
+        for (i, &v) in joint_state.position[..n].iter().enumerate() {
+            self.state.push(match self.step_ends.get(i).copied().flatten() {
+                Some((lo, hi)) => {
+                    if v >= 0.5 * (lo + hi) {
+                        hi
+                    } else {
+                        lo
+                    }
+                }
+                None => v,
+            });
+        }
         let raw = RawObservation {
             frames,
-            joint_positions: &joint_state.position[..n],
+            joint_positions: &self.state,
             prompt: &self.prompt,
         };
         let actions = if request.guided && request.beta > 0.0 {

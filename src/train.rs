@@ -4,7 +4,9 @@
 //! 2. openpi's recipe: quantile norm stats of state and actions, the π0.5 prompt with the
 //!    discretised state, t ~ Beta(1.5, 1)·0.999 + 0.001, x_t = t·ε + (1 − t)·a, loss
 //!    ‖(ε − a) − v(x_t, t)‖², AdamW with warm-up, cosine decay and gradient clipping at 1.
-//!    Every op runs in its differentiable form (SigLIP, both experts, the heads).
+//!    Every op runs in its differentiable form (SigLIP, both experts, the heads). The state is
+//!    augmented: the gripper's state flipped in 30 % of the samples (the robot's gripper is not
+//!    always where the expert's was) and N(0, 0.01) on the arm joints' normalised state.
 //! 3. Every `--val-every-min` minutes the weights are written as a checkpoint (openpi key names,
 //!    `config.json`, `norm_stats.json`, the task's `tokenizer.json`) and driven closed-loop
 //!    through held-out episodes by the real executor (`task::sim`); the best one so far is kept
@@ -121,10 +123,22 @@ pub fn column_stats(values: &[f32], dim: usize) -> Stats {
 struct Batcher<'a> {
     ds: &'a Dataset,
     cfg: ModelConfig,
+    tok: &'a PromptTokenizer,
+    /// Normalised, unpadded state per sample.
+    norm_state: Vec<f32>,
     tokens: Vec<u32>,
     token_mask: Vec<bool>,
     state: Vec<f32>,
     actions: Vec<f32>,
+}
+
+/// State augmentation of one sample: the gripper state flipped to its other end (the robot's
+/// gripper is not always where the expert's was: the policy must not rely on it), and noise
+/// on the arm joints' normalised state.
+#[derive(Debug, Clone, Copy, Default)]
+struct Augment {
+    flip_gripper: bool,
+    noise: [f32; TASK_DOF],
 }
 
 impl<'a> Batcher<'a> {
@@ -132,7 +146,7 @@ impl<'a> Batcher<'a> {
         ds: &'a Dataset,
         cfg: &ModelConfig,
         norm: &NormStats,
-        tok: &PromptTokenizer,
+        tok: &'a PromptTokenizer,
     ) -> anyhow::Result<Self> {
         let (d, a, h, l) = (
             ds.n_dof,
@@ -149,6 +163,8 @@ impl<'a> Batcher<'a> {
         let mut b = Batcher {
             ds,
             cfg: cfg.clone(),
+            tok,
+            norm_state: Vec::with_capacity(n * d),
             tokens: Vec::with_capacity(n * l),
             token_mask: Vec::with_capacity(n * l),
             state: Vec::with_capacity(n * a),
@@ -157,6 +173,7 @@ impl<'a> Batcher<'a> {
         for i in 0..n {
             let mut s = ds.state_of(i).to_vec();
             normalize(&mut s, &norm.state, NormMode::Quantile)?;
+            b.norm_state.extend_from_slice(&s);
             let bins = discretize_state(&s);
             let (ids, mask) = tok.tokenize(ds.color(i).prompt(), Some(&bins), l)?;
             b.tokens.extend(ids);
@@ -175,7 +192,7 @@ impl<'a> Batcher<'a> {
     }
 
     /// Inputs and normalised actions [B, H, A] of samples `idx`.
-    fn batch(&self, idx: &[usize]) -> anyhow::Result<(ModelInputs, Tensor)> {
+    fn batch(&self, idx: &[usize], aug: &[Augment]) -> anyhow::Result<(ModelInputs, Tensor)> {
         let dev = Device::Cpu;
         let c = &self.cfg;
         let (s, l, a, h) = (
@@ -192,7 +209,8 @@ impl<'a> Batcher<'a> {
             Vec::with_capacity(b * h * a),
         );
         let mut masks = Vec::with_capacity(b);
-        for &i in idx {
+        let d = self.ds.n_dof;
+        for (bi, &i) in idx.iter().enumerate() {
             let f = self.ds.frame(i);
             if self.ds.height == s && self.ds.width == s {
                 to_model_chw(f, s, s, &mut img);
@@ -200,9 +218,31 @@ impl<'a> Batcher<'a> {
                 let r = resize_with_pad(f, self.ds.height, self.ds.width, s, s)?;
                 to_model_chw(&r, s, s, &mut img);
             }
-            ids.extend_from_slice(&self.tokens[i * l..(i + 1) * l]);
-            masks.push(self.token_mask[i * l..(i + 1) * l].to_vec());
-            st.extend_from_slice(&self.state[i * a..(i + 1) * a]);
+            match aug.get(bi) {
+                Some(g) if g.flip_gripper || g.noise.iter().any(|v| *v != 0.0) => {
+                    let mut s = self.norm_state[i * d..(i + 1) * d].to_vec();
+                    for (j, v) in s.iter_mut().enumerate() {
+                        if j + 1 == d && g.flip_gripper {
+                            // normalised gripper ends are -1 (open) and 1 (closed)
+                            *v = if *v > 0.0 { -1.0 } else { 1.0 };
+                        } else if j + 1 < d {
+                            *v += g.noise[j.min(TASK_DOF - 1)];
+                        }
+                    }
+                    let (t, m) =
+                        self.tok
+                            .tokenize(self.ds.color(i).prompt(), Some(&discretize_state(&s)), l)?;
+                    ids.extend(t);
+                    masks.push(m);
+                    s.resize(a, 0.0);
+                    st.extend(s);
+                }
+                _ => {
+                    ids.extend_from_slice(&self.tokens[i * l..(i + 1) * l]);
+                    masks.push(self.token_mask[i * l..(i + 1) * l].to_vec());
+                    st.extend_from_slice(&self.state[i * a..(i + 1) * a]);
+                }
+            }
             acts.extend_from_slice(&self.actions[i * h * a..(i + 1) * h * a]);
         }
         let mut images = vec![Tensor::from_vec(img, (b, 3, s, s), &dev)?];
@@ -480,6 +520,18 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         opt.set_learning_rate(lr);
 
         let idx: Vec<usize> = (0..batch).map(|_| rng.gen_range(0..ds.len())).collect();
+        let aug: Vec<Augment> = (0..batch)
+            .map(|_| {
+                let mut a = Augment {
+                    flip_gripper: rng.gen_bool(0.3),
+                    ..Default::default()
+                };
+                for v in a.noise.iter_mut() {
+                    *v = 0.01 * gaussian(&mut rng);
+                }
+                a
+            })
+            .collect();
         let (h, a) = (mcfg.action_horizon, mcfg.action_dim);
         // noise and times from the seeded generator (deterministic for a given seed)
         let noise: Vec<f32> = (0..batch * h * a).map(|_| gaussian(&mut rng)).collect();
@@ -498,11 +550,11 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
                     .step_by(share)
                     .map(|lo| {
                         let hi = (lo + share).min(batch);
-                        let (model, batcher, idx) = (&model, &batcher, &idx);
+                        let (model, batcher, idx, aug) = (&model, &batcher, &idx, &aug);
                         let (noise, time) = (&noise[lo * h * a..hi * h * a], &time[lo..hi]);
                         sc.spawn(move || -> anyhow::Result<_> {
                             let n = hi - lo;
-                            let (inp, actions) = batcher.batch(&idx[lo..hi])?;
+                            let (inp, actions) = batcher.batch(&idx[lo..hi], &aug[lo..hi])?;
                             let noise = Tensor::from_slice(noise, (n, h, a), &Device::Cpu)?;
                             let time = Tensor::from_slice(time, n, &Device::Cpu)?;
                             let loss = model.loss(&inp, &actions, &noise, &time, true)?.mean;
