@@ -1,7 +1,13 @@
 //! Runs `ipc_latency`'s quick mode in the dev profile so the bench cannot rot (harness off: this
-//! binary is also the bench's receiving process, started with `--peer`).
+//! binary is also the bench's receiving process, started with `--peer`). First checks the Rust
+//! fallback of the websocket baseline on two small cases (`CHUNKRT_WS_BASELINE=rust`); the full
+//! quick run then uses whatever driver the environment gives (set `CHUNKRT_WS_BASELINE=rust` to
+//! run it all on the fallback).
+
+use std::time::Duration;
 
 use chunkrt::bench::ipc_latency::{self, Options, PeerCommand};
+use chunkrt::bench::ws_baseline;
 use chunkrt::bench::{output_root, BenchOpts};
 
 const NAME: &str = "ipc_latency_quick";
@@ -27,6 +33,7 @@ fn main() {
         }
     }
     let t0 = std::time::Instant::now();
+    forced_rust_fallback();
     let exe = std::env::current_exe().expect("the test binary knows its own path");
     let bench = BenchOpts {
         quick: true,
@@ -83,6 +90,14 @@ fn main() {
             s.baseline_note
         ),
     }
+    if std::env::var(ws_baseline::DRIVER_ENV).as_deref() == Ok("rust") {
+        assert!(
+            s.baseline_note
+                .contains("Rust tungstenite + rmp fallback: forced by CHUNKRT_WS_BASELINE=rust"),
+            "forced fallback not named: {}",
+            s.baseline_note
+        );
+    }
     assert!(s.line.starts_with("ipc_latency: "));
     assert!(s.outputs.hlog.exists() && s.outputs.md.exists());
     assert_eq!(
@@ -93,4 +108,50 @@ fn main() {
     assert_eq!(back[0].name, "joint_state");
     assert_eq!(back[0].hist.len(), 100);
     println!("test {NAME} ... ok ({:.1} s)", t0.elapsed().as_secs_f64());
+}
+
+/// `CHUNKRT_WS_BASELINE=rust` makes `ws_baseline::run` use the Rust websocket + msgpack pair and
+/// say so; it measures every sample of a joint-state and a 64×64 camera case.
+fn forced_rust_fallback() {
+    let before = std::env::var_os(ws_baseline::DRIVER_ENV);
+    std::env::set_var(ws_baseline::DRIVER_ENV, "rust");
+    let cases: Vec<_> = ipc_latency::cases()
+        .into_iter()
+        .filter(|c| c.name == "joint_state" || c.name == "cam1_64x64")
+        .collect();
+    let b = ws_baseline::run(
+        &cases,
+        50,
+        5,
+        Duration::from_micros(200),
+        Duration::from_secs(30),
+    );
+    match before {
+        Some(v) => std::env::set_var(ws_baseline::DRIVER_ENV, v),
+        None => std::env::remove_var(ws_baseline::DRIVER_ENV),
+    }
+    let b = b.unwrap_or_else(|e| panic!("forced Rust websocket baseline failed: {e}"));
+    assert!(
+        b.transport
+            .contains("Rust tungstenite + rmp fallback: forced by CHUNKRT_WS_BASELINE=rust"),
+        "transport does not name the fallback: {}",
+        b.transport
+    );
+    assert!(
+        b.substitution.is_some(),
+        "fallback without substitution note"
+    );
+    assert_eq!(b.cases.len(), 2);
+    for c in &b.cases {
+        assert_eq!(c.one_way.len(), 50, "{}: one-way samples", c.name);
+        assert_eq!(c.rtt.len(), 50, "{}: round-trip samples", c.name);
+        assert!(c.one_way.min() > 0, "{}: zero latency", c.name);
+        println!(
+            "rust websocket fallback {}: one way p50/p99 {}/{} ns, rtt p50 {} ns",
+            c.name,
+            c.one_way.value_at_quantile(0.5),
+            c.one_way.value_at_quantile(0.99),
+            c.rtt.value_at_quantile(0.5)
+        );
+    }
 }

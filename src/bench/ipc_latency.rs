@@ -1,6 +1,8 @@
 //! `ipc_latency`: publish → receive latency between two processes over iceoryx2, for joint
 //! states and for camera frames of 64×64, 224×224 and 640×480 RGB (1 and 3 cameras), against
-//! openpi's websocket + msgpack-numpy transport ([`super::ws_baseline`]) in the same run.
+//! openpi's websocket + msgpack-numpy transport ([`super::ws_baseline`]) in the same run. Where
+//! Python / openpi-client cannot run (or `CHUNKRT_WS_BASELINE=rust`), the baseline is an
+//! equivalent Rust websocket + msgpack pair ([`super::ws_rust`]) and the output says so.
 //!
 //! How one sample is measured (ping-pong, one sample in flight):
 //!

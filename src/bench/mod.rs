@@ -2,7 +2,8 @@
 //! mode in the dev profile and the benches themselves stay thin `main`s.
 //!
 //! - [`ipc_latency`]: publish → receive latency between two processes over iceoryx2, against
-//!   openpi's websocket + msgpack-numpy transport ([`ws_baseline`]) in the same run.
+//!   openpi's websocket + msgpack-numpy transport ([`ws_baseline`]; Rust fallback [`ws_rust`])
+//!   in the same run.
 //! - [`control_loop`]: wake-up lateness and compute time of a periodic control thread
 //!   ([`periodic`]), idle and under a candle matmul load ([`load`]), against `cyclictest`
 //!   ([`cyclictest`]) in the same run.
@@ -18,6 +19,7 @@ pub mod ipc_latency;
 pub mod load;
 pub mod periodic;
 pub mod ws_baseline;
+pub mod ws_rust;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;

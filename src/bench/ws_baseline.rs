@@ -1,6 +1,11 @@
 //! openpi's transport as the baseline of `ipc_latency`: websocket + msgpack-numpy over loopback,
 //! driven by the Python scripts in `tools/python/openpi_baseline/` (the `openpi-client` package
 //! from PyPI on the client side, a minimal openpi-style server on the other).
+//!
+//! Without a Python that can run those scripts, [`run`] falls back to an equivalent Rust
+//! websocket + msgpack pair ([`super::ws_rust`]) and names the fallback in
+//! [`Baseline::transport`] and [`Baseline::substitution`]. `$CHUNKRT_WS_BASELINE` picks the
+//! driver: `auto` (default), `python` (no fallback) or `rust` (force the fallback).
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -73,9 +78,97 @@ fn proc_err(what: &str, reason: impl std::fmt::Display) -> BenchError {
     }
 }
 
-/// Runs the websocket baseline: starts the server on a loopback port, runs the client for every
-/// case (`iters` measured round trips after `warmup`, `gap` apart), and reads the latencies.
+/// Environment variable that picks the baseline's driver: `auto`, `python` or `rust`.
+pub const DRIVER_ENV: &str = "CHUNKRT_WS_BASELINE";
+
+/// Who drives the websocket baseline.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Driver {
+    /// The Python scripts (openpi-client, or its mirror in `transport.py`).
+    Python {
+        /// Chosen explicitly (`$CHUNKRT_WS_BASELINE=python`): a failure is not papered over.
+        forced: bool,
+    },
+    /// The Rust pair, and why.
+    Rust {
+        /// Why Python is not used.
+        reason: String,
+    },
+}
+
+/// Picks the driver from the `$CHUNKRT_WS_BASELINE` setting; `auto` asks `probe` whether the
+/// Python side can run.
+pub fn choose(
+    setting: Option<&str>,
+    probe: impl FnOnce() -> Result<(), String>,
+) -> Result<Driver, BenchError> {
+    match setting.map(str::trim) {
+        None | Some("") | Some("auto") => Ok(match probe() {
+            Ok(()) => Driver::Python { forced: false },
+            Err(why) => Driver::Rust {
+                reason: format!("Python/openpi-client unavailable: {why}"),
+            },
+        }),
+        Some("python") => Ok(Driver::Python { forced: true }),
+        Some("rust") => Ok(Driver::Rust {
+            reason: format!("forced by {DRIVER_ENV}=rust"),
+        }),
+        Some(other) => Err(BenchError::Option(format!(
+            "{DRIVER_ENV}={other}: expected auto, python or rust"
+        ))),
+    }
+}
+
+/// Whether the Python scripts can run: the interpreter starts and imports what `transport.py`
+/// (openpi-client, or numpy + msgpack + websockets for its mirror) and `server.py` need.
+pub fn probe_python() -> Result<(), String> {
+    let py = python();
+    let out = Command::new(&py)
+        .args(["-c", "import transport, websockets.asyncio.server"])
+        .current_dir(script_dir())
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .output()
+        .map_err(|e| format!("cannot start {py}: {e}"))?;
+    if out.status.success() {
+        return Ok(());
+    }
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let last = stderr.lines().rev().find(|l| !l.trim().is_empty());
+    Err(format!(
+        "{py} cannot import the baseline's modules ({})",
+        last.unwrap_or("no error output").trim()
+    ))
+}
+
+/// Runs the websocket baseline with the driver `$CHUNKRT_WS_BASELINE` picks (see [`choose`]):
+/// Python when it can run, else the Rust pair. In `auto` mode a failed Python run also falls back.
 pub fn run(
+    cases: &[Case],
+    iters: usize,
+    warmup: usize,
+    gap: Duration,
+    timeout: Duration,
+) -> Result<Baseline, BenchError> {
+    let setting = std::env::var(DRIVER_ENV).ok();
+    let fallback = |reason: String| {
+        println!("websocket baseline: {}", super::ws_rust::transport(&reason));
+        super::ws_rust::run(cases, iters, warmup, gap, timeout, &reason)
+    };
+    match choose(setting.as_deref(), probe_python)? {
+        Driver::Python { forced: true } => run_python(cases, iters, warmup, gap, timeout),
+        Driver::Python { forced: false } => match run_python(cases, iters, warmup, gap, timeout) {
+            Ok(b) => Ok(b),
+            Err(e) => fallback(format!("Python baseline failed: {e}")),
+        },
+        Driver::Rust { reason } => fallback(reason),
+    }
+}
+
+/// Runs the Python baseline: starts the server on a loopback port, runs the client for every
+/// case (`iters` measured round trips after `warmup`, `gap` apart), and reads the latencies.
+pub fn run_python(
     cases: &[Case],
     iters: usize,
     warmup: usize,
@@ -221,5 +314,30 @@ mod tests {
         assert!(b.substitution.is_none());
         assert!(parse_result("{", &cases).is_err());
         assert!(parse_result(r#"{"cases":{}}"#, &cases).is_err());
+    }
+
+    #[test]
+    fn chooses_driver() {
+        let ok = || Ok(());
+        let missing = || Err("no numpy".to_string());
+        assert_eq!(
+            choose(None, ok).expect("valid"),
+            Driver::Python { forced: false }
+        );
+        assert_eq!(
+            choose(Some("auto"), missing).expect("valid"),
+            Driver::Rust {
+                reason: "Python/openpi-client unavailable: no numpy".into()
+            }
+        );
+        assert_eq!(
+            choose(Some("python"), missing).expect("valid"),
+            Driver::Python { forced: true }
+        );
+        match choose(Some("rust"), ok).expect("valid") {
+            Driver::Rust { reason } => assert!(reason.contains("CHUNKRT_WS_BASELINE=rust")),
+            d => panic!("expected the Rust pair, got {d:?}"),
+        }
+        assert!(choose(Some("java"), ok).is_err());
     }
 }
