@@ -89,16 +89,17 @@ impl PolicySource {
         // ends, as in its training data, not the in-between values a real gripper passes through.
         self.state.clear();
         for (i, &v) in joint_state.position[..n].iter().enumerate() {
-            self.state.push(match self.step_ends.get(i).copied().flatten() {
-                Some((lo, hi)) => {
-                    if v >= 0.5 * (lo + hi) {
-                        hi
-                    } else {
-                        lo
+            self.state
+                .push(match self.step_ends.get(i).copied().flatten() {
+                    Some((lo, hi)) => {
+                        if v >= 0.5 * (lo + hi) {
+                            hi
+                        } else {
+                            lo
+                        }
                     }
-                }
-                None => v,
-            });
+                    None => v,
+                });
         }
         let raw = RawObservation {
             frames,

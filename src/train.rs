@@ -229,9 +229,11 @@ impl<'a> Batcher<'a> {
                             *v += g.noise[j.min(TASK_DOF - 1)];
                         }
                     }
-                    let (t, m) =
-                        self.tok
-                            .tokenize(self.ds.color(i).prompt(), Some(&discretize_state(&s)), l)?;
+                    let (t, m) = self.tok.tokenize(
+                        self.ds.color(i).prompt(),
+                        Some(&discretize_state(&s)),
+                        l,
+                    )?;
                     ids.extend(t);
                     masks.push(m);
                     s.resize(a, 0.0);

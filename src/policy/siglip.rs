@@ -219,7 +219,11 @@ impl Vision {
             let h = l.ln1.forward(&x, diff)?;
             // [N, T, 3 Dv]
             let qkv = l.qkv.forward(&h)?;
-            let o = match if diff { None } else { fast_attention(&qkv, nh, hd, scale)? } {
+            let o = match if diff {
+                None
+            } else {
+                fast_attention(&qkv, nh, hd, scale)?
+            } {
                 Some(o) => o,
                 None => {
                     // [N, T, 3, nH, hd] -> 3 x [N, nH, T, hd]
