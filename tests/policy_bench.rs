@@ -1,7 +1,8 @@
 //! Runs the inference benchmark's quick mode once (structure and sanity, not a timed test).
 
+/// Part of the default run (issue: every bench's quick mode runs once in the suite): about 40 s
+/// on the 2-core machine since the fused kernels landed.
 #[test]
-#[ignore = "builds two mid-sized random models (vocab 257152): ~80 s on a loaded 2-core machine; run with --ignored"]
 fn bench_quick_mode_runs_and_reports_every_phase() {
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
         std::env::set_var("RAYON_NUM_THREADS", "2");
