@@ -375,9 +375,10 @@ fn tools_monitor_lists_and_measures_services() {
 
 #[test]
 fn tools_fake_camera_configured_encodings() {
+    // the default robot's camera as bgr8, plus a second, mono8 camera
     let toml = chunkrt_ipc::config::DEFAULT_TOML
         .replacen("encoding = \"rgb8\"", "encoding = \"bgr8\"", 1)
-        .replacen("encoding = \"rgb8\"", "encoding = \"mono8\"", 1);
+        + "\n[[cameras]]\nname = \"left_wrist_0_rgb\"\nwidth = 96\nheight = 64\nfps = 30.0\nencoding = \"mono8\"\n";
     let cfg = Config::parse(&toml, "test").expect("edited config is valid");
     assert_eq!(cfg.cameras[0].encoding, "bgr8");
     assert_eq!(cfg.cameras[1].encoding, "mono8");
