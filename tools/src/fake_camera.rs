@@ -478,9 +478,10 @@ mod tests {
         };
         let p = plan(&cfg.cameras, &args).unwrap();
         assert_eq!(p.len(), cfg.cameras.len());
-        assert_eq!(p[1].camera_id, 1);
-        assert_eq!(p[1].format.width, 64);
-        assert_eq!(p[1].format.height, cfg.cameras[1].height);
+        let last = cfg.cameras.len() - 1;
+        assert_eq!(p[last].camera_id, last as u32);
+        assert_eq!(p[last].format.width, 64);
+        assert_eq!(p[last].format.height, cfg.cameras[last].height);
         assert_eq!(p[0].fps, 50.0);
         args.cameras = Some(vec!["extra".into()]);
         let p = plan(&cfg.cameras, &args).unwrap();
