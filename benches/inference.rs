@@ -27,7 +27,39 @@ fn main() {
         None => chunkrt::policy::bench::run(quick),
     };
     match res {
-        Ok(r) => print!("{r}"),
+        Ok(r) => {
+            print!("{r}");
+            // interval log, plot and table under target/chunkrt-bench/inference/
+            let series: Vec<chunkrt::report::Series> = r
+                .configs
+                .iter()
+                .flat_map(|c| {
+                    c.phases.iter().map(move |p| {
+                        chunkrt::report::Series::new(
+                            format!("{}_{}", c.name, p.name),
+                            p.hist_ns.clone(),
+                        )
+                    })
+                })
+                .collect();
+            let table = chunkrt::report::LatencyTable::from_series(
+                format!("inference ({} threads)", r.threads),
+                &series,
+            );
+            let names: Vec<String> = series.iter().map(|s| s.name.clone()).collect();
+            match chunkrt::bench::write_outputs(
+                &chunkrt::bench::output_root().join("inference"),
+                "inference",
+                &table,
+                &series,
+                &[("inference", "policy phases by percentile", names)],
+                std::time::Duration::from_secs(1),
+                "chunkrt inference bench",
+            ) {
+                Ok(o) => println!("{o}"),
+                Err(e) => eprintln!("inference: no log/plot: {e}"),
+            }
+        }
         Err(e) => {
             eprintln!("bench failed: {e}");
             std::process::exit(1);

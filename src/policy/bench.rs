@@ -41,6 +41,8 @@ pub struct Phase {
     pub flops: f64,
     /// Median process CPU time of one run (ms, all threads): robust to a loaded machine.
     pub cpu_ms: f64,
+    /// Wall time of every run (ns), for the interval log and the plot.
+    pub hist_ns: Histogram<u64>,
 }
 
 impl Phase {
@@ -179,6 +181,7 @@ fn time_phase(
     f()?; // warm-up
     let mut h = histogram()?;
     let mut cpu = histogram()?;
+    let mut hist_ns = crate::report::latency_histogram();
     for _ in 0..n {
         let t0 = Instant::now();
         let c0 = cpu_us();
@@ -188,6 +191,7 @@ fn time_phase(
             .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
         h.record(us.min(600_000_000))
             .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
+        let _ = hist_ns.record(us.min(600_000_000) * 1000);
     }
     Ok(Phase {
         name: name.to_string(),
@@ -196,6 +200,7 @@ fn time_phase(
         p99_ms: h.value_at_quantile(0.99) as f64 / 1e3,
         flops,
         cpu_ms: cpu.value_at_quantile(0.5) as f64 / 1e3,
+        hist_ns,
     })
 }
 
