@@ -32,9 +32,9 @@ use crate::policy::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, NormMode, NormStats,
     PromptTokenizer, Stats,
 };
-use crate::task::dataset::{random_start, Dataset, DatasetSpec};
+use crate::task::dataset::{gaussian, random_start, Dataset, DatasetSpec};
 use crate::task::sim::{run_episode, EpisodeSpec, SimSettings};
-use crate::task::{task_camera, vocab, TargetColor, TASK_DOF};
+use crate::task::{home_pose, task_camera, vocab, TargetColor, TASK_DOF};
 
 /// The model configuration of the embedded default policy.
 pub const MODEL_CONFIG: &str = include_str!("../config/reach_model.json");
@@ -85,13 +85,6 @@ pub struct TrainArgs {
     /// A smoke run: 3 scenes, 6 steps, 1 validation episode (for the tests).
     #[arg(long)]
     pub quick: bool,
-}
-
-/// A standard normal sample (Box-Muller).
-fn gaussian(rng: &mut impl Rng) -> f32 {
-    let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
-    let u2: f64 = rng.gen();
-    ((-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()) as f32
 }
 
 /// Mean, std and 1 % / 99 % quantiles of each of `dim` columns of row-major `values`.
@@ -286,10 +279,7 @@ pub fn write_checkpoint(
 /// Held-out validation / evaluation episodes: scenes `first..first + n`, alternating prompts,
 /// start poses from `seed`.
 pub fn held_out_episodes(cfg: &Config, first: u64, n: usize, seed: u64) -> Vec<EpisodeSpec> {
-    let mut home = [0.0; TASK_DOF];
-    for (i, j) in cfg.robot.joints.iter().take(TASK_DOF).enumerate() {
-        home[i] = j.initial_position;
-    }
+    let home = home_pose(cfg);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     (0..n)
         .map(|i| EpisodeSpec {
@@ -384,10 +374,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         eprintln!("[train] dataset {}", args.dataset.display());
         Dataset::load(&args.dataset)?
     } else {
-        let mut home = [0.0; TASK_DOF];
-        for (i, j) in cfg.robot.joints.iter().take(TASK_DOF).enumerate() {
-            home[i] = j.initial_position;
-        }
+        let home = home_pose(&cfg);
         let spec = DatasetSpec {
             scenes,
             seed: args.seed,
@@ -529,14 +516,16 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
                     ..Default::default()
                 };
                 for v in a.noise.iter_mut() {
-                    *v = 0.01 * gaussian(&mut rng);
+                    *v = 0.01 * gaussian(&mut rng) as f32;
                 }
                 a
             })
             .collect();
         let (h, a) = (mcfg.action_horizon, mcfg.action_dim);
         // noise and times from the seeded generator (deterministic for a given seed)
-        let noise: Vec<f32> = (0..batch * h * a).map(|_| gaussian(&mut rng)).collect();
+        let noise: Vec<f32> = (0..batch * h * a)
+            .map(|_| gaussian(&mut rng) as f32)
+            .collect();
         let time: Vec<f32> = (0..batch)
             .map(|_| {
                 let u: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);

@@ -73,7 +73,7 @@ pub struct Dataset {
 }
 
 /// A standard normal sample (Box-Muller).
-fn gaussian(rng: &mut impl Rng) -> f64 {
+pub fn gaussian(rng: &mut impl Rng) -> f64 {
     let u1: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
     let u2: f64 = rng.gen();
     (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()

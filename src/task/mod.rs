@@ -37,3 +37,12 @@ pub fn task_camera(cfg: &Config) -> anyhow::Result<&CameraConfig> {
     );
     Ok(cam)
 }
+
+/// The robot's home pose (the configured initial positions of the task's joints).
+pub fn home_pose(cfg: &Config) -> [f64; TASK_DOF] {
+    let mut home = [0.0; TASK_DOF];
+    for (h, j) in home.iter_mut().zip(cfg.robot.joints.iter()) {
+        *h = j.initial_position;
+    }
+    home
+}
