@@ -6,7 +6,7 @@
 //! (`task::sim`: real executor, real policy, real ruckig). Reported per cell: success rate with
 //! a 95 % Wilson interval, mean time to target of the successes, the largest jump of the target
 //! at a chunk switch, and the RMS jerk of the command — as a table (stdout and Markdown), a CSV
-//! and a PNG.
+//! and a PNG; `episodes.csv` has every episode (closest approach, wrong target, time).
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -17,7 +17,7 @@ use anyhow::Context;
 use chunkrt_ipc::config::Config;
 
 use crate::inference::PolicySource;
-use crate::task::sim::{run_episode, EpisodeOutcome, SimSettings};
+use crate::task::sim::{run_episode, EpisodeOutcome, EpisodeSpec, SimSettings};
 use crate::train::held_out_episodes;
 
 /// Every way of executing chunks the sweep knows.
@@ -50,7 +50,7 @@ pub struct EvalArgs {
     /// Episode time limit (s).
     #[arg(long, default_value_t = 8.0)]
     pub max_seconds: f64,
-    /// Output folder (eval.md, eval.csv, eval.png).
+    /// Output folder (eval.md, eval.csv, episodes.csv: one row per episode, eval.png).
     #[arg(long, default_value = "target/chunkrt-eval")]
     pub out: PathBuf,
     /// A smoke run: delays 0 and 2, 2 episodes per cell, 3 s limit.
@@ -120,6 +120,15 @@ fn summarise(strategy: &str, delay: u64, outs: &[EpisodeOutcome]) -> Cell {
     }
 }
 
+/// One episode of a sweep, for `episodes.csv`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeRow {
+    pub strategy: String,
+    pub delay: u64,
+    pub spec: EpisodeSpec,
+    pub outcome: EpisodeOutcome,
+}
+
 /// The Markdown table of a sweep.
 pub fn markdown(cells: &[Cell]) -> String {
     let mut s = String::from(
@@ -152,7 +161,7 @@ pub fn sweep(
     episodes: usize,
     max_seconds: f64,
     mut progress: impl FnMut(usize, usize, &str, u64),
-) -> anyhow::Result<Vec<Cell>> {
+) -> anyhow::Result<(Vec<Cell>, Vec<EpisodeRow>)> {
     for s in strategies {
         anyhow::ensure!(
             STRATEGIES.contains(&s.as_str()),
@@ -165,6 +174,7 @@ pub fn sweep(
     let total = strategies.len() * delays.len() * episodes;
     let mut done = 0;
     let mut cells = Vec::new();
+    let mut rows = Vec::new();
     for &d in delays {
         for s in strategies {
             let mut c = cfg.clone();
@@ -187,9 +197,15 @@ pub fn sweep(
                 progress(done, total, s, d);
             }
             cells.push(summarise(s, d, &outs));
+            rows.extend(specs.iter().zip(outs).map(|(e, o)| EpisodeRow {
+                strategy: s.clone(),
+                delay: d,
+                spec: *e,
+                outcome: o,
+            }));
         }
     }
-    Ok(cells)
+    Ok((cells, rows))
 }
 
 /// Success rate (with the 95 % intervals) and max switch jump against the delay, one line per
@@ -319,7 +335,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let tty = std::io::stderr().is_terminal();
     let t0 = Instant::now();
     let mut last = 0.0;
-    let cells = sweep(
+    let (cells, rows) = sweep(
         &cfg,
         &args.strategies,
         &delays,
@@ -368,6 +384,37 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             c.max_jump,
             c.rms_jerk,
             c.hold_ticks
+        )?;
+    }
+    let mut csv = std::fs::File::create(args.out.join("episodes.csv"))?;
+    writeln!(
+        csv,
+        "strategy,delay_steps,scene_seed,color,success,wrong_target,min_distance_m,time_to_target_s,expert_time_s,chunks"
+    )?;
+    for r in &rows {
+        let o = &r.outcome;
+        // how long the scripted expert's motion from the same start takes
+        let expert = crate::task::expert::Reach::plan(
+            &r.spec.start,
+            &crate::task::ReachScene::from_seed(r.spec.scene_seed),
+            r.spec.color,
+            0.0,
+        )
+        .map_or(f64::NAN, |p| p.duration);
+        writeln!(
+            csv,
+            "{},{},{},{},{},{},{:.4},{},{:.3},{}",
+            r.strategy,
+            r.delay,
+            r.spec.scene_seed,
+            r.spec.color.name(),
+            o.success as u8,
+            o.wrong_target as u8,
+            o.min_distance,
+            o.time_to_target
+                .map_or(String::new(), |t| format!("{t:.3}")),
+            expert,
+            o.chunks
         )?;
     }
     let png = args.out.join("eval.png");
