@@ -1,16 +1,18 @@
 //! `chunkrt train`: trains the reach task's π0.5 with chunkrt's own flow-matching loss.
 //!
 //! 1. The dataset (expert demonstrations, `task::dataset`) is loaded, or recorded when missing.
-//! 2. openpi's recipe: quantile norm stats of state and actions, the π0.5 prompt with the
-//!    discretised state, t ~ Beta(1.5, 1)·0.999 + 0.001, x_t = t·ε + (1 − t)·a, loss
+//! 2. openpi's recipe: the arm joints' actions relative to the observed state (openpi's
+//!    `DeltaActions`, from the model config's `delta_action_mask`; the gripper stays absolute),
+//!    quantile norm stats of state and actions, the π0.5 prompt with the discretised state
+//!    (the 256 state-bin token embeddings start as Fourier features of the bin value), t ~ Beta(1.5, 1)·0.999 + 0.001, x_t = t·ε + (1 − t)·a, loss
 //!    ‖(ε − a) − v(x_t, t)‖², AdamW with warm-up, cosine decay and gradient clipping at 1.
 //!    Every op runs in its differentiable form (SigLIP, both experts, the heads). The state is
 //!    augmented: the gripper's state flipped in 30 % of the samples (the robot's gripper is not
 //!    always where the expert's was) and N(0, 0.01) on the arm joints' normalised state.
 //! 3. Every `--val-every-min` minutes the weights are written as a checkpoint (openpi key names,
 //!    `config.json`, `norm_stats.json`, the task's `tokenizer.json`) and driven closed-loop
-//!    through held-out episodes by the real executor (`task::sim`); the best one so far is kept
-//!    in `--out`.
+//!    through held-out episodes by the real executor (`task::sim`). `--out` gets the last
+//!    checkpoint (`--keep last`, the default) or the best by validation (`--keep best`).
 //!
 //! A progress line shows step, loss, samples/s, time and the last validation.
 
@@ -56,8 +58,16 @@ pub struct TrainArgs {
     #[arg(long, default_value = "target/chunkrt-train/dataset.safetensors")]
     pub dataset: PathBuf,
     /// Scenes to record when the dataset is missing (two episodes each).
-    #[arg(long, default_value_t = 600)]
+    #[arg(long, default_value_t = 5000)]
     pub scenes: usize,
+    /// Share of each episode's policy steps recorded (first and last always): 5000 scenes at
+    /// 0.2 give about as many samples as 1000 at every step, with 5x the target layouts.
+    #[arg(long, default_value_t = 0.2)]
+    pub keep_share: f64,
+    /// Which checkpoint ends up in `--out`: `last` (the end of the schedule) or `best` (highest
+    /// validation success so far; with tens of episodes the noise is ±15 points).
+    #[arg(long, value_enum, default_value_t = Keep::Last)]
+    pub keep: Keep,
     /// Training time budget (minutes).
     #[arg(long, default_value_t = 25.0)]
     pub minutes: f64,
@@ -74,7 +84,7 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 4.0)]
     pub val_every_min: f64,
     /// Held-out closed-loop episodes per validation.
-    #[arg(long, default_value_t = 12)]
+    #[arg(long, default_value_t = 24)]
     pub val_episodes: usize,
     /// Seed of the initialisation, batches and noise.
     #[arg(long, default_value_t = 0)]
@@ -82,9 +92,84 @@ pub struct TrainArgs {
     /// Data-parallel training workers (threads), each running candle on one core.
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
+    /// Initial embeddings of the 256 state-bin tokens: `fourier` gives bin k the sines and
+    /// cosines of k/255 at geometric frequencies, so neighbouring bins start close and the
+    /// state's value is readable from the first step; `random` is the usual N(0, 1/W).
+    #[arg(long, value_enum, default_value_t = BinInit::Fourier)]
+    pub state_embedding: BinInit,
     /// A smoke run: 3 scenes, 6 steps, 1 validation episode (for the tests).
     #[arg(long)]
     pub quick: bool,
+}
+
+/// Which checkpoint `chunkrt train` leaves in `--out`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Keep {
+    Last,
+    Best,
+}
+
+/// How the state-bin token embeddings start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum BinInit {
+    Fourier,
+    Random,
+}
+
+/// Writes Fourier features of the bin value into the embedding rows of the 256 state-bin
+/// tokens (ids `SPECIALS.len()..+256`, `task::vocab`): row k holds sin / cos(π·2^(7j/(W/2))·k/255),
+/// j < W/2, scaled so each entry has the RMS of the N(0, 1/W) init. A learned table starts with
+/// no notion that bin 120 lies between 119 and 121; this one does, and training refines it.
+pub fn init_state_bin_embeddings(vm: &VarMap) -> anyhow::Result<()> {
+    let data = vm
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("the VarMap lock is poisoned"))?;
+    let var = [
+        "paligemma_with_expert.paligemma.model.language_model.embed_tokens.weight",
+        "paligemma_with_expert.paligemma.lm_head.weight",
+    ]
+    .iter()
+    .find_map(|n| data.get(*n))
+    .context("the model has no token embedding")?;
+    let mut rows = var.as_tensor().to_vec2::<f32>()?;
+    let first = vocab::SPECIALS.len();
+    anyhow::ensure!(
+        rows.len() >= first + 256,
+        "vocabulary too small for 256 bins"
+    );
+    let w = rows[0].len();
+    let half = w / 2;
+    let amp = (1.0 / w as f64).sqrt() * std::f64::consts::SQRT_2;
+    for (k, row) in rows[first..first + 256].iter_mut().enumerate() {
+        let v = k as f64 / 255.0;
+        for j in 0..half {
+            let f = std::f64::consts::PI * 2f64.powf(7.0 * j as f64 / half as f64);
+            row[2 * j] = (amp * (f * v).sin()) as f32;
+            row[2 * j + 1] = (amp * (f * v).cos()) as f32;
+        }
+    }
+    let t = Tensor::new(rows, var.device())?;
+    var.set(&t)?;
+    Ok(())
+}
+
+/// The dataset's action chunks as the model predicts them: on the dims of `delta_mask` relative
+/// to the sample's state (openpi's `DeltaActions`; the runtime adds the observed state back),
+/// absolute elsewhere. Same layout as `Dataset::actions`.
+pub fn model_space_actions(ds: &Dataset, delta_mask: &[bool]) -> Vec<f32> {
+    let d = ds.n_dof;
+    let stride = ds.horizon * d;
+    let mut out = ds.actions.clone();
+    for i in 0..ds.len() {
+        let s = ds.state_of(i);
+        for (j, v) in out[i * stride..(i + 1) * stride].iter_mut().enumerate() {
+            if delta_mask.get(j % d).copied().unwrap_or(false) {
+                *v -= s[j % d];
+            }
+        }
+    }
+    out
 }
 
 /// Mean, std and 1 % / 99 % quantiles of each of `dim` columns of row-major `values`.
@@ -135,8 +220,10 @@ struct Augment {
 }
 
 impl<'a> Batcher<'a> {
+    /// `actions`: the dataset's chunks in the model's action space ([`model_space_actions`]).
     fn new(
         ds: &'a Dataset,
+        actions: &[f32],
         cfg: &ModelConfig,
         norm: &NormStats,
         tok: &'a PromptTokenizer,
@@ -173,7 +260,8 @@ impl<'a> Batcher<'a> {
             b.token_mask.extend(mask);
             s.resize(a, 0.0);
             b.state.extend(s);
-            let acts = ds.actions_of(i);
+            let stride = ds.horizon * d;
+            let acts = &actions[i * stride..(i + 1) * stride];
             for k in 0..h {
                 let mut row = acts[k * d..(k + 1) * d].to_vec();
                 normalize(&mut row, &norm.actions, NormMode::Quantile)?;
@@ -387,6 +475,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             perturb_share: 0.5,
             perturb_std: 0.2,
             home,
+            keep_share: args.keep_share,
         };
         let t0 = Instant::now();
         let ds = Dataset::generate(&spec, |done, total| {
@@ -413,20 +502,25 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     );
 
     // 2. normalisation, tokenizer, model
+    let actions = model_space_actions(&ds, &mcfg.delta_action_mask);
     let norm = NormStats {
         state: column_stats(&ds.state, ds.n_dof),
-        actions: column_stats(&ds.actions, ds.n_dof),
+        actions: column_stats(&actions, ds.n_dof),
     };
     let tok_dir = std::env::temp_dir().join(format!("chunkrt-tok-{}", std::process::id()));
     std::fs::create_dir_all(&tok_dir)?;
     std::fs::write(tok_dir.join("tokenizer.json"), vocab::tokenizer_json())?;
     let tok = PromptTokenizer::from_file(&tok_dir.join("tokenizer.json"))?;
     std::fs::remove_dir_all(&tok_dir).ok();
-    let batcher = Batcher::new(&ds, &mcfg, &norm, &tok)?;
+    let batcher = Batcher::new(&ds, &actions, &mcfg, &norm, &tok)?;
+    drop(actions);
 
     let dev = Device::Cpu;
     let vm = VarMap::new();
     let model = PiModel::new(&mcfg, VarBuilder::from_varmap(&vm, DType::F32, &dev))?;
+    if args.state_embedding == BinInit::Fourier {
+        init_state_bin_embeddings(&vm)?;
+    }
     let n_params: usize = vm.all_vars().iter().map(|v| v.elem_count()).sum();
     eprintln!(
         "[train] π0.5 {}: {n_params} parameters ({:.1} MB f32), batch {batch}, lr {}, budget {}",
@@ -481,13 +575,19 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             let better = best.is_none_or(|b| ok >= b);
             if better {
                 best = Some(ok);
+            }
+            if better || args.keep == Keep::Last {
                 write_checkpoint(&args.out, &vm, &model_json, &norm)?;
             }
             eprintln!(
                 "{}[train] step {step}  {}  loss {ema:.4}  validation: {last_val} success{}",
                 if tty { "\n" } else { "" },
                 fmt_min(elapsed),
-                if better { "  -> kept" } else { "" }
+                if better || args.keep == Keep::Last {
+                    "  -> written"
+                } else {
+                    ""
+                }
             );
             next_val = t0.elapsed().as_secs_f64() + args.val_every_min * 60.0;
             if done {

@@ -433,3 +433,89 @@ fn toml_model_overrides_reach_the_loaded_model() {
     assert!(chunkrt::config::Config::load(&path).is_err());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `delta_action_mask` (config.json or `[policy.model]`): the model's actions on those dims are
+/// relative to the observed state, so the runtime adds the state there and nowhere else. Same
+/// checkpoint, same noise seed, with and without the mask: the difference is the state.
+#[test]
+fn delta_action_mask_adds_the_observed_state_on_its_dims() {
+    let dir = data("pi05_tiny");
+    let inp = inputs("pi05_tiny");
+    let state: Vec<f64> = inp["state_unpadded.0"]
+        .to_vec1::<f32>()
+        .unwrap()
+        .iter()
+        .map(|&x| x as f64 + 0.25)
+        .collect();
+    let n = state.len();
+    let obs = RawObservation {
+        frames: &[],
+        joint_positions: &state,
+        prompt: "pick up the red block",
+    };
+    let absolute = chunkrt::config::PolicyConfig::default();
+    let mut delta = absolute.clone();
+    let mask: Vec<bool> = (0..n).map(|d| d % 2 == 0).collect();
+    delta.model.delta_action_mask = Some(mask.clone());
+    let a = Policy::load(&dir, &absolute).unwrap().infer(&obs).unwrap();
+    let mut p = Policy::load(&dir, &delta).unwrap();
+    assert_eq!(p.model().cfg.delta_action_mask, mask);
+    let b = p.infer(&obs).unwrap();
+    assert_eq!(a.len(), b.len());
+    for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+        let d = i % n;
+        let want = if mask[d] { state[d] } else { 0.0 };
+        assert!(
+            (y - x - want).abs() < 1e-9,
+            "action {i}: {y} - {x} != {want}"
+        );
+    }
+    // a mask longer than the model's action dim is rejected when loading
+    delta.model.delta_action_mask = Some(vec![true; 64]);
+    assert!(Policy::load(&dir, &delta).is_err());
+}
+
+/// `policy.precision = "bf16"`: the matrix products run in bf16 on AMX; the actions stay within
+/// bf16 rounding of the f32 ones (same checkpoint, observation and noise seed). Skipped (with a
+/// note) where the CPU has no AMX: there the setting falls back to f32.
+#[test]
+fn bf16_precision_stays_close_to_f32() {
+    let dir = data("pi05_tiny");
+    let inp = inputs("pi05_tiny");
+    let state: Vec<f64> = inp["state_unpadded.0"]
+        .to_vec1::<f32>()
+        .unwrap()
+        .iter()
+        .map(|&x| x as f64)
+        .collect();
+    let obs = RawObservation {
+        frames: &[],
+        joint_positions: &state,
+        prompt: "pick up the red block",
+    };
+    let f32_cfg = chunkrt::config::PolicyConfig::default();
+    let mut bf16_cfg = f32_cfg.clone();
+    bf16_cfg.precision = "bf16".into();
+    let a = Policy::load(&dir, &f32_cfg).unwrap().infer(&obs).unwrap();
+    let b = Policy::load(&dir, &bf16_cfg).unwrap().infer(&obs).unwrap();
+    let rms = (a.iter().map(|x| x * x).sum::<f64>() / a.len() as f64).sqrt();
+    let worst = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    println!("bf16 vs f32: max |diff| {worst:.5}, actions RMS {rms:.4}");
+    if !chunkrt::policy::amx::available() {
+        eprintln!("no AMX here: bf16 fell back to f32");
+        assert_eq!(worst, 0.0);
+        return;
+    }
+    assert!(
+        worst > 0.0,
+        "bf16 gave bit-identical actions: AMX path not taken"
+    );
+    assert!(
+        worst < 0.05 * rms.max(1e-6),
+        "bf16 differs by {worst} (RMS {rms})"
+    );
+}

@@ -182,6 +182,20 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
 
 #[test]
 fn guidance_pulls_the_frozen_steps_onto_the_previous_chunk() {
+    guidance_pulls(None);
+}
+
+/// With delta actions the previous chunk (robot units, absolute) is made relative to the new
+/// observation's state before it guides: the guided chunk still lands on it.
+#[test]
+fn guidance_with_delta_actions_pulls_onto_the_absolute_previous_chunk() {
+    guidance_pulls(Some(vec![true, true, false, true, false, true]));
+}
+
+fn guidance_pulls(delta_action_mask: Option<Vec<bool>>) {
+    let mut pc = chunkrt::config::PolicyConfig::default();
+    pc.model.delta_action_mask = delta_action_mask;
+    let policy = || Policy::load(&data("pi05_tiny"), &pc).unwrap();
     let (frames, state) = fixture();
     let raw = raw_frames(&frames);
     let obs = RawObservation {

@@ -193,6 +193,11 @@ pub struct PolicyConfig {
     /// Threads for the model (0: all cores but the control core).
     #[serde(default)]
     pub threads: usize,
+    /// Arithmetic of the model's matrix products: `f32` (the reference) or `bf16` (inputs
+    /// rounded to bf16, f32 accumulation, on Intel AMX; falls back to f32 with a warning where
+    /// the CPU has no AMX).
+    #[serde(default = "default_precision")]
+    pub precision: String,
     /// Overrides of the checkpoint's model dimensions (`[policy.model]`), for real openpi /
     /// LeRobot checkpoints that ship no `config.json` (their dimensions come from the preset of
     /// the detected kind).
@@ -212,10 +217,16 @@ pub struct ModelOverrides {
     pub max_token_len: Option<usize>,
     /// Image keys in the model's order (config cameras are matched by name).
     pub cameras: Option<Vec<String>>,
+    /// Joints whose actions the checkpoint predicts relative to the observed state (openpi's
+    /// `DeltaActions`), in robot joint order; the rest are absolute.
+    pub delta_action_mask: Option<Vec<bool>>,
 }
 
 fn default_policy_kind() -> String {
     "hold".to_string()
+}
+fn default_precision() -> String {
+    "f32".to_string()
 }
 fn default_steps() -> usize {
     10
@@ -233,6 +244,7 @@ impl Default for PolicyConfig {
             num_steps: default_steps(),
             action_rate_hz: default_action_rate_hz(),
             threads: 0,
+            precision: default_precision(),
             model: ModelOverrides::default(),
         }
     }
@@ -539,6 +551,7 @@ impl Config {
         c.range("policy.num_steps", p.num_steps as f64, 1.0, 1000.0)?;
         c.range("policy.action_rate_hz", p.action_rate_hz, 1.0, 1000.0)?;
         c.range("policy.threads", p.threads as f64, 0.0, 1024.0)?;
+        c.one_of("policy.precision", &p.precision, &["f32", "bf16"])?;
         if let Some(v) = p.model.action_horizon {
             c.range("policy.model.action_horizon", v as f64, 1.0, 1000.0)?;
         }
@@ -555,6 +568,14 @@ impl Config {
             for n in cams {
                 c.name("policy.model.cameras", n)?;
             }
+        }
+        if let Some(m) = &p.model.delta_action_mask {
+            c.range(
+                "policy.model.delta_action_mask (length)",
+                m.len() as f64,
+                0.0,
+                1024.0,
+            )?;
         }
         let e = &self.execution;
         c.one_of(

@@ -106,6 +106,10 @@ pub struct ModelConfig {
     pub time_min_period: f64,
     /// Sinusoidal time embedding periods.
     pub time_max_period: f64,
+    /// Action dims the model predicts relative to the observed state (openpi's `DeltaActions`
+    /// transform: the robot gets `state + action` on these dims, the action itself on the rest).
+    /// Empty: every dim is absolute. At most `action_dim` entries; dims past the end are absolute.
+    pub delta_action_mask: Vec<bool>,
 }
 
 /// The fixtures' `config.json` (only the fields we read; everything else is ignored).
@@ -133,6 +137,8 @@ struct FileConfig {
     rms_norm_eps: Option<f64>,
     #[serde(default)]
     rope_theta: Option<f64>,
+    #[serde(default)]
+    delta_action_mask: Option<Vec<bool>>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -191,6 +197,7 @@ impl ModelConfig {
             rope_theta: f.rope_theta.unwrap_or(10_000.0),
             time_min_period: 4e-3,
             time_max_period: 4.0,
+            delta_action_mask: f.delta_action_mask.unwrap_or_default(),
         };
         cfg.validate()?;
         Ok(cfg)
@@ -250,6 +257,7 @@ impl ModelConfig {
             rope_theta: 10_000.0,
             time_min_period: 4e-3,
             time_max_period: 4.0,
+            delta_action_mask: Vec::new(),
         })
     }
 
@@ -293,6 +301,13 @@ impl ModelConfig {
         if self.cameras.is_empty() {
             errs.push("at least one camera is required".into());
         }
+        if self.delta_action_mask.len() > self.action_dim {
+            errs.push(format!(
+                "delta_action_mask has {} entries, more than action_dim {}",
+                self.delta_action_mask.len(),
+                self.action_dim
+            ));
+        }
         if errs.is_empty() {
             Ok(())
         } else {
@@ -332,6 +347,8 @@ pub struct ConfigOverrides {
     pub cameras: Option<Vec<String>>,
     /// Denoising steps.
     pub num_denoise_steps: Option<usize>,
+    /// Action dims relative to the state.
+    pub delta_action_mask: Option<Vec<bool>>,
 }
 
 impl ConfigOverrides {
@@ -351,6 +368,9 @@ impl ConfigOverrides {
         }
         if let Some(v) = self.num_denoise_steps {
             cfg.num_denoise_steps = v;
+        }
+        if let Some(v) = &self.delta_action_mask {
+            cfg.delta_action_mask = v.clone();
         }
         cfg.validate()
     }

@@ -41,12 +41,15 @@ pub struct Guidance<'a> {
 impl Guidance<'_> {
     /// The model-space target: Y normalised with the action `stats` / `mode` (as the actions
     /// are un-normalised) and zero-padded to the action dim, W masked beyond `n_dof`.
+    /// `offsets` (n_dof values, or empty for none) are subtracted first: the observed state on
+    /// the model's delta-action dims, so Y is in the model's own (relative) action space.
     pub fn target(
         &self,
         cfg: &ModelConfig,
         n_dof: usize,
         stats: Option<&Stats>,
         mode: NormMode,
+        offsets: &[f64],
     ) -> Result<GuidanceTarget, PolicyError> {
         let (h, a) = (cfg.action_horizon, cfg.action_dim);
         if n_dof == 0 || n_dof > a {
@@ -77,11 +80,21 @@ impl Guidance<'_> {
                 self.beta
             )));
         }
+        if !offsets.is_empty() && offsets.len() != n_dof {
+            return Err(PolicyError::Input(format!(
+                "guidance: {} offsets for {n_dof} DoF",
+                offsets.len()
+            )));
+        }
         let mut y = Vec::with_capacity(h * a);
         let mut row = Vec::with_capacity(a);
         for r in self.prefix.chunks_exact(n_dof) {
             row.clear();
-            row.extend(r.iter().map(|&x| x as f32));
+            row.extend(
+                r.iter()
+                    .enumerate()
+                    .map(|(d, &x)| (x - offsets.get(d).copied().unwrap_or(0.0)) as f32),
+            );
             if let Some(s) = stats {
                 normalize(&mut row, s, mode)?;
             }

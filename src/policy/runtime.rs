@@ -56,6 +56,9 @@ pub struct Policy {
     rng: rand_chacha::ChaCha8Rng,
     images: Vec<f32>,
     noise: Vec<f32>,
+    /// Added to each action row after un-normalisation: the observed joint position on the
+    /// model's delta dims (`ModelConfig::delta_action_mask`), 0 on the others.
+    offsets: Vec<f64>,
 }
 
 impl Policy {
@@ -76,9 +79,13 @@ impl Policy {
             max_token_len: cfg.model.max_token_len,
             cameras: cfg.model.cameras.clone(),
             num_denoise_steps: Some(cfg.num_steps),
+            delta_action_mask: cfg.model.delta_action_mask.clone(),
         };
         let loaded = checkpoint::load(checkpoint_dir, &overrides)?;
-        let model = loaded.model;
+        let mut model = loaded.model;
+        if cfg.precision == "bf16" && !model.use_bf16()? {
+            tracing::warn!("policy.precision = bf16 needs Intel AMX, which this CPU or kernel does not offer: running f32");
+        }
         match (cfg.kind.as_str(), model.cfg.kind) {
             ("pi0", ModelKind::Pi05) | ("pi05", ModelKind::Pi0) => {
                 return Err(PolicyError::Config(format!(
@@ -118,6 +125,7 @@ impl Policy {
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(0x5eed),
             images: Vec::new(),
             noise: Vec::new(),
+            offsets: Vec::new(),
         })
     }
 
@@ -158,7 +166,7 @@ impl Policy {
         let n_dof = obs.joint_positions.len();
         let stats = self.norm.as_ref().map(|n| &n.actions);
         let target = match guidance {
-            Some(g) => Some(g.target(&self.model.cfg, n_dof, stats, self.mode())?),
+            Some(g) => Some(g.target(&self.model.cfg, n_dof, stats, self.mode(), &self.offsets)?),
             None => None,
         };
         self.run(&inputs, n_dof, target.as_ref())
@@ -178,6 +186,15 @@ impl Policy {
             return Err(PolicyError::Input("non-finite joint position".into()));
         }
         let mode = self.mode();
+        self.offsets.clear();
+        self.offsets
+            .extend(obs.joint_positions.iter().enumerate().map(|(d, &q)| {
+                if cfg.delta_action_mask.get(d).copied().unwrap_or(false) {
+                    q
+                } else {
+                    0.0
+                }
+            }));
         // state: normalise the unpadded state, then pad to the action dim
         let mut state: Vec<f32> = obs.joint_positions.iter().map(|&x| x as f32).collect();
         if let Some(ns) = &self.norm {
@@ -257,7 +274,12 @@ impl Policy {
             if let Some(ns) = &self.norm {
                 unnormalize(&mut r, &ns.actions, mode)?;
             }
-            res.extend(r.iter().take(n_dof).map(|&x| x as f64));
+            res.extend(
+                r.iter()
+                    .zip(&self.offsets)
+                    .take(n_dof)
+                    .map(|(&x, &o)| x as f64 + o),
+            );
         }
         if res.iter().any(|x| !x.is_finite()) {
             return Err(PolicyError::Input(

@@ -53,6 +53,9 @@ pub struct DatasetSpec {
     pub perturb_std: f64,
     /// The robot's home pose (some episodes start there, like the demo).
     pub home: [f64; TASK_DOF],
+    /// Share of an episode's policy steps recorded (the first and last always are). Below 1,
+    /// more scenes fit in the same number of samples: the policy sees more target layouts.
+    pub keep_share: f64,
 }
 
 /// Recorded samples (see the module documentation for the layout).
@@ -172,6 +175,13 @@ impl Dataset {
                             reach = r;
                         }
                     }
+                    // until the (possibly re-planned) reach has arrived and held
+                    let last = t >= reach.end() + hold - 1e-9;
+                    let keep = k == 0 || last || rng.gen_bool(spec.keep_share.clamp(0.0, 1.0));
+                    k += 1;
+                    if !keep {
+                        continue;
+                    }
                     let q = reach.at(t);
                     let start = ds.image.len();
                     ds.image.resize(start + frame, 0);
@@ -188,9 +198,7 @@ impl Dataset {
                             .extend(reach.at(t + i as f64 * dt).iter().map(|&v| v as f32));
                     }
                     ds.episode.push(ep);
-                    k += 1;
-                    // until the (possibly re-planned) reach has arrived and held
-                    if t >= reach.end() + hold - 1e-9 {
+                    if last {
                         break;
                     }
                 }
@@ -352,6 +360,7 @@ mod tests {
             perturb_share: 0.5,
             perturb_std: 0.15,
             home: [0.0, 1.2, 0.6, 0.0],
+            keep_share: 1.0,
         }
     }
 
@@ -378,6 +387,32 @@ mod tests {
             let scene = ReachScene::from_seed(ds.episode_scene_seed[e]);
             assert!(scene.distance(&q, ds.color(last)) < 1e-3);
             assert_eq!(q[3], 1.0);
+        }
+    }
+
+    #[test]
+    fn keep_share_records_fewer_steps_of_the_same_episodes() {
+        let all = Dataset::generate(&spec(), |_, _| {});
+        let some = Dataset::generate(
+            &DatasetSpec {
+                keep_share: 0.25,
+                ..spec()
+            },
+            |_, _| {},
+        );
+        assert_eq!(some.episodes(), all.episodes());
+        assert!(
+            some.len() * 2 < all.len() && some.len() >= 2 * some.episodes(),
+            "{} of {}",
+            some.len(),
+            all.len()
+        );
+        // every kept sample still starts its chunk at its state
+        for i in 0..some.len() {
+            let (s, a) = (some.state_of(i), some.actions_of(i));
+            for j in 0..TASK_DOF {
+                assert!((a[j] - s[j]).abs() < 1e-6);
+            }
         }
     }
 
