@@ -20,7 +20,7 @@ fn main() {
     let res = match only {
         Some(name) => chunkrt::policy::bench::run_named(&name, quick).map(|c| {
             chunkrt::policy::bench::BenchReport {
-                configs: vec![c],
+                configs: c,
                 threads: candle_core::utils::get_num_threads(),
             }
         }),
@@ -36,7 +36,7 @@ fn main() {
                 .flat_map(|c| {
                     c.phases.iter().map(move |p| {
                         chunkrt::report::Series::new(
-                            format!("{}_{}", c.name, p.name),
+                            format!("{}_{}_{}", c.name, c.precision, p.name),
                             p.hist_ns.clone(),
                         )
                     })

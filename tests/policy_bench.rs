@@ -9,8 +9,23 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
     }
     let r = chunkrt::policy::bench::run(true).expect("bench runs");
     println!("{r}");
-    assert_eq!(r.configs.len(), 2);
+    // π0 and π0.5, each in f32 and (where the CPU has AMX) bf16
+    let want = if chunkrt::policy::amx::available() {
+        4
+    } else {
+        2
+    };
+    assert_eq!(r.configs.len(), want);
     for c in &r.configs {
+        if c.precision == "bf16" {
+            // bf16 inputs carry 8 significant bits: the actions must stay close to f32's
+            let d = c.bf16_rel_action_diff.expect("bf16 reports its difference");
+            assert!(
+                d < 0.1,
+                "{}: bf16 actions differ by {d} of their RMS",
+                c.name
+            );
+        }
         for name in [
             "vision",
             "prefix",

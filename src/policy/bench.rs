@@ -61,6 +61,11 @@ pub struct ConfigReport {
     pub phases: Vec<Phase>,
     /// openpi's median for the full sample (s).
     pub openpi_s: f64,
+    /// `f32` or `bf16` (the experts' and SigLIP's matrix products on AMX).
+    pub precision: &'static str,
+    /// bf16 only: max |bf16 − f32| over the sampled actions (model space, same weights, inputs
+    /// and noise), divided by the RMS of the f32 actions.
+    pub bf16_rel_action_diff: Option<f64>,
 }
 
 impl ConfigReport {
@@ -98,7 +103,7 @@ impl std::fmt::Display for BenchReport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         writeln!(f, "threads: {}", self.threads)?;
         for c in &self.configs {
-            writeln!(f, "== {} ==", c.name)?;
+            writeln!(f, "== {} ({}) ==", c.name, c.precision)?;
             writeln!(
                 f,
                 "{:<16} {:>5} {:>10} {:>10} {:>9} {:>10} {:>12}",
@@ -124,6 +129,12 @@ impl std::fmt::Display for BenchReport {
                 c.speedup_vs_openpi(),
                 c.step_ratio()
             )?;
+            if let Some(d) = c.bf16_rel_action_diff {
+                writeln!(
+                    f,
+                    "bf16 vs f32 actions (same weights, inputs, noise): max difference {d:.4} of the actions' RMS"
+                )?;
+            }
         }
         Ok(())
     }
@@ -262,8 +273,19 @@ pub fn random_inputs(
     })
 }
 
-/// Benchmarks one configuration (`json` in the fixtures' schema).
+/// Benchmarks one configuration (`json` in the fixtures' schema) in f32.
 pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, PolicyError> {
+    run_config_with(name, json, quick, false)
+}
+
+/// Benchmarks one configuration; `bf16`: with the matrix products in bf16 on AMX (an error where
+/// AMX is unavailable), and the difference of its actions from f32's.
+pub fn run_config_with(
+    name: &str,
+    json: &str,
+    quick: bool,
+    bf16: bool,
+) -> Result<ConfigReport, PolicyError> {
     let cfg = ModelConfig::from_json_str(json)?;
     let v: serde_json::Value =
         serde_json::from_str(json).map_err(|e| PolicyError::Config(e.to_string()))?;
@@ -271,7 +293,7 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
         .as_u64()
         .unwrap_or(cfg.max_token_len as u64) as usize;
     let steps = cfg.num_denoise_steps;
-    let model = random_inference_model(&cfg)?;
+    let mut model = random_inference_model(&cfg)?;
     let inp = random_inputs(&cfg, 1, valid, 1)?;
     let noise = Tensor::randn(
         0f32,
@@ -279,6 +301,19 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
         (1, cfg.action_horizon, cfg.action_dim),
         &Device::Cpu,
     )?;
+    let mut rel_diff = None;
+    if bf16 {
+        let a32 = model.sample(&inp, &noise, steps, None)?.actions;
+        if !model.use_bf16()? {
+            return Err(PolicyError::Config(
+                "bf16 needs Intel AMX, which this CPU or kernel does not offer".into(),
+            ));
+        }
+        let a16 = model.sample(&inp, &noise, steps, None)?.actions;
+        let d = (&a16 - &a32)?.abs()?.max_all()?.to_scalar::<f32>()? as f64;
+        let rms = a32.sqr()?.mean_all()?.to_scalar::<f32>()?.sqrt() as f64;
+        rel_diff = Some(d / rms.max(1e-12));
+    }
     let (n_fast, n_slow) = if quick { (3, 1) } else { (20, 5) };
     let p = cfg.prefix_len();
     let s = cfg.suffix_len();
@@ -336,23 +371,31 @@ pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, P
         name: name.to_string(),
         phases,
         openpi_s,
+        precision: if bf16 { "bf16" } else { "f32" },
+        bf16_rel_action_diff: rel_diff,
     })
 }
 
-/// Runs one configuration by name (`pi0_bench` / `pi05_bench`).
-pub fn run_named(name: &str, quick: bool) -> Result<ConfigReport, PolicyError> {
+/// Runs one configuration by name (`pi0_bench` / `pi05_bench`), in f32 and, where AMX runs,
+/// in bf16.
+pub fn run_named(name: &str, quick: bool) -> Result<Vec<ConfigReport>, PolicyError> {
     let (n, json) = CONFIGS
         .iter()
         .find(|(n, _)| *n == name)
         .ok_or_else(|| PolicyError::Config(format!("unknown bench config {name}")))?;
-    run_config(n, json, quick)
+    let mut out = vec![run_config(n, json, quick)?];
+    if super::amx::available() {
+        out.push(run_config_with(n, json, quick, true)?);
+    }
+    Ok(out)
 }
 
-/// Runs both bench configurations (`quick`: few iterations, no uncached full sample).
+/// Runs both bench configurations (`quick`: few iterations, no uncached full sample), each in f32
+/// and, where AMX runs, in bf16.
 pub fn run(quick: bool) -> Result<BenchReport, PolicyError> {
     let mut configs = Vec::new();
-    for (name, json) in CONFIGS {
-        configs.push(run_config(name, json, quick)?);
+    for (name, _) in CONFIGS {
+        configs.extend(run_named(name, quick)?);
     }
     Ok(BenchReport {
         configs,

@@ -12,6 +12,7 @@
 use candle_core::{DType, Device, Module, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
 
+use super::amx::{self, PackedWeight};
 use super::config::GemmaDims;
 use super::fastops;
 
@@ -191,6 +192,40 @@ pub struct ExpertLayer {
     /// are views into these, so the memory is not doubled.
     qkv: Option<Tensor>,
     gate_up: Option<Tensor>,
+    /// bf16 tiles of the same weights for AMX (`policy.precision = "bf16"`, [`Expert::use_bf16`]).
+    amx: Option<Box<AmxLayer>>,
+}
+
+/// The fast-path weights of one layer packed for [`amx::matmul_tensor`].
+#[derive(Debug, Clone)]
+struct AmxLayer {
+    qkv: PackedWeight,
+    o: PackedWeight,
+    gate_up: PackedWeight,
+    down: PackedWeight,
+}
+
+/// Packs the weight `[N, K]` of a `Linear` (any strides) as the [K, N] right-hand side.
+fn pack_linear(l: &Linear) -> candle_core::Result<PackedWeight> {
+    let w = l.weight().t()?.contiguous()?; // [K, N]
+    let (k, n) = w.dims2()?;
+    let v = w.flatten_all()?.to_vec1::<f32>()?;
+    Ok(PackedWeight::pack(k, n, |i, j| v[i * n + j]))
+}
+
+/// Packs a row-major [K, N] tensor.
+fn pack_matrix(w: &Tensor) -> candle_core::Result<PackedWeight> {
+    let (k, n) = w.dims2()?;
+    let v = w.contiguous()?.flatten_all()?.to_vec1::<f32>()?;
+    Ok(PackedWeight::pack(k, n, |i, j| v[i * n + j]))
+}
+
+/// `x · w` on AMX when packed weights are given and AMX runs here, else `None`.
+fn amx_mm(x: &Tensor, w: Option<&PackedWeight>, diff: bool) -> candle_core::Result<Option<Tensor>> {
+    match (diff, w) {
+        (false, Some(w)) => amx::matmul_tensor(x, w),
+        _ => Ok(None),
+    }
 }
 
 /// `x` [.., K] times `w` [K, N] (any strides) as one 2-D matmul: [.., N].
@@ -226,6 +261,19 @@ fn fuse(ls: &mut [&mut Linear]) -> candle_core::Result<Tensor> {
 }
 
 impl ExpertLayer {
+    /// Packs the fused fast-path weights into bf16 tiles (no-op without them).
+    fn pack_bf16(&mut self) -> candle_core::Result<()> {
+        if let (Some(qkv), Some(gu)) = (&self.qkv, &self.gate_up) {
+            self.amx = Some(Box::new(AmxLayer {
+                qkv: pack_matrix(qkv)?,
+                o: pack_linear(&self.o)?,
+                gate_up: pack_matrix(gu)?,
+                down: pack_linear(&self.down)?,
+            }));
+        }
+        Ok(())
+    }
+
     /// Builds the fused fast-path weights unless the weights are trainable variables (a `VarMap`
     /// model: the copies would go stale when an optimiser updates the variables).
     fn with_fused(mut self) -> candle_core::Result<Self> {
@@ -252,6 +300,18 @@ pub struct Expert {
 }
 
 impl Expert {
+    /// Runs the fast path's matrix products in bf16 on AMX from now on. Returns false (and
+    /// changes nothing) when this CPU or kernel has no AMX.
+    pub fn use_bf16(&mut self) -> candle_core::Result<bool> {
+        if !amx::available() {
+            return Ok(false);
+        }
+        for l in &mut self.layers {
+            l.pack_bf16()?;
+        }
+        Ok(true)
+    }
+
     /// `vb` at `...language_model` / `...gemma_expert.model`.
     pub fn new(dims: &GemmaDims, ada: bool, eps: f64, vb: VarBuilder) -> candle_core::Result<Self> {
         let w = dims.width;
@@ -275,6 +335,7 @@ impl Expert {
                     down: candle_nn::linear_no_bias(dims.mlp_dim, w, m.pp("down_proj"))?,
                     qkv: None,
                     gate_up: None,
+                    amx: None,
                 }
                 .with_fused()?,
             );
@@ -309,7 +370,8 @@ pub enum KvMode<'a> {
         store: Option<(&'a Tensor, &'a Tensor)>,
     },
     /// Keys/values = a cached buffer `[B, nKV, T, hd]` with the streams' K/V written at `offset`
-    /// (fast path: in place; differentiable path: concatenated after `cache[..offset]`).
+    /// (fast path: in place; differentiable path: concatenated after `cache[..offset]`); the
+    /// attention covers the first `bias.dim(3)` keys.
     Cached {
         /// K buffer.
         k: &'a Tensor,
@@ -364,9 +426,16 @@ pub fn attention(
 
 /// `down(gelu_tanh(gate(x)) * up(x))`.
 fn mlp(layer: &ExpertLayer, x: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
+    let a = layer.amx.as_deref();
     if let (false, Some(gu)) = (diff, &layer.gate_up) {
-        let y = matmul_2d(x, gu)?;
+        let y = match amx_mm(x, a.map(|a| &a.gate_up), diff)? {
+            Some(y) => y,
+            None => matmul_2d(x, gu)?,
+        };
         if let Some(h) = fastops::gelu_mul_fused(&y, gu.dim(1)? / 2)? {
+            if let Some(o) = amx_mm(&h, a.map(|a| &a.down), diff)? {
+                return Ok(o);
+            }
             return layer.down.forward(&h);
         }
     }
@@ -401,10 +470,14 @@ fn qkv_fused(
     };
     let qd = d.num_heads * d.head_dim;
     let kvd = d.num_kv_heads * d.head_dim;
-    let (y, kcol) = if with_q {
-        (matmul_2d(h, w)?, qd)
-    } else {
-        (matmul_2d(h, &w.narrow(1, qd, 2 * kvd)?)?, 0)
+    let packed = match &layer.amx {
+        Some(a) => amx::matmul_tensor(h, &a.qkv)?,
+        None => None,
+    };
+    let (y, kcol) = match packed {
+        Some(y) => (y, qd),
+        None if with_q => (matmul_2d(h, w)?, qd),
+        None => (matmul_2d(h, &w.narrow(1, qd, 2 * kvd)?)?, 0),
     };
     let cs = Some((&rope.cos, &rope.sin));
     let q = if with_q {
@@ -524,7 +597,16 @@ pub fn joint_layer(
             } else {
                 kb.slice_set(&k.contiguous()?, 2, offset)?;
                 vb.slice_set(&v.contiguous()?, 2, offset)?;
-                attention(&q, kb, vb, bias, scale, diff)?
+                // only the keys the bias covers (the cache buffer may be longer)
+                let t = bias.dim(3)?;
+                attention(
+                    &q,
+                    &kb.narrow(2, 0, t)?,
+                    &vb.narrow(2, 0, t)?,
+                    bias,
+                    scale,
+                    diff,
+                )?
             }
         }
     };
@@ -539,7 +621,10 @@ pub fn joint_layer(
             out.narrow(1, start, l)?
         };
         start += l;
-        let o = layer.o.forward(&o)?;
+        let o = match amx_mm(&o, layer.amx.as_deref().map(|a| &a.o), diff)? {
+            Some(o) => o,
+            None => layer.o.forward(&o)?,
+        };
         let x1 = gated_residual(&s.x, &o, gate.as_ref())?;
         let (h, gate2) = layer.post_norm.forward(&x1, s.cond, diff)?;
         let m = mlp(layer, &h, diff)?;

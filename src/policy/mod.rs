@@ -6,6 +6,7 @@
 //! [`checkpoint`] (safetensors loading and checks), [`preprocess`] (images, normalisation,
 //! prompts, tokenizer), [`runtime`] (`Policy::load` / `Policy::infer`), [`bench`], [`cli`].
 
+pub mod amx;
 pub mod bench;
 pub mod checkpoint;
 pub mod cli;

@@ -54,11 +54,12 @@ pub struct PrefixCache {
     pub k: Vec<Tensor>,
     /// Per layer [B, nKV, P + S, hd].
     pub v: Vec<Tensor>,
-    /// Additive mask for action queries over all keys [B, 1, 1, P + S].
+    /// Additive mask for action queries over the keys they see [B, 1, 1, Pc + S]: the compacted
+    /// prefix (Pc = the largest valid-token count of the batch), then the suffix.
     pub step_bias: Tensor,
     /// RoPE tables of the action tokens.
     pub action_rope: Rope,
-    /// Sequence index of the first action token (`P + state_tokens`).
+    /// Sequence index of the first action token (`Pc + state_tokens`).
     pub action_offset: usize,
     /// Prefix layout the cache was built from.
     pub layout: PrefixLayout,
@@ -241,6 +242,14 @@ impl PiModel {
     /// The device.
     pub fn device(&self) -> &Device {
         &self.device
+    }
+
+    /// Runs the inference fast path's expert matrix products in bf16 on AMX (f32 accumulation;
+    /// `policy.precision = "bf16"`). Returns false, changing nothing, where AMX is unavailable.
+    /// Trainable (VarMap) models have no fast path and are unaffected.
+    pub fn use_bf16(&mut self) -> Result<bool, PolicyError> {
+        let ok = self.vlm.use_bf16()? && self.expert.use_bf16()?;
+        Ok(ok && self.vision.use_bf16()?)
     }
 
     fn check_inputs(&self, inp: &ModelInputs) -> Result<usize, PolicyError> {
@@ -613,15 +622,17 @@ impl PiModel {
         } else {
             None
         };
-        // key visibility for suffix queries: valid compacted prefix, masked fillers and unused
-        // slots up to P, all suffix slots
-        let mut vis = Vec::with_capacity(b * total);
+        // The suffix goes right after the compacted prefix (at pc, not P), so a denoising step
+        // attends over pc + S keys instead of P + S: the padding slots are skipped, not masked.
+        // Key visibility for suffix queries: the valid compacted prefix (its fillers masked),
+        // then every suffix slot.
+        let t_step = pc + total - p;
+        let mut vis = Vec::with_capacity(b * t_step);
         for row in &compact.pad {
             vis.extend_from_slice(row);
-            vis.extend(std::iter::repeat_n(false, p - pc));
             vis.extend(std::iter::repeat_n(true, total - p));
         }
-        let step_bias = bias_tensor(vis, (b, 1, 1, total), &self.device)?;
+        let step_bias = bias_tensor(vis, (b, 1, 1, t_step), &self.device)?;
         // positions of the action tokens: n_valid + state_tokens + [0, H)
         let h = self.cfg.action_horizon;
         let apos: Vec<Vec<i64>> = layout
@@ -639,14 +650,12 @@ impl PiModel {
             let s = state_proj.forward(&inp.state)?.unsqueeze(1)?;
             let spos: Vec<Vec<i64>> = layout.n_valid.iter().map(|&n| vec![n as i64]).collect();
             let srope = Rope::new(&spos, d.head_dim, self.cfg.rope_theta, &self.device)?;
-            let mut svis = Vec::with_capacity(b * total);
+            let mut svis = Vec::with_capacity(b * (pc + 1));
             for row in &compact.pad {
                 svis.extend_from_slice(row);
-                svis.extend(std::iter::repeat_n(false, p - pc));
                 svis.push(true);
-                svis.extend(std::iter::repeat_n(false, total - p - 1));
             }
-            let sbias = bias_tensor(svis, (b, 1, 1, total), &self.device)?;
+            let sbias = bias_tensor(svis, (b, 1, 1, pc + 1), &self.device)?;
             let mut st = [Stream {
                 x: s,
                 expert: &self.expert,
@@ -661,7 +670,7 @@ impl PiModel {
                     KvMode::Cached {
                         k: &ks[li],
                         v: &vs[li],
-                        offset: p,
+                        offset: pc,
                     },
                     false,
                 )?;
@@ -672,7 +681,7 @@ impl PiModel {
             v: vs,
             step_bias,
             action_rope,
-            action_offset: p + ns,
+            action_offset: pc + ns,
             layout,
             batch: b,
         });

@@ -89,6 +89,8 @@ impl LayerNorm {
 struct Dense {
     w: Tensor,
     b: Tensor,
+    /// bf16 tiles of `w` for AMX (`Vision::use_bf16`); inference only.
+    packed: Option<super::amx::PackedWeight>,
 }
 
 impl Dense {
@@ -101,11 +103,24 @@ impl Dense {
         Ok(Self {
             w: l.weight().clone(),
             b,
+            packed: None,
         })
     }
 
     fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        if let Some(p) = &self.packed {
+            if let Some(y) = super::amx::matmul_tensor(x, p)? {
+                return y.broadcast_add(&self.b);
+            }
+        }
         linear(x, &self.w, &self.b)
+    }
+
+    fn pack_bf16(&mut self) -> candle_core::Result<()> {
+        let (n, k) = self.w.dims2()?;
+        let v = self.w.contiguous()?.flatten_all()?.to_vec1::<f32>()?;
+        self.packed = Some(super::amx::PackedWeight::pack(k, n, |i, j| v[j * k + i]));
+        Ok(())
     }
 }
 
@@ -169,6 +184,7 @@ impl Vision {
             let qkv = Dense {
                 w: Tensor::cat(&[&q.w, &k.w, &v.w], 0)?,
                 b: Tensor::cat(&[&q.b, &k.b, &v.b], 0)?,
+                packed: None,
             };
             layers.push(EncoderLayer {
                 ln1: LayerNorm::new(d, eps, l.pp("layer_norm1"))?,
@@ -184,6 +200,7 @@ impl Vision {
             patch: Dense {
                 w: pw.reshape((d, 3 * p * p))?,
                 b: pb,
+                packed: None,
             },
             pos,
             layers,
@@ -195,6 +212,23 @@ impl Vision {
     /// SigLIP last hidden state: images [N, 3, S, S] in [-1, 1] -> [N, T, Dv].
     pub fn tower(&self, images: &Tensor) -> candle_core::Result<Tensor> {
         self.tower_with(images, false)
+    }
+
+    /// Runs the dense layers (patch embedding, Q/K/V, out, MLP, projector) in bf16 on AMX.
+    /// Returns false, changing nothing, where AMX is unavailable. For loaded (inference) models:
+    /// the packed copies do not follow optimiser updates and have no backward.
+    pub fn use_bf16(&mut self) -> candle_core::Result<bool> {
+        if !super::amx::available() {
+            return Ok(false);
+        }
+        self.patch.pack_bf16()?;
+        self.projector.pack_bf16()?;
+        for l in &mut self.layers {
+            for d in [&mut l.qkv, &mut l.out, &mut l.fc1, &mut l.fc2] {
+                d.pack_bf16()?;
+            }
+        }
+        Ok(true)
     }
 
     /// [`Self::tower`]; `diff` selects ops with a backward.
