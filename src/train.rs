@@ -68,6 +68,10 @@ pub struct TrainArgs {
     /// validation success so far; with tens of episodes the noise is ±15 points).
     #[arg(long, value_enum, default_value_t = Keep::Last)]
     pub keep: Keep,
+    /// The expert's speed profile when recording (`distance-paced` is an experiment: its chunks
+    /// depend only on the pose, not on when the motion started).
+    #[arg(long, value_enum, default_value_t = crate::task::expert::Profile::MinJerk)]
+    pub expert: crate::task::expert::Profile,
     /// Training time budget (minutes).
     #[arg(long, default_value_t = 25.0)]
     pub minutes: f64,
@@ -476,6 +480,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             perturb_std: 0.2,
             home,
             keep_share: args.keep_share,
+            profile: args.expert,
         };
         let t0 = Instant::now();
         let ds = Dataset::generate(&spec, |done, total| {

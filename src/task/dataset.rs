@@ -56,6 +56,8 @@ pub struct DatasetSpec {
     /// Share of an episode's policy steps recorded (the first and last always are). Below 1,
     /// more scenes fit in the same number of samples: the policy sees more target layouts.
     pub keep_share: f64,
+    /// The expert's speed profile.
+    pub profile: super::expert::Profile,
 }
 
 /// Recorded samples (see the module documentation for the layout).
@@ -152,7 +154,8 @@ impl Dataset {
             let scene = ReachScene::from_seed(seed);
             let q0 = random_start(&mut rng, &spec.home);
             for (ci, color) in TargetColor::ALL.iter().enumerate() {
-                let Some(mut reach) = Reach::plan(&q0, &scene, *color, 0.0) else {
+                let Some(mut reach) = Reach::plan_with(&q0, &scene, *color, 0.0, spec.profile)
+                else {
                     continue;
                 };
                 let ep = ds.episode_color.len() as u32;
@@ -171,7 +174,7 @@ impl Dataset {
                             *v += spec.perturb_std * gaussian(&mut rng);
                         }
                         q[1] = q[1].clamp(0.05, 2.5);
-                        if let Some(r) = Reach::plan(&q, &scene, *color, t) {
+                        if let Some(r) = Reach::plan_with(&q, &scene, *color, t, spec.profile) {
                             reach = r;
                         }
                     }
@@ -361,6 +364,7 @@ mod tests {
             perturb_std: 0.15,
             home: [0.0, 1.2, 0.6, 0.0],
             keep_share: 1.0,
+            profile: Default::default(),
         }
     }
 

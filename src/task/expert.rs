@@ -15,6 +15,23 @@ pub fn min_jerk(s: f64) -> f64 {
     s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
 }
 
+/// Time constant of the distance-paced profile's final approach (s).
+pub const APPROACH_TAU: f64 = 0.4;
+/// The distance-paced motion counts as arrived within this (rad, largest joint).
+pub const ARRIVED: f64 = 0.01;
+
+/// How the expert moves along the joint-space line to its goal.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum Profile {
+    /// Minimum jerk from rest to rest (`s³ (10 − 15 s + 6 s²)`).
+    #[default]
+    MinJerk,
+    /// Experimental: the speed depends only on the distance left, `min(v_peak, d / τ)` (largest
+    /// joint), so the motion seen from any pose does not depend on where it started. It starts at
+    /// full speed; the executor's jerk-limited generator smooths the start.
+    DistancePaced,
+}
+
 /// One planned reach: from `start` at time `t0` to `goal` in `duration`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Reach {
@@ -22,6 +39,7 @@ pub struct Reach {
     pub goal: [f64; TASK_DOF],
     pub t0: f64,
     pub duration: f64,
+    pub profile: Profile,
 }
 
 impl Reach {
@@ -44,7 +62,62 @@ impl Reach {
             goal,
             t0,
             duration,
+            profile: Profile::MinJerk,
         })
+    }
+
+    /// [`Self::plan`] with the given profile.
+    pub fn plan_with(
+        q: &[f64],
+        scene: &ReachScene,
+        color: TargetColor,
+        t0: f64,
+        profile: Profile,
+    ) -> Option<Self> {
+        let mut r = Self::plan(q, scene, color, t0)?;
+        if profile == Profile::DistancePaced {
+            let d = r.distance();
+            let knee = PEAK_VELOCITY * APPROACH_TAU;
+            let cruise = ((d - knee) / PEAK_VELOCITY).max(0.0);
+            let tail = APPROACH_TAU * (d.min(knee) / ARRIVED).max(1.0).ln();
+            r.duration = cruise + tail;
+            r.profile = profile;
+        }
+        Some(r)
+    }
+
+    /// Largest joint displacement of the reach (rad).
+    fn distance(&self) -> f64 {
+        (0..ARM_JOINTS)
+            .map(|j| (self.goal[j] - self.start[j]).abs())
+            .fold(0.0, f64::max)
+    }
+
+    /// Progress along the line (0 at the start, 1 at the goal) at `t`.
+    fn progress(&self, t: f64) -> f64 {
+        let tau = (t - self.t0).max(0.0);
+        match self.profile {
+            Profile::MinJerk => min_jerk(tau / self.duration),
+            Profile::DistancePaced => {
+                let d = self.distance();
+                if d <= 0.0 {
+                    return 1.0;
+                }
+                // distance left: linear at v_peak down to the knee, then d' = −d / τ
+                let knee = PEAK_VELOCITY * APPROACH_TAU;
+                let cruise = ((d - knee) / PEAK_VELOCITY).max(0.0);
+                let left = if tau <= cruise {
+                    d - PEAK_VELOCITY * tau
+                } else {
+                    d.min(knee) * (-(tau - cruise) / APPROACH_TAU).exp()
+                };
+                if tau >= self.duration {
+                    1.0
+                } else {
+                    (1.0 - left / d).clamp(0.0, 1.0)
+                }
+            }
+        }
     }
 
     /// Arrival time.
@@ -55,7 +128,7 @@ impl Reach {
     /// The expert's joint positions at time `t`: the arm on the min-jerk path, the gripper open
     /// (0) while moving and closed (1) from arrival on.
     pub fn at(&self, t: f64) -> [f64; TASK_DOF] {
-        let s = min_jerk((t - self.t0) / self.duration);
+        let s = self.progress(t);
         let mut q = [0.0; TASK_DOF];
         for (j, v) in q.iter_mut().enumerate().take(ARM_JOINTS) {
             *v = self.start[j] + (self.goal[j] - self.start[j]) * s;
@@ -68,6 +141,28 @@ impl Reach {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn distance_paced_speed_depends_on_the_distance_left_only() {
+        let scene = ReachScene::from_seed(11);
+        let q0 = [0.0, 1.2, 0.6, 0.0];
+        let c = TargetColor::Red;
+        let a = Reach::plan_with(&q0, &scene, c, 0.0, Profile::DistancePaced).unwrap();
+        assert!(scene.distance(&a.at(a.end()), c) < 1e-9);
+        // re-planned from a pose on the way, the motion continues as before
+        let mid = a.at(0.6);
+        let b = Reach::plan_with(&mid, &scene, c, 0.6, Profile::DistancePaced).unwrap();
+        for k in 0..10 {
+            let t = 0.6 + 0.1 * k as f64;
+            for j in 0..3 {
+                assert!((a.at(t)[j] - b.at(t)[j]).abs() < 1e-6, "t {t} joint {j}");
+            }
+        }
+        // the min-jerk motion restarts from rest instead
+        let m = Reach::plan(&q0, &scene, c, 0.0).unwrap();
+        let m2 = Reach::plan(&m.at(0.6), &scene, c, 0.6).unwrap();
+        assert!((m.at(0.8)[0] - m2.at(0.8)[0]).abs() > 1e-3);
+    }
 
     #[test]
     fn reach_ends_on_the_target_smoothly() {
