@@ -434,18 +434,25 @@ fn toml_model_overrides_reach_the_loaded_model() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// The fixture's unpadded robot state.
+fn fixture_state(name: &str) -> Vec<f64> {
+    inputs(name)["state_unpadded.0"]
+        .to_vec1::<f32>()
+        .unwrap()
+        .iter()
+        .map(|&x| x as f64)
+        .collect()
+}
+
 /// `delta_action_mask` (config.json or `[policy.model]`): the model's actions on those dims are
 /// relative to the observed state, so the runtime adds the state there and nowhere else. Same
 /// checkpoint, same noise seed, with and without the mask: the difference is the state.
 #[test]
 fn delta_action_mask_adds_the_observed_state_on_its_dims() {
     let dir = data("pi05_tiny");
-    let inp = inputs("pi05_tiny");
-    let state: Vec<f64> = inp["state_unpadded.0"]
-        .to_vec1::<f32>()
-        .unwrap()
+    let state: Vec<f64> = fixture_state("pi05_tiny")
         .iter()
-        .map(|&x| x as f64 + 0.25)
+        .map(|x| x + 0.25)
         .collect();
     let n = state.len();
     let obs = RawObservation {
@@ -481,13 +488,7 @@ fn delta_action_mask_adds_the_observed_state_on_its_dims() {
 #[test]
 fn bf16_precision_stays_close_to_f32() {
     let dir = data("pi05_tiny");
-    let inp = inputs("pi05_tiny");
-    let state: Vec<f64> = inp["state_unpadded.0"]
-        .to_vec1::<f32>()
-        .unwrap()
-        .iter()
-        .map(|&x| x as f64)
-        .collect();
+    let state = fixture_state("pi05_tiny");
     let obs = RawObservation {
         frames: &[],
         joint_positions: &state,

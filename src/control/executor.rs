@@ -515,13 +515,27 @@ impl Executor {
             self.otg_in.control_interface = CONTROL_POSITION;
             for j in 0..n {
                 let margin = 1e-9 * (self.cfg.pmax[j] - self.cfg.pmin[j]);
-                self.otg_in.target_position[j] = self.target.position[j]
-                    .clamp(self.cfg.pmin[j] + margin, self.cfg.pmax[j] - margin);
-                let (v, a) = if self.cfg.step[j] {
+                let (lo, hi) = (self.cfg.pmin[j] + margin, self.cfg.pmax[j] - margin);
+                let p = self.target.position[j].clamp(lo, hi);
+                self.otg_in.target_position[j] = p;
+                let (mut v, mut a) = if self.cfg.step[j] {
                     (0.0, 0.0)
                 } else {
                     (self.target.velocity[j], self.target.acceleration[j])
                 };
+                // Towards a limit the target may only move as fast as the generator can still
+                // stop before it (|v| <= sqrt(2 · a_stop · distance left)); at the limit, not at
+                // all. Otherwise tracking a target that runs into a limit overshoots it.
+                let a_stop = 0.5 * self.cfg.amax[j];
+                let up = (2.0 * a_stop * (hi - p)).max(0.0).sqrt();
+                let down = (2.0 * a_stop * (p - lo)).max(0.0).sqrt();
+                if v >= up {
+                    v = up;
+                    a = a.min(0.0);
+                } else if v <= -down {
+                    v = -down;
+                    a = a.max(0.0);
+                }
                 let vl = 0.99 * self.cfg.vmax[j];
                 let v = v.clamp(-vl, vl);
                 // ruckig rejects a target state that would have to exceed the velocity limit
@@ -595,6 +609,14 @@ impl Executor {
         command.velocity = [0.0; MAX_DOF];
         command.acceleration = [0.0; MAX_DOF];
         command.position[..n].copy_from_slice(&self.otg_in.current_position[..n]);
+        // backstop: a command never leaves the joint limits (counted with the limit warnings)
+        for j in 0..n {
+            let p = command.position[j].clamp(self.cfg.pmin[j], self.cfg.pmax[j]);
+            if p != command.position[j] {
+                command.position[j] = p;
+                self.limit_warnings += 1;
+            }
+        }
         if mode == COMMAND_MODE_POSITION {
             command.velocity[..n].copy_from_slice(&self.otg_in.current_velocity[..n]);
             command.acceleration[..n].copy_from_slice(&self.otg_in.current_acceleration[..n]);
