@@ -130,8 +130,8 @@ pub fn init_state_bin_embeddings(vm: &VarMap) -> anyhow::Result<()> {
         .lock()
         .map_err(|_| anyhow::anyhow!("the VarMap lock is poisoned"))?;
     let var = [
-        "paligemma_with_expert.paligemma.model.language_model.embed_tokens.weight",
-        "paligemma_with_expert.paligemma.lm_head.weight",
+        crate::policy::checkpoint::EMBED,
+        crate::policy::checkpoint::LM_HEAD,
     ]
     .iter()
     .find_map(|n| data.get(*n))

@@ -122,6 +122,18 @@ impl PackedWeight {
         }
     }
 
+    /// Packs a row-major [K, N] tensor.
+    pub fn from_matrix(w: &candle_core::Tensor) -> candle_core::Result<Self> {
+        let (k, n) = w.dims2()?;
+        let v = w.contiguous()?.flatten_all()?.to_vec1::<f32>()?;
+        Ok(Self::pack(k, n, |i, j| v[i * n + j]))
+    }
+
+    /// Packs a layer weight [N, K] (a `Linear`'s, any strides) as the [K, N] right-hand side.
+    pub fn from_weight(w: &candle_core::Tensor) -> candle_core::Result<Self> {
+        Self::from_matrix(&w.t()?)
+    }
+
     /// Inputs K.
     pub fn k(&self) -> usize {
         self.k

@@ -13,8 +13,9 @@ use super::model::PiModel;
 use super::PolicyError;
 
 const PG: &str = "paligemma_with_expert.paligemma";
-const EMBED: &str = "paligemma_with_expert.paligemma.model.language_model.embed_tokens.weight";
-const LM_HEAD: &str = "paligemma_with_expert.paligemma.lm_head.weight";
+/// The token embedding's key, and the LM head's (which holds it when the embedding is absent).
+pub const EMBED: &str = "paligemma_with_expert.paligemma.model.language_model.embed_tokens.weight";
+pub const LM_HEAD: &str = "paligemma_with_expert.paligemma.lm_head.weight";
 
 /// Every tensor the model reads, with its shape (the token embedding under `lm_head.weight`).
 pub fn expected_tensors(cfg: &ModelConfig) -> Vec<(String, Vec<usize>)> {

@@ -205,21 +205,6 @@ struct AmxLayer {
     down: PackedWeight,
 }
 
-/// Packs the weight `[N, K]` of a `Linear` (any strides) as the [K, N] right-hand side.
-fn pack_linear(l: &Linear) -> candle_core::Result<PackedWeight> {
-    let w = l.weight().t()?.contiguous()?; // [K, N]
-    let (k, n) = w.dims2()?;
-    let v = w.flatten_all()?.to_vec1::<f32>()?;
-    Ok(PackedWeight::pack(k, n, |i, j| v[i * n + j]))
-}
-
-/// Packs a row-major [K, N] tensor.
-fn pack_matrix(w: &Tensor) -> candle_core::Result<PackedWeight> {
-    let (k, n) = w.dims2()?;
-    let v = w.contiguous()?.flatten_all()?.to_vec1::<f32>()?;
-    Ok(PackedWeight::pack(k, n, |i, j| v[i * n + j]))
-}
-
 /// `x · w` on AMX when packed weights are given and AMX runs here, else `None`.
 fn amx_mm(x: &Tensor, w: Option<&PackedWeight>, diff: bool) -> candle_core::Result<Option<Tensor>> {
     match (diff, w) {
@@ -265,10 +250,10 @@ impl ExpertLayer {
     fn pack_bf16(&mut self) -> candle_core::Result<()> {
         if let (Some(qkv), Some(gu)) = (&self.qkv, &self.gate_up) {
             self.amx = Some(Box::new(AmxLayer {
-                qkv: pack_matrix(qkv)?,
-                o: pack_linear(&self.o)?,
-                gate_up: pack_matrix(gu)?,
-                down: pack_linear(&self.down)?,
+                qkv: PackedWeight::from_matrix(qkv)?,
+                o: PackedWeight::from_weight(self.o.weight())?,
+                gate_up: PackedWeight::from_matrix(gu)?,
+                down: PackedWeight::from_weight(self.down.weight())?,
             }));
         }
         Ok(())

@@ -117,9 +117,7 @@ impl Dense {
     }
 
     fn pack_bf16(&mut self) -> candle_core::Result<()> {
-        let (n, k) = self.w.dims2()?;
-        let v = self.w.contiguous()?.flatten_all()?.to_vec1::<f32>()?;
-        self.packed = Some(super::amx::PackedWeight::pack(k, n, |i, j| v[j * k + i]));
+        self.packed = Some(super::amx::PackedWeight::from_weight(&self.w)?);
         Ok(())
     }
 }

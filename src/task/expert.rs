@@ -76,14 +76,18 @@ impl Reach {
     ) -> Option<Self> {
         let mut r = Self::plan(q, scene, color, t0)?;
         if profile == Profile::DistancePaced {
-            let d = r.distance();
-            let knee = PEAK_VELOCITY * APPROACH_TAU;
-            let cruise = ((d - knee) / PEAK_VELOCITY).max(0.0);
-            let tail = APPROACH_TAU * (d.min(knee) / ARRIVED).max(1.0).ln();
-            r.duration = cruise + tail;
+            let (cruise, knee) = r.cruise();
+            r.duration = cruise + APPROACH_TAU * (knee / ARRIVED).max(1.0).ln();
             r.profile = profile;
         }
         Some(r)
+    }
+
+    /// Distance-paced profile: the time at full speed (s) and the distance left when it ends (rad).
+    fn cruise(&self) -> (f64, f64) {
+        let d = self.distance();
+        let knee = PEAK_VELOCITY * APPROACH_TAU;
+        (((d - knee) / PEAK_VELOCITY).max(0.0), d.min(knee))
     }
 
     /// Largest joint displacement of the reach (rad).
@@ -104,12 +108,11 @@ impl Reach {
                     return 1.0;
                 }
                 // distance left: linear at v_peak down to the knee, then d' = −d / τ
-                let knee = PEAK_VELOCITY * APPROACH_TAU;
-                let cruise = ((d - knee) / PEAK_VELOCITY).max(0.0);
+                let (cruise, knee) = self.cruise();
                 let left = if tau <= cruise {
                     d - PEAK_VELOCITY * tau
                 } else {
-                    d.min(knee) * (-(tau - cruise) / APPROACH_TAU).exp()
+                    knee * (-(tau - cruise) / APPROACH_TAU).exp()
                 };
                 if tau >= self.duration {
                     1.0
