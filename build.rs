@@ -30,8 +30,14 @@ fn metadata(offline: bool) -> Result<String, String> {
     let manifest_dir = std::env::var("CARGO_MANIFEST_DIR").map_err(|e| e.to_string())?;
     let target = std::env::var("TARGET").map_err(|e| e.to_string())?;
     let mut cmd = Command::new(cargo);
-    cmd.args(["metadata", "--format-version", "1", "--filter-platform", &target])
-        .current_dir(&manifest_dir);
+    cmd.args([
+        "metadata",
+        "--format-version",
+        "1",
+        "--filter-platform",
+        &target,
+    ])
+    .current_dir(&manifest_dir);
     if offline {
         cmd.arg("--offline");
     }
