@@ -50,7 +50,7 @@ impl ActionChunk {
         if self.n_dof == 0 || self.n_dof > MAX_DOF {
             return Err(ChunkError::NDof(self.n_dof));
         }
-        if self.actions.is_empty() || self.actions.len() % self.n_dof != 0 {
+        if self.actions.is_empty() || !self.actions.len().is_multiple_of(self.n_dof) {
             return Err(ChunkError::Shape {
                 len: self.actions.len(),
                 n_dof: self.n_dof,

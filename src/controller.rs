@@ -551,7 +551,7 @@ impl ControlLoop {
         }
         self.ticks += 1;
         shared.ticks.store(self.ticks, Ordering::Relaxed);
-        if self.ticks % self.status_every == 0 {
+        if self.ticks.is_multiple_of(self.status_every) {
             self.publish_status(wake_ns, shared);
         }
         let end = monotonic_ns();

@@ -118,7 +118,7 @@ impl ScriptedChunkSource {
         let t_obs = req.t_ref_ns;
         let id = self.next_id;
         self.next_id += 1;
-        let bias = if id % 2 == 0 {
+        let bias = if id.is_multiple_of(2) {
             self.cfg.jump
         } else {
             -self.cfg.jump

@@ -286,16 +286,16 @@ impl ModelConfig {
             }
         }
         let v = &self.vision;
-        if v.num_attention_heads == 0 || v.hidden_size % v.num_attention_heads != 0 {
+        if v.num_attention_heads == 0 || !v.hidden_size.is_multiple_of(v.num_attention_heads) {
             errs.push("vision: hidden_size must be a multiple of num_attention_heads".into());
         }
-        if v.patch_size == 0 || v.image_size % v.patch_size != 0 {
+        if v.patch_size == 0 || !v.image_size.is_multiple_of(v.patch_size) {
             errs.push("vision: image_size must be a multiple of patch_size".into());
         }
         if self.action_dim == 0 || self.action_horizon == 0 || self.max_token_len == 0 {
             errs.push("action_dim, action_horizon and max_token_len must be > 0".into());
         }
-        if self.action_expert.width % 2 != 0 {
+        if !self.action_expert.width.is_multiple_of(2) {
             errs.push("action expert width must be even (sin/cos time embedding)".into());
         }
         if self.cameras.is_empty() {
