@@ -7,7 +7,11 @@ use chunkrt::policy::model::{ModelInputs, PiModel};
 use chunkrt::policy::ModelConfig;
 
 fn small_config(pi05: bool) -> ModelConfig {
-    let json = format!(
+    ModelConfig::from_json_str(&small_config_json(pi05)).expect("valid test config")
+}
+
+fn small_config_json(pi05: bool) -> String {
+    format!(
         r#"{{
         "vision": {{"hidden_size": 16, "num_hidden_layers": 1, "num_attention_heads": 2,
                     "intermediate_size": 32, "patch_size": 14, "image_size": 28}},
@@ -16,8 +20,7 @@ fn small_config(pi05: bool) -> ModelConfig {
         "vocab_size": 50, "action_dim": 5, "action_horizon": 4, "max_token_len": 6,
         "pi05": {pi05}, "cameras": ["base_0_rgb", "left_wrist_0_rgb"], "num_denoise_steps": 5
     }}"#
-    );
-    ModelConfig::from_json_str(&json).expect("valid test config")
+    )
 }
 
 fn inputs(cfg: &ModelConfig) -> ModelInputs {
@@ -222,4 +225,131 @@ fn loss_is_differentiable_end_to_end_through_vision_and_transformer() {
          {with_grad}/{total}"
     );
     assert_eq!(with_grad, total);
+}
+
+/// Training's multi-sample loss (one prefix pass, k suffixes per observation) equals the joint
+/// loss on the observations repeated k times, for π0 (state token) and π0.5, with both op sets.
+#[test]
+fn multi_sample_loss_equals_the_joint_loss_on_repeated_inputs() {
+    for pi05 in [false, true] {
+        let cfg = small_config(pi05);
+        let (model, _vm) = random_model(&cfg).unwrap();
+        let inp = inputs(&cfg);
+        let (b, k) = (2usize, 3usize);
+        let dev = Device::Cpu;
+        let (h, a) = (cfg.action_horizon, cfg.action_dim);
+        let actions = Tensor::randn(0f32, 1f32, (b, h, a), &dev).unwrap();
+        let noise = Tensor::randn(0f32, 1f32, (b * k, h, a), &dev).unwrap();
+        let time = Tensor::new(&[0.9f32, 0.5, 0.1, 0.7, 0.3, 0.99], &dev).unwrap();
+        // the observations repeated k times, row b·k + j = observation b
+        let idx = Tensor::new(&[0u32, 0, 0, 1, 1, 1], &dev).unwrap();
+        let rep = ModelInputs {
+            images: inp
+                .images
+                .iter()
+                .map(|t| t.index_select(&idx, 0).unwrap())
+                .collect(),
+            image_masks: inp
+                .image_masks
+                .iter()
+                .map(|m| vec![m[0], m[0], m[0], m[1], m[1], m[1]])
+                .collect(),
+            tokens: inp.tokens.index_select(&idx, 0).unwrap(),
+            token_mask: (0..b * k).map(|r| inp.token_mask[r / k].clone()).collect(),
+            state: inp.state.index_select(&idx, 0).unwrap(),
+        };
+        let rep_actions = actions.index_select(&idx, 0).unwrap();
+        for diff in [false, true] {
+            let embs = model.embed_prefix_with(&inp, diff).unwrap();
+            let (multi, _) = model
+                .loss_multi(&inp, &embs, &actions, &noise, &time, k, diff, None)
+                .unwrap();
+            let rembs = model.embed_prefix_with(&rep, diff).unwrap();
+            let (joint, _) = model
+                .loss_tap(&rep, &rembs, &rep_actions, &noise, &time, diff, None)
+                .unwrap();
+            let d = maxdiff(&multi.per_element, &joint.per_element);
+            assert!(d < 1e-4, "pi05 {pi05} diff {diff}: {d}");
+        }
+        // gradients reach the vision tower through the shared prefix
+        let embs = model.embed_prefix_with(&inp, true).unwrap();
+        let (multi, _) = model
+            .loss_multi(&inp, &embs, &actions, &noise, &time, k, true, None)
+            .unwrap();
+        let grads = multi.mean.backward().unwrap();
+        let g = _vm
+            .all_vars()
+            .iter()
+            .filter_map(|v| grads.get(v.as_tensor()))
+            .count();
+        assert!(g > 10, "only {g} variables got a gradient");
+    }
+}
+
+/// A checkpoint computes the function that was trained: after optimiser steps on a trainable
+/// (VarMap) model, the loss of the model as trained equals the loss of its saved checkpoint
+/// loaded as the runtime loads it (fused, packed inference model). Session 4 found two tensors
+/// derived from trainable variables once at construction (Gemma's RMSNorm `1 + w`, SigLIP's
+/// stacked Q/K/V): the optimiser moved the variables but the forward pass kept the stale copies,
+/// so deployed policies computed another function than the one trained.
+#[test]
+fn a_saved_checkpoint_computes_what_was_trained() {
+    use candle_nn::{AdamW, Optimizer, ParamsAdamW};
+    for pi05 in [false, true] {
+        let cfg = small_config(pi05);
+        let (model, vm) = random_model(&cfg).unwrap();
+        let inp = inputs(&cfg);
+        let dev = Device::Cpu;
+        let (h, a) = (cfg.action_horizon, cfg.action_dim);
+        let actions = Tensor::randn(0f32, 1f32, (2, h, a), &dev).unwrap();
+        let noise = Tensor::randn(0f32, 1f32, (2, h, a), &dev).unwrap();
+        let time = Tensor::new(&[0.8f32, 0.3], &dev).unwrap();
+        let loss = |m: &PiModel, diff: bool| {
+            m.loss(&inp, &actions, &noise, &time, diff)
+                .unwrap()
+                .mean
+                .to_scalar::<f32>()
+                .unwrap()
+        };
+        let before = loss(&model, true);
+        let mut opt = AdamW::new(
+            vm.all_vars(),
+            ParamsAdamW {
+                lr: 0.02,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        for _ in 0..8 {
+            let l = model
+                .loss(&inp, &actions, &noise, &time, true)
+                .unwrap()
+                .mean;
+            opt.backward_step(&l).unwrap();
+        }
+        let trained = loss(&model, true);
+        assert!(
+            trained < 0.8 * before,
+            "training did not move: {before} -> {trained}"
+        );
+        // every norm and projection moved, so stale copies would show
+        let dir = std::env::temp_dir().join(format!(
+            "chunkrt-ckpt-roundtrip-{pi05}-{}",
+            std::process::id()
+        ));
+        std::fs::create_dir_all(&dir).unwrap();
+        vm.save(dir.join("model.safetensors")).unwrap();
+        std::fs::write(dir.join("config.json"), small_config_json(pi05)).unwrap();
+        let loaded = chunkrt::policy::checkpoint::load(&dir, &Default::default())
+            .unwrap()
+            .model;
+        let (fast, slow) = (loss(&loaded, false), loss(&loaded, true));
+        std::fs::remove_dir_all(&dir).ok();
+        for (what, l) in [("fast ops", fast), ("differentiable ops", slow)] {
+            assert!(
+                (l - trained).abs() <= 1e-4 * trained.abs().max(1.0),
+                "pi05 {pi05}: trained model's loss {trained}, its checkpoint's ({what}) {l}"
+            );
+        }
+    }
 }

@@ -109,9 +109,9 @@ multiversion! {
 }
 
 multiversion! {
-    /// Row-wise `softmax(s + bias)` in place over the `t` columns of `rows` (bias: one row of `t`
-    /// shared by all rows when `bias.len() == t`, else one per row).
-    fn softmax_bias_rows(rows: &mut [f32], bias: &[f32], t: usize) {
+    /// Row-wise `softmax(scale * s + bias)` in place over the `t` columns of `rows` (bias: one
+    /// row of `t` shared by all rows when `bias.len() == t`, else one per row).
+    fn softmax_bias_rows(rows: &mut [f32], bias: &[f32], t: usize, scale: f32) {
         for (ri, row) in rows.chunks_exact_mut(t).enumerate() {
             let b = if bias.len() == t { bias } else { &bias[ri * t..(ri + 1) * t] };
             let mut mx = [f32::NEG_INFINITY; LANES];
@@ -119,13 +119,13 @@ multiversion! {
             let mut bc = b.chunks_exact(LANES);
             for (r, b) in (&mut rc).zip(&mut bc) {
                 for i in 0..LANES {
-                    let v = r[i] + b[i];
+                    let v = r[i] * scale + b[i];
                     r[i] = v;
                     mx[i] = if v > mx[i] { v } else { mx[i] };
                 }
             }
             for (r, b) in rc.into_remainder().iter_mut().zip(bc.remainder()) {
-                let v = *r + *b;
+                let v = *r * scale + *b;
                 *r = v;
                 mx[0] = if v > mx[0] { v } else { mx[0] };
             }
@@ -187,6 +187,59 @@ pub fn gelu(x: &Tensor) -> Result<Option<Tensor>> {
     })?;
     match r {
         Some(out) => Ok(Some(Tensor::from_vec(out, x.shape(), &Device::Cpu)?)),
+        None => Ok(None),
+    }
+}
+
+multiversion! {
+    /// `out = a + b`.
+    fn add_slice(a: &[f32], b: &[f32], out: &mut [f32]) {
+        for ((o, &a), &b) in out.iter_mut().zip(a).zip(b) {
+            *o = a + b;
+        }
+    }
+}
+
+/// `a + b` for contiguous f32 CPU tensors, `b` of `a`'s shape or of its trailing dimensions
+/// (broadcast over the leading ones: residual connections, position embeddings), split over
+/// rayon's threads when large. candle runs its element-wise ops on a pool of its own whose
+/// workers spin after each op, competing with rayon's matrix-product workers for the cores.
+pub fn add(a: &Tensor, b: &Tensor) -> Result<Option<Tensor>> {
+    let (ad, bd) = (a.dims(), b.dims());
+    if bd.len() > ad.len()
+        || ad[ad.len() - bd.len()..] != *bd
+        || !a.is_contiguous()
+        || !b.is_contiguous()
+        || b.elem_count() == 0
+    {
+        return Ok(None);
+    }
+    let n = a.elem_count();
+    let m = b.elem_count();
+    let r = cpu_f32(a, |xs, _| {
+        cpu_f32(b, |ys, _| {
+            let mut out = vec![0f32; n];
+            let (xs, ys) = (&xs[..n], &ys[..m]);
+            // chunks of whole periods of `b`, about 32k values
+            let chunk = m * (1usize << 15).div_ceil(m);
+            let run = |o: &mut [f32], x: &[f32]| {
+                for (o, x) in o.chunks_mut(m).zip(x.chunks(m)) {
+                    add_slice(x, &ys[..x.len()], o);
+                }
+            };
+            if threads() > 1 && n > 2 * chunk {
+                out.par_chunks_mut(chunk)
+                    .zip(xs.par_chunks(chunk))
+                    .for_each(|(o, x)| run(o, x));
+            } else {
+                run(&mut out, xs);
+            }
+            Ok(out)
+        })
+    })?
+    .flatten();
+    match r {
+        Some(out) => Ok(Some(Tensor::from_vec(out, a.shape(), &Device::Cpu)?)),
         None => Ok(None),
     }
 }
@@ -269,7 +322,7 @@ pub fn split_heads(
 ) -> Result<Option<Tensor>> {
     let (b, l, c) = x.dims3()?;
     let st = x.stride();
-    if st[2] != 1 || col + n * hd > c || hd % 2 != 0 {
+    if st[2] != 1 || col + n * hd > c || !hd.is_multiple_of(2) {
         return Ok(None);
     }
     let (sb, sl) = (st[0], st[1]);
@@ -372,6 +425,9 @@ pub fn attention(
     if ks[3] != 1 || vs[3] != 1 {
         return Ok(None);
     }
+    if super::packed::support().avx512 && super::packed::enabled() {
+        return attention_packed(q, k, v, bias, scale);
+    }
     let (k_b, k_h, k_r) = (ks[0], ks[1], ks[2]);
     let (v_b, v_h, v_r) = (vs[0], vs[1], vs[2]);
     let g = nh / nkv;
@@ -422,7 +478,7 @@ pub fn attention(
                                     gemm::Parallelism::None,
                                 );
                             }
-                            softmax_bias_rows(s, brow, t);
+                            softmax_bias_rows(s, brow, t, 1.0);
                             let d = dst;
                             unsafe {
                                 gemm::gemm(
@@ -465,6 +521,114 @@ pub fn attention(
     Ok(Some(Tensor::from_vec(out, (b, l, width), &Device::Cpu)?))
 }
 
+/// Query rows per attention task: a multiple of the packed kernel's register tile, small enough
+/// that a block's scores stay in L2 (48 × 600 keys: 115 KB).
+const ATT_ROWS: usize = 48;
+
+/// [`attention`] on the packed f32 kernel: each kv head's Kᵀ and V are packed into panels once
+/// and shared by its query heads; tasks are (batch row, head, block of [`ATT_ROWS`] queries),
+/// spread over the threads, each computing its scores, the fused scale + bias + softmax, and
+/// its block of the output. Shapes as checked by [`attention`].
+fn attention_packed(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    bias: &Tensor,
+    scale: f32,
+) -> Result<Option<Tensor>> {
+    use super::packed::{PackedRhs, Precision};
+    let (b, nh, l, hd) = q.dims4()?;
+    let (_, nkv, t, _) = k.dims4()?;
+    let bl = bias.dim(2)?;
+    let (ks, vs) = (k.stride(), v.stride());
+    let g = nh / nkv;
+    let width = nh * hd;
+    // Kᵀ [hd, T] and V [T, hd] of every (batch row, kv head), packed
+    let packed = cpu_f32(k, |kd, _| {
+        cpu_f32(v, |vd, _| {
+            let mut out = Vec::with_capacity(b * nkv);
+            for bi in 0..b {
+                for kv in 0..nkv {
+                    let kp = &kd[bi * ks[0] + kv * ks[1]..];
+                    let vp = &vd[bi * vs[0] + kv * vs[1]..];
+                    let kt = PackedRhs::pack_with(hd, t, Precision::F32, |d, j| kp[j * ks[2] + d]);
+                    let vv = PackedRhs::pack_with(t, hd, Precision::F32, |j, d| vp[j * vs[2] + d]);
+                    match (kt, vv) {
+                        (Some(kt), Some(vv)) => out.push((kt, vv)),
+                        _ => return Ok(None),
+                    }
+                }
+            }
+            Ok(Some(out))
+        })
+    })?
+    .flatten()
+    .flatten();
+    let Some(packed) = packed else {
+        return Ok(None);
+    };
+    let mut out = vec![0f32; b * l * width];
+    let dst = SendPtr(out.as_mut_ptr());
+    // blocks of at most ATT_ROWS rows, balanced (50 rows: 25 + 25, not 48 + 2)
+    let blocks = l.div_ceil(ATT_ROWS);
+    let per_block = l.div_ceil(blocks.max(1)).max(1);
+    let tasks = b * nh * blocks;
+    let done = cpu_f32(q, |qs, _| {
+        cpu_f32(bias, |bs, _| {
+            let task = |i: usize| {
+                let (bi, rest) = (i / (nh * blocks), i % (nh * blocks));
+                let (h, blk) = (rest / blocks, rest % blocks);
+                let (kt, vv) = &packed[bi * nkv + h / g];
+                let r0 = blk * per_block;
+                let rows = per_block.min(l - r0);
+                let qp = &qs[((bi * nh + h) * l + r0) * hd..][..rows * hd];
+                let brow = if bl == 1 {
+                    &bs[bi * t..(bi + 1) * t]
+                } else {
+                    &bs[(bi * bl + r0) * t..(bi * bl + r0 + rows) * t]
+                };
+                SCORES.with(|sc| {
+                    let mut fresh = Vec::new();
+                    let mut guard = sc.try_borrow_mut();
+                    let sc: &mut Vec<f32> = match guard.as_deref_mut() {
+                        Ok(v) => v,
+                        Err(_) => &mut fresh,
+                    };
+                    if sc.len() < rows * t {
+                        sc.resize(rows * t, 0.0);
+                    }
+                    let s = &mut sc[..rows * t];
+                    kt.matmul_into(qp, rows, hd, s, t, 1);
+                    softmax_bias_rows(s, brow, t, scale);
+                    let d = dst;
+                    // SAFETY: the output block of this task (rows r0.. of batch bi, columns
+                    // h*hd..(h+1)*hd) lies inside `out` and is written by this task only.
+                    unsafe {
+                        vv.matmul_ptr(
+                            s,
+                            rows,
+                            t,
+                            d.0.add((bi * l + r0) * width + h * hd),
+                            width,
+                            1,
+                        );
+                    }
+                });
+            };
+            if threads() > 1 && tasks > 1 {
+                (0..tasks).into_par_iter().for_each(task);
+            } else {
+                (0..tasks).for_each(task);
+            }
+            Ok(())
+        })
+    })?;
+    if done.flatten().is_none() {
+        return Ok(None);
+    }
+    Ok(Some(Tensor::from_vec(out, (b, l, width), &Device::Cpu)?))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -495,6 +659,21 @@ mod tests {
         assert!(worst < 4e-7, "relative error {worst}");
         assert_eq!(exp_f32(-1e30), 0.0);
         assert_eq!(exp_f32(f32::NEG_INFINITY), 0.0);
+    }
+
+    #[test]
+    fn add_matches_candle_with_and_without_broadcast() {
+        let dev = Device::Cpu;
+        let a = Tensor::randn(0f32, 1f32, (3, 300, 257), &dev).unwrap();
+        let b = Tensor::randn(0f32, 1f32, (3, 300, 257), &dev).unwrap();
+        let p = Tensor::randn(0f32, 1f32, (300, 257), &dev).unwrap();
+        let got = add(&a, &b).unwrap().unwrap();
+        assert_eq!(maxdiff(&(&a + &b).unwrap(), &got), 0.0);
+        let got = add(&a, &p).unwrap().unwrap();
+        assert_eq!(maxdiff(&a.broadcast_add(&p).unwrap(), &got), 0.0);
+        // shapes that do not broadcast this way fall back
+        let q = Tensor::randn(0f32, 1f32, (3, 1, 257), &dev).unwrap();
+        assert!(add(&a, &q).unwrap().is_none());
     }
 
     #[test]

@@ -12,9 +12,9 @@
 use candle_core::{DType, Device, Module, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
 
-use super::amx::{self, PackedWeight};
 use super::config::GemmaDims;
 use super::fastops;
+use super::packed::{PackedRhs, Precision};
 
 /// Additive attention mask value used by openpi (not `-inf`).
 pub const MASK_VALUE: f32 = -2.381_976_3e38;
@@ -24,8 +24,13 @@ pub const MASK_VALUE: f32 = -2.381_976_3e38;
 pub enum Norm {
     /// `x * rsqrt(mean(x^2) + eps) * (1 + w)`.
     Rms {
-        /// `1 + w` [W].
-        alpha: Tensor,
+        /// `w` [W] (a trainable variable in a training model).
+        weight: Tensor,
+        /// `1 + w` [W], precomputed for inference models only: a training model derives it from
+        /// `weight` at every forward, or the optimiser's updates of `weight` would never reach the
+        /// forward pass (and the saved checkpoint would compute another function than the one
+        /// trained).
+        alpha: Option<Tensor>,
         /// eps.
         eps: f64,
     },
@@ -60,8 +65,14 @@ impl Norm {
             Ok(Norm::Ada { dense, ones, eps })
         } else {
             let w = vb.get_with_hints(width, "weight", candle_nn::Init::Const(0.0))?;
+            let alpha = if w.is_variable() {
+                None
+            } else {
+                Some((&w + 1.0)?)
+            };
             Ok(Norm::Rms {
-                alpha: (w + 1.0)?,
+                weight: w,
+                alpha,
                 eps,
             })
         }
@@ -76,7 +87,12 @@ impl Norm {
         diff: bool,
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
         match self {
-            Norm::Rms { alpha, eps } => {
+            Norm::Rms { weight, alpha, eps } => {
+                let alpha = match alpha {
+                    Some(a) => a.clone(),
+                    None => (weight + 1.0)?,
+                };
+                let alpha = &alpha;
                 if diff {
                     let ms = x.sqr()?.mean_keepdim(D::Minus1)?;
                     let y = x.broadcast_div(&(ms + *eps)?.sqrt()?)?;
@@ -106,14 +122,18 @@ impl Norm {
     }
 }
 
-/// `x + y * gate` (gate absent: `x + y`).
+/// `x + y * gate` (gate absent: `x + y`; on the fast path a fused add).
 pub fn gated_residual(
     x: &Tensor,
     y: &Tensor,
     gate: Option<&Tensor>,
+    diff: bool,
 ) -> candle_core::Result<Tensor> {
     match gate {
-        None => x + y,
+        None => match if diff { None } else { fastops::add(x, y)? } {
+            Some(s) => Ok(s),
+            None => x + y,
+        },
         Some(g) => x + y.broadcast_mul(g)?,
     }
 }
@@ -192,23 +212,26 @@ pub struct ExpertLayer {
     /// are views into these, so the memory is not doubled.
     qkv: Option<Tensor>,
     gate_up: Option<Tensor>,
-    /// bf16 tiles of the same weights for AMX (`policy.precision = "bf16"`, [`Expert::use_bf16`]).
-    amx: Option<Box<AmxLayer>>,
+    /// The same weights packed for [`PackedRhs`] (f32 by default, bf16 with
+    /// `policy.precision = "bf16"`, [`Expert::pack`]).
+    packed: Option<Box<PackedLayer>>,
 }
 
-/// The fast-path weights of one layer packed for [`amx::matmul_tensor`].
+/// The fast-path weights of one layer packed for [`PackedRhs::matmul`].
 #[derive(Debug, Clone)]
-struct AmxLayer {
-    qkv: PackedWeight,
-    o: PackedWeight,
-    gate_up: PackedWeight,
-    down: PackedWeight,
+struct PackedLayer {
+    qkv: PackedRhs,
+    /// The K/V columns of `qkv` alone (the prefix's last layer needs only its K/V).
+    kv: PackedRhs,
+    o: PackedRhs,
+    gate_up: PackedRhs,
+    down: PackedRhs,
 }
 
-/// `x · w` on AMX when packed weights are given and AMX runs here, else `None`.
-fn amx_mm(x: &Tensor, w: Option<&PackedWeight>, diff: bool) -> candle_core::Result<Option<Tensor>> {
+/// `x · w` with the packed weight when there is one (fast path), else `None`.
+fn packed_mm(x: &Tensor, w: Option<&PackedRhs>, diff: bool) -> candle_core::Result<Option<Tensor>> {
     match (diff, w) {
-        (false, Some(w)) => amx::matmul_tensor(x, w),
+        (false, Some(w)) => w.matmul(x),
         _ => Ok(None),
     }
 }
@@ -246,17 +269,33 @@ fn fuse(ls: &mut [&mut Linear]) -> candle_core::Result<Tensor> {
 }
 
 impl ExpertLayer {
-    /// Packs the fused fast-path weights into bf16 tiles (no-op without them).
-    fn pack_bf16(&mut self) -> candle_core::Result<()> {
-        if let (Some(qkv), Some(gu)) = (&self.qkv, &self.gate_up) {
-            self.amx = Some(Box::new(AmxLayer {
-                qkv: PackedWeight::from_matrix(qkv)?,
-                o: PackedWeight::from_weight(self.o.weight())?,
-                gate_up: PackedWeight::from_matrix(gu)?,
-                down: PackedWeight::from_weight(self.down.weight())?,
-            }));
-        }
-        Ok(())
+    /// Packs the fused fast-path weights for `precision`. Returns false (and keeps what was
+    /// packed before) when this CPU has no kernel for it or the layer has no fused weights.
+    fn pack(&mut self, precision: Precision) -> candle_core::Result<bool> {
+        let (Some(qkv), Some(gu)) = (&self.qkv, &self.gate_up) else {
+            return Ok(false);
+        };
+        let qd = self.q.weight().dim(0)?;
+        let kvd = self.k.weight().dim(0)?;
+        let p = |w: &Tensor| PackedRhs::pack(w, precision);
+        let pw = |w: &Tensor| PackedRhs::pack_weight(w, precision);
+        let (Some(qkv_p), Some(kv), Some(o), Some(gate_up), Some(down)) = (
+            p(qkv)?,
+            p(&qkv.narrow(1, qd, 2 * kvd)?)?,
+            pw(self.o.weight())?,
+            p(gu)?,
+            pw(self.down.weight())?,
+        ) else {
+            return Ok(false);
+        };
+        self.packed = Some(Box::new(PackedLayer {
+            qkv: qkv_p,
+            kv,
+            o,
+            gate_up,
+            down,
+        }));
+        Ok(true)
     }
 
     /// Builds the fused fast-path weights unless the weights are trainable variables (a `VarMap`
@@ -269,6 +308,7 @@ impl ExpertLayer {
         self.gate_up = Some(fuse(&mut [&mut self.gate, &mut self.up])?);
         fuse(&mut [&mut self.o])?;
         fuse(&mut [&mut self.down])?;
+        self.pack(Precision::F32)?;
         Ok(self)
     }
 }
@@ -285,16 +325,14 @@ pub struct Expert {
 }
 
 impl Expert {
-    /// Runs the fast path's matrix products in bf16 on AMX from now on. Returns false (and
-    /// changes nothing) when this CPU or kernel has no AMX.
-    pub fn use_bf16(&mut self) -> candle_core::Result<bool> {
-        if !amx::available() {
-            return Ok(false);
-        }
+    /// Runs the fast path's matrix products with weights packed for `precision` from now on.
+    /// Returns false when this CPU has no kernel for it (layers keep their previous packing).
+    pub fn pack(&mut self, precision: Precision) -> candle_core::Result<bool> {
+        let mut ok = true;
         for l in &mut self.layers {
-            l.pack_bf16()?;
+            ok &= l.pack(precision)?;
         }
-        Ok(true)
+        Ok(ok)
     }
 
     /// `vb` at `...language_model` / `...gemma_expert.model`.
@@ -320,7 +358,7 @@ impl Expert {
                     down: candle_nn::linear_no_bias(dims.mlp_dim, w, m.pp("down_proj"))?,
                     qkv: None,
                     gate_up: None,
-                    amx: None,
+                    packed: None,
                 }
                 .with_fused()?,
             );
@@ -411,14 +449,14 @@ pub fn attention(
 
 /// `down(gelu_tanh(gate(x)) * up(x))`.
 fn mlp(layer: &ExpertLayer, x: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
-    let a = layer.amx.as_deref();
+    let a = layer.packed.as_deref();
     if let (false, Some(gu)) = (diff, &layer.gate_up) {
-        let y = match amx_mm(x, a.map(|a| &a.gate_up), diff)? {
+        let y = match packed_mm(x, a.map(|a| &a.gate_up), diff)? {
             Some(y) => y,
             None => matmul_2d(x, gu)?,
         };
         if let Some(h) = fastops::gelu_mul_fused(&y, gu.dim(1)? / 2)? {
-            if let Some(o) = amx_mm(&h, a.map(|a| &a.down), diff)? {
+            if let Some(o) = packed_mm(&h, a.map(|a| &a.down), diff)? {
                 return Ok(o);
             }
             return layer.down.forward(&h);
@@ -455,12 +493,13 @@ fn qkv_fused(
     };
     let qd = d.num_heads * d.head_dim;
     let kvd = d.num_kv_heads * d.head_dim;
-    let packed = match &layer.amx {
-        Some(a) => amx::matmul_tensor(h, &a.qkv)?,
-        None => None,
+    let packed = match (&layer.packed, with_q) {
+        (Some(a), true) => a.qkv.matmul(h)?.map(|y| (y, qd)),
+        (Some(a), false) => a.kv.matmul(h)?.map(|y| (y, 0)),
+        (None, _) => None,
     };
     let (y, kcol) = match packed {
-        Some(y) => (y, qd),
+        Some(yk) => yk,
         None if with_q => (matmul_2d(h, w)?, qd),
         None => (matmul_2d(h, &w.narrow(1, qd, 2 * kvd)?)?, 0),
     };
@@ -504,13 +543,15 @@ pub fn kv_only_layer(
 }
 
 /// Runs layer `li` over the streams with one joint masked attention; updates each `x` in place.
+/// Returns the streams' own (post-RoPE) keys and values [B, nKV, L, hd] (training runs the
+/// prefix once and reuses them for several suffixes).
 pub fn joint_layer(
     li: usize,
     streams: &mut [Stream<'_>],
     bias: &Tensor,
     kv: KvMode<'_>,
     diff: bool,
-) -> candle_core::Result<()> {
+) -> candle_core::Result<(Tensor, Tensor)> {
     let mut qs = Vec::with_capacity(streams.len());
     let mut ks = Vec::with_capacity(streams.len());
     let mut vs = Vec::with_capacity(streams.len());
@@ -606,14 +647,14 @@ pub fn joint_layer(
             out.narrow(1, start, l)?
         };
         start += l;
-        let o = match amx_mm(&o, layer.amx.as_deref().map(|a| &a.o), diff)? {
+        let o = match packed_mm(&o, layer.packed.as_deref().map(|a| &a.o), diff)? {
             Some(o) => o,
             None => layer.o.forward(&o)?,
         };
-        let x1 = gated_residual(&s.x, &o, gate.as_ref())?;
+        let x1 = gated_residual(&s.x, &o, gate.as_ref(), diff)?;
         let (h, gate2) = layer.post_norm.forward(&x1, s.cond, diff)?;
         let m = mlp(layer, &h, diff)?;
-        s.x = gated_residual(&x1, &m, gate2.as_ref())?;
+        s.x = gated_residual(&x1, &m, gate2.as_ref(), diff)?;
     }
-    Ok(())
+    Ok((k, v))
 }

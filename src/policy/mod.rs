@@ -14,6 +14,7 @@ pub mod config;
 pub mod fastops;
 pub mod gemma;
 pub mod model;
+pub mod packed;
 pub mod preprocess;
 pub mod rtc;
 pub mod runtime;

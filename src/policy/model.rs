@@ -10,6 +10,7 @@ use candle_nn::{Linear, VarBuilder};
 
 use super::config::{ModelConfig, ModelKind};
 use super::gemma::{joint_layer, kv_only_layer, Expert, KvMode, Rope, Stream, MASK_VALUE};
+use super::packed::Precision;
 use super::siglip::Vision;
 use super::PolicyError;
 
@@ -244,12 +245,19 @@ impl PiModel {
         &self.device
     }
 
-    /// Runs the inference fast path's expert matrix products in bf16 on AMX (f32 accumulation;
-    /// `policy.precision = "bf16"`). Returns false, changing nothing, where AMX is unavailable.
+    /// Runs the inference fast path's matrix products (experts and SigLIP) with weights packed
+    /// for `precision`: f32 (the default of inference models, where AVX-512 runs) or bf16 with
+    /// f32 accumulation (`policy.precision = "bf16"`: Intel AMX, else AVX512-BF16). Returns false
+    /// where this CPU has no kernel for it; the model then keeps its previous packing.
     /// Trainable (VarMap) models have no fast path and are unaffected.
+    pub fn set_precision(&mut self, precision: Precision) -> Result<bool, PolicyError> {
+        let ok = self.vlm.pack(precision)? & self.expert.pack(precision)?;
+        Ok(ok & self.vision.pack(precision)?)
+    }
+
+    /// `set_precision(Precision::Bf16)`.
     pub fn use_bf16(&mut self) -> Result<bool, PolicyError> {
-        let ok = self.vlm.use_bf16()? && self.expert.use_bf16()?;
-        Ok(ok && self.vision.use_bf16()?)
+        self.set_precision(Precision::Bf16)
     }
 
     fn check_inputs(&self, inp: &ModelInputs) -> Result<usize, PolicyError> {
@@ -765,6 +773,21 @@ impl PiModel {
         t: &[f32],
         diff: bool,
     ) -> Result<(Tensor, Tensor), PolicyError> {
+        let (po, so, _) = self.joint_forward_tap(inp, prefix_embs, x_t, t, diff, None)?;
+        Ok((po, so))
+    }
+
+    /// [`Self::joint_forward`], also returning the prefix hidden states [B, P, W] at the input
+    /// of layer `tap` (training's auxiliary losses read them).
+    pub fn joint_forward_tap(
+        &self,
+        inp: &ModelInputs,
+        prefix_embs: &Tensor,
+        x_t: &Tensor,
+        t: &[f32],
+        diff: bool,
+        tap: Option<usize>,
+    ) -> Result<(Tensor, Tensor, Option<Tensor>), PolicyError> {
         let b = self.check_inputs(inp)?;
         let layout = self.prefix_layout(inp);
         let (suffix, cond) = self.embed_suffix(&inp.state, x_t, t, true)?;
@@ -800,7 +823,11 @@ impl PiModel {
                 rope: &srope,
             },
         ];
+        let mut tapped = None;
         for li in 0..d.depth {
+            if tap == Some(li) {
+                tapped = Some(streams[0].x.clone());
+            }
             joint_layer(li, &mut streams, &bias, KvMode::Own { store: None }, diff)?;
         }
         let po = self.vlm.norm.forward(&streams[0].x, None, diff)?.0;
@@ -809,7 +836,7 @@ impl PiModel {
             .norm
             .forward(&streams[1].x, cond.as_ref(), diff)?
             .0;
-        Ok((po, so))
+        Ok((po, so, tapped))
     }
 
     /// Velocity from the joint forward (no cache) [B, H, A].
@@ -900,18 +927,193 @@ impl PiModel {
         time: &Tensor,
         diff: bool,
     ) -> Result<LossOutput, PolicyError> {
+        let embs = self.embed_prefix_inner(inp, false, diff)?;
+        self.loss_from_embs(inp, &embs, actions, noise, time, diff)
+    }
+
+    /// [`Self::loss_from_embs`], also returning the prefix hidden states at the input of layer
+    /// `tap` ([`Self::joint_forward_tap`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn loss_tap(
+        &self,
+        inp: &ModelInputs,
+        embs: &Tensor,
+        actions: &Tensor,
+        noise: &Tensor,
+        time: &Tensor,
+        diff: bool,
+        tap: Option<usize>,
+    ) -> Result<(LossOutput, Option<Tensor>), PolicyError> {
         let tv = time.to_dtype(DType::F32)?.to_vec1::<f32>()?;
         let t3 = time.to_dtype(DType::F32)?.reshape((tv.len(), 1, 1))?;
         let x_t = (noise.broadcast_mul(&t3)? + actions.broadcast_mul(&(t3.neg()? + 1.0)?)?)?;
         let u = (noise - actions)?;
-        let embs = self.embed_prefix_inner(inp, false, diff)?;
-        let v_t = self.velocity_uncached(inp, &embs, &x_t, &tv, diff)?;
+        let (_, so, tapped) = self.joint_forward_tap(inp, embs, &x_t, &tv, diff, tap)?;
+        let s = so.dim(1)?;
+        let h = self.cfg.action_horizon;
+        let v_t = self.action_out_proj.forward(&so.narrow(1, s - h, h)?)?;
         let per_element = (u - &v_t)?.sqr()?;
         let mean = per_element.mean_all()?;
-        Ok(LossOutput {
-            per_element,
-            mean,
-            v_t,
-        })
+        Ok((
+            LossOutput {
+                per_element,
+                mean,
+                v_t,
+            },
+            tapped,
+        ))
+    }
+
+    /// The flow-matching loss with `k` noise / time samples per observation that share one
+    /// prefix pass: the prefix never attends to the suffix, so the language model runs once over
+    /// the B prefixes (keeping each layer's keys and values), and the action expert runs over
+    /// the B·k suffixes against those keys and values. `actions` [B, H, A]; `noise` [B·k, H, A]
+    /// and `time` [B·k] (sample j of observation b at row b·k + j). Equal to [`Self::loss_tap`]
+    /// on the observations repeated k times. Also returns the prefix hidden states at the
+    /// input of layer `tap`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn loss_multi(
+        &self,
+        inp: &ModelInputs,
+        embs: &Tensor,
+        actions: &Tensor,
+        noise: &Tensor,
+        time: &Tensor,
+        k: usize,
+        diff: bool,
+        tap: Option<usize>,
+    ) -> Result<(LossOutput, Option<Tensor>), PolicyError> {
+        let b = self.check_inputs(inp)?;
+        let bk = b * k.max(1);
+        let k = k.max(1);
+        if noise.dim(0)? != bk || time.dim(0)? != bk || actions.dim(0)? != b {
+            return Err(PolicyError::Input(format!(
+                "loss_multi: {b} observations x {k} samples need noise / time rows {bk}, got {} / {}",
+                noise.dim(0)?,
+                time.dim(0)?
+            )));
+        }
+        // row b·k + j of every per-sample tensor belongs to observation b
+        let rep_idx: Vec<u32> = (0..bk).map(|r| (r / k) as u32).collect();
+        let rep_idx = Tensor::new(rep_idx.as_slice(), &self.device)?;
+        let rep = |x: &Tensor| x.index_select(&rep_idx, 0);
+        let tv = time.to_dtype(DType::F32)?.to_vec1::<f32>()?;
+        let t3 = time.to_dtype(DType::F32)?.reshape((bk, 1, 1))?;
+        let actions = rep(actions)?;
+        let x_t = (noise.broadcast_mul(&t3)? + actions.broadcast_mul(&(t3.neg()? + 1.0)?)?)?;
+        let u = (noise - &actions)?;
+
+        // prefix: the VLM expert alone, keeping each layer's K/V
+        let layout = self.prefix_layout(inp);
+        let p = self.cfg.prefix_len();
+        let d = &self.cfg.paligemma;
+        let prope = Rope::new(&layout.pos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let pbias = self.prefix_bias(&layout)?;
+        let mut prefix = [Stream {
+            x: embs.clone(),
+            expert: &self.vlm,
+            cond: None,
+            rope: &prope,
+        }];
+        let mut kvs = Vec::with_capacity(d.depth);
+        let mut tapped = None;
+        for li in 0..d.depth {
+            if tap == Some(li) {
+                tapped = Some(prefix[0].x.clone());
+            }
+            kvs.push(joint_layer(
+                li,
+                &mut prefix,
+                &pbias,
+                KvMode::Own { store: None },
+                diff,
+            )?);
+        }
+
+        // suffix: B·k rows against the repeated prefix K/V
+        let state = rep(&inp.state)?;
+        let (suffix, cond) = self.embed_suffix(&state, &x_t, &tv, true)?;
+        let s = suffix.dim(1)?;
+        let ar_s = self.suffix_ar();
+        let mut vis = Vec::with_capacity(bk * s * (p + s));
+        let mut spos = Vec::with_capacity(bk);
+        for r in 0..bk {
+            let bi = r / k;
+            let mut pad = layout.pad[bi].clone();
+            pad.extend(std::iter::repeat_n(true, s));
+            let mut ar = vec![false; p];
+            ar.extend_from_slice(&ar_s);
+            let m = att_2d_mask(&pad, &ar);
+            for qi in p..p + s {
+                vis.extend_from_slice(&m[qi * (p + s)..(qi + 1) * (p + s)]);
+            }
+            let n = layout.n_valid[bi] as i64;
+            spos.push((0..s as i64).map(|i| n + i).collect::<Vec<_>>());
+        }
+        let sbias = bias_tensor(vis, (bk, 1, s, p + s), &self.device)?;
+        let srope = Rope::new(&spos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let mut st = [Stream {
+            x: suffix,
+            expert: &self.expert,
+            cond: cond.as_ref(),
+            rope: &srope,
+        }];
+        for (li, (kp, vp)) in kvs.iter().enumerate() {
+            let (mut kr, mut vr) = if k == 1 {
+                (kp.clone(), vp.clone())
+            } else {
+                (rep(kp)?, rep(vp)?)
+            };
+            if !diff {
+                // the fast path writes the suffix K/V into the buffer after the prefix
+                let pad = |x: &Tensor| -> candle_core::Result<Tensor> {
+                    let (n, h, _, hd) = x.dims4()?;
+                    let z = Tensor::zeros((n, h, s, hd), DType::F32, &self.device)?;
+                    Tensor::cat(&[x, &z], 2)
+                };
+                kr = pad(&kr)?;
+                vr = pad(&vr)?;
+            }
+            joint_layer(
+                li,
+                &mut st,
+                &sbias,
+                KvMode::Cached {
+                    k: &kr,
+                    v: &vr,
+                    offset: p,
+                },
+                diff,
+            )?;
+        }
+        let so = self.expert.norm.forward(&st[0].x, cond.as_ref(), diff)?.0;
+        let h = self.cfg.action_horizon;
+        let v_t = self.action_out_proj.forward(&so.narrow(1, s - h, h)?)?;
+        let per_element = (u - &v_t)?.sqr()?;
+        let mean = per_element.mean_all()?;
+        Ok((
+            LossOutput {
+                per_element,
+                mean,
+                v_t,
+            },
+            tapped,
+        ))
+    }
+
+    /// [`Self::loss`] with the prefix embeddings already computed ([`Self::embed_prefix_with`]),
+    /// so that training can also use them for other losses.
+    pub fn loss_from_embs(
+        &self,
+        inp: &ModelInputs,
+        embs: &Tensor,
+        actions: &Tensor,
+        noise: &Tensor,
+        time: &Tensor,
+        diff: bool,
+    ) -> Result<LossOutput, PolicyError> {
+        Ok(self
+            .loss_tap(inp, embs, actions, noise, time, diff, None)?
+            .0)
     }
 }

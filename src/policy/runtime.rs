@@ -84,7 +84,7 @@ impl Policy {
         let loaded = checkpoint::load(checkpoint_dir, &overrides)?;
         let mut model = loaded.model;
         if cfg.precision == "bf16" && !model.use_bf16()? {
-            tracing::warn!("policy.precision = bf16 needs Intel AMX, which this CPU or kernel does not offer: running f32");
+            tracing::warn!("policy.precision = bf16 needs Intel AMX or AVX512-BF16, which this CPU does not offer: running f32");
         }
         match (cfg.kind.as_str(), model.cfg.kind) {
             ("pi0", ModelKind::Pi05) | ("pi05", ModelKind::Pi0) => {

@@ -14,11 +14,13 @@
 //! Shapes: N images, S image size, p patch, g = S/p, T = g² tokens, Dv width, nH heads, hd head
 //! dim, W the language model width.
 
-use candle_core::{Tensor, D};
+use candle_core::{DType, Tensor, D};
 use candle_nn::{Init, VarBuilder};
 
 use super::config::VisionDims;
 use super::fastops;
+use super::gemma::gated_residual;
+use super::packed::{PackedRhs, Precision};
 
 /// The fast path's attention over a fused `[N, T, 3 Dv]` Q/K/V output: heads split in one pass
 /// each and `fastops::attention` (no mask). `None` when the kernels do not apply.
@@ -89,8 +91,8 @@ impl LayerNorm {
 struct Dense {
     w: Tensor,
     b: Tensor,
-    /// bf16 tiles of `w` for AMX (`Vision::use_bf16`); inference only.
-    packed: Option<super::amx::PackedWeight>,
+    /// `w` packed for [`PackedRhs`] (`Vision::pack`); inference only.
+    packed: Option<PackedRhs>,
 }
 
 impl Dense {
@@ -109,24 +111,58 @@ impl Dense {
 
     fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
         if let Some(p) = &self.packed {
-            if let Some(y) = super::amx::matmul_tensor(x, p)? {
-                return y.broadcast_add(&self.b);
+            // the bias is fused into the packed product
+            if let Some(y) = p.matmul(x)? {
+                return Ok(y);
             }
         }
         linear(x, &self.w, &self.b)
     }
 
-    fn pack_bf16(&mut self) -> candle_core::Result<()> {
-        self.packed = Some(super::amx::PackedWeight::from_weight(&self.w)?);
-        Ok(())
+    /// Packs `w` for `precision`; false (keeping the previous packing) where this CPU has no
+    /// kernel for it.
+    fn pack(&mut self, precision: Precision) -> candle_core::Result<bool> {
+        match PackedRhs::pack_weight(&self.w, precision)? {
+            Some(p) => {
+                self.packed = Some(p.with_bias(self.b.to_dtype(DType::F32)?.to_vec1()?));
+                Ok(true)
+            }
+            None => Ok(false),
+        }
+    }
+}
+
+/// The Q/K/V projections of an encoder layer.
+#[derive(Debug, Clone)]
+enum Qkv {
+    /// Inference models: stacked once, [3 Dv, Dv] and [3 Dv], one product.
+    Fused(Dense),
+    /// Training models: the three trainable projections, stacked at every forward (a copy
+    /// stacked once would not follow the optimiser's updates).
+    Separate(Box<[Dense; 3]>),
+}
+
+impl Qkv {
+    /// [N, T, Dv] -> [N, T, 3 Dv].
+    fn forward(&self, h: &Tensor) -> candle_core::Result<Tensor> {
+        match self {
+            Qkv::Fused(d) => d.forward(h),
+            Qkv::Separate(p) => {
+                let [q, k, v] = &**p;
+                linear(
+                    h,
+                    &Tensor::cat(&[&q.w, &k.w, &v.w], 0)?,
+                    &Tensor::cat(&[&q.b, &k.b, &v.b], 0)?,
+                )
+            }
+        }
     }
 }
 
 #[derive(Debug, Clone)]
 struct EncoderLayer {
     ln1: LayerNorm,
-    /// Q, K, V stacked: [3 Dv, Dv], [3 Dv].
-    qkv: Dense,
+    qkv: Qkv,
     out: Dense,
     ln2: LayerNorm,
     fc1: Dense,
@@ -179,10 +215,14 @@ impl Vision {
             let q = Dense::new(d, d, a.pp("q_proj"))?;
             let k = Dense::new(d, d, a.pp("k_proj"))?;
             let v = Dense::new(d, d, a.pp("v_proj"))?;
-            let qkv = Dense {
-                w: Tensor::cat(&[&q.w, &k.w, &v.w], 0)?,
-                b: Tensor::cat(&[&q.b, &k.b, &v.b], 0)?,
-                packed: None,
+            let qkv = if q.w.is_variable() {
+                Qkv::Separate(Box::new([q, k, v]))
+            } else {
+                Qkv::Fused(Dense {
+                    w: Tensor::cat(&[&q.w, &k.w, &v.w], 0)?,
+                    b: Tensor::cat(&[&q.b, &k.b, &v.b], 0)?,
+                    packed: None,
+                })
             };
             layers.push(EncoderLayer {
                 ln1: LayerNorm::new(d, eps, l.pp("layer_norm1"))?,
@@ -193,7 +233,7 @@ impl Vision {
                 fc2: Dense::new(dims.intermediate_size, d, l.pp("mlp.fc2"))?,
             });
         }
-        Ok(Vision {
+        let mut vision = Vision {
             dims: dims.clone(),
             patch: Dense {
                 w: pw.reshape((d, 3 * p * p))?,
@@ -204,7 +244,12 @@ impl Vision {
             layers,
             post_ln: LayerNorm::new(d, eps, vm.pp("post_layernorm"))?,
             projector: Dense::new(d, width, vb.pp("multi_modal_projector.linear"))?,
-        })
+        };
+        // inference models (plain tensors, not trainable variables) run on packed f32 weights
+        if !pw.is_variable() {
+            vision.pack(Precision::F32)?;
+        }
+        Ok(vision)
     }
 
     /// SigLIP last hidden state: images [N, 3, S, S] in [-1, 1] -> [N, T, Dv].
@@ -212,21 +257,21 @@ impl Vision {
         self.tower_with(images, false)
     }
 
-    /// Runs the dense layers (patch embedding, Q/K/V, out, MLP, projector) in bf16 on AMX.
-    /// Returns false, changing nothing, where AMX is unavailable. For loaded (inference) models:
-    /// the packed copies do not follow optimiser updates and have no backward.
-    pub fn use_bf16(&mut self) -> candle_core::Result<bool> {
-        if !super::amx::available() {
-            return Ok(false);
-        }
-        self.patch.pack_bf16()?;
-        self.projector.pack_bf16()?;
+    /// Runs the dense layers (patch embedding, Q/K/V, out, MLP, projector) with weights packed
+    /// for `precision`. Returns false where this CPU has no kernel for it (layers keep their
+    /// previous packing). For loaded (inference) models: the packed copies do not follow
+    /// optimiser updates and have no backward.
+    pub fn pack(&mut self, precision: Precision) -> candle_core::Result<bool> {
+        let mut ok = self.patch.pack(precision)? & self.projector.pack(precision)?;
         for l in &mut self.layers {
-            for d in [&mut l.qkv, &mut l.out, &mut l.fc1, &mut l.fc2] {
-                d.pack_bf16()?;
+            if let Qkv::Fused(d) = &mut l.qkv {
+                ok &= d.pack(precision)?;
+            }
+            for d in [&mut l.out, &mut l.fc1, &mut l.fc2] {
+                ok &= d.pack(precision)?;
             }
         }
-        Ok(true)
+        Ok(ok)
     }
 
     /// [`Self::tower`]; `diff` selects ops with a backward.
@@ -244,7 +289,15 @@ impl Vision {
             .contiguous()?
             .reshape((n, g * g, c * p * p))?;
         // [N, T, Dv]
-        let mut x = self.patch.forward(&patches)?.broadcast_add(&self.pos)?;
+        let emb = self.patch.forward(&patches)?;
+        let mut x = match if diff {
+            None
+        } else {
+            fastops::add(&emb, &self.pos)?
+        } {
+            Some(x) => x,
+            None => emb.broadcast_add(&self.pos)?,
+        };
         let t = g * g;
         let scale = (hd as f64).powf(-0.5);
         for l in &self.layers {
@@ -280,14 +333,14 @@ impl Vision {
                     pr.matmul(&v)?.transpose(1, 2)?.reshape((n, t, d))?
                 }
             };
-            x = (x + l.out.forward(&o)?)?;
+            x = gated_residual(&x, &l.out.forward(&o)?, None, diff)?;
             let h = l.ln2.forward(&x, diff)?;
             let f = l.fc1.forward(&h)?;
             let f = match if diff { None } else { fastops::gelu(&f)? } {
                 Some(g) => g,
                 None => f.gelu()?,
             };
-            x = (x + l.fc2.forward(&f)?)?;
+            x = gated_residual(&x, &l.fc2.forward(&f)?, None, diff)?;
         }
         self.post_ln.forward(&x, diff)
     }
