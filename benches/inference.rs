@@ -36,7 +36,7 @@ fn main() {
                 .flat_map(|c| {
                     c.phases.iter().map(move |p| {
                         chunkrt::report::Series::new(
-                            format!("{}_{}_{}", c.name, c.precision, p.name),
+                            format!("{}_{}_{}", c.name, c.tag(), p.name),
                             p.hist_ns.clone(),
                         )
                     })

@@ -9,13 +9,12 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
     }
     let r = chunkrt::policy::bench::run(true).expect("bench runs");
     println!("{r}");
-    // π0 and π0.5, each in f32 and (where the CPU has AMX) bf16
-    let want = if chunkrt::policy::amx::available() {
-        4
-    } else {
-        2
-    };
-    assert_eq!(r.configs.len(), want);
+    // π0 and π0.5, each in f32, in bf16 where the CPU has AMX or AVX512-BF16, and on candle's
+    // kernels (the in-run baseline) where the packed f32 kernel runs
+    let per_model = 1
+        + chunkrt::policy::packed::bf16_backend().is_some() as usize
+        + chunkrt::policy::packed::support().avx512 as usize;
+    assert_eq!(r.configs.len(), 2 * per_model);
     for c in &r.configs {
         if c.precision == "bf16" {
             // bf16 inputs carry 8 significant bits: the actions must stay close to f32's
@@ -42,6 +41,18 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
                 c.name
             );
             assert!(p.gflops() > 0.0);
+        }
+        // the packed kernels must not be slower than candle's (same run, interleaved rounds);
+        // a loose bound: the quick mode has few samples on a shared machine
+        if let (Some(base), Some(p)) = (r.baseline(&c.name), c.phase("sample_cached")) {
+            let b = base.phase("sample_cached").expect("baseline sample").p50_ms;
+            assert!(
+                p.p50_ms < 1.25 * b,
+                "{} {}: {:.1} ms vs the candle baseline's {b:.1} ms",
+                c.name,
+                c.kernels,
+                p.p50_ms
+            );
         }
         // a cached step runs the action expert over H tokens only; an uncached one re-runs the
         // whole prefix: it must be clearly cheaper even on a loaded machine

@@ -61,14 +61,26 @@ pub struct ConfigReport {
     pub phases: Vec<Phase>,
     /// openpi's median for the full sample (s).
     pub openpi_s: f64,
-    /// `f32` or `bf16` (the experts' and SigLIP's matrix products on AMX).
+    /// `f32` or `bf16` (the experts' and SigLIP's matrix products in bf16: AMX or AVX512-BF16).
     pub precision: &'static str,
+    /// Kernels of the matrix products: `f32 packed (avx-512)`, `candle f32`, or the bf16 backend
+    /// (`amx`, `avx512-bf16`).
+    pub kernels: &'static str,
     /// bf16 only: max |bf16 − f32| over the sampled actions (model space, same weights, inputs
     /// and noise), divided by the RMS of the f32 actions.
     pub bf16_rel_action_diff: Option<f64>,
 }
 
 impl ConfigReport {
+    /// A short name of the variant: `f32`, `bf16` or `f32_candle` (the in-run baseline).
+    pub fn tag(&self) -> String {
+        if self.kernels.contains("baseline") {
+            format!("{}_candle", self.precision)
+        } else {
+            self.precision.to_string()
+        }
+    }
+
     /// A phase by name.
     pub fn phase(&self, name: &str) -> Option<&Phase> {
         self.phases.iter().find(|p| p.name == name)
@@ -99,11 +111,20 @@ pub struct BenchReport {
     pub threads: usize,
 }
 
+impl BenchReport {
+    /// The in-run baseline (candle's kernels) of configuration `name`.
+    pub fn baseline(&self, name: &str) -> Option<&ConfigReport> {
+        self.configs
+            .iter()
+            .find(|c| c.name == name && c.kernels.contains("baseline"))
+    }
+}
+
 impl std::fmt::Display for BenchReport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         writeln!(f, "threads: {}", self.threads)?;
         for c in &self.configs {
-            writeln!(f, "== {} ({}) ==", c.name, c.precision)?;
+            writeln!(f, "== {} ({}, {}) ==", c.name, c.precision, c.kernels)?;
             writeln!(
                 f,
                 "{:<16} {:>5} {:>10} {:>10} {:>9} {:>10} {:>12}",
@@ -135,6 +156,27 @@ impl std::fmt::Display for BenchReport {
                     "bf16 vs f32 actions (same weights, inputs, noise): max difference {d:.4} of the actions' RMS"
                 )?;
             }
+        }
+        writeln!(f, "== full cached sample, p50 (interleaved rounds) ==")?;
+        for c in &self.configs {
+            let base = self.baseline(&c.name);
+            let vs_base = match (base, c.phase("sample_cached")) {
+                (Some(b), Some(p)) if !std::ptr::eq(b, c) => format!(
+                    "; {:.2}x the in-run candle baseline",
+                    b.phase("sample_cached").map_or(0.0, |bp| bp.p50_ms) / p.p50_ms
+                ),
+                _ => String::new(),
+            };
+            writeln!(
+                f,
+                "{:<11} {:<5} {:<30} {:>8.1} ms: {:.2}x openpi's {:.3} s{vs_base}",
+                c.name,
+                c.precision,
+                c.kernels,
+                c.phase("sample_cached").map_or(0.0, |p| p.p50_ms),
+                c.speedup_vs_openpi(),
+                c.openpi_s
+            )?;
         }
         Ok(())
     }
@@ -273,19 +315,32 @@ pub fn random_inputs(
     })
 }
 
-/// Benchmarks one configuration (`json` in the fixtures' schema) in f32.
-pub fn run_config(name: &str, json: &str, quick: bool) -> Result<ConfigReport, PolicyError> {
-    run_config_with(name, json, quick, false)
+/// One way of running the model in the bench.
+struct Variant<'a> {
+    model: &'a PiModel,
+    precision: &'static str,
+    kernels: &'static str,
+    /// The packed kernels on (`packed::set_enabled`); off: candle's kernels, the in-run baseline.
+    packed: bool,
 }
 
-/// Benchmarks one configuration; `bf16`: with the matrix products in bf16 on AMX (an error where
-/// AMX is unavailable), and the difference of its actions from f32's.
-pub fn run_config_with(
-    name: &str,
-    json: &str,
-    quick: bool,
-    bf16: bool,
-) -> Result<ConfigReport, PolicyError> {
+impl Variant<'_> {
+    /// Runs `f` with this variant's kernels, restoring the packed kernels afterwards.
+    fn with<R>(&self, f: impl FnOnce(&PiModel) -> R) -> R {
+        super::packed::set_enabled(self.packed);
+        let r = f(self.model);
+        super::packed::set_enabled(true);
+        r
+    }
+}
+
+/// Benchmarks one configuration (`json` in the fixtures' schema), from the same random weights,
+/// inputs and noise: f32 on the packed kernels, bf16 where a bf16 kernel runs (with the
+/// difference of its actions from f32's), and f32 on candle's own kernels (the in-run baseline
+/// of the speed ratios). The phases of each variant are timed one after the other; the full
+/// sample, the headline figure, is timed in interleaved rounds (one run of each variant per
+/// round), so that a slow period of this shared VM slows every variant alike.
+pub fn run_configs(name: &str, json: &str, quick: bool) -> Result<Vec<ConfigReport>, PolicyError> {
     let cfg = ModelConfig::from_json_str(json)?;
     let v: serde_json::Value =
         serde_json::from_str(json).map_err(|e| PolicyError::Config(e.to_string()))?;
@@ -293,7 +348,9 @@ pub fn run_config_with(
         .as_u64()
         .unwrap_or(cfg.max_token_len as u64) as usize;
     let steps = cfg.num_denoise_steps;
-    let mut model = random_inference_model(&cfg)?;
+    let m32 = random_inference_model(&cfg)?;
+    let mut m16 = m32.clone();
+    let has_bf16 = super::packed::bf16_backend().is_some() && m16.use_bf16()?;
     let inp = random_inputs(&cfg, 1, valid, 1)?;
     let noise = Tensor::randn(
         0f32,
@@ -301,20 +358,39 @@ pub fn run_config_with(
         (1, cfg.action_horizon, cfg.action_dim),
         &Device::Cpu,
     )?;
+    let mut variants = vec![Variant {
+        model: &m32,
+        precision: "f32",
+        kernels: if super::packed::support().avx512 {
+            "packed f32, avx-512"
+        } else {
+            "candle f32"
+        },
+        packed: true,
+    }];
     let mut rel_diff = None;
-    if bf16 {
-        let a32 = model.sample(&inp, &noise, steps, None)?.actions;
-        if !model.use_bf16()? {
-            return Err(PolicyError::Config(
-                "bf16 needs Intel AMX, which this CPU or kernel does not offer".into(),
-            ));
-        }
-        let a16 = model.sample(&inp, &noise, steps, None)?.actions;
+    if has_bf16 {
+        let a32 = m32.sample(&inp, &noise, steps, None)?.actions;
+        let a16 = m16.sample(&inp, &noise, steps, None)?.actions;
         let d = (&a16 - &a32)?.abs()?.max_all()?.to_scalar::<f32>()? as f64;
         let rms = a32.sqr()?.mean_all()?.to_scalar::<f32>()?.sqrt() as f64;
         rel_diff = Some(d / rms.max(1e-12));
+        variants.push(Variant {
+            model: &m16,
+            precision: "bf16",
+            kernels: super::packed::bf16_backend().unwrap_or("bf16"),
+            packed: true,
+        });
     }
-    let (n_fast, n_slow) = if quick { (3, 1) } else { (20, 5) };
+    if super::packed::support().avx512 {
+        variants.push(Variant {
+            model: &m32,
+            precision: "f32",
+            kernels: "candle f32 (in-run baseline)",
+            packed: false,
+        });
+    }
+    let (n_fast, n_slow, rounds) = if quick { (3, 1, 3) } else { (20, 5, 20) };
     let p = cfg.prefix_len();
     let s = cfg.suffix_len();
     let prefix_flops = layer_flops(&cfg.paligemma, p, p) * cfg.paligemma.depth as f64;
@@ -323,75 +399,121 @@ pub fn run_config_with(
     let unc_step =
         prefix_flops + layer_flops(&cfg.action_expert, s, p + s) * cfg.action_expert.depth as f64;
     let vis = vision_flops(&cfg);
-    let mut phases = Vec::new();
-    phases.push(time_phase("vision", n_fast, vis, || {
-        model.embed_prefix(&inp)?;
-        Ok(())
-    })?);
-    let embs = model.embed_prefix(&inp)?;
-    let mut cache = None;
-    phases.push(time_phase("prefix", n_fast, prefix_flops, || {
-        model.fill_cache_from_embs(&inp, &embs, &mut cache, false)?;
-        Ok(())
-    })?);
-    let c = cache
-        .as_ref()
-        .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
-    phases.push(time_phase("step_cached", n_fast * 10, step_flops, || {
-        model.velocity_at(c, &noise, &[0.5], false)?;
-        Ok(())
-    })?);
-    phases.push(time_phase("step_uncached", n_slow, unc_step, || {
-        model.velocity_uncached(&inp, &embs, &noise, &[0.5], false)?;
-        Ok(())
-    })?);
     let total = vis + prefix_flops + steps as f64 * step_flops;
-    let mut cache2 = None;
-    phases.push(time_phase("sample_cached", n_fast, total, || {
-        model.sample(&inp, &noise, steps, Some(&mut cache2))?;
-        Ok(())
-    })?);
-    if !quick {
-        phases.push(time_phase(
-            "sample_uncached",
-            2,
-            vis + steps as f64 * unc_step,
-            || {
-                model.sample(&inp, &noise, steps, None)?;
-                Ok(())
-            },
-        )?);
-    }
     let openpi_s = OPENPI_SAMPLE_S
         .iter()
         .find(|(n, _)| *n == name)
         .map(|x| x.1)
         .unwrap_or(0.0);
-    Ok(ConfigReport {
+    let mut reports = Vec::new();
+    for var in &variants {
+        let mut phases = Vec::new();
+        var.with(|model| -> Result<(), PolicyError> {
+            phases.push(time_phase("vision", n_fast, vis, || {
+                model.embed_prefix(&inp)?;
+                Ok(())
+            })?);
+            let embs = model.embed_prefix(&inp)?;
+            let mut cache = None;
+            phases.push(time_phase("prefix", n_fast, prefix_flops, || {
+                model.fill_cache_from_embs(&inp, &embs, &mut cache, false)?;
+                Ok(())
+            })?);
+            let c = cache
+                .as_ref()
+                .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
+            phases.push(time_phase("step_cached", n_fast * 10, step_flops, || {
+                model.velocity_at(c, &noise, &[0.5], false)?;
+                Ok(())
+            })?);
+            phases.push(time_phase("step_uncached", n_slow, unc_step, || {
+                model.velocity_uncached(&inp, &embs, &noise, &[0.5], false)?;
+                Ok(())
+            })?);
+            if !quick {
+                phases.push(time_phase(
+                    "sample_uncached",
+                    2,
+                    vis + steps as f64 * unc_step,
+                    || {
+                        model.sample(&inp, &noise, steps, None)?;
+                        Ok(())
+                    },
+                )?);
+            }
+            Ok(())
+        })?;
+        reports.push(ConfigReport {
+            name: name.to_string(),
+            phases,
+            openpi_s,
+            precision: var.precision,
+            kernels: var.kernels,
+            bf16_rel_action_diff: if var.precision == "bf16" {
+                rel_diff
+            } else {
+                None
+            },
+        });
+    }
+    // the headline: the full cached sample, interleaved rounds over the variants
+    let mut full: Vec<Vec<u64>> = vec![Vec::new(); variants.len()];
+    let mut cpu: Vec<Vec<u64>> = vec![Vec::new(); variants.len()];
+    let mut caches: Vec<_> = variants.iter().map(|_| None).collect();
+    for round in 0..=rounds {
+        for (i, var) in variants.iter().enumerate() {
+            let (t0, c0) = (Instant::now(), cpu_us());
+            var.with(|model| model.sample(&inp, &noise, steps, Some(&mut caches[i])))?;
+            // round 0 warms the caches up and is not counted
+            if round > 0 {
+                full[i].push(t0.elapsed().as_micros().max(1) as u64);
+                cpu[i].push(cpu_us().saturating_sub(c0).max(1));
+            }
+        }
+    }
+    for (r, (wall, cpu)) in reports.iter_mut().zip(full.iter().zip(&cpu)) {
+        r.phases
+            .push(phase_from("sample_cached", total, wall, cpu)?);
+    }
+    Ok(reports)
+}
+
+/// A phase from recorded wall and CPU times (µs).
+fn phase_from(name: &str, flops: f64, wall: &[u64], cpu: &[u64]) -> Result<Phase, PolicyError> {
+    let mut h = histogram()?;
+    let mut c = histogram()?;
+    let mut hist_ns = crate::report::latency_histogram();
+    for (&w, &u) in wall.iter().zip(cpu) {
+        let w = w.min(600_000_000);
+        h.record(w)
+            .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
+        c.record(u.clamp(1, 600_000_000))
+            .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
+        let _ = hist_ns.record(w * 1000);
+    }
+    Ok(Phase {
         name: name.to_string(),
-        phases,
-        openpi_s,
-        precision: if bf16 { "bf16" } else { "f32" },
-        bf16_rel_action_diff: rel_diff,
+        n: h.len(),
+        p50_ms: h.value_at_quantile(0.5) as f64 / 1e3,
+        p99_ms: h.value_at_quantile(0.99) as f64 / 1e3,
+        flops,
+        cpu_ms: c.value_at_quantile(0.5) as f64 / 1e3,
+        hist_ns,
     })
 }
 
-/// Runs one configuration by name (`pi0_bench` / `pi05_bench`), in f32 and, where AMX runs,
-/// in bf16.
+/// Runs one configuration by name (`pi0_bench` / `pi05_bench`): every variant of
+/// [`run_configs`].
 pub fn run_named(name: &str, quick: bool) -> Result<Vec<ConfigReport>, PolicyError> {
     let (n, json) = CONFIGS
         .iter()
         .find(|(n, _)| *n == name)
         .ok_or_else(|| PolicyError::Config(format!("unknown bench config {name}")))?;
-    let mut out = vec![run_config(n, json, quick)?];
-    if super::amx::available() {
-        out.push(run_config_with(n, json, quick, true)?);
-    }
-    Ok(out)
+    run_configs(n, json, quick)
 }
 
 /// Runs both bench configurations (`quick`: few iterations, no uncached full sample), each in f32
-/// and, where AMX runs, in bf16.
+/// and, where a bf16 kernel runs, in bf16.
 pub fn run(quick: bool) -> Result<BenchReport, PolicyError> {
     let mut configs = Vec::new();
     for (name, _) in CONFIGS {
