@@ -56,6 +56,46 @@ pub struct EvalArgs {
     /// A smoke run: delays 0 and 2, 2 episodes per cell, 3 s limit.
     #[arg(long)]
     pub quick: bool,
+    /// Instead of the closed-loop sweep, the open-loop probe (`task::probe`) over `--episodes`
+    /// held-out episodes: how well the chunks point at the prompted target, and how much they
+    /// depend on the image and the prompt against the sampling noise. Writes probe.md.
+    #[arg(long)]
+    pub open_loop: bool,
+    /// The expert the open-loop probe compares with (the one the policy was trained on).
+    #[arg(long, value_enum, default_value_t = crate::task::expert::Profile::DistancePaced)]
+    pub expert: crate::task::expert::Profile,
+}
+
+/// First scene seed of the open-loop probe's episodes.
+pub const PROBE_SCENE_BASE: u64 = 4_000;
+
+/// `chunkrt eval --open-loop`.
+fn run_probe(cfg: &Config, args: &EvalArgs) -> anyhow::Result<()> {
+    let dir = cfg.resolve(
+        cfg.policy
+            .checkpoint
+            .as_ref()
+            .context("the configuration names no policy checkpoint")?,
+    );
+    let mut policy = crate::policy::Policy::load(&dir, &cfg.policy)?;
+    let n = if args.quick { 4 } else { args.episodes };
+    let eps = held_out_episodes(cfg, PROBE_SCENE_BASE, n, 9);
+    let t0 = Instant::now();
+    let r = crate::task::probe::probe(&mut policy, cfg, &eps, args.expert)?;
+    let text = format!(
+        "checkpoint {}, {} held-out episodes (scenes {PROBE_SCENE_BASE}..), expert {:?}, {:.1} s\n\n{r}",
+        dir.display(),
+        eps.len(),
+        args.expert,
+        t0.elapsed().as_secs_f64()
+    );
+    println!("{text}");
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    let md = args.out.join("probe.md");
+    std::fs::write(&md, format!("# Open-loop probe\n\n{text}\n"))?;
+    println!("wrote {}", md.display());
+    Ok(())
 }
 
 /// One cell of the sweep.
@@ -208,8 +248,8 @@ pub fn sweep(
     Ok((cells, rows))
 }
 
-/// Success rate (with the 95 % intervals) and max switch jump against the delay, one line per
-/// strategy.
+/// Success rate (with the 95 % intervals), time to target and max switch jump against the delay,
+/// one line per strategy.
 pub fn plot(path: &Path, cells: &[Cell]) -> anyhow::Result<()> {
     use plotters::prelude::*;
     let strategies: Vec<&str> = {
@@ -223,11 +263,18 @@ pub fn plot(path: &Path, cells: &[Cell]) -> anyhow::Result<()> {
     };
     let dmax = cells.iter().map(|c| c.delay).max().unwrap_or(1).max(1) as f64;
     let jmax = cells.iter().map(|c| c.max_jump).fold(1e-3, f64::max) * 1.1;
-    let root = BitMapBackend::new(path, (1100, 460)).into_drawing_area();
+    let tmax = cells
+        .iter()
+        .map(|c| c.time_to_target)
+        .filter(|t| t.is_finite())
+        .fold(0.1, f64::max)
+        * 1.1;
+    let root = BitMapBackend::new(path, (1500, 460)).into_drawing_area();
     root.fill(&WHITE)?;
-    let (left, right) = root.split_horizontally(550);
+    let panels = root.split_evenly((1, 3));
+    let (left, middle, right) = (&panels[0], &panels[1], &panels[2]);
     let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot {}: {e}", path.display());
-    let mut a = ChartBuilder::on(&left)
+    let mut a = ChartBuilder::on(left)
         .caption("success rate vs inference delay", ("sans-serif", 18))
         .margin(10)
         .x_label_area_size(40)
@@ -247,7 +294,20 @@ pub fn plot(path: &Path, cells: &[Cell]) -> anyhow::Result<()> {
         .y_desc("success rate (95 % CI)")
         .draw()
         .map_err(|e| err(&e))?;
-    let mut b = ChartBuilder::on(&right)
+    let mut m = ChartBuilder::on(middle)
+        .caption("time to target (successes)", ("sans-serif", 18))
+        .margin(10)
+        .x_label_area_size(40)
+        .y_label_area_size(50)
+        .build_cartesian_2d(-0.3f64..dmax + 0.3, 0f64..tmax)
+        .map_err(|e| err(&e))?;
+    m.configure_mesh()
+        .x_label_formatter(&int_ticks)
+        .x_desc("inference delay (action steps)")
+        .y_desc("s")
+        .draw()
+        .map_err(|e| err(&e))?;
+    let mut b = ChartBuilder::on(right)
         .caption("largest target jump at a chunk switch", ("sans-serif", 18))
         .margin(10)
         .x_label_area_size(40)
@@ -283,6 +343,21 @@ pub fn plot(path: &Path, cells: &[Cell]) -> anyhow::Result<()> {
                 6,
             )
         }))
+        .map_err(|e| err(&e))?;
+        let timed: Vec<&&Cell> = mine
+            .iter()
+            .filter(|c| c.time_to_target.is_finite())
+            .collect();
+        m.draw_series(LineSeries::new(
+            timed.iter().map(|c| (c.delay as f64, c.time_to_target)),
+            color.stroke_width(2),
+        ))
+        .map_err(|e| err(&e))?;
+        m.draw_series(
+            timed
+                .iter()
+                .map(|c| Circle::new((c.delay as f64, c.time_to_target), 3, color.filled())),
+        )
         .map_err(|e| err(&e))?;
         b.draw_series(LineSeries::new(
             mine.iter().map(|c| (c.delay as f64, c.max_jump)),
@@ -321,6 +396,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         if cfg.policy.kind == "hold" {
             cfg.policy.kind = "pi05".into();
         }
+    }
+    if args.open_loop {
+        return run_probe(&cfg, &args);
     }
     let (delays, episodes, max_seconds): (Vec<u64>, usize, f64) = if args.quick {
         (vec![0, 2.min(args.max_delay)], 2, 3.0)

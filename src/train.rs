@@ -9,6 +9,10 @@
 //!    Every op runs in its differentiable form (SigLIP, both experts, the heads). The state is
 //!    augmented: the gripper's state flipped in 30 % of the samples (the robot's gripper is not
 //!    always where the expert's was) and N(0, 0.01) on the arm joints' normalised state.
+//!    Two auxiliary heads train with the model and are not saved (`--aux-weight`, `--goal-weight`):
+//!    the targets' positions from the pooled image tokens, and the prompted target's joint solution
+//!    from the VLM's hidden state. Without them the small model learned to ignore its image and
+//!    prompt (`BENCHMARKS.md` §6).
 //! 3. Every `--val-every-min` minutes the weights are written as a checkpoint (openpi key names,
 //!    `config.json`, `norm_stats.json`, the task's `tokenizer.json`) and driven closed-loop
 //!    through held-out episodes by the real executor (`task::sim`). `--out` gets the last
@@ -34,7 +38,7 @@ use crate::policy::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, NormMode, NormStats,
     PromptTokenizer, Stats,
 };
-use crate::task::dataset::{gaussian, random_start, Dataset, DatasetSpec};
+use crate::task::dataset::{gaussian, random_start, Dataset, DatasetSpec, TRAIN_SEED_BASE};
 use crate::task::sim::{run_episode, EpisodeSpec, SimSettings};
 use crate::task::{home_pose, task_camera, vocab, TargetColor, TASK_DOF};
 
@@ -58,19 +62,22 @@ pub struct TrainArgs {
     #[arg(long, default_value = "target/chunkrt-train/dataset.safetensors")]
     pub dataset: PathBuf,
     /// Scenes to record when the dataset is missing (two episodes each).
-    #[arg(long, default_value_t = 5000)]
+    #[arg(long, default_value_t = 20_000)]
     pub scenes: usize,
-    /// Share of each episode's policy steps recorded (first and last always): 5000 scenes at
-    /// 0.2 give about as many samples as 1000 at every step, with 5x the target layouts.
-    #[arg(long, default_value_t = 0.2)]
+    /// Share of each episode's policy steps recorded (first and last always): 20 000 scenes at
+    /// 0.05 give 150 k samples from 40 000 start poses and 20 000 target layouts (recorded in
+    /// about 80 s; 1.8 GB in memory).
+    #[arg(long, default_value_t = 0.05)]
     pub keep_share: f64,
     /// Which checkpoint ends up in `--out`: `last` (the end of the schedule) or `best` (highest
     /// validation success so far; with tens of episodes the noise is ±15 points).
     #[arg(long, value_enum, default_value_t = Keep::Last)]
     pub keep: Keep,
-    /// The expert's speed profile when recording (`distance-paced` is an experiment: its chunks
-    /// depend only on the pose, not on when the motion started).
-    #[arg(long, value_enum, default_value_t = crate::task::expert::Profile::MinJerk)]
+    /// The expert's speed profile when recording. `distance-paced` (the default): the chunk is a
+    /// function of the pose and the target alone. `min-jerk` starts every motion from rest, so
+    /// the same pose has different chunks depending on when the motion started, and the policy
+    /// learns a wide distribution that it samples afresh at every chunk.
+    #[arg(long, value_enum, default_value_t = crate::task::expert::Profile::DistancePaced)]
     pub expert: crate::task::expert::Profile,
     /// Training time budget (minutes).
     #[arg(long, default_value_t = 25.0)]
@@ -101,6 +108,28 @@ pub struct TrainArgs {
     /// state's value is readable from the first step; `random` is the usual N(0, 1/W).
     #[arg(long, value_enum, default_value_t = BinInit::Fourier)]
     pub state_embedding: BinInit,
+    /// Weight of the auxiliary localisation loss: a linear head on the image tokens regresses
+    /// the two targets' and the gripper's positions in the image plane, so the vision tower
+    /// gets a direct signal instead of only the flow-matching gradient. The head is not part
+    /// of the checkpoint. 0 turns it off.
+    #[arg(long, default_value_t = 1.0)]
+    pub aux_weight: f64,
+    /// Weight of the auxiliary goal loss: a linear head on the language model's hidden states at
+    /// the input of its last layer (whose keys and values the action expert reads), averaged over
+    /// the valid prefix tokens, regresses the prompted target's inverse-kinematics joint angles
+    /// and position. It asks the prefix to do what the prompt says (pick the named target) in a
+    /// form the action expert can read. Not part of the checkpoint; 0 turns it off.
+    #[arg(long, default_value_t = 1.0)]
+    pub goal_weight: f64,
+    /// Noise / time samples of the flow-matching loss per observation. They share one pass of
+    /// the prefix (SigLIP and the language model, most of a step's cost) and each runs the
+    /// action expert, so k samples cost far less than k observations and average out the
+    /// loss's sampling noise.
+    /// At 1 (the default) every observation gets one sample, as in openpi: in an 8-minute A/B
+    /// on the reach task, 4 samples per observation reached 14/24 validation episodes against
+    /// 22/24 for 1 (more optimiser steps in the same time won).
+    #[arg(long, default_value_t = 1)]
+    pub samples_per_obs: usize,
     /// A smoke run: 3 scenes, 6 steps, 1 validation episode (for the tests).
     #[arg(long)]
     pub quick: bool,
@@ -158,6 +187,103 @@ pub fn init_state_bin_embeddings(vm: &VarMap) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// What `chunkrt train` records: `scenes` scenes from seed `scene_base`, the expert moving with
+/// `expert`, `keep_share` of each episode's steps, frames of the task camera.
+#[allow(clippy::too_many_arguments)]
+pub fn dataset_spec(
+    cfg: &Config,
+    mcfg: &ModelConfig,
+    scenes: usize,
+    scene_base: u64,
+    seed: u64,
+    keep_share: f64,
+    expert: crate::task::expert::Profile,
+) -> anyhow::Result<DatasetSpec> {
+    let cam = task_camera(cfg)?;
+    Ok(DatasetSpec {
+        scenes,
+        scene_base,
+        seed,
+        horizon: mcfg.action_horizon,
+        action_rate_hz: cfg.policy.action_rate_hz,
+        camera: cam.name.clone(),
+        width: cam.width as usize,
+        height: cam.height as usize,
+        hold_steps: 5,
+        perturb_share: 0.5,
+        perturb_std: 0.2,
+        home: home_pose(cfg),
+        keep_share,
+        profile: expert,
+    })
+}
+
+/// One data-parallel worker's share of a step: gradients, flow-matching loss, the auxiliary
+/// heads' losses (localisation, goal) and its number of samples.
+type WorkerResult = (candle_core::backprop::GradStore, f64, [f64; 2], usize);
+
+/// Scene seeds of the held-out loss data (below the training seeds, apart from validation
+/// 1000.., `chunkrt eval` 2000.. and the open-loop probe 4000..).
+pub const LOSS_SCENE_BASE: u64 = 6_000;
+/// Noise levels at which the held-out loss is reported: t near 1 is almost pure noise (the
+/// model must commit to a chunk from the observation alone: which target, how far), t near 0
+/// is almost the chunk itself (fine detail).
+pub const LOSS_TIMES: [f32; 4] = [0.1, 0.4, 0.7, 0.95];
+
+/// The flow-matching loss of `model` on every sample of `batcher` at each noise level of
+/// `times` (fixed noise from `seed`), without gradients: one mean per time.
+fn loss_by_time(
+    model: &PiModel,
+    batcher: &Batcher,
+    times: &[f32],
+    seed: u64,
+) -> anyhow::Result<Vec<f64>> {
+    let (h, a) = (batcher.cfg.action_horizon, batcher.cfg.action_dim);
+    let n = batcher.ds.len();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let idx: Vec<usize> = (0..n).collect();
+    let mut out = Vec::with_capacity(times.len());
+    for &t in times {
+        let (mut sum, mut count) = (0f64, 0usize);
+        for chunk in idx.chunks(64) {
+            let (inp, actions, _, _) = batcher.batch(chunk, &[])?;
+            let b = chunk.len();
+            let noise: Vec<f32> = (0..b * h * a).map(|_| gaussian(&mut rng) as f32).collect();
+            let noise = Tensor::from_vec(noise, (b, h, a), &Device::Cpu)?;
+            let time = Tensor::from_vec(vec![t; b], b, &Device::Cpu)?;
+            let l = model.loss(&inp, &actions, &noise, &time, false)?.mean;
+            sum += l.to_scalar::<f32>()? as f64 * b as f64;
+            count += b;
+        }
+        out.push(sum / count.max(1) as f64);
+    }
+    Ok(out)
+}
+
+/// Held-out data for [`loss_by_time`]: `scenes` scenes from [`LOSS_SCENE_BASE`], recorded like
+/// the training data.
+pub fn held_out_dataset(
+    cfg: &Config,
+    mcfg: &ModelConfig,
+    scenes: usize,
+    expert: crate::task::expert::Profile,
+) -> anyhow::Result<Dataset> {
+    let spec = dataset_spec(cfg, mcfg, scenes, LOSS_SCENE_BASE, 77, 0.2, expert)?;
+    Ok(Dataset::generate(&spec, |_, _| {}))
+}
+
+/// The held-out flow-matching loss of the checkpoint in `dir` at each of [`LOSS_TIMES`], on
+/// `ds` (from [`held_out_dataset`]), normalised with the checkpoint's own statistics.
+pub fn checkpoint_loss_by_time(dir: &Path, ds: &Dataset) -> anyhow::Result<Vec<f64>> {
+    let loaded = crate::policy::checkpoint::load(dir, &Default::default())?;
+    let model = loaded.model;
+    let norm = NormStats::from_file(&dir.join("norm_stats.json"))?;
+    let tok = PromptTokenizer::from_file(&dir.join("tokenizer.json"))?;
+    let actions = model_space_actions(ds, &model.cfg.delta_action_mask);
+    let batcher = Batcher::new(ds, &actions, &model.cfg, &norm, &tok)?;
+    loss_by_time(&model, &batcher, &LOSS_TIMES, 7)
+}
+
 /// The dataset's action chunks as the model predicts them: on the dims of `delta_mask` relative
 /// to the sample's state (openpi's `DeltaActions`; the runtime adds the observed state back),
 /// absolute elsewhere. Same layout as `Dataset::actions`.
@@ -212,6 +338,36 @@ struct Batcher<'a> {
     token_mask: Vec<bool>,
     state: Vec<f32>,
     actions: Vec<f32>,
+    /// Localisation targets per sample ([`AUX_OUTPUTS`]): red, blue and gripper (x, y) over the
+    /// view's half width, so in [-1, 1].
+    aux: Vec<f32>,
+    /// Goal targets per sample ([`GOAL_OUTPUTS`]).
+    goal: Vec<f32>,
+}
+
+/// Outputs of the auxiliary goal head: the prompted target's inverse-kinematics joint angles
+/// (over π) and its (x, y) (over the view's half width).
+pub const GOAL_OUTPUTS: usize = 5;
+
+/// The goal targets of sample scene `scene` with prompt `color` ([`GOAL_OUTPUTS`] values).
+pub fn goal_targets(scene: &crate::task::ReachScene, color: TargetColor) -> [f32; GOAL_OUTPUTS] {
+    let s = chunkrt_tools::scene::VIEW_HALF_WIDTH;
+    let t = scene.target(color);
+    let q = crate::task::inverse_kinematics(t).unwrap_or([0.0; 3]);
+    let pi = std::f64::consts::PI;
+    [q[0] / pi, q[1] / pi, q[2] / pi, t[0] / s, t[1] / s].map(|v| v as f32)
+}
+
+/// Outputs of the auxiliary localisation head: (x, y) of the red target, the blue target and
+/// the gripper.
+pub const AUX_OUTPUTS: usize = 6;
+
+/// The localisation targets of a scene seen at joint positions `q` ([`AUX_OUTPUTS`] values).
+pub fn localisation_targets(scene: &crate::task::ReachScene, q: &[f64]) -> [f32; AUX_OUTPUTS] {
+    let s = chunkrt_tools::scene::VIEW_HALF_WIDTH;
+    let e = crate::task::end_effector(q);
+    let [r, b] = scene.targets;
+    [r[0], r[1], b[0], b[1], e[0], e[1]].map(|v| (v / s) as f32)
 }
 
 /// State augmentation of one sample: the gripper state flipped to its other end (the robot's
@@ -253,8 +409,20 @@ impl<'a> Batcher<'a> {
             token_mask: Vec::with_capacity(n * l),
             state: Vec::with_capacity(n * a),
             actions: Vec::with_capacity(n * h * a),
+            aux: Vec::with_capacity(n * AUX_OUTPUTS),
+            goal: Vec::with_capacity(n * GOAL_OUTPUTS),
         };
+        let mut scene = None;
         for i in 0..n {
+            let seed = ds.episode_scene_seed[ds.episode[i] as usize];
+            let sc = match scene {
+                Some((s, sc)) if s == seed => sc,
+                _ => crate::task::ReachScene::from_seed(seed),
+            };
+            scene = Some((seed, sc));
+            let q: Vec<f64> = ds.state_of(i).iter().map(|&v| v as f64).collect();
+            b.aux.extend(localisation_targets(&sc, &q));
+            b.goal.extend(goal_targets(&sc, ds.color(i)));
             let mut s = ds.state_of(i).to_vec();
             normalize(&mut s, &norm.state, NormMode::Quantile)?;
             b.norm_state.extend_from_slice(&s);
@@ -276,8 +444,13 @@ impl<'a> Batcher<'a> {
         Ok(b)
     }
 
-    /// Inputs and normalised actions [B, H, A] of samples `idx`.
-    fn batch(&self, idx: &[usize], aug: &[Augment]) -> anyhow::Result<(ModelInputs, Tensor)> {
+    /// Inputs, normalised actions [B, H, A] and localisation targets [B, AUX_OUTPUTS] of samples
+    /// `idx`.
+    fn batch(
+        &self,
+        idx: &[usize],
+        aug: &[Augment],
+    ) -> anyhow::Result<(ModelInputs, Tensor, Tensor, Tensor)> {
         let dev = Device::Cpu;
         let c = &self.cfg;
         let (s, l, a, h) = (
@@ -294,6 +467,8 @@ impl<'a> Batcher<'a> {
             Vec::with_capacity(b * h * a),
         );
         let mut masks = Vec::with_capacity(b);
+        let mut aux = Vec::with_capacity(b * AUX_OUTPUTS);
+        let mut goal = Vec::with_capacity(b * GOAL_OUTPUTS);
         let d = self.ds.n_dof;
         for (bi, &i) in idx.iter().enumerate() {
             let f = self.ds.frame(i);
@@ -331,6 +506,8 @@ impl<'a> Batcher<'a> {
                 }
             }
             acts.extend_from_slice(&self.actions[i * h * a..(i + 1) * h * a]);
+            aux.extend_from_slice(&self.aux[i * AUX_OUTPUTS..(i + 1) * AUX_OUTPUTS]);
+            goal.extend_from_slice(&self.goal[i * GOAL_OUTPUTS..(i + 1) * GOAL_OUTPUTS]);
         }
         let mut images = vec![Tensor::from_vec(img, (b, 3, s, s), &dev)?];
         let mut image_masks = vec![vec![true; b]];
@@ -348,7 +525,82 @@ impl<'a> Batcher<'a> {
                 state: Tensor::from_vec(st, (b, a), &dev)?,
             },
             Tensor::from_vec(acts, (b, h, a), &dev)?,
+            Tensor::from_vec(aux, (b, AUX_OUTPUTS), &dev)?,
+            Tensor::from_vec(goal, (b, GOAL_OUTPUTS), &dev)?,
         ))
+    }
+}
+
+/// The auxiliary heads (trained, never saved):
+/// - localisation: one linear map from all image tokens of the first camera (as the language
+///   model receives them) to [`AUX_OUTPUTS`] positions;
+/// - goal: one linear map from the mean over valid prefix tokens of the language model's hidden
+///   states at the input of its last layer to [`GOAL_OUTPUTS`] values.
+///
+/// Both are trained with an MSE.
+struct AuxHeads {
+    loc: Option<candle_nn::Linear>,
+    goal: Option<candle_nn::Linear>,
+    tokens: usize,
+    /// The layer whose input the goal head reads.
+    tap: usize,
+}
+
+impl AuxHeads {
+    fn new(cfg: &ModelConfig, args: &TrainArgs, vb: VarBuilder) -> anyhow::Result<Self> {
+        let tokens = cfg.vision.num_tokens();
+        let w = cfg.paligemma.width;
+        let loc = (args.aux_weight > 0.0)
+            .then(|| candle_nn::linear(tokens * w, AUX_OUTPUTS, vb.pp("aux")))
+            .transpose()?;
+        let goal = (args.goal_weight > 0.0)
+            .then(|| candle_nn::linear(w, GOAL_OUTPUTS, vb.pp("goal")))
+            .transpose()?;
+        Ok(AuxHeads {
+            loc,
+            goal,
+            tokens,
+            tap: cfg.paligemma.depth.saturating_sub(1),
+        })
+    }
+
+    /// The tapped layer, when the goal head needs it.
+    fn tap(&self) -> Option<usize> {
+        self.goal.as_ref().map(|_| self.tap)
+    }
+
+    /// MSE of the localisation head on the prefix embeddings `embs` [B, P, W] against `target`
+    /// [B, AUX_OUTPUTS].
+    fn loc_loss(&self, embs: &Tensor, target: &Tensor) -> anyhow::Result<Option<Tensor>> {
+        use candle_core::Module;
+        let Some(lin) = &self.loc else {
+            return Ok(None);
+        };
+        let img = embs.narrow(1, 0, self.tokens)?.flatten_from(1)?;
+        Ok(Some((lin.forward(&img)? - target)?.sqr()?.mean_all()?))
+    }
+
+    /// MSE of the goal head on the hidden states `hidden` [B, P, W] (valid tokens `pad` [B][P])
+    /// against `target` [B, GOAL_OUTPUTS].
+    fn goal_loss(
+        &self,
+        hidden: Option<&Tensor>,
+        pad: &[Vec<bool>],
+        target: &Tensor,
+    ) -> anyhow::Result<Option<Tensor>> {
+        use candle_core::Module;
+        let (Some(lin), Some(h)) = (&self.goal, hidden) else {
+            return Ok(None);
+        };
+        let (b, p, _) = h.dims3()?;
+        let mut m = Vec::with_capacity(b * p);
+        for row in pad {
+            let n = row.iter().filter(|&&v| v).count().max(1) as f32;
+            m.extend(row.iter().map(|&v| if v { 1.0 / n } else { 0.0 }));
+        }
+        let m = Tensor::from_vec(m, (b, p, 1), h.device())?;
+        let pooled = h.broadcast_mul(&m)?.sum(1)?;
+        Ok(Some((lin.forward(&pooled)? - target)?.sqr()?.mean_all()?))
     }
 }
 
@@ -464,24 +716,27 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     // 1. data
     let ds = if args.dataset.exists() && !args.quick {
         eprintln!("[train] dataset {}", args.dataset.display());
-        Dataset::load(&args.dataset)?
+        let ds = Dataset::load(&args.dataset)?;
+        anyhow::ensure!(
+            ds.expert == args.expert,
+            "{} was recorded with the {} expert, training asks for {}: delete the file to record \
+             it anew, or pass --expert {}",
+            args.dataset.display(),
+            ds.expert.name(),
+            args.expert.name(),
+            ds.expert.name()
+        );
+        ds
     } else {
-        let home = home_pose(&cfg);
-        let spec = DatasetSpec {
+        let spec = dataset_spec(
+            &cfg,
+            &mcfg,
             scenes,
-            seed: args.seed,
-            horizon: mcfg.action_horizon,
-            action_rate_hz: cfg.policy.action_rate_hz,
-            camera: cam.name.clone(),
-            width: cam.width as usize,
-            height: cam.height as usize,
-            hold_steps: 5,
-            perturb_share: 0.5,
-            perturb_std: 0.2,
-            home,
-            keep_share: args.keep_share,
-            profile: args.expert,
-        };
+            TRAIN_SEED_BASE,
+            args.seed,
+            args.keep_share,
+            args.expert,
+        )?;
         let t0 = Instant::now();
         let ds = Dataset::generate(&spec, |done, total| {
             if done % 50 == 0 || done == total {
@@ -534,8 +789,17 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         args.lr,
         fmt_min(budget_s)
     );
+    // the auxiliary localisation head lives in its own VarMap: it is trained, never saved
+    let aux_vm = VarMap::new();
+    let heads = AuxHeads::new(
+        &mcfg,
+        &args,
+        VarBuilder::from_varmap(&aux_vm, DType::F32, &dev),
+    )?;
+    let mut all_vars = vm.all_vars();
+    all_vars.extend(aux_vm.all_vars());
     let mut opt = AdamW::new(
-        vm.all_vars(),
+        all_vars.clone(),
         ParamsAdamW {
             lr: args.lr,
             beta1: 0.9,
@@ -546,6 +810,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     )?;
 
     let val_eps = held_out_episodes(&cfg, 1_000, val_n, args.seed ^ 0xbeef);
+    // held-out loss data: scenes no training sample comes from, normalised like the training data
+    let held = held_out_dataset(&cfg, &mcfg, if args.quick { 1 } else { 60 }, args.expert)?;
+    let held_actions = model_space_actions(&held, &mcfg.delta_action_mask);
+    let held_batcher = Batcher::new(&held, &held_actions, &mcfg, &norm, &tok)?;
     let val_seconds = if args.quick { 0.5 } else { 6.0 };
     let log_dir = args
         .dataset
@@ -555,13 +823,15 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&log_dir)?;
     let log_path = log_dir.join("train_log.csv");
     let mut log = std::fs::File::create(&log_path)?;
-    writeln!(log, "step,elapsed_s,loss,lr,val_success,val_episodes")?;
+    writeln!(log, "step,elapsed_s,loss,lr,val_success,val_episodes,loc_loss,goal_loss,held_loss_t0.1,held_loss_t0.4,held_loss_t0.7,held_loss_t0.95")?;
     let candidate = args.out.with_extension("candidate");
     let tty = std::io::stderr().is_terminal();
 
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
     let t0 = Instant::now();
     let mut ema = f64::NAN;
+    let mut ema_aux = f64::NAN;
+    let mut ema_goal = f64::NAN;
     let mut best: Option<usize> = None;
     let mut last_val = String::from("-");
     let mut next_val = args.val_every_min * 60.0;
@@ -575,8 +845,22 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             // validation + checkpoint
             write_checkpoint(&candidate, &vm, &model_json, &norm)?;
             let (ok, ttt) = validate(&cfg, &candidate, &val_eps, val_seconds)?;
+            let held_loss = loss_by_time(&model, &held_batcher, &LOSS_TIMES, 7)?;
+            let hl: Vec<String> = held_loss.iter().map(|v| format!("{v:.4}")).collect();
             last_val = format!("{ok}/{} (t {:.2} s)", val_eps.len(), ttt);
-            writeln!(log, "{step},{elapsed:.1},{ema:.5},,{ok},{}", val_eps.len())?;
+            eprintln!(
+                "{}[train] held-out loss at t = {:?}: {} ({} samples)",
+                if tty { "\n" } else { "" },
+                LOSS_TIMES,
+                hl.join(" / "),
+                held.len()
+            );
+            writeln!(
+                log,
+                "{step},{elapsed:.1},{ema:.5},,{ok},{},,,{}",
+                val_eps.len(),
+                hl.join(",")
+            )?;
             let better = best.is_none_or(|b| ok >= b);
             if better {
                 best = Some(ok);
@@ -628,10 +912,11 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             .collect();
         let (h, a) = (mcfg.action_horizon, mcfg.action_dim);
         // noise and times from the seeded generator (deterministic for a given seed)
-        let noise: Vec<f32> = (0..batch * h * a)
+        let kspo = args.samples_per_obs.max(1);
+        let noise: Vec<f32> = (0..batch * kspo * h * a)
             .map(|_| gaussian(&mut rng) as f32)
             .collect();
-        let time: Vec<f32> = (0..batch)
+        let time: Vec<f32> = (0..batch * kspo)
             .map(|_| {
                 let u: f64 = rng.gen_range(f64::MIN_POSITIVE..1.0);
                 // Beta(1.5, 1) by inversion: F(x) = x^1.5
@@ -640,42 +925,82 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             .collect();
         // data parallel: each worker runs forward + backward on its share of the batch
         let share = batch.div_ceil(workers);
-        let results: Vec<anyhow::Result<(candle_core::backprop::GradStore, f64, usize)>> =
-            std::thread::scope(|sc| {
-                let handles: Vec<_> = (0..batch)
-                    .step_by(share)
-                    .map(|lo| {
-                        let hi = (lo + share).min(batch);
-                        let (model, batcher, idx, aug) = (&model, &batcher, &idx, &aug);
-                        let (noise, time) = (&noise[lo * h * a..hi * h * a], &time[lo..hi]);
-                        sc.spawn(move || -> anyhow::Result<_> {
-                            let n = hi - lo;
-                            let (inp, actions) = batcher.batch(&idx[lo..hi], &aug[lo..hi])?;
-                            let noise = Tensor::from_slice(noise, (n, h, a), &Device::Cpu)?;
-                            let time = Tensor::from_slice(time, n, &Device::Cpu)?;
-                            let loss = model.loss(&inp, &actions, &noise, &time, true)?.mean;
-                            let l = loss.to_scalar::<f32>()? as f64;
-                            Ok((loss.backward()?, l, n))
-                        })
+        let results: Vec<anyhow::Result<WorkerResult>> = std::thread::scope(|sc| {
+            let handles: Vec<_> = (0..batch)
+                .step_by(share)
+                .map(|lo| {
+                    let hi = (lo + share).min(batch);
+                    let (model, batcher, idx, aug) = (&model, &batcher, &idx, &aug);
+                    let (heads, args) = (&heads, &args);
+                    let (noise, time) = (
+                        &noise[lo * kspo * h * a..hi * kspo * h * a],
+                        &time[lo * kspo..hi * kspo],
+                    );
+                    sc.spawn(move || -> anyhow::Result<_> {
+                        let n = hi - lo;
+                        let (inp, actions, aux, goal) =
+                            batcher.batch(&idx[lo..hi], &aug[lo..hi])?;
+                        let noise = Tensor::from_slice(noise, (n * kspo, h, a), &Device::Cpu)?;
+                        let time = Tensor::from_slice(time, n * kspo, &Device::Cpu)?;
+                        let embs = model.embed_prefix_with(&inp, true)?;
+                        let (flow, hidden) = model.loss_multi(
+                            &inp,
+                            &embs,
+                            &actions,
+                            &noise,
+                            &time,
+                            kspo,
+                            true,
+                            heads.tap(),
+                        )?;
+                        let mut loss = flow.mean;
+                        let l = loss.to_scalar::<f32>()? as f64;
+                        let mut extra = [f64::NAN; 2];
+                        let pad = model.prefix_layout(&inp).pad;
+                        let parts = [
+                            (heads.loc_loss(&embs, &aux)?, args.aux_weight),
+                            (
+                                heads.goal_loss(hidden.as_ref(), &pad, &goal)?,
+                                args.goal_weight,
+                            ),
+                        ];
+                        for (k, (part, w)) in parts.into_iter().enumerate() {
+                            if let Some(part) = part {
+                                extra[k] = part.to_scalar::<f32>()? as f64;
+                                loss = (loss + (part * w)?)?;
+                            }
+                        }
+                        Ok((loss.backward()?, l, extra, n))
                     })
-                    .collect();
-                handles
-                    .into_iter()
-                    .map(|h| {
-                        h.join()
-                            .unwrap_or_else(|_| Err(anyhow::anyhow!("training worker panicked")))
-                    })
-                    .collect()
-            });
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| {
+                    h.join()
+                        .unwrap_or_else(|_| Err(anyhow::anyhow!("training worker panicked")))
+                })
+                .collect()
+        });
         let mut parts = Vec::with_capacity(results.len());
         for r in results {
             parts.push(r?);
         }
-        let l = parts.iter().map(|(_, l, n)| l * *n as f64).sum::<f64>() / batch as f64;
+        let l = parts.iter().map(|(_, l, _, n)| l * *n as f64).sum::<f64>() / batch as f64;
+        let la = parts
+            .iter()
+            .map(|(_, _, a, n)| a[0] * *n as f64)
+            .sum::<f64>()
+            / batch as f64;
+        let lg = parts
+            .iter()
+            .map(|(_, _, a, n)| a[1] * *n as f64)
+            .sum::<f64>()
+            / batch as f64;
         // batch-mean gradient, then global-norm clipping at 1
-        let vars = vm.all_vars();
+        let vars = all_vars.clone();
         let mut rest = parts.split_off(1);
-        let Some((mut grads, _, n0)) = parts.pop() else {
+        let Some((mut grads, _, _, n0)) = parts.pop() else {
             anyhow::bail!("no training worker ran");
         };
         let mut sq = 0f64;
@@ -684,7 +1009,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
                 continue;
             };
             let mut g = (g0 * (n0 as f64 / batch as f64))?;
-            for (gs, _, n) in rest.iter_mut() {
+            for (gs, _, _, n) in rest.iter_mut() {
                 if let Some(gi) = gs.remove(v.as_tensor()) {
                     g = (g + (gi * (*n as f64 / batch as f64))?)?;
                 }
@@ -707,11 +1032,14 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         } else {
             0.98 * ema + 0.02 * l
         };
+        let smooth = |e: f64, v: f64| if e.is_nan() { v } else { 0.98 * e + 0.02 * v };
+        ema_aux = smooth(ema_aux, la);
+        ema_goal = smooth(ema_goal, lg);
         step += 1;
-        if step % 50 == 0 {
+        if step.is_multiple_of(50) {
             writeln!(
                 log,
-                "{step},{:.1},{ema:.5},{lr:.6},,",
+                "{step},{:.1},{ema:.5},{lr:.6},,,{ema_aux:.5},{ema_goal:.5},,,,",
                 t0.elapsed().as_secs_f64()
             )?;
         }
@@ -720,7 +1048,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             last_print = now;
             let sps = step as f64 * batch as f64 / now.max(1e-9);
             let line = format!(
-                "[train] step {step}  loss {ema:.4}  lr {lr:.2e}  {sps:.0} samples/s  {} / {}  last validation {last_val}",
+                "[train] step {step}  loss {ema:.4}  loc {ema_aux:.4}  goal {ema_goal:.4}  lr {lr:.2e}  {sps:.0} samples/s  {} / {}  last validation {last_val}",
                 fmt_min(now),
                 fmt_min(budget_s)
             );

@@ -33,8 +33,10 @@ pub const TRAIN_SEED_BASE: u64 = 1 << 32;
 /// What to record.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DatasetSpec {
-    /// Scenes (two episodes each).
+    /// Scenes (two episodes each): seeds `scene_base..scene_base + scenes`.
     pub scenes: usize,
+    /// First scene seed: [`TRAIN_SEED_BASE`] for training data; below it for held-out data.
+    pub scene_base: u64,
     /// Seed of the start poses and perturbations.
     pub seed: u64,
     /// Actions per chunk.
@@ -75,6 +77,9 @@ pub struct Dataset {
     pub episode: Vec<u32>,
     pub episode_scene_seed: Vec<u64>,
     pub episode_color: Vec<u8>,
+    /// The expert's speed profile the chunks follow (metadata `expert`; files without it were
+    /// recorded with the minimum-jerk expert, the only one before session 4).
+    pub expert: super::expert::Profile,
 }
 
 /// A standard normal sample (Box-Muller).
@@ -144,13 +149,14 @@ impl Dataset {
             n_dof: TASK_DOF,
             action_rate_hz: spec.action_rate_hz,
             camera: spec.camera.clone(),
+            expert: spec.profile,
             ..Default::default()
         };
         let dt = 1.0 / spec.action_rate_hz;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(spec.seed);
         let frame = spec.width * spec.height * 3;
         for si in 0..spec.scenes {
-            let seed = TRAIN_SEED_BASE + si as u64;
+            let seed = spec.scene_base + si as u64;
             let scene = ReachScene::from_seed(seed);
             let q0 = random_start(&mut rng, &spec.home);
             for (ci, color) in TargetColor::ALL.iter().enumerate() {
@@ -257,6 +263,7 @@ impl Dataset {
             ),
             ("camera".to_string(), self.camera.clone()),
             ("prompts".to_string(), serde_json::to_string(&prompts)?),
+            ("expert".to_string(), self.expert.name().to_string()),
         ]
         .into_iter()
         .collect();
@@ -321,6 +328,11 @@ impl Dataset {
             "{}: episode index out of range",
             path.display()
         );
+        let expert = match meta.get("expert").map(String::as_str) {
+            None | Some("min-jerk") => super::expert::Profile::MinJerk,
+            Some("distance-paced") => super::expert::Profile::DistancePaced,
+            Some(other) => anyhow::bail!("{}: unknown expert {other:?}", path.display()),
+        };
         let action_rate_hz: f64 = meta
             .get("action_rate_hz")
             .and_then(|s| s.parse().ok())
@@ -342,6 +354,7 @@ impl Dataset {
                 .map(|c| u64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
                 .collect(),
             episode_color: colors.to_vec(),
+            expert,
         })
     }
 }
@@ -353,6 +366,7 @@ mod tests {
     fn spec() -> DatasetSpec {
         DatasetSpec {
             scenes: 6,
+            scene_base: TRAIN_SEED_BASE,
             seed: 1,
             horizon: 10,
             action_rate_hz: 10.0,

@@ -24,12 +24,23 @@ pub const ARRIVED: f64 = 0.01;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
 pub enum Profile {
     /// Minimum jerk from rest to rest (`s³ (10 − 15 s + 6 s²)`).
-    #[default]
     MinJerk,
-    /// Experimental: the speed depends only on the distance left, `min(v_peak, d / τ)` (largest
-    /// joint), so the motion seen from any pose does not depend on where it started. It starts at
-    /// full speed; the executor's jerk-limited generator smooths the start.
+    /// The speed depends only on the distance left, `min(v_peak, d / τ)` (largest joint), so the
+    /// motion seen from any pose does not depend on where it started: the demonstrations' chunk
+    /// is a function of the observation. It starts at full speed; the executor's jerk-limited
+    /// generator smooths the start. What the embedded policy is trained on.
+    #[default]
     DistancePaced,
+}
+
+impl Profile {
+    /// The name on the command line and in dataset files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Profile::MinJerk => "min-jerk",
+            Profile::DistancePaced => "distance-paced",
+        }
+    }
 }
 
 /// One planned reach: from `start` at time `t0` to `goal` in `duration`.

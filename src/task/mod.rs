@@ -5,6 +5,7 @@
 
 pub mod dataset;
 pub mod expert;
+pub mod probe;
 pub mod sim;
 pub mod vocab;
 
