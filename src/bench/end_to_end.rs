@@ -106,7 +106,7 @@ fn prepare(opts: &Options) -> Result<(PathBuf, String), BenchError> {
     let model = if opts.small {
         let ck = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/reach_pi05");
         t["policy"]["checkpoint"] = toml::Value::String(ck.display().to_string());
-        "reach_pi05 (committed, 0.8 M parameters)".to_string()
+        "reach_pi05 (committed, 1.4 M parameters)".to_string()
     } else {
         let (_, json) = crate::policy::bench::CONFIGS
             .iter()
