@@ -949,19 +949,22 @@ impl PiModel {
         let x_t = (noise.broadcast_mul(&t3)? + actions.broadcast_mul(&(t3.neg()? + 1.0)?)?)?;
         let u = (noise - actions)?;
         let (_, so, tapped) = self.joint_forward_tap(inp, embs, &x_t, &tv, diff, tap)?;
+        Ok((self.flow_loss(&so, &u)?, tapped))
+    }
+
+    /// The flow-matching loss from the action expert's output `so` [B, S, w] (its last H tokens
+    /// are the actions') and the target velocity `u` = ε − a [B, H, A].
+    fn flow_loss(&self, so: &Tensor, u: &Tensor) -> Result<LossOutput, PolicyError> {
         let s = so.dim(1)?;
         let h = self.cfg.action_horizon;
         let v_t = self.action_out_proj.forward(&so.narrow(1, s - h, h)?)?;
         let per_element = (u - &v_t)?.sqr()?;
         let mean = per_element.mean_all()?;
-        Ok((
-            LossOutput {
-                per_element,
-                mean,
-                v_t,
-            },
-            tapped,
-        ))
+        Ok(LossOutput {
+            per_element,
+            mean,
+            v_t,
+        })
     }
 
     /// The flow-matching loss with `k` noise / time samples per observation that share one
@@ -1087,18 +1090,7 @@ impl PiModel {
             )?;
         }
         let so = self.expert.norm.forward(&st[0].x, cond.as_ref(), diff)?.0;
-        let h = self.cfg.action_horizon;
-        let v_t = self.action_out_proj.forward(&so.narrow(1, s - h, h)?)?;
-        let per_element = (u - &v_t)?.sqr()?;
-        let mean = per_element.mean_all()?;
-        Ok((
-            LossOutput {
-                per_element,
-                mean,
-                v_t,
-            },
-            tapped,
-        ))
+        Ok((self.flow_loss(&so, &u)?, tapped))
     }
 
     /// [`Self::loss`] with the prefix embeddings already computed ([`Self::embed_prefix_with`]),

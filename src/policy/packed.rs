@@ -333,19 +333,20 @@ impl PackedRhs {
             lda >= self.k && a.len() >= (m - 1) * lda + self.k,
             "packed: a too short"
         );
+        let job = |a: *const f32, lda: usize, b: *const u8| Job {
+            a,
+            lda,
+            m,
+            k: self.k,
+            n: self.n,
+            b,
+            c,
+            ldc,
+            bias: self.bias.as_ref().map_or(std::ptr::null(), |b| b.as_ptr()),
+        };
         match &self.data {
             Data::F32(d) => {
-                let job = Job {
-                    a: a.as_ptr(),
-                    lda,
-                    m,
-                    k: self.k,
-                    n: self.n,
-                    b: d.as_ptr() as *const u8,
-                    c,
-                    ldc,
-                    bias: self.bias.as_ref().map_or(std::ptr::null(), |b| b.as_ptr()),
-                };
+                let job = job(a.as_ptr(), lda, d.as_ptr() as *const u8);
                 split_panels(job, threads, |j, r| {
                     // SAFETY: `pack_with` builds F32 data only where AVX-512F runs; the job's
                     // pointers cover the shapes (asserted, and the caller's contract for `c`);
@@ -370,17 +371,11 @@ impl PackedRhs {
                             *d = amx::bf16(v);
                         }
                     }
-                    let job = Job {
-                        a: abuf.as_ptr() as *const f32,
-                        lda: kp2 / 2,
-                        m,
-                        k: self.k,
-                        n: self.n,
-                        b: d.as_ptr() as *const u8,
-                        c,
-                        ldc,
-                        bias: self.bias.as_ref().map_or(std::ptr::null(), |b| b.as_ptr()),
-                    };
+                    let job = job(
+                        abuf.as_ptr() as *const f32,
+                        kp2 / 2,
+                        d.as_ptr() as *const u8,
+                    );
                     split_panels(job, threads, |j, r| {
                         // SAFETY: Bf16 data exists only where AVX512-BF16 runs; as above.
                         unsafe { x86::bf16_panels(j, r) }
