@@ -83,10 +83,10 @@ fn run_probe(cfg: &Config, args: &EvalArgs) -> anyhow::Result<()> {
     let t0 = Instant::now();
     let r = crate::task::probe::probe(&mut policy, cfg, &eps, args.expert)?;
     let text = format!(
-        "checkpoint {}, {} held-out episodes (scenes {PROBE_SCENE_BASE}..), expert {:?}, {:.1} s\n\n{r}",
+        "checkpoint {}, {} held-out episodes (scenes {PROBE_SCENE_BASE}..), expert {}, {:.1} s\n\n{r}",
         dir.display(),
         eps.len(),
-        args.expert,
+        args.expert.name(),
         t0.elapsed().as_secs_f64()
     );
     println!("{text}");

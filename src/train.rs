@@ -262,7 +262,7 @@ fn loss_by_time(
 
 /// Held-out data for [`loss_by_time`]: `scenes` scenes from [`LOSS_SCENE_BASE`], recorded like
 /// the training data.
-pub fn held_out_dataset(
+fn held_out_dataset(
     cfg: &Config,
     mcfg: &ModelConfig,
     scenes: usize,
@@ -270,18 +270,6 @@ pub fn held_out_dataset(
 ) -> anyhow::Result<Dataset> {
     let spec = dataset_spec(cfg, mcfg, scenes, LOSS_SCENE_BASE, 77, 0.2, expert)?;
     Ok(Dataset::generate(&spec, |_, _| {}))
-}
-
-/// The held-out flow-matching loss of the checkpoint in `dir` at each of [`LOSS_TIMES`], on
-/// `ds` (from [`held_out_dataset`]), normalised with the checkpoint's own statistics.
-pub fn checkpoint_loss_by_time(dir: &Path, ds: &Dataset) -> anyhow::Result<Vec<f64>> {
-    let loaded = crate::policy::checkpoint::load(dir, &Default::default())?;
-    let model = loaded.model;
-    let norm = NormStats::from_file(&dir.join("norm_stats.json"))?;
-    let tok = PromptTokenizer::from_file(&dir.join("tokenizer.json"))?;
-    let actions = model_space_actions(ds, &model.cfg.delta_action_mask);
-    let batcher = Batcher::new(ds, &actions, &model.cfg, &norm, &tok)?;
-    loss_by_time(&model, &batcher, &LOSS_TIMES, 7)
 }
 
 /// The dataset's action chunks as the model predicts them: on the dims of `delta_mask` relative
@@ -350,7 +338,7 @@ struct Batcher<'a> {
 pub const GOAL_OUTPUTS: usize = 5;
 
 /// The goal targets of sample scene `scene` with prompt `color` ([`GOAL_OUTPUTS`] values).
-pub fn goal_targets(scene: &crate::task::ReachScene, color: TargetColor) -> [f32; GOAL_OUTPUTS] {
+fn goal_targets(scene: &crate::task::ReachScene, color: TargetColor) -> [f32; GOAL_OUTPUTS] {
     let s = chunkrt_tools::scene::VIEW_HALF_WIDTH;
     let t = scene.target(color);
     let q = crate::task::inverse_kinematics(t).unwrap_or([0.0; 3]);
@@ -363,7 +351,7 @@ pub fn goal_targets(scene: &crate::task::ReachScene, color: TargetColor) -> [f32
 pub const AUX_OUTPUTS: usize = 6;
 
 /// The localisation targets of a scene seen at joint positions `q` ([`AUX_OUTPUTS`] values).
-pub fn localisation_targets(scene: &crate::task::ReachScene, q: &[f64]) -> [f32; AUX_OUTPUTS] {
+fn localisation_targets(scene: &crate::task::ReachScene, q: &[f64]) -> [f32; AUX_OUTPUTS] {
     let s = chunkrt_tools::scene::VIEW_HALF_WIDTH;
     let e = crate::task::end_effector(q);
     let [r, b] = scene.targets;
@@ -444,8 +432,8 @@ impl<'a> Batcher<'a> {
         Ok(b)
     }
 
-    /// Inputs, normalised actions [B, H, A] and localisation targets [B, AUX_OUTPUTS] of samples
-    /// `idx`.
+    /// Inputs, normalised actions [B, H, A], localisation targets [B, AUX_OUTPUTS] and goal
+    /// targets [B, GOAL_OUTPUTS] of samples `idx`.
     fn batch(
         &self,
         idx: &[usize],
@@ -789,7 +777,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         args.lr,
         fmt_min(budget_s)
     );
-    // the auxiliary localisation head lives in its own VarMap: it is trained, never saved
+    // the auxiliary heads live in their own VarMap: trained, never saved
     let aux_vm = VarMap::new();
     let heads = AuxHeads::new(
         &mcfg,
@@ -986,17 +974,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         for r in results {
             parts.push(r?);
         }
-        let l = parts.iter().map(|(_, l, _, n)| l * *n as f64).sum::<f64>() / batch as f64;
-        let la = parts
-            .iter()
-            .map(|(_, _, a, n)| a[0] * *n as f64)
-            .sum::<f64>()
-            / batch as f64;
-        let lg = parts
-            .iter()
-            .map(|(_, _, a, n)| a[1] * *n as f64)
-            .sum::<f64>()
-            / batch as f64;
+        // the workers' losses weighted by their shares of the batch
+        let batch_mean = |f: fn(&WorkerResult) -> f64| {
+            parts.iter().map(|p| f(p) * p.3 as f64).sum::<f64>() / batch as f64
+        };
+        let l = batch_mean(|p| p.1);
+        let la = batch_mean(|p| p.2[0]);
+        let lg = batch_mean(|p| p.2[1]);
         // batch-mean gradient, then global-norm clipping at 1
         let vars = all_vars.clone();
         let mut rest = parts.split_off(1);

@@ -419,10 +419,11 @@ pub fn matmul(
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
-    fn lcg(seed: u64) -> impl FnMut() -> f32 {
+    /// Deterministic test values in [-1, 1) (an LCG), shared with the packed kernels' tests.
+    pub(in crate::policy) fn lcg(seed: u64) -> impl FnMut() -> f32 {
         let mut s = seed;
         move || {
             s = s

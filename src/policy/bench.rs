@@ -232,29 +232,14 @@ fn time_phase(
     mut f: impl FnMut() -> Result<(), PolicyError>,
 ) -> Result<Phase, PolicyError> {
     f()?; // warm-up
-    let mut h = histogram()?;
-    let mut cpu = histogram()?;
-    let mut hist_ns = crate::report::latency_histogram();
+    let (mut wall, mut cpu) = (Vec::with_capacity(n), Vec::with_capacity(n));
     for _ in 0..n {
-        let t0 = Instant::now();
-        let c0 = cpu_us();
+        let (t0, c0) = (Instant::now(), cpu_us());
         f()?;
-        let us = t0.elapsed().as_micros().max(1) as u64;
-        cpu.record(cpu_us().saturating_sub(c0).clamp(1, 600_000_000))
-            .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
-        h.record(us.min(600_000_000))
-            .map_err(|e| PolicyError::Config(format!("histogram: {e}")))?;
-        let _ = hist_ns.record(us.min(600_000_000) * 1000);
+        wall.push(t0.elapsed().as_micros().max(1) as u64);
+        cpu.push(cpu_us().saturating_sub(c0).max(1));
     }
-    Ok(Phase {
-        name: name.to_string(),
-        n: h.len(),
-        p50_ms: h.value_at_quantile(0.5) as f64 / 1e3,
-        p99_ms: h.value_at_quantile(0.99) as f64 / 1e3,
-        flops,
-        cpu_ms: cpu.value_at_quantile(0.5) as f64 / 1e3,
-        hist_ns,
-    })
+    phase_from(name, flops, &wall, &cpu)
 }
 
 /// A model with random weights (a `VarMap`) for `cfg`.

@@ -244,6 +244,17 @@ pub fn add(a: &Tensor, b: &Tensor) -> Result<Option<Tensor>> {
     }
 }
 
+/// `a + b` with `b` broadcast over `a`'s leading dimensions: [`add`] on the fast path, candle's
+/// `broadcast_add` where it does not apply or a backward is needed (`diff`).
+pub fn add_or_broadcast(a: &Tensor, b: &Tensor, diff: bool) -> Result<Tensor> {
+    if !diff {
+        if let Some(s) = add(a, b)? {
+            return Ok(s);
+        }
+    }
+    a.broadcast_add(b)
+}
+
 /// `gelu_tanh(g) * u` for contiguous f32 CPU tensors of the same shape.
 pub fn gelu_mul(g: &Tensor, u: &Tensor) -> Result<Option<Tensor>> {
     if g.dims() != u.dims() || !g.is_contiguous() || !u.is_contiguous() {

@@ -88,11 +88,14 @@ impl Norm {
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
         match self {
             Norm::Rms { weight, alpha, eps } => {
+                let derived;
                 let alpha = match alpha {
-                    Some(a) => a.clone(),
-                    None => (weight + 1.0)?,
+                    Some(a) => a,
+                    None => {
+                        derived = (weight + 1.0)?;
+                        &derived
+                    }
                 };
-                let alpha = &alpha;
                 if diff {
                     let ms = x.sqr()?.mean_keepdim(D::Minus1)?;
                     let y = x.broadcast_div(&(ms + *eps)?.sqrt()?)?;
@@ -130,10 +133,7 @@ pub fn gated_residual(
     diff: bool,
 ) -> candle_core::Result<Tensor> {
     match gate {
-        None => match if diff { None } else { fastops::add(x, y)? } {
-            Some(s) => Ok(s),
-            None => x + y,
-        },
+        None => fastops::add_or_broadcast(x, y, diff),
         Some(g) => x + y.broadcast_mul(g)?,
     }
 }

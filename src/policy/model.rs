@@ -928,10 +928,13 @@ impl PiModel {
         diff: bool,
     ) -> Result<LossOutput, PolicyError> {
         let embs = self.embed_prefix_inner(inp, false, diff)?;
-        self.loss_from_embs(inp, &embs, actions, noise, time, diff)
+        Ok(self
+            .loss_tap(inp, &embs, actions, noise, time, diff, None)?
+            .0)
     }
 
-    /// [`Self::loss_from_embs`], also returning the prefix hidden states at the input of layer
+    /// [`Self::loss`] on prefix embeddings already computed ([`Self::embed_prefix_with`]), also
+    /// returning the prefix hidden states at the input of layer
     /// `tap` ([`Self::joint_forward_tap`]).
     #[allow(clippy::too_many_arguments)]
     pub fn loss_tap(
@@ -944,10 +947,7 @@ impl PiModel {
         diff: bool,
         tap: Option<usize>,
     ) -> Result<(LossOutput, Option<Tensor>), PolicyError> {
-        let tv = time.to_dtype(DType::F32)?.to_vec1::<f32>()?;
-        let t3 = time.to_dtype(DType::F32)?.reshape((tv.len(), 1, 1))?;
-        let x_t = (noise.broadcast_mul(&t3)? + actions.broadcast_mul(&(t3.neg()? + 1.0)?)?)?;
-        let u = (noise - actions)?;
+        let (tv, x_t, u) = noisy_actions(actions, noise, time)?;
         let (_, so, tapped) = self.joint_forward_tap(inp, embs, &x_t, &tv, diff, tap)?;
         Ok((self.flow_loss(&so, &u)?, tapped))
     }
@@ -987,8 +987,8 @@ impl PiModel {
         tap: Option<usize>,
     ) -> Result<(LossOutput, Option<Tensor>), PolicyError> {
         let b = self.check_inputs(inp)?;
-        let bk = b * k.max(1);
         let k = k.max(1);
+        let bk = b * k;
         if noise.dim(0)? != bk || time.dim(0)? != bk || actions.dim(0)? != b {
             return Err(PolicyError::Input(format!(
                 "loss_multi: {b} observations x {k} samples need noise / time rows {bk}, got {} / {}",
@@ -1000,11 +1000,7 @@ impl PiModel {
         let rep_idx: Vec<u32> = (0..bk).map(|r| (r / k) as u32).collect();
         let rep_idx = Tensor::new(rep_idx.as_slice(), &self.device)?;
         let rep = |x: &Tensor| x.index_select(&rep_idx, 0);
-        let tv = time.to_dtype(DType::F32)?.to_vec1::<f32>()?;
-        let t3 = time.to_dtype(DType::F32)?.reshape((bk, 1, 1))?;
-        let actions = rep(actions)?;
-        let x_t = (noise.broadcast_mul(&t3)? + actions.broadcast_mul(&(t3.neg()? + 1.0)?)?)?;
-        let u = (noise - &actions)?;
+        let (tv, x_t, u) = noisy_actions(&rep(actions)?, noise, time)?;
 
         // prefix: the VLM expert alone, keeping each layer's K/V
         let layout = self.prefix_layout(inp);
@@ -1092,20 +1088,19 @@ impl PiModel {
         let so = self.expert.norm.forward(&st[0].x, cond.as_ref(), diff)?.0;
         Ok((self.flow_loss(&so, &u)?, tapped))
     }
+}
 
-    /// [`Self::loss`] with the prefix embeddings already computed ([`Self::embed_prefix_with`]),
-    /// so that training can also use them for other losses.
-    pub fn loss_from_embs(
-        &self,
-        inp: &ModelInputs,
-        embs: &Tensor,
-        actions: &Tensor,
-        noise: &Tensor,
-        time: &Tensor,
-        diff: bool,
-    ) -> Result<LossOutput, PolicyError> {
-        Ok(self
-            .loss_tap(inp, embs, actions, noise, time, diff, None)?
-            .0)
-    }
+/// Flow matching's interpolation: the times `t` as a vector, `x_t = t·ε + (1 − t)·a` and the
+/// target velocity `u = ε − a`, for `actions` a and `noise` ε [B, H, A] and `time` [B].
+fn noisy_actions(
+    actions: &Tensor,
+    noise: &Tensor,
+    time: &Tensor,
+) -> Result<(Vec<f32>, Tensor, Tensor), PolicyError> {
+    let time = time.to_dtype(DType::F32)?;
+    let tv = time.to_vec1::<f32>()?;
+    let t3 = time.reshape((tv.len(), 1, 1))?;
+    let x_t = (noise.broadcast_mul(&t3)? + actions.broadcast_mul(&(t3.neg()? + 1.0)?)?)?;
+    let u = (noise - actions)?;
+    Ok((tv, x_t, u))
 }

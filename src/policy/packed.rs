@@ -696,17 +696,8 @@ mod x86 {
 
 #[cfg(test)]
 mod tests {
+    use super::amx::tests::lcg;
     use super::*;
-
-    fn lcg(seed: u64) -> impl FnMut() -> f32 {
-        let mut s = seed;
-        move || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        }
-    }
 
     /// Odd sizes (tails in every dimension, several K blocks, row strides) against an f64
     /// product; for bf16, of the bf16-rounded inputs.

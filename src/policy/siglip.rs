@@ -19,7 +19,6 @@ use candle_nn::{Init, VarBuilder};
 
 use super::config::VisionDims;
 use super::fastops;
-use super::gemma::gated_residual;
 use super::packed::{PackedRhs, Precision};
 
 /// The fast path's attention over a fused `[N, T, 3 Dv]` Q/K/V output: heads split in one pass
@@ -290,14 +289,7 @@ impl Vision {
             .reshape((n, g * g, c * p * p))?;
         // [N, T, Dv]
         let emb = self.patch.forward(&patches)?;
-        let mut x = match if diff {
-            None
-        } else {
-            fastops::add(&emb, &self.pos)?
-        } {
-            Some(x) => x,
-            None => emb.broadcast_add(&self.pos)?,
-        };
+        let mut x = fastops::add_or_broadcast(&emb, &self.pos, diff)?;
         let t = g * g;
         let scale = (hd as f64).powf(-0.5);
         for l in &self.layers {
@@ -333,14 +325,14 @@ impl Vision {
                     pr.matmul(&v)?.transpose(1, 2)?.reshape((n, t, d))?
                 }
             };
-            x = gated_residual(&x, &l.out.forward(&o)?, None, diff)?;
+            x = fastops::add_or_broadcast(&x, &l.out.forward(&o)?, diff)?;
             let h = l.ln2.forward(&x, diff)?;
             let f = l.fc1.forward(&h)?;
             let f = match if diff { None } else { fastops::gelu(&f)? } {
                 Some(g) => g,
                 None => f.gelu()?,
             };
-            x = gated_residual(&x, &l.fc2.forward(&f)?, None, diff)?;
+            x = fastops::add_or_broadcast(&x, &l.fc2.forward(&f)?, diff)?;
         }
         self.post_ln.forward(&x, diff)
     }

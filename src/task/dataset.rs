@@ -328,10 +328,10 @@ impl Dataset {
             "{}: episode index out of range",
             path.display()
         );
-        let expert = match meta.get("expert").map(String::as_str) {
-            None | Some("min-jerk") => super::expert::Profile::MinJerk,
-            Some("distance-paced") => super::expert::Profile::DistancePaced,
-            Some(other) => anyhow::bail!("{}: unknown expert {other:?}", path.display()),
+        let expert = match meta.get("expert") {
+            None => super::expert::Profile::MinJerk,
+            Some(name) => <super::expert::Profile as clap::ValueEnum>::from_str(name, false)
+                .map_err(|_| anyhow::anyhow!("{}: unknown expert {name:?}", path.display()))?,
         };
         let action_rate_hz: f64 = meta
             .get("action_rate_hz")

@@ -20,7 +20,7 @@ use chunkrt_ipc::ENCODING_RGB8;
 
 use super::expert::{Profile, Reach};
 use super::sim::EpisodeSpec;
-use super::{inverse_kinematics, task_camera, ReachScene, TargetColor, ARM_JOINTS, TASK_DOF};
+use super::{inverse_kinematics, task_camera, ReachScene, ARM_JOINTS, TASK_DOF};
 use crate::policy::runtime::{Policy, RawFrame, RawObservation};
 
 /// Scene seeds of the swapped images are the episode's plus this (still held out).
@@ -124,10 +124,7 @@ pub fn probe(
     for e in episodes {
         let scene = ReachScene::from_seed(e.scene_seed);
         let swap = ReachScene::from_seed(e.scene_seed + SWAP_SCENE_OFFSET);
-        let other = TargetColor::ALL
-            .into_iter()
-            .find(|c| *c != e.color)
-            .unwrap_or(e.color);
+        let other = e.color.other();
         let (Some(reach), Some(goal), Some(goal_other)) = (
             Reach::plan_with(&e.start, &scene, e.color, 0.0, profile),
             inverse_kinematics(scene.target(e.color)),

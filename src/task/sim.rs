@@ -83,10 +83,7 @@ pub fn run_episode(
     let cam = task_camera(cfg)?.clone();
     let (w, h) = (cam.width as usize, cam.height as usize);
     let scene = ReachScene::from_seed(spec.scene_seed);
-    let other = TargetColor::ALL
-        .into_iter()
-        .find(|c| *c != spec.color)
-        .unwrap_or(spec.color);
+    let other = spec.color.other();
     let mut cfg = cfg.clone();
     if settings.synchronous {
         cfg.execution.strategy = "replace".into();

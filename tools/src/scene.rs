@@ -45,6 +45,14 @@ impl TargetColor {
         }
     }
 
+    /// The other target.
+    pub fn other(self) -> Self {
+        match self {
+            TargetColor::Red => TargetColor::Blue,
+            TargetColor::Blue => TargetColor::Red,
+        }
+    }
+
     /// The prompt asking for this target.
     pub fn prompt(self) -> &'static str {
         match self {
