@@ -431,8 +431,8 @@ fn observation_thread(
         next += poll_period_ns;
         sleep_until_ns(next);
         let now = monotonic_ns();
-        cams.poll(now, &mut obs.frames, &shared.counters, &shared.events);
-        js.poll(now, &private, &private_events);
+        cams.poll(&mut obs.frames, &shared.counters, &shared.events);
+        js.poll(&private, &private_events);
         while private_events.pop().is_some() {}
         // chunk buffers the control thread is done with are dropped here, off the RT path
         while link.chunks.take_recycled().is_some() {}
@@ -528,7 +528,7 @@ impl ControlLoop {
         self.hist
             .lateness
             .saturating_record(wake_ns.saturating_sub(scheduled_ns).max(1));
-        self.js.poll(wake_ns, &shared.counters, &shared.events);
+        self.js.poll(&shared.counters, &shared.events);
         let out = tick.tick(wake_ns, self.js.latest(), &mut self.cmd);
         if out.publish {
             self.cmd.seq += 1;

