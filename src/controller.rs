@@ -18,6 +18,7 @@ use std::time::Duration;
 use anyhow::Context;
 use hdrhistogram::Histogram;
 
+use chunkrt_ipc::config::{PolicyDevice, PolicyKind};
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
     controller_state_name, monotonic_ns, sleep_until_ns, Config, ControllerStatus, JointCommand,
@@ -54,9 +55,13 @@ pub struct RunArgs {
     /// Override `policy.prompt` (the task the policy is asked to do).
     #[arg(long)]
     pub prompt: Option<String>,
-    /// Override `policy.kind` (`hold` runs without a model: the robot is held where it is).
-    #[arg(long, value_parser = ["hold", "pi0", "pi05"])]
-    pub policy: Option<String>,
+    /// Override `policy.kind`: hold, pi0 or pi05 (`hold` runs without a model: the robot is
+    /// held where it is).
+    #[arg(long)]
+    pub policy: Option<PolicyKind>,
+    /// Override `policy.device`: cpu, cuda or cuda:N (a GPU needs a build with `--features cuda`).
+    #[arg(long)]
+    pub device: Option<PolicyDevice>,
 }
 
 /// Loads the configuration named by `--config` (or the embedded default) and applies
@@ -741,8 +746,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if let Some(p) = &args.prompt {
         cfg.policy.prompt = p.clone();
     }
-    if let Some(k) = &args.policy {
-        cfg.policy.kind = k.clone();
+    if let Some(k) = args.policy {
+        cfg.policy.kind = k;
+    }
+    if let Some(d) = args.device {
+        cfg.policy.device = d;
     }
     let stop_flag = chunkrt_tools::shutdown::flag();
     tracing::info!(
@@ -755,9 +763,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         cfg.policy.kind
     );
     let executor = Executor::new(&cfg).context("invalid execution settings")?;
-    let source: Box<dyn ChunkSource> = match cfg.policy.kind.as_str() {
-        "hold" => Box::new(HoldSource),
-        _ => Box::new(crate::inference::PolicySource::load(&cfg)?),
+    let source: Box<dyn ChunkSource> = match cfg.policy.kind {
+        PolicyKind::Hold => Box::new(HoldSource),
+        PolicyKind::Pi0 | PolicyKind::Pi05 => Box::new(crate::inference::PolicySource::load(&cfg)?),
     };
     tracing::info!("chunk source: {}", source.name());
     let controller = Controller::start(cfg.clone(), executor, source)?;

@@ -382,7 +382,8 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     });
     std::fs::create_dir_all(&log_dir)
         .with_context(|| format!("cannot create {}", log_dir.display()))?;
-    let task = crate::task::task_camera(&cfg).is_ok() && cfg.policy.kind != "hold";
+    let task = crate::task::task_camera(&cfg).is_ok()
+        && cfg.policy.kind != chunkrt_ipc::config::PolicyKind::Hold;
     let scene = task.then(|| ReachScene::from_seed(args.seed));
 
     let mut common = vec!["--namespace".to_string(), ns.clone()];

@@ -77,7 +77,7 @@ fn run_probe(cfg: &Config, args: &EvalArgs) -> anyhow::Result<()> {
             .as_ref()
             .context("the configuration names no policy checkpoint")?,
     );
-    let mut policy = crate::policy::Policy::load(&dir, &cfg.policy)?;
+    let mut policy = crate::inference::load_policy(&dir, &cfg.policy)?;
     let n = if args.quick { 4 } else { args.episodes };
     let eps = held_out_episodes(cfg, PROBE_SCENE_BASE, n, 9);
     let t0 = Instant::now();
@@ -393,8 +393,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             std::fs::canonicalize(c)
                 .with_context(|| format!("checkpoint {} does not exist", c.display()))?,
         );
-        if cfg.policy.kind == "hold" {
-            cfg.policy.kind = "pi05".into();
+        if cfg.policy.kind == chunkrt_ipc::config::PolicyKind::Hold {
+            cfg.policy.kind = chunkrt_ipc::config::PolicyKind::Pi05;
         }
     }
     if args.open_loop {

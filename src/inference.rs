@@ -6,20 +6,73 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use anyhow::Context;
 
-use chunkrt_ipc::{monotonic_ns, Config};
+use chunkrt_ipc::config::{PolicyConfig, PolicyDevice, PolicyKind, PolicyPrecision};
+use chunkrt_ipc::{monotonic_ns, Config, ENCODING_BGR8, ENCODING_MONO8, ENCODING_RGB8};
 
 use crate::chunk::ActionChunk;
 use crate::control::InferenceRequest;
 use crate::controller::ChunkSource;
 use crate::edge::Observation;
+use crate::policy::config::ConfigOverrides;
 use crate::policy::rtc::Guidance;
-use crate::policy::runtime::{Policy, RawFrame, RawObservation};
+use crate::policy::runtime::{LoadOptions, Policy, RawFrame, RawObservation};
+use crate::policy::{DeviceSpec, Encoding, ModelKind, Precision};
 
 static NEXT_CHUNK_ID: AtomicU64 = AtomicU64::new(1);
 
 /// A unique, increasing chunk id (never 0).
 pub fn next_chunk_id() -> u64 {
     NEXT_CHUNK_ID.fetch_add(1, Ordering::Relaxed)
+}
+
+/// The policy crate's load options for a `[policy]` section (the composition root's
+/// translation from the controller's configuration to the policy's own types).
+pub fn load_options(cfg: &PolicyConfig) -> LoadOptions {
+    LoadOptions {
+        kind: match cfg.kind {
+            PolicyKind::Hold => None,
+            PolicyKind::Pi0 => Some(ModelKind::Pi0),
+            PolicyKind::Pi05 => Some(ModelKind::Pi05),
+        },
+        num_steps: cfg.num_steps,
+        precision: match cfg.precision {
+            PolicyPrecision::F32 => Precision::F32,
+            PolicyPrecision::Bf16 => Precision::Bf16,
+        },
+        device: match cfg.device {
+            PolicyDevice::Cpu => DeviceSpec::Cpu,
+            PolicyDevice::Cuda(n) => DeviceSpec::Cuda(n as usize),
+        },
+        overrides: ConfigOverrides {
+            action_horizon: cfg.model.action_horizon,
+            action_dim: cfg.model.action_dim,
+            max_token_len: cfg.model.max_token_len,
+            cameras: cfg.model.cameras.clone(),
+            num_denoise_steps: Some(cfg.num_steps),
+            delta_action_mask: cfg.model.delta_action_mask.clone(),
+        },
+    }
+}
+
+/// Loads the policy of a `[policy]` section from `dir`. `policy.threads` sizes candle's CPU
+/// thread pool (it reads `RAYON_NUM_THREADS` once, on first use), unless the environment
+/// already sets it.
+pub fn load_policy(dir: &std::path::Path, cfg: &PolicyConfig) -> anyhow::Result<Policy> {
+    if cfg.threads > 0 && std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        std::env::set_var("RAYON_NUM_THREADS", cfg.threads.to_string());
+    }
+    Policy::load(dir, &load_options(cfg))
+        .with_context(|| format!("cannot load the policy from {}", dir.display()))
+}
+
+/// The policy's pixel layout for an IPC `ENCODING_*` code (the edge has validated it).
+pub fn frame_encoding(code: u32) -> anyhow::Result<Encoding> {
+    match code {
+        ENCODING_RGB8 => Ok(Encoding::Rgb8),
+        ENCODING_BGR8 => Ok(Encoding::Bgr8),
+        ENCODING_MONO8 => Ok(Encoding::Mono8),
+        other => anyhow::bail!("unknown frame encoding {other}"),
+    }
 }
 
 /// π0 / π0.5 loaded from the configured checkpoint.
@@ -45,8 +98,7 @@ impl PolicySource {
             .as_ref()
             .map(|p| cfg.resolve(p))
             .context("policy.checkpoint is not set")?;
-        let policy = Policy::load(&dir, &cfg.policy)
-            .with_context(|| format!("cannot load the policy from {}", dir.display()))?;
+        let policy = load_policy(&dir, &cfg.policy)?;
         Ok(Self {
             policy,
             prompt: cfg.policy.prompt.clone(),
@@ -144,18 +196,21 @@ impl PolicySource {
     }
 }
 
-/// The policy's view of an observation: borrowed frames, no copies.
+/// The policy's view of an observation: borrowed frames, no copies. (The edge accepts only
+/// known encodings; a frame with another would be left out, i.e. seen as a missing camera.)
 pub fn raw_frames(obs: &Observation) -> Vec<RawFrame<'_>> {
     obs.frames
         .iter()
         .filter(|f| f.valid)
-        .map(|f| RawFrame {
-            camera: &f.name,
-            width: f.header.width,
-            height: f.header.height,
-            stride: f.header.stride,
-            encoding: f.header.encoding,
-            data: f.pixels(),
+        .filter_map(|f| {
+            Some(RawFrame {
+                camera: &f.name,
+                width: f.header.width,
+                height: f.header.height,
+                stride: f.header.stride,
+                encoding: frame_encoding(f.header.encoding).ok()?,
+                data: f.pixels(),
+            })
         })
         .collect()
 }

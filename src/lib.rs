@@ -12,7 +12,8 @@
 //! - [`chunk`]: the chunk timeline handed from inference to control.
 //! - [`controller`]: the controller process — threads, real-time setup, status.
 //! - [`control`]: the control tick — chunk execution, transitions, ruckig, safety, measurement.
-//! - [`policy`]: π0 / π0.5 in candle, pre/post-processing, checkpoints.
+//! - [`policy`]: the `chunkrt-policy` crate (π0 / π0.5 in candle, pre/post-processing,
+//!   checkpoints), re-exported; [`policy_cli`]: `chunkrt sample` / `chunkrt inspect`.
 //! - [`report`]: latency histograms → logs, tables, plots.
 //! - [`demo`]: starts the fake devices and the controller as processes.
 
@@ -24,7 +25,7 @@ pub mod demo;
 pub mod edge;
 pub mod eval;
 pub mod inference;
-pub mod policy;
+pub mod policy_cli;
 pub mod report;
 pub mod rt;
 pub mod task;
@@ -32,3 +33,4 @@ pub mod train;
 
 pub use chunkrt_ipc as ipc;
 pub use chunkrt_ipc::config;
+pub use chunkrt_policy as policy;

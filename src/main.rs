@@ -23,9 +23,9 @@ enum Command {
     /// List chunkrt services with live rate, latency and last values (same as `monitor`).
     Monitor(chunkrt_tools::monitor::Args),
     /// Compute an action chunk from a safetensors file of inputs.
-    Sample(chunkrt::policy::cli::SampleArgs),
+    Sample(chunkrt::policy_cli::SampleArgs),
     /// Describe a checkpoint: architecture, parameter counts, dtype, what is missing.
-    Inspect(chunkrt::policy::cli::InspectArgs),
+    Inspect(chunkrt::policy_cli::InspectArgs),
     /// Render a folder of HdrHistogram logs into a PNG plot and a Markdown table.
     Report(chunkrt::report::ReportArgs),
     /// Train the reach task's π0.5 with the flow-matching loss (expert demonstrations,
@@ -45,8 +45,8 @@ fn main() {
         Command::FakeCamera(a) => chunkrt_tools::fake_camera::run(a),
         Command::FakeRobot(a) => chunkrt_tools::fake_robot::run(a),
         Command::Monitor(a) => chunkrt_tools::monitor::run(a),
-        Command::Sample(a) => chunkrt::policy::cli::sample(a),
-        Command::Inspect(a) => chunkrt::policy::cli::inspect(a),
+        Command::Sample(a) => chunkrt::policy_cli::sample(a),
+        Command::Inspect(a) => chunkrt::policy_cli::inspect(a),
         Command::Report(a) => chunkrt::report::run(a),
         Command::Train(a) => chunkrt::train::run(a),
         Command::Eval(a) => chunkrt::eval::run(a),

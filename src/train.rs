@@ -632,7 +632,7 @@ pub fn validate(
 ) -> anyhow::Result<(usize, f64)> {
     let mut c = cfg.clone();
     c.policy.checkpoint = Some(std::fs::canonicalize(dir)?);
-    c.policy.kind = "pi05".into();
+    c.policy.kind = chunkrt_ipc::config::PolicyKind::Pi05;
     c.execution.strategy = "replace".into();
     let mut policy = PolicySource::load(&c)?;
     let settings = SimSettings {

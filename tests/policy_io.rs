@@ -9,7 +9,7 @@ use chunkrt::policy::preprocess::{
     discretize_state, normalize, pi05_prompt, resize_with_pad, unnormalize, NormMode,
     PromptTokenizer, Stats,
 };
-use chunkrt::policy::{ConfigOverrides, Policy, RawFrame, RawObservation};
+use chunkrt::policy::{ConfigOverrides, RawFrame, RawObservation};
 
 fn data(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -159,15 +159,22 @@ fn checkpoint_errors_list_every_bad_tensor_and_lerobot_prefix_and_bf16_load() {
     let dir = data("pi05_tiny");
     let (mut t, dt) = checkpoint::load_tensors(&dir.join("model.safetensors")).unwrap();
     assert_eq!(dt, vec![DType::F32]);
-    let cfg = checkpoint::resolve_config(&dir, &t, &ConfigOverrides::default()).unwrap();
+    let cfg = checkpoint::resolve_config(
+        &dir,
+        &checkpoint::shapes_of(&t),
+        &ConfigOverrides::default(),
+    )
+    .unwrap();
     assert_eq!(cfg.vocab_size, 1024);
-    checkpoint::check_tensors(&cfg, &t).unwrap();
+    checkpoint::check_tensors(&cfg, &checkpoint::shapes_of(&t)).unwrap();
     t.remove("action_in_proj.weight");
     t.insert(
         "time_mlp_in.bias".into(),
         Tensor::zeros(7, DType::F32, &Device::Cpu).unwrap(),
     );
-    let e = checkpoint::check_tensors(&cfg, &t).unwrap_err().to_string();
+    let e = checkpoint::check_tensors(&cfg, &checkpoint::shapes_of(&t))
+        .unwrap_err()
+        .to_string();
     println!("{e}");
     assert!(e.contains("2 problem(s)"), "{e}");
     assert!(e.contains("missing action_in_proj.weight [32, 8]"), "{e}");
@@ -207,7 +214,7 @@ fn checkpoint_errors_list_every_bad_tensor_and_lerobot_prefix_and_bf16_load() {
 fn runtime_prepares_fixture_inputs_and_infers() {
     let dir = data("pi05_tiny");
     let pc = chunkrt::config::PolicyConfig::default();
-    let mut policy = Policy::load(&dir, &pc).unwrap();
+    let mut policy = chunkrt::inference::load_policy(&dir, &pc).unwrap();
     let inp = inputs("pi05_tiny");
     let frames: Vec<(String, Vec<u8>, usize, usize)> = ["base_0_rgb", "left_wrist_0_rgb"]
         .iter()
@@ -229,7 +236,7 @@ fn runtime_prepares_fixture_inputs_and_infers() {
             width: *w as u32,
             height: *h as u32,
             stride: (*w * 3) as u32,
-            encoding: chunkrt::ipc::ENCODING_RGB8,
+            encoding: chunkrt::policy::Encoding::Rgb8,
             data: d,
         })
         .collect();
@@ -418,7 +425,7 @@ fn toml_model_overrides_reach_the_loaded_model() {
     std::fs::write(&path, &text).unwrap();
     let mut cfg = chunkrt::config::Config::load(&path).unwrap();
     cfg.policy.checkpoint = Some(data("pi05_tiny"));
-    let p = Policy::load(&data("pi05_tiny"), &cfg.policy).unwrap();
+    let p = chunkrt::inference::load_policy(&data("pi05_tiny"), &cfg.policy).unwrap();
     assert_eq!(p.horizon(), 6);
     assert_eq!(p.model().cfg.cameras.len(), 2);
     // out-of-range values are rejected at the boundary, naming the key
@@ -464,8 +471,11 @@ fn delta_action_mask_adds_the_observed_state_on_its_dims() {
     let mut delta = absolute.clone();
     let mask: Vec<bool> = (0..n).map(|d| d % 2 == 0).collect();
     delta.model.delta_action_mask = Some(mask.clone());
-    let a = Policy::load(&dir, &absolute).unwrap().infer(&obs).unwrap();
-    let mut p = Policy::load(&dir, &delta).unwrap();
+    let a = chunkrt::inference::load_policy(&dir, &absolute)
+        .unwrap()
+        .infer(&obs)
+        .unwrap();
+    let mut p = chunkrt::inference::load_policy(&dir, &delta).unwrap();
     assert_eq!(p.model().cfg.delta_action_mask, mask);
     let b = p.infer(&obs).unwrap();
     assert_eq!(a.len(), b.len());
@@ -479,7 +489,7 @@ fn delta_action_mask_adds_the_observed_state_on_its_dims() {
     }
     // a mask longer than the model's action dim is rejected when loading
     delta.model.delta_action_mask = Some(vec![true; 64]);
-    assert!(Policy::load(&dir, &delta).is_err());
+    assert!(chunkrt::inference::load_policy(&dir, &delta).is_err());
 }
 
 /// `policy.precision = "bf16"`: the matrix products run in bf16 (Intel AMX or AVX512-BF16); the
@@ -496,9 +506,15 @@ fn bf16_precision_stays_close_to_f32() {
     };
     let f32_cfg = chunkrt::config::PolicyConfig::default();
     let mut bf16_cfg = f32_cfg.clone();
-    bf16_cfg.precision = "bf16".into();
-    let a = Policy::load(&dir, &f32_cfg).unwrap().infer(&obs).unwrap();
-    let b = Policy::load(&dir, &bf16_cfg).unwrap().infer(&obs).unwrap();
+    bf16_cfg.precision = chunkrt::config::PolicyPrecision::Bf16;
+    let a = chunkrt::inference::load_policy(&dir, &f32_cfg)
+        .unwrap()
+        .infer(&obs)
+        .unwrap();
+    let b = chunkrt::inference::load_policy(&dir, &bf16_cfg)
+        .unwrap()
+        .infer(&obs)
+        .unwrap();
     let rms = (a.iter().map(|x| x * x).sum::<f64>() / a.len() as f64).sqrt();
     let worst = a
         .iter()

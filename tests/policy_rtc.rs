@@ -56,7 +56,7 @@ fn raw_frames(frames: &[Frame]) -> Vec<RawFrame<'_>> {
             width: *w as u32,
             height: *h as u32,
             stride: (*w * 3) as u32,
-            encoding: chunkrt::ipc::ENCODING_RGB8,
+            encoding: chunkrt::policy::Encoding::Rgb8,
             data: d,
         })
         .collect()
@@ -64,7 +64,7 @@ fn raw_frames(frames: &[Frame]) -> Vec<RawFrame<'_>> {
 
 fn policy() -> Policy {
     let pc = chunkrt::config::PolicyConfig::default();
-    Policy::load(&data("pi05_tiny"), &pc).unwrap()
+    chunkrt::inference::load_policy(&data("pi05_tiny"), &pc).unwrap()
 }
 
 /// Deterministic N(0,1)-ish noise (sum of uniforms from a fixed LCG) [1, H, A].
@@ -195,7 +195,7 @@ fn guidance_with_delta_actions_pulls_onto_the_absolute_previous_chunk() {
 fn guidance_pulls(delta_action_mask: Option<Vec<bool>>) {
     let mut pc = chunkrt::config::PolicyConfig::default();
     pc.model.delta_action_mask = delta_action_mask;
-    let policy = || Policy::load(&data("pi05_tiny"), &pc).unwrap();
+    let policy = || chunkrt::inference::load_policy(&data("pi05_tiny"), &pc).unwrap();
     let (frames, state) = fixture();
     let raw = raw_frames(&frames);
     let obs = RawObservation {

@@ -178,12 +178,12 @@ fn demo_runs_an_episode_over_ipc_and_writes_its_report() {
 /// chunk (first action: the current position; last action: where the expert is 0.9 s later).
 #[test]
 fn committed_policy_reproduces_expert_chunks_open_loop() {
-    use chunkrt::policy::runtime::{Policy, RawFrame, RawObservation};
+    use chunkrt::policy::runtime::{RawFrame, RawObservation};
     use chunkrt::task::expert::{Profile, Reach};
     use chunkrt::task::ReachScene;
     let cfg = Config::embedded_default();
     let dir = cfg.resolve(cfg.policy.checkpoint.as_ref().unwrap());
-    let mut policy = Policy::load(&dir, &cfg.policy).unwrap();
+    let mut policy = chunkrt::inference::load_policy(&dir, &cfg.policy).unwrap();
     let eps = held_out_episodes(&cfg, 4_000, 12, 9);
     let (w, h) = (64usize, 64usize);
     let mut img = vec![0u8; w * h * 3];
@@ -201,7 +201,7 @@ fn committed_policy_reproduces_expert_chunks_open_loop() {
                 width: w as u32,
                 height: h as u32,
                 stride: 3 * w as u32,
-                encoding: chunkrt::ipc::ENCODING_RGB8,
+                encoding: chunkrt::policy::Encoding::Rgb8,
                 data: &img,
             }];
             let acts = policy
@@ -235,12 +235,11 @@ fn committed_policy_reproduces_expert_chunks_open_loop() {
 /// effects were at the noise floor.
 #[test]
 fn committed_policy_acts_on_its_image_and_prompt() {
-    use chunkrt::policy::runtime::Policy;
     use chunkrt::task::expert::Profile;
     use chunkrt::task::probe::probe;
     let cfg = Config::embedded_default();
     let dir = cfg.resolve(cfg.policy.checkpoint.as_ref().unwrap());
-    let mut policy = Policy::load(&dir, &cfg.policy).unwrap();
+    let mut policy = chunkrt::inference::load_policy(&dir, &cfg.policy).unwrap();
     let eps = held_out_episodes(&cfg, 4_000, 16, 9);
     let r = probe(&mut policy, &cfg, &eps, Profile::DistancePaced).unwrap();
     eprintln!("{r}");

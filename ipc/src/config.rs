@@ -171,13 +171,117 @@ impl CameraConfig {
     }
 }
 
+/// `policy.kind`: which chunk source feeds the control loop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PolicyKind {
+    /// No policy: the controller holds the robot where it is.
+    #[default]
+    Hold,
+    /// π0.
+    Pi0,
+    /// π0.5.
+    Pi05,
+}
+
+impl PolicyKind {
+    /// The name in the configuration.
+    pub fn name(&self) -> &'static str {
+        match self {
+            PolicyKind::Hold => "hold",
+            PolicyKind::Pi0 => "pi0",
+            PolicyKind::Pi05 => "pi05",
+        }
+    }
+}
+
+impl std::fmt::Display for PolicyKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for PolicyKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "hold" => Ok(PolicyKind::Hold),
+            "pi0" => Ok(PolicyKind::Pi0),
+            "pi05" => Ok(PolicyKind::Pi05),
+            _ => Err(format!("policy kind {s:?}: must be one of hold, pi0, pi05")),
+        }
+    }
+}
+
+/// `policy.precision`: the arithmetic of the model's matrix products.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PolicyPrecision {
+    /// f32 (the reference the parity tests hold to openpi).
+    #[default]
+    F32,
+    /// bf16 inputs with f32 accumulation (CPU: AMX / AVX512-BF16 kernels; GPU: bf16 tensors).
+    Bf16,
+}
+
+/// `policy.device`: `"cpu"`, `"cuda"` (GPU 0) or `"cuda:N"`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PolicyDevice {
+    /// The host CPU.
+    #[default]
+    Cpu,
+    /// NVIDIA GPU number N (a binary built with `--features cuda`).
+    Cuda(u32),
+}
+
+impl std::fmt::Display for PolicyDevice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PolicyDevice::Cpu => f.write_str("cpu"),
+            PolicyDevice::Cuda(n) => write!(f, "cuda:{n}"),
+        }
+    }
+}
+
+impl std::str::FromStr for PolicyDevice {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let n = match s {
+            "cpu" => return Ok(PolicyDevice::Cpu),
+            "cuda" => Some(0),
+            _ => s
+                .strip_prefix("cuda:")
+                .and_then(|n| n.parse::<u32>().ok())
+                .filter(|&n| n < 64),
+        };
+        n.map(PolicyDevice::Cuda).ok_or_else(|| {
+            format!(
+                "device {s:?}: must be one of \"cpu\", \"cuda\", \"cuda:N\" (N a GPU number < 64)"
+            )
+        })
+    }
+}
+
+impl Serialize for PolicyDevice {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> Deserialize<'de> for PolicyDevice {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        s.parse().map_err(serde::de::Error::custom)
+    }
+}
+
 /// Which chunk source feeds the control loop.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct PolicyConfig {
     /// `hold` (no policy: the controller holds), `pi0`, `pi05`.
-    #[serde(default = "default_policy_kind")]
-    pub kind: String,
+    #[serde(default)]
+    pub kind: PolicyKind,
     /// Checkpoint directory (`config.json`, `model.safetensors`, ...); relative to the config.
     #[serde(default)]
     pub checkpoint: Option<PathBuf>,
@@ -194,10 +298,13 @@ pub struct PolicyConfig {
     #[serde(default)]
     pub threads: usize,
     /// Arithmetic of the model's matrix products: `f32` (the reference) or `bf16` (inputs
-    /// rounded to bf16, f32 accumulation, on Intel AMX; falls back to f32 with a warning where
-    /// the CPU has no AMX).
-    #[serde(default = "default_precision")]
-    pub precision: String,
+    /// rounded to bf16, f32 accumulation: on a CPU with Intel AMX or AVX512-BF16, else f32 with a
+    /// warning; on a GPU the model's tensors are bf16).
+    #[serde(default)]
+    pub precision: PolicyPrecision,
+    /// Where the model runs: `cpu` (default), `cuda` or `cuda:N`.
+    #[serde(default)]
+    pub device: PolicyDevice,
     /// Overrides of the checkpoint's model dimensions (`[policy.model]`), for real openpi /
     /// LeRobot checkpoints that ship no `config.json` (their dimensions come from the preset of
     /// the detected kind).
@@ -222,12 +329,6 @@ pub struct ModelOverrides {
     pub delta_action_mask: Option<Vec<bool>>,
 }
 
-fn default_policy_kind() -> String {
-    "hold".to_string()
-}
-fn default_precision() -> String {
-    "f32".to_string()
-}
 fn default_steps() -> usize {
     10
 }
@@ -238,13 +339,14 @@ fn default_action_rate_hz() -> f64 {
 impl Default for PolicyConfig {
     fn default() -> Self {
         Self {
-            kind: default_policy_kind(),
+            kind: PolicyKind::Hold,
             checkpoint: None,
             prompt: String::new(),
             num_steps: default_steps(),
             action_rate_hz: default_action_rate_hz(),
             threads: 0,
-            precision: default_precision(),
+            precision: PolicyPrecision::F32,
+            device: PolicyDevice::Cpu,
             model: ModelOverrides::default(),
         }
     }
@@ -540,8 +642,7 @@ impl Config {
             c.one_of(&k("encoding"), &cam.encoding, &["rgb8", "bgr8", "mono8"])?;
         }
         let p = &self.policy;
-        c.one_of("policy.kind", &p.kind, &["hold", "pi0", "pi05"])?;
-        if p.kind != "hold" && p.checkpoint.is_none() {
+        if p.kind != PolicyKind::Hold && p.checkpoint.is_none() {
             return Err(c.fail(
                 "policy.checkpoint",
                 "(missing)",
@@ -551,7 +652,6 @@ impl Config {
         c.range("policy.num_steps", p.num_steps as f64, 1.0, 1000.0)?;
         c.range("policy.action_rate_hz", p.action_rate_hz, 1.0, 1000.0)?;
         c.range("policy.threads", p.threads as f64, 0.0, 1024.0)?;
-        c.one_of("policy.precision", &p.precision, &["f32", "bf16"])?;
         if let Some(v) = p.model.action_horizon {
             c.range("policy.model.action_horizon", v as f64, 1.0, 1000.0)?;
         }
@@ -708,6 +808,38 @@ mod tests {
             e.contains("execution.strategy") && e.contains("crossfade"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn policy_enums_parse_and_unknown_values_name_the_allowed_set() {
+        let set = |k: &str, v: &str| {
+            with(|t| {
+                t["policy"]
+                    .as_table_mut()
+                    .unwrap()
+                    .insert(k.into(), toml::Value::String(v.into()));
+            })
+        };
+        let c = set("device", "cuda:1").unwrap();
+        assert_eq!(c.policy.device, PolicyDevice::Cuda(1));
+        assert_eq!(
+            set("device", "cuda").unwrap().policy.device,
+            PolicyDevice::Cuda(0)
+        );
+        assert_eq!(
+            set("precision", "bf16").unwrap().policy.precision,
+            PolicyPrecision::Bf16
+        );
+        assert_eq!(set("kind", "pi0").unwrap().policy.kind, PolicyKind::Pi0);
+        for (k, v, allowed) in [
+            ("device", "gpu", "\"cuda:N\""),
+            ("device", "cuda:x", "\"cuda:N\""),
+            ("precision", "fp16", "bf16"),
+            ("kind", "pi1", "pi05"),
+        ] {
+            let e = set(k, v).unwrap_err().to_string();
+            assert!(e.contains(v) && e.contains(allowed), "{k} = {v}: {e}");
+        }
     }
 
     #[test]

@@ -16,7 +16,6 @@
 //! from the same joints in the other scene / for the other target): what it should be.
 
 use chunkrt_ipc::config::Config;
-use chunkrt_ipc::ENCODING_RGB8;
 
 use super::expert::{Profile, Reach};
 use super::sim::EpisodeSpec;
@@ -112,7 +111,7 @@ pub fn probe(
             width: width as u32,
             height: height as u32,
             stride: 3 * width as u32,
-            encoding: ENCODING_RGB8,
+            encoding: crate::policy::Encoding::Rgb8,
             data,
         }];
         policy.infer(&RawObservation {

@@ -8,7 +8,7 @@
 //! chunk, then stands still while the next chunk is computed (no overlap, no blending).
 
 use chunkrt_ipc::config::Config;
-use chunkrt_ipc::{JointCommand, JointState, ENCODING_RGB8};
+use chunkrt_ipc::{JointCommand, JointState};
 
 use super::{task_camera, ReachScene, TargetColor, TASK_DOF};
 use crate::chunk::ActionChunk;
@@ -131,7 +131,7 @@ pub fn run_episode(
                     width: w as u32,
                     height: h as u32,
                     stride: 3 * w as u32,
-                    encoding: ENCODING_RGB8,
+                    encoding: crate::policy::Encoding::Rgb8,
                     data: &image,
                 }];
                 policy.infer_chunk(&frames, js, now, req)

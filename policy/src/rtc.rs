@@ -21,7 +21,7 @@
 use candle_core::{DType, Device, Tensor, Var};
 
 use super::config::ModelConfig;
-use super::model::{ModelInputs, PiModel, PrefixCache, SampleOutput};
+use super::model::{euler, ModelInputs, PiModel, PrefixCache, SampleOutput};
 use super::preprocess::{normalize, NormMode, Stats};
 use super::PolicyError;
 
@@ -50,6 +50,7 @@ impl Guidance<'_> {
         stats: Option<&Stats>,
         mode: NormMode,
         offsets: &[f64],
+        dev: &Device,
     ) -> Result<GuidanceTarget, PolicyError> {
         let (h, a) = (cfg.action_horizon, cfg.action_dim);
         if n_dof == 0 || n_dof > a {
@@ -101,10 +102,9 @@ impl Guidance<'_> {
             row.resize(a, 0.0);
             y.extend_from_slice(&row);
         }
-        let dev = Device::Cpu;
         Ok(GuidanceTarget {
-            y: Tensor::from_vec(y, (1, h, a), &dev)?,
-            w: weight_mask(self.weights, n_dof, a, &dev)?,
+            y: Tensor::from_vec(y, (1, h, a), dev)?,
+            w: weight_mask(self.weights, n_dof, a, dev)?,
             beta: self.beta,
         })
     }
@@ -306,9 +306,6 @@ pub fn sample_guided(
     if !check_target(model, b, target)? {
         return model.sample(inputs, noise, steps, Some(cache));
     }
-    if steps == 0 {
-        return Err(PolicyError::Input("steps must be > 0".into()));
-    }
     let want = [b, model.cfg.action_horizon, model.cfg.action_dim];
     if noise.dims() != want {
         return Err(PolicyError::Input(format!(
@@ -325,25 +322,8 @@ pub fn sample_guided(
     };
     model.fill_cache(inputs, cache, false)?;
     let c = cache.as_ref().expect("fill_cache stores the cache");
-    // same time grid as `PiModel::sample`: f32 accumulation, loop while t >= -dt/2
-    let dt = -1.0f32 / steps as f32;
-    let mut time = 1.0f32;
-    let mut x = noise.to_dtype(DType::F32)?;
-    let mut v0 = None;
-    let mut times = Vec::with_capacity(steps);
-    while time >= -dt / 2.0 {
-        let gv = guided_velocity(model, c, &x, time, &target)?;
-        x = (x + (&gv.v_guided * dt as f64)?)?;
-        if v0.is_none() {
-            v0 = Some(gv.v_guided);
-        }
-        times.push(time);
-        time += dt;
-    }
-    let v_t_step0 = v0.ok_or_else(|| PolicyError::Input("no denoising step ran".into()))?;
-    Ok(SampleOutput {
-        actions: x,
-        v_t_step0,
-        times,
+    // the same integration as `PiModel::sample`, with the guided velocity
+    euler(noise, steps, |x, t| {
+        Ok(guided_velocity(model, c, x, t, &target)?.v_guided)
     })
 }

@@ -118,6 +118,43 @@ pub struct PiModel {
     action_out_proj: Linear,
     heads: SuffixHeads,
     device: Device,
+    /// The dtype of the weights, activations and KV cache (f32, or bf16 on a GPU); the sampler
+    /// state and the returned velocities stay f32.
+    dtype: DType,
+}
+
+/// The flow-matching sampler's integration, written once for the plain, uncached and guided
+/// samplers: Euler from t = 1 (noise) to t = 0 (data) with `dt = -1/steps`, time accumulated in
+/// f32 and the loop running while `t >= -dt/2` (openpi's grid), `x <- x + dt * v(x, t)` with the
+/// state `x` in f32. `noise` [B, H, A].
+pub fn euler(
+    noise: &Tensor,
+    steps: usize,
+    mut velocity: impl FnMut(&Tensor, f32) -> Result<Tensor, PolicyError>,
+) -> Result<SampleOutput, PolicyError> {
+    if steps == 0 {
+        return Err(PolicyError::Input("steps must be > 0".into()));
+    }
+    let dt = -1.0f32 / steps as f32;
+    let mut time = 1.0f32;
+    let mut x = noise.to_dtype(DType::F32)?;
+    let mut v0 = None;
+    let mut times = Vec::with_capacity(steps);
+    while time >= -dt / 2.0 {
+        let v = velocity(&x, time)?;
+        x = (x + (&v * dt as f64)?)?;
+        if v0.is_none() {
+            v0 = Some(v);
+        }
+        times.push(time);
+        time += dt;
+    }
+    let v_t_step0 = v0.ok_or_else(|| PolicyError::Input("no denoising step ran".into()))?;
+    Ok(SampleOutput {
+        actions: x,
+        v_t_step0,
+        times,
+    })
 }
 
 /// Sinusoidal time embedding [B, W] (sin half then cos half), computed in f64 like openpi's
@@ -156,12 +193,13 @@ fn bias_tensor(
     vis: Vec<bool>,
     shape: (usize, usize, usize, usize),
     dev: &Device,
+    dtype: DType,
 ) -> candle_core::Result<Tensor> {
     let v: Vec<f32> = vis
         .into_iter()
         .map(|b| if b { 0.0 } else { MASK_VALUE })
         .collect();
-    Tensor::from_vec(v, shape, dev)
+    Tensor::from_vec(v, shape, dev)?.to_dtype(dtype)
 }
 
 /// openpi `make_att_2d_masks`: query i sees key j iff `cum[j] <= cum[i]` and both are valid.
@@ -237,12 +275,18 @@ impl PiModel {
             action_out_proj,
             heads,
             device: vb.device().clone(),
+            dtype: vb.dtype(),
         })
     }
 
     /// The device.
     pub fn device(&self) -> &Device {
         &self.device
+    }
+
+    /// The dtype of weights, activations and the KV cache.
+    pub fn dtype(&self) -> DType {
+        self.dtype
     }
 
     /// Runs the inference fast path's matrix products (experts and SigLIP) with weights packed
@@ -379,13 +423,14 @@ impl PiModel {
             None
         } else {
             let imgs: Vec<&Tensor> = run.iter().map(|&c| &inp.images[c]).collect();
-            Some(self.vision.forward_with(&Tensor::cat(&imgs, 0)?, diff)?)
+            let imgs = Tensor::cat(&imgs, 0)?.to_dtype(self.dtype)?;
+            Some(self.vision.forward_with(&imgs, diff)?)
         };
         let mut parts = Vec::with_capacity(inp.images.len() + 1);
         for c in 0..inp.images.len() {
             match (run.iter().position(|&r| r == c), &emb) {
                 (Some(i), Some(e)) => parts.push(e.narrow(0, i * b, b)?),
-                _ => parts.push(Tensor::zeros((b, t, w), DType::F32, &self.device)?),
+                _ => parts.push(Tensor::zeros((b, t, w), self.dtype, &self.device)?),
             }
         }
         let lt = self.cfg.max_token_len;
@@ -423,7 +468,7 @@ impl PiModel {
                 }
             }
         }
-        bias_tensor(vis, (b, 1, p, p), &self.device)
+        bias_tensor(vis, (b, 1, p, p), &self.device, self.dtype)
     }
 
     /// Suffix ar flags (π0: `[1, 1, 0, ..]`, π0.5: `[1, 0, ..]`).
@@ -454,9 +499,10 @@ impl PiModel {
             self.cfg.time_min_period,
             self.cfg.time_max_period,
             &self.device,
-        )?;
+        )?
+        .to_dtype(self.dtype)?;
         // [B, H, We]
-        let a = self.action_in_proj.forward(x_t)?;
+        let a = self.action_in_proj.forward(&x_t.to_dtype(self.dtype)?)?;
         match &self.heads {
             SuffixHeads::Pi0 {
                 state_proj,
@@ -469,7 +515,9 @@ impl PiModel {
                 let at = mlp_out.forward(&mlp_in.forward(&at)?.silu()?)?;
                 if with_state {
                     // [B, 1, We]
-                    let s = state_proj.forward(state)?.unsqueeze(1)?;
+                    let s = state_proj
+                        .forward(&state.to_dtype(self.dtype)?)?
+                        .unsqueeze(1)?;
                     Ok((Tensor::cat(&[&s, &at], 1)?, None))
                 } else {
                     Ok((at, None))
@@ -493,7 +541,8 @@ impl PiModel {
                     self.cfg.time_min_period,
                     self.cfg.time_max_period,
                     &self.device,
-                )?;
+                )?
+                .to_dtype(self.dtype)?;
                 Ok(Some(
                     time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?,
                 ))
@@ -549,12 +598,12 @@ impl PiModel {
             for _ in 0..d.depth {
                 ks.push(Tensor::zeros(
                     (b, d.num_kv_heads, total, d.head_dim),
-                    DType::F32,
+                    self.dtype,
                     &self.device,
                 )?);
                 vs.push(Tensor::zeros(
                     (b, d.num_kv_heads, total, d.head_dim),
-                    DType::F32,
+                    self.dtype,
                     &self.device,
                 )?);
             }
@@ -601,7 +650,13 @@ impl PiModel {
             pos: cpos,
             n_valid: layout.n_valid.clone(),
         };
-        let rope = Rope::new(&compact.pos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let rope = Rope::new(
+            &compact.pos,
+            d.head_dim,
+            self.cfg.rope_theta,
+            &self.device,
+            self.dtype,
+        )?;
         let bias = self.prefix_bias(&compact)?;
         let mut streams = [Stream {
             x,
@@ -640,7 +695,7 @@ impl PiModel {
             vis.extend_from_slice(row);
             vis.extend(std::iter::repeat_n(true, total - p));
         }
-        let step_bias = bias_tensor(vis, (b, 1, 1, t_step), &self.device)?;
+        let step_bias = bias_tensor(vis, (b, 1, 1, t_step), &self.device, self.dtype)?;
         // positions of the action tokens: n_valid + state_tokens + [0, H)
         let h = self.cfg.action_horizon;
         let apos: Vec<Vec<i64>> = layout
@@ -648,22 +703,36 @@ impl PiModel {
             .iter()
             .map(|&n| (0..h).map(|i| (n + ns + i) as i64).collect())
             .collect();
-        let action_rope = Rope::new(&apos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let action_rope = Rope::new(
+            &apos,
+            d.head_dim,
+            self.cfg.rope_theta,
+            &self.device,
+            self.dtype,
+        )?;
         if ns == 1 {
             // π0: the state token sees the prefix and itself only, so its K/V do not depend on
             // x_t or t: run it once through the action expert and keep it in the cache at P.
             let SuffixHeads::Pi0 { state_proj, .. } = &self.heads else {
                 return Err(PolicyError::Config("pi0 without state_proj".into()));
             };
-            let s = state_proj.forward(&inp.state)?.unsqueeze(1)?;
+            let s = state_proj
+                .forward(&inp.state.to_dtype(self.dtype)?)?
+                .unsqueeze(1)?;
             let spos: Vec<Vec<i64>> = layout.n_valid.iter().map(|&n| vec![n as i64]).collect();
-            let srope = Rope::new(&spos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+            let srope = Rope::new(
+                &spos,
+                d.head_dim,
+                self.cfg.rope_theta,
+                &self.device,
+                self.dtype,
+            )?;
             let mut svis = Vec::with_capacity(b * (pc + 1));
             for row in &compact.pad {
                 svis.extend_from_slice(row);
                 svis.push(true);
             }
-            let sbias = bias_tensor(svis, (b, 1, 1, pc + 1), &self.device)?;
+            let sbias = bias_tensor(svis, (b, 1, 1, pc + 1), &self.device, self.dtype)?;
             let mut st = [Stream {
                 x: s,
                 expert: &self.expert,
@@ -759,7 +828,8 @@ impl PiModel {
             .norm
             .forward(&st[0].x, cond.as_ref(), differentiable)?
             .0;
-        Ok(self.action_out_proj.forward(&out)?)
+        // velocities in f32 whatever the model's dtype: the sampler state is f32
+        Ok(self.action_out_proj.forward(&out)?.to_dtype(DType::F32)?)
     }
 
     /// The full joint forward (no cache; training and the uncached sampler): prefix tokens through
@@ -805,10 +875,22 @@ impl PiModel {
             let n = layout.n_valid[bi] as i64;
             spos.push((0..s as i64).map(|i| n + i).collect::<Vec<_>>());
         }
-        let bias = bias_tensor(vis, (b, 1, p + s, p + s), &self.device)?;
+        let bias = bias_tensor(vis, (b, 1, p + s, p + s), &self.device, self.dtype)?;
         let d = &self.cfg.paligemma;
-        let prope = Rope::new(&layout.pos, d.head_dim, self.cfg.rope_theta, &self.device)?;
-        let srope = Rope::new(&spos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let prope = Rope::new(
+            &layout.pos,
+            d.head_dim,
+            self.cfg.rope_theta,
+            &self.device,
+            self.dtype,
+        )?;
+        let srope = Rope::new(
+            &spos,
+            d.head_dim,
+            self.cfg.rope_theta,
+            &self.device,
+            self.dtype,
+        )?;
         let mut streams = [
             Stream {
                 x: prefix_embs.clone(),
@@ -851,7 +933,10 @@ impl PiModel {
         let (_, so) = self.joint_forward(inp, prefix_embs, x_t, t, diff)?;
         let s = so.dim(1)?;
         let h = self.cfg.action_horizon;
-        Ok(self.action_out_proj.forward(&so.narrow(1, s - h, h)?)?)
+        Ok(self
+            .action_out_proj
+            .forward(&so.narrow(1, s - h, h)?)?
+            .to_dtype(DType::F32)?)
     }
 
     /// Flow-matching sampler: Euler from t = 1 (noise) with `dt = -1/steps`, time accumulated in
@@ -866,9 +951,6 @@ impl PiModel {
         cache: Option<&mut Option<PrefixCache>>,
     ) -> Result<SampleOutput, PolicyError> {
         let b = self.check_inputs(inp)?;
-        if steps == 0 {
-            return Err(PolicyError::Input("steps must be > 0".into()));
-        }
         let want = [b, self.cfg.action_horizon, self.cfg.action_dim];
         if noise.dims() != want {
             return Err(PolicyError::Input(format!(
@@ -876,44 +958,21 @@ impl PiModel {
                 noise.dims()
             )));
         }
-        let dt = -1.0f32 / steps as f32;
-        let mut time = 1.0f32;
-        let mut x = noise.to_dtype(DType::F32)?;
-        let mut v0 = None;
-        let mut times = Vec::with_capacity(steps);
         match cache {
             Some(cache) => {
                 self.fill_cache(inp, cache, false)?;
                 let c = cache.as_ref().expect("fill_cache stores the cache");
-                while time >= -dt / 2.0 {
-                    let v = self.velocity_at(c, &x, &vec![time; b], false)?;
-                    x = (x + (&v * dt as f64)?)?;
-                    if v0.is_none() {
-                        v0 = Some(v);
-                    }
-                    times.push(time);
-                    time += dt;
-                }
+                euler(noise, steps, |x, t| {
+                    self.velocity_at(c, x, &vec![t; b], false)
+                })
             }
             None => {
                 let embs = self.embed_prefix(inp)?;
-                while time >= -dt / 2.0 {
-                    let v = self.velocity_uncached(inp, &embs, &x, &vec![time; b], false)?;
-                    x = (x + (&v * dt as f64)?)?;
-                    if v0.is_none() {
-                        v0 = Some(v);
-                    }
-                    times.push(time);
-                    time += dt;
-                }
+                euler(noise, steps, |x, t| {
+                    self.velocity_uncached(inp, &embs, x, &vec![t; b], false)
+                })
             }
         }
-        let v_t_step0 = v0.ok_or_else(|| PolicyError::Input("no denoising step ran".into()))?;
-        Ok(SampleOutput {
-            actions: x,
-            v_t_step0,
-            times,
-        })
     }
 
     /// Flow-matching training loss: `x_t = t*noise + (1-t)*actions`, `u = noise - actions`,
@@ -1006,7 +1065,13 @@ impl PiModel {
         let layout = self.prefix_layout(inp);
         let p = self.cfg.prefix_len();
         let d = &self.cfg.paligemma;
-        let prope = Rope::new(&layout.pos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let prope = Rope::new(
+            &layout.pos,
+            d.head_dim,
+            self.cfg.rope_theta,
+            &self.device,
+            self.dtype,
+        )?;
         let pbias = self.prefix_bias(&layout)?;
         let mut prefix = [Stream {
             x: embs.clone(),
@@ -1049,8 +1114,14 @@ impl PiModel {
             let n = layout.n_valid[bi] as i64;
             spos.push((0..s as i64).map(|i| n + i).collect::<Vec<_>>());
         }
-        let sbias = bias_tensor(vis, (bk, 1, s, p + s), &self.device)?;
-        let srope = Rope::new(&spos, d.head_dim, self.cfg.rope_theta, &self.device)?;
+        let sbias = bias_tensor(vis, (bk, 1, s, p + s), &self.device, self.dtype)?;
+        let srope = Rope::new(
+            &spos,
+            d.head_dim,
+            self.cfg.rope_theta,
+            &self.device,
+            self.dtype,
+        )?;
         let mut st = [Stream {
             x: suffix,
             expert: &self.expert,

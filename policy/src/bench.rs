@@ -206,6 +206,13 @@ fn vision_flops(c: &ModelConfig) -> f64 {
     per_image * c.cameras.len() as f64
 }
 
+/// The latency histogram of the bench's interval logs and plots: ns, 1 ns .. 60 s, 3 digits
+/// (the same bounds as the controller's report, so the logs merge).
+pub fn latency_histogram_ns() -> Histogram<u64> {
+    Histogram::new_with_bounds(1, 60_000_000_000, 3)
+        .expect("constant bounds 1..60e9 with 3 significant digits are valid")
+}
+
 fn histogram() -> Result<Histogram<u64>, PolicyError> {
     Histogram::<u64>::new_with_bounds(1, 600_000_000, 3)
         .map_err(|e| PolicyError::Config(format!("histogram: {e}")))
@@ -467,7 +474,7 @@ pub fn run_configs(name: &str, json: &str, quick: bool) -> Result<Vec<ConfigRepo
 fn phase_from(name: &str, flops: f64, wall: &[u64], cpu: &[u64]) -> Result<Phase, PolicyError> {
     let mut h = histogram()?;
     let mut c = histogram()?;
-    let mut hist_ns = crate::report::latency_histogram();
+    let mut hist_ns = latency_histogram_ns();
     for (&w, &u) in wall.iter().zip(cpu) {
         let w = w.min(600_000_000);
         h.record(w)

@@ -4,11 +4,12 @@
 
 use std::path::Path;
 
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use rand::{Rng, SeedableRng};
 
 use super::checkpoint;
 use super::config::{ConfigOverrides, ModelKind};
+use super::device::{DeviceSpec, Precision};
 use super::model::{ModelInputs, PiModel, PrefixCache};
 use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
@@ -28,8 +29,8 @@ pub struct RawFrame<'a> {
     pub height: u32,
     /// Bytes per row.
     pub stride: u32,
-    /// `chunkrt_ipc::ENCODING_*`.
-    pub encoding: u32,
+    /// Pixel layout.
+    pub encoding: Encoding,
     /// Pixel bytes.
     pub data: &'a [u8],
 }
@@ -61,40 +62,55 @@ pub struct Policy {
     offsets: Vec<f64>,
 }
 
+/// How to load a policy (the controller builds this from its `[policy]` configuration).
+#[derive(Debug, Clone)]
+pub struct LoadOptions {
+    /// The kind the caller expects (`None`: whatever the checkpoint is).
+    pub kind: Option<ModelKind>,
+    /// Denoising steps.
+    pub num_steps: usize,
+    /// Arithmetic of the matrix products ([`super::device`]).
+    pub precision: Precision,
+    /// Where the model, its KV cache and its inputs live.
+    pub device: DeviceSpec,
+    /// Overrides of the checkpoint's dimensions.
+    pub overrides: ConfigOverrides,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self {
+            kind: None,
+            num_steps: 10,
+            precision: Precision::F32,
+            device: DeviceSpec::Cpu,
+            overrides: ConfigOverrides::default(),
+        }
+    }
+}
+
 impl Policy {
     /// Loads `checkpoint_dir` (`model.safetensors`, `config.json` or a preset by kind, optional
-    /// `tokenizer.json` and `norm_stats.json`). `cfg.num_steps` sets the denoising steps and
-    /// `cfg.threads` the CPU threads (0: leave candle's default).
-    pub fn load(
-        checkpoint_dir: &Path,
-        cfg: &chunkrt_ipc::config::PolicyConfig,
-    ) -> Result<Self, PolicyError> {
-        if cfg.threads > 0 && std::env::var_os("RAYON_NUM_THREADS").is_none() {
-            // candle sizes its CPU thread pool from this variable on first use
-            std::env::set_var("RAYON_NUM_THREADS", cfg.threads.to_string());
-        }
-        let overrides = ConfigOverrides {
-            action_horizon: cfg.model.action_horizon,
-            action_dim: cfg.model.action_dim,
-            max_token_len: cfg.model.max_token_len,
-            cameras: cfg.model.cameras.clone(),
-            num_denoise_steps: Some(cfg.num_steps),
-            delta_action_mask: cfg.model.delta_action_mask.clone(),
-        };
-        let loaded = checkpoint::load(checkpoint_dir, &overrides)?;
+    /// `tokenizer.json` and `norm_stats.json`) onto `opts.device`, each weight read from the
+    /// file straight into the model's dtype on that device. Thread pools are the caller's
+    /// business (candle's CPU pool reads `RAYON_NUM_THREADS` on first use).
+    pub fn load(checkpoint_dir: &Path, opts: &LoadOptions) -> Result<Self, PolicyError> {
+        let device = opts.device.open()?;
+        let mut overrides = opts.overrides.clone();
+        overrides.num_denoise_steps = Some(opts.num_steps);
+        let loaded = checkpoint::load_on(checkpoint_dir, &overrides, &device, opts.precision)?;
         let mut model = loaded.model;
-        if cfg.precision == "bf16" && !model.use_bf16()? {
+        if device.is_cpu() && opts.precision == Precision::Bf16 && !model.use_bf16()? {
             tracing::warn!("policy.precision = bf16 needs Intel AMX or AVX512-BF16, which this CPU does not offer: running f32");
         }
-        match (cfg.kind.as_str(), model.cfg.kind) {
-            ("pi0", ModelKind::Pi05) | ("pi05", ModelKind::Pi0) => {
+        if let Some(kind) = opts.kind {
+            if kind != model.cfg.kind {
                 return Err(PolicyError::Config(format!(
                     "policy.kind = {} but the checkpoint is {}",
-                    cfg.kind,
+                    kind.name(),
                     model.cfg.kind.name()
-                )))
+                )));
             }
-            _ => {}
         }
         let tok_path = checkpoint_dir.join("tokenizer.json");
         let tokenizer = if tok_path.exists() {
@@ -120,7 +136,7 @@ impl Policy {
             model,
             tokenizer,
             norm,
-            steps: cfg.num_steps.max(1),
+            steps: opts.num_steps.max(1),
             cache: None,
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(0x5eed),
             images: Vec::new(),
@@ -166,7 +182,14 @@ impl Policy {
         let n_dof = obs.joint_positions.len();
         let stats = self.norm.as_ref().map(|n| &n.actions);
         let target = match guidance {
-            Some(g) => Some(g.target(&self.model.cfg, n_dof, stats, self.mode(), &self.offsets)?),
+            Some(g) => Some(g.target(
+                &self.model.cfg,
+                n_dof,
+                stats,
+                self.mode(),
+                &self.offsets,
+                self.model.device(),
+            )?),
             None => None,
         };
         self.run(&inputs, n_dof, target.as_ref())
@@ -204,16 +227,15 @@ impl Policy {
         state.resize(cfg.action_dim, 0.0);
         // images in camera order; absent cameras black and masked
         let s = cfg.vision.image_size;
-        let dev = Device::Cpu;
+        let dev = self.model.device().clone();
         let mut images = Vec::with_capacity(cfg.cameras.len());
         let mut masks = Vec::with_capacity(cfg.cameras.len());
         for cam in &cfg.cameras {
             self.images.clear();
             match obs.frames.iter().find(|f| f.camera == cam) {
                 Some(f) => {
-                    let enc = Encoding::from_code(f.encoding)?;
                     let (w, h) = (f.width as usize, f.height as usize);
-                    let rgb = to_rgb(f.data, w, h, f.stride as usize, enc)?;
+                    let rgb = to_rgb(f.data, w, h, f.stride as usize, f.encoding)?;
                     let r = resize_with_pad(&rgb, h, w, s, s)?;
                     to_model_chw(&r, s, s, &mut self.images);
                     masks.push(vec![true]);
@@ -246,7 +268,7 @@ impl Policy {
     ) -> Result<Vec<f64>, PolicyError> {
         let cfg = self.model.cfg.clone();
         let mode = self.mode();
-        let dev = Device::Cpu;
+        let dev = self.model.device().clone();
         // noise ~ N(0, 1) (Box-Muller)
         let n = cfg.action_horizon * cfg.action_dim;
         self.noise.clear();
@@ -267,6 +289,7 @@ impl Policy {
                 .model
                 .sample(inputs, &noise, self.steps, Some(&mut self.cache))?,
         };
+        // the one device -> host copy of the chunk
         let acts = out.actions.squeeze(0)?.to_vec2::<f32>()?;
         let mut res = Vec::with_capacity(cfg.action_horizon * n_dof);
         for row in acts {

@@ -9,6 +9,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 
 use super::config::{ConfigOverrides, ModelConfig, ModelKind};
+use super::device::{model_dtype, Precision};
 use super::model::PiModel;
 use super::PolicyError;
 
@@ -120,6 +121,117 @@ pub fn expected_tensors(cfg: &ModelConfig) -> Vec<(String, Vec<usize>)> {
     v
 }
 
+/// The tensors of a safetensors file under the model's names (LeRobot's `model.` prefix
+/// stripped, the tied token embedding under [`LM_HEAD`]), memory-mapped and read one at a time:
+/// a `VarBuilder` over it copies each weight from the file straight into the requested dtype on
+/// the requested device, so a 7 GB bf16 checkpoint never becomes a host-side f32 copy.
+pub struct WeightFile {
+    st: candle_core::safetensors::MmapedSafetensors,
+    /// model name -> name in the file
+    names: HashMap<String, String>,
+    shapes: HashMap<String, Vec<usize>>,
+    dtypes: Vec<DType>,
+}
+
+impl WeightFile {
+    /// Maps `path` and indexes its tensors (no tensor data is read).
+    pub fn open(path: &Path) -> Result<Self, PolicyError> {
+        let io = |e: candle_core::Error| PolicyError::Io(format!("{}: {e}", path.display()));
+        // SAFETY: the file is mapped read-only; like every safetensors reader that maps, we rely
+        // on nobody truncating or rewriting the checkpoint while the policy loads it.
+        let st = unsafe { candle_core::safetensors::MmapedSafetensors::new(path) }.map_err(io)?;
+        let views = st.tensors();
+        let lerobot = views
+            .iter()
+            .any(|(k, _)| k.starts_with("model.paligemma_with_expert."));
+        let mut names = HashMap::with_capacity(views.len());
+        let mut shapes = HashMap::with_capacity(views.len());
+        let mut dtypes = Vec::new();
+        let mut embed = None;
+        for (k, v) in &views {
+            let dt = DType::try_from(v.dtype()).map_err(io)?;
+            if !dtypes.contains(&dt) {
+                dtypes.push(dt);
+            }
+            let name = match (lerobot, k.strip_prefix("model.")) {
+                (true, Some(s)) => s.to_string(),
+                _ => k.clone(),
+            };
+            if name == EMBED {
+                embed = Some((k.clone(), v.shape().to_vec()));
+                continue;
+            }
+            shapes.insert(name.clone(), v.shape().to_vec());
+            names.insert(name, k.clone());
+        }
+        // the token embedding is tied to the LM head: one name, the embedding's where both exist
+        if let Some((k, shape)) = embed {
+            shapes.insert(LM_HEAD.to_string(), shape);
+            names.insert(LM_HEAD.to_string(), k);
+        }
+        Ok(Self {
+            st,
+            names,
+            shapes,
+            dtypes,
+        })
+    }
+
+    /// Shapes by model name.
+    pub fn shapes(&self) -> &HashMap<String, Vec<usize>> {
+        &self.shapes
+    }
+
+    /// Dtypes stored in the file.
+    pub fn dtypes(&self) -> &[DType] {
+        &self.dtypes
+    }
+
+    fn load(&self, name: &str, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        let stored = self
+            .names
+            .get(name)
+            .ok_or_else(|| candle_core::Error::Msg(format!("checkpoint has no tensor {name}")))?;
+        self.st.load(stored, dev)?.to_dtype(dtype)
+    }
+}
+
+impl candle_nn::var_builder::SimpleBackend for WeightFile {
+    fn get(
+        &self,
+        s: candle_core::Shape,
+        name: &str,
+        _: candle_nn::Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> candle_core::Result<Tensor> {
+        let t = self.load(name, dtype, dev)?;
+        if t.shape() != &s {
+            return Err(candle_core::Error::Msg(format!(
+                "{name}: shape {:?} in the checkpoint, the model needs {:?}",
+                t.dims(),
+                s.dims()
+            )));
+        }
+        Ok(t)
+    }
+
+    fn get_unchecked(&self, name: &str, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        self.load(name, dtype, dev)
+    }
+
+    fn contains_tensor(&self, name: &str) -> bool {
+        self.names.contains_key(name)
+    }
+}
+
+/// The shapes of loaded tensors by name (for [`check_tensors`] / [`resolve_config`]).
+pub fn shapes_of(t: &HashMap<String, Tensor>) -> HashMap<String, Vec<usize>> {
+    t.iter()
+        .map(|(k, v)| (k.clone(), v.dims().to_vec()))
+        .collect()
+}
+
 /// Loads every tensor of a safetensors file as f32 on the CPU, with LeRobot's `model.` prefix
 /// stripped. Returns the tensors and the stored dtypes seen.
 pub fn load_tensors(path: &Path) -> Result<(HashMap<String, Tensor>, Vec<DType>), PolicyError> {
@@ -153,7 +265,7 @@ pub fn load_tensors(path: &Path) -> Result<(HashMap<String, Tensor>, Vec<DType>)
 }
 
 /// π0.5 checkpoints have `time_mlp_in`; π0 ones `state_proj`.
-pub fn detect_kind(t: &HashMap<String, Tensor>) -> Option<ModelKind> {
+pub fn detect_kind(t: &HashMap<String, Vec<usize>>) -> Option<ModelKind> {
     if t.contains_key("time_mlp_in.weight") {
         Some(ModelKind::Pi05)
     } else if t.contains_key("state_proj.weight") {
@@ -165,14 +277,16 @@ pub fn detect_kind(t: &HashMap<String, Tensor>) -> Option<ModelKind> {
 
 /// Compares the tensors with what `cfg` needs: one error listing every missing or mismatched
 /// tensor by name and shape. Unused tensors (e.g. the expert's `lm_head`) are ignored.
-pub fn check_tensors(cfg: &ModelConfig, t: &HashMap<String, Tensor>) -> Result<(), PolicyError> {
+pub fn check_tensors(
+    cfg: &ModelConfig,
+    t: &HashMap<String, Vec<usize>>,
+) -> Result<(), PolicyError> {
     let mut problems = Vec::new();
     for (name, shape) in expected_tensors(cfg) {
         match t.get(&name) {
             None => problems.push(format!("missing {name} {shape:?}")),
-            Some(x) if x.dims() != shape.as_slice() => problems.push(format!(
-                "mismatched {name}: found {:?}, expected {shape:?}",
-                x.dims()
+            Some(x) if x != &shape => problems.push(format!(
+                "mismatched {name}: found {x:?}, expected {shape:?}"
             )),
             _ => {}
         }
@@ -192,7 +306,7 @@ pub fn check_tensors(cfg: &ModelConfig, t: &HashMap<String, Tensor>) -> Result<(
 /// detected kind; then `overrides`; the vocabulary comes from the embedding's shape.
 pub fn resolve_config(
     dir: &Path,
-    tensors: &HashMap<String, Tensor>,
+    tensors: &HashMap<String, Vec<usize>>,
     overrides: &ConfigOverrides,
 ) -> Result<ModelConfig, PolicyError> {
     let cfg_path = dir.join("config.json");
@@ -207,8 +321,7 @@ pub fn resolve_config(
         ModelConfig::preset(kind.name())?
     };
     overrides.apply(&mut cfg)?;
-    if let Some(e) = tensors.get(LM_HEAD) {
-        let dims = e.dims();
+    if let Some(dims) = tensors.get(LM_HEAD) {
         if dims.len() == 2 {
             if dims[1] != cfg.paligemma.width {
                 return Err(PolicyError::Checkpoint(format!(
@@ -230,12 +343,29 @@ pub struct Loaded {
     pub stored_dtypes: Vec<DType>,
 }
 
-/// Loads `dir/model.safetensors` (+ `config.json`) and builds the model.
+/// Loads `dir/model.safetensors` (+ `config.json`) and builds the model in f32 on the CPU.
 pub fn load(dir: &Path, overrides: &ConfigOverrides) -> Result<Loaded, PolicyError> {
-    let (tensors, stored_dtypes) = load_tensors(&dir.join("model.safetensors"))?;
-    let cfg = resolve_config(dir, &tensors, overrides)?;
-    check_tensors(&cfg, &tensors)?;
-    let vb = VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu);
+    load_on(dir, overrides, &Device::Cpu, Precision::F32)
+}
+
+/// Loads `dir/model.safetensors` (+ `config.json`) and builds the model on `device`, its
+/// tensors in [`model_dtype`]`(device, precision)`, each weight read from the file straight into
+/// that dtype on that device.
+pub fn load_on(
+    dir: &Path,
+    overrides: &ConfigOverrides,
+    device: &Device,
+    precision: Precision,
+) -> Result<Loaded, PolicyError> {
+    let file = WeightFile::open(&dir.join("model.safetensors"))?;
+    let cfg = resolve_config(dir, file.shapes(), overrides)?;
+    check_tensors(&cfg, file.shapes())?;
+    let stored_dtypes = file.dtypes().to_vec();
+    let vb = VarBuilder::from_backend(
+        Box::new(file),
+        model_dtype(device, precision),
+        device.clone(),
+    );
     let model = PiModel::new(&cfg, vb)?;
     Ok(Loaded {
         model,
@@ -247,8 +377,10 @@ pub fn load(dir: &Path, overrides: &ConfigOverrides) -> Result<Loaded, PolicyErr
 /// and what is missing or mismatched.
 pub fn inspect(dir: &Path) -> Result<String, PolicyError> {
     use std::fmt::Write;
-    let (tensors, dtypes) = load_tensors(&dir.join("model.safetensors"))?;
-    let cfg = resolve_config(dir, &tensors, &ConfigOverrides::default())?;
+    // shapes and dtypes from the file's index: no tensor data is read
+    let file = WeightFile::open(&dir.join("model.safetensors"))?;
+    let (tensors, dtypes) = (file.shapes(), file.dtypes());
+    let cfg = resolve_config(dir, tensors, &ConfigOverrides::default())?;
     let mut s = String::new();
     let src = if dir.join("config.json").exists() {
         "config.json"
@@ -288,7 +420,7 @@ pub fn inspect(dir: &Path) -> Result<String, PolicyError> {
         tensors
             .iter()
             .filter(|(k, _)| pred(k))
-            .map(|(_, t)| t.elem_count())
+            .map(|(_, t)| t.iter().product::<usize>())
             .sum()
     };
     let total = count(&|_| true);
@@ -314,7 +446,7 @@ pub fn inspect(dir: &Path) -> Result<String, PolicyError> {
             let _ = writeln!(s, "  {u}");
         }
     }
-    match check_tensors(&cfg, &tensors) {
+    match check_tensors(&cfg, tensors) {
         Ok(()) => {
             let _ = writeln!(
                 s,

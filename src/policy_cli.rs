@@ -6,10 +6,10 @@ use std::path::PathBuf;
 use anyhow::Context;
 use candle_core::{DType, Device, Tensor};
 
-use super::checkpoint;
-use super::config::ConfigOverrides;
-use super::model::ModelInputs;
-use super::preprocess::{resize_with_pad, to_model_chw};
+use crate::policy::checkpoint;
+use crate::policy::config::ConfigOverrides;
+use crate::policy::model::ModelInputs;
+use crate::policy::preprocess::{resize_with_pad, to_model_chw};
 
 /// `chunkrt sample`: run the policy on a safetensors file of inputs.
 #[derive(Debug, clap::Args)]
@@ -51,7 +51,7 @@ fn mask_rows(t: &Tensor) -> anyhow::Result<Vec<bool>> {
 
 /// Builds model inputs from a fixture-style safetensors map.
 pub fn inputs_from_map(
-    cfg: &super::ModelConfig,
+    cfg: &crate::policy::ModelConfig,
     m: &HashMap<String, Tensor>,
 ) -> anyhow::Result<(ModelInputs, Option<Tensor>)> {
     let dev = Device::Cpu;

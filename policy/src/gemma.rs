@@ -61,7 +61,7 @@ impl Norm {
     pub fn new(width: usize, ada: bool, eps: f64, vb: VarBuilder) -> candle_core::Result<Self> {
         if ada {
             let dense = candle_nn::linear(width, 3 * width, vb.pp("dense"))?;
-            let ones = Tensor::ones(width, DType::F32, vb.device())?;
+            let ones = Tensor::ones(width, vb.dtype(), vb.device())?;
             Ok(Norm::Ada { dense, ones, eps })
         } else {
             let w = vb.get_with_hints(width, "weight", candle_nn::Init::Const(0.0))?;
@@ -138,7 +138,8 @@ pub fn gated_residual(
     }
 }
 
-/// RoPE tables for one stream: `cos`, `sin` [B, L, head_dim/2] (f32, from positions).
+/// RoPE tables for one stream: `cos`, `sin` [B, L, head_dim/2] (computed in f32 from positions,
+/// stored in the model's dtype).
 #[derive(Debug, Clone)]
 pub struct Rope {
     /// [B, L, hd/2].
@@ -154,6 +155,7 @@ impl Rope {
         head_dim: usize,
         theta: f64,
         dev: &Device,
+        dtype: DType,
     ) -> candle_core::Result<Self> {
         let half = head_dim / 2;
         let inv: Vec<f32> = (0..half)
@@ -173,8 +175,8 @@ impl Rope {
             }
         }
         Ok(Rope {
-            cos: Tensor::from_vec(c, (b, l, half), dev)?,
-            sin: Tensor::from_vec(s, (b, l, half), dev)?,
+            cos: Tensor::from_vec(c, (b, l, half), dev)?.to_dtype(dtype)?,
+            sin: Tensor::from_vec(s, (b, l, half), dev)?.to_dtype(dtype)?,
         })
     }
 

@@ -19,18 +19,6 @@ pub enum Encoding {
 }
 
 impl Encoding {
-    /// From `chunkrt_ipc::ENCODING_*`.
-    pub fn from_code(code: u32) -> Result<Self, PolicyError> {
-        match code {
-            c if c == chunkrt_ipc::ENCODING_RGB8 => Ok(Encoding::Rgb8),
-            c if c == chunkrt_ipc::ENCODING_BGR8 => Ok(Encoding::Bgr8),
-            c if c == chunkrt_ipc::ENCODING_MONO8 => Ok(Encoding::Mono8),
-            other => Err(PolicyError::Input(format!(
-                "unknown frame encoding {other}"
-            ))),
-        }
-    }
-
     /// Bytes per pixel.
     pub fn bytes_per_pixel(self) -> usize {
         match self {

@@ -423,7 +423,7 @@ pub(super) mod tests {
     use super::*;
 
     /// Deterministic test values in [-1, 1) (an LCG), shared with the packed kernels' tests.
-    pub(in crate::policy) fn lcg(seed: u64) -> impl FnMut() -> f32 {
+    pub(crate) fn lcg(seed: u64) -> impl FnMut() -> f32 {
         let mut s = seed;
         move || {
             s = s

@@ -201,8 +201,13 @@ impl PackedRhs {
         self
     }
 
-    /// Packs a [K, N] tensor (any strides); `None` when this CPU has no kernel for `precision`.
+    /// Packs a [K, N] tensor (any strides); `None` when this CPU has no kernel for `precision`,
+    /// or the tensor is not an f32 tensor on the CPU (a GPU model keeps its weights where they
+    /// are: nothing is copied to the host).
     pub fn pack(w: &Tensor, precision: Precision) -> candle_core::Result<Option<Self>> {
+        if !w.device().is_cpu() || w.dtype() != DType::F32 {
+            return Ok(None);
+        }
         let (k, n) = w.dims2()?;
         let v = w
             .to_dtype(DType::F32)?

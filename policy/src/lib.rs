@@ -4,13 +4,13 @@
 //! One file per part: [`config`] (dimensions, presets), [`siglip`] (vision tower + projector),
 //! [`gemma`] (the dual-expert transformer), [`model`] (embeddings, masks, cache, sampler, loss),
 //! [`checkpoint`] (safetensors loading and checks), [`preprocess`] (images, normalisation,
-//! prompts, tokenizer), [`runtime`] (`Policy::load` / `Policy::infer`), [`bench`], [`cli`].
+//! prompts, tokenizer), [`runtime`] (`Policy::load` / `Policy::infer`), [`bench`].
 
 pub mod amx;
 pub mod bench;
 pub mod checkpoint;
-pub mod cli;
 pub mod config;
+pub mod device;
 pub mod fastops;
 pub mod gemma;
 pub mod model;
@@ -21,8 +21,10 @@ pub mod runtime;
 pub mod siglip;
 
 pub use config::{ConfigOverrides, ModelConfig, ModelKind};
+pub use device::{model_dtype, DeviceSpec, Precision};
 pub use model::{ModelInputs, PiModel, PrefixCache, SampleOutput};
-pub use runtime::{Policy, RawFrame, RawObservation};
+pub use preprocess::Encoding;
+pub use runtime::{LoadOptions, Policy, RawFrame, RawObservation};
 
 /// Errors of the policy.
 #[derive(Debug, thiserror::Error)]
