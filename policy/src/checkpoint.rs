@@ -9,7 +9,6 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 
 use super::config::{ConfigOverrides, ModelConfig, ModelKind};
-use super::device::{model_dtype, Precision};
 use super::model::PiModel;
 use super::PolicyError;
 
@@ -345,27 +344,23 @@ pub struct Loaded {
 
 /// Loads `dir/model.safetensors` (+ `config.json`) and builds the model in f32 on the CPU.
 pub fn load(dir: &Path, overrides: &ConfigOverrides) -> Result<Loaded, PolicyError> {
-    load_on(dir, overrides, &Device::Cpu, Precision::F32)
+    load_on(dir, overrides, &Device::Cpu, DType::F32)
 }
 
-/// Loads `dir/model.safetensors` (+ `config.json`) and builds the model on `device`, its
-/// tensors in [`model_dtype`]`(device, precision)`, each weight read from the file straight into
-/// that dtype on that device.
+/// Loads `dir/model.safetensors` (+ `config.json`) and builds the model on `device` with its
+/// tensors in `dtype` ([`crate::model_dtype`] picks it for a precision), each weight read from
+/// the file straight into that dtype on that device.
 pub fn load_on(
     dir: &Path,
     overrides: &ConfigOverrides,
     device: &Device,
-    precision: Precision,
+    dtype: DType,
 ) -> Result<Loaded, PolicyError> {
     let file = WeightFile::open(&dir.join("model.safetensors"))?;
     let cfg = resolve_config(dir, file.shapes(), overrides)?;
     check_tensors(&cfg, file.shapes())?;
     let stored_dtypes = file.dtypes().to_vec();
-    let vb = VarBuilder::from_backend(
-        Box::new(file),
-        model_dtype(device, precision),
-        device.clone(),
-    );
+    let vb = VarBuilder::from_backend(Box::new(file), dtype, device.clone());
     let model = PiModel::new(&cfg, vb)?;
     Ok(Loaded {
         model,

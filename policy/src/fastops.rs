@@ -157,8 +157,21 @@ fn threads() -> usize {
     candle_core::utils::get_num_threads()
 }
 
-/// The f32 data of a CPU tensor from its start offset, with its layout.
+static DISABLED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Turns these kernels off (`false`) or back on for the whole process; off, every entry point
+/// reports `None` and callers run candle's compositions, the same device-generic ops a GPU
+/// model runs ([`crate::set_cpu_fast_paths`]).
+pub fn set_enabled(on: bool) {
+    DISABLED.store(!on, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// The f32 data of a CPU tensor from its start offset, with its layout (`None`: not an f32 CPU
+/// tensor, or these kernels are off). Every entry point goes through here.
 fn cpu_f32<R>(t: &Tensor, f: impl FnOnce(&[f32], &Layout) -> Result<R>) -> Result<Option<R>> {
+    if DISABLED.load(std::sync::atomic::Ordering::Relaxed) {
+        return Ok(None);
+    }
     let (s, l) = t.storage_and_layout();
     match &*s {
         Storage::Cpu(CpuStorage::F32(v)) => Ok(Some(f(&v[l.start_offset()..], l)?)),

@@ -57,11 +57,13 @@ fn rms_plain(x: &Tensor, ones: &Tensor, eps: f64, diff: bool) -> candle_core::Re
 
 impl Norm {
     /// Loads `input_layernorm` & co. Plain norms read `weight` [W]; adaptive ones read
-    /// `dense.{weight,bias}` [3W, W].
+    /// `dense.{weight,bias}` [3W, W]. Their weights stay f32 whatever the model's dtype (as
+    /// openpi keeps them), and they compute in f32.
     pub fn new(width: usize, ada: bool, eps: f64, vb: VarBuilder) -> candle_core::Result<Self> {
+        let vb = vb.set_dtype(DType::F32);
         if ada {
             let dense = candle_nn::linear(width, 3 * width, vb.pp("dense"))?;
-            let ones = Tensor::ones(width, vb.dtype(), vb.device())?;
+            let ones = Tensor::ones(width, DType::F32, vb.device())?;
             Ok(Norm::Ada { dense, ones, eps })
         } else {
             let w = vb.get_with_hints(width, "weight", candle_nn::Init::Const(0.0))?;
@@ -78,14 +80,17 @@ impl Norm {
         }
     }
 
-    /// `x` [B, L, W], `cond` [B, Wc] (adaptive only). Returns the normed `x` and the gate
-    /// [B, 1, W] (adaptive only).
+    /// `x` [B, L, W], `cond` [B, Wc] f32 (adaptive only). Returns the normed `x` and the gate
+    /// [B, 1, W] (adaptive only), both in `x`'s dtype; the statistics, the `(1 + w)` scaling and
+    /// the adaptive modulation are computed in f32 (openpi's `GemmaRMSNorm`).
     pub fn forward(
         &self,
         x: &Tensor,
         cond: Option<&Tensor>,
         diff: bool,
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
+        let dtype = x.dtype();
+        let x = &x.to_dtype(DType::F32)?;
         match self {
             Norm::Rms { weight, alpha, eps } => {
                 let derived;
@@ -96,30 +101,28 @@ impl Norm {
                         &derived
                     }
                 };
-                if diff {
+                let y = if diff {
                     let ms = x.sqr()?.mean_keepdim(D::Minus1)?;
                     let y = x.broadcast_div(&(ms + *eps)?.sqrt()?)?;
-                    Ok((y.broadcast_mul(alpha)?, None))
+                    y.broadcast_mul(alpha)?
                 } else {
-                    Ok((
-                        candle_nn::ops::rms_norm(&x.contiguous()?, alpha, *eps as f32)?,
-                        None,
-                    ))
-                }
+                    candle_nn::ops::rms_norm(&x.contiguous()?, alpha, *eps as f32)?
+                };
+                Ok((y.to_dtype(dtype)?, None))
             }
             Norm::Ada { dense, ones, eps } => {
                 let cond = cond.ok_or_else(|| {
                     candle_core::Error::Msg("adaRMSNorm needs a condition".into())
                 })?;
                 // [B, 3W] -> [B, 1, 3W]
-                let m = dense.forward(cond)?.unsqueeze(1)?;
+                let m = dense.forward(&cond.to_dtype(DType::F32)?)?.unsqueeze(1)?;
                 let w = m.dim(D::Minus1)? / 3;
                 let scale = m.narrow(D::Minus1, 0, w)?;
                 let shift = m.narrow(D::Minus1, w, w)?;
                 let gate = m.narrow(D::Minus1, 2 * w, w)?;
                 let y = rms_plain(x, ones, *eps, diff)?;
                 let y = y.broadcast_mul(&(scale + 1.0)?)?.broadcast_add(&shift)?;
-                Ok((y, Some(gate)))
+                Ok((y.to_dtype(dtype)?, Some(gate.to_dtype(dtype)?)))
             }
         }
     }
@@ -433,15 +436,18 @@ pub fn attention(
     // [B, nKV, g*L, T]
     let s = q.matmul(&k.t()?)?;
     let bl = bias.dim(2)?;
-    // [B, nKV, g, L, T] + [B, 1, 1, L|1, T]
+    // [B, nKV, g, L, T] + [B, 1, 1, L|1, T], masked and normalised in f32 (openpi's softmax
+    // runs in f32 whatever the model's dtype), probabilities back in the model's dtype
     let s = s
         .reshape((b, nkv, g, l, t))?
-        .broadcast_add(&bias.reshape((b, 1, 1, bl, t))?)?;
+        .to_dtype(DType::F32)?
+        .broadcast_add(&bias.to_dtype(DType::F32)?.reshape((b, 1, 1, bl, t))?)?;
     let p = if diff {
         candle_nn::ops::softmax(&s, D::Minus1)?
     } else {
         candle_nn::ops::softmax_last_dim(&s)?
-    };
+    }
+    .to_dtype(v.dtype())?;
     // [B, nKV, g*L, hd] -> [B, nH, L, hd] -> [B, L, nH*hd]
     let o = p.reshape((b, nkv, g * l, t))?.matmul(v)?;
     o.reshape((b, nh, l, hd))?

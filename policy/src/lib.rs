@@ -26,6 +26,15 @@ pub use model::{ModelInputs, PiModel, PrefixCache, SampleOutput};
 pub use preprocess::Encoding;
 pub use runtime::{LoadOptions, Policy, RawFrame, RawObservation};
 
+/// Turns chunkrt's CPU kernels (the packed matrix products, [`packed`], and the fused ops,
+/// [`fastops`]) off or back on for the whole process. Off, a CPU model runs the same candle
+/// compositions a GPU model runs: the tests use it to hold that device-generic path to openpi's
+/// fixtures on machines without a GPU, the benches to measure candle as an in-run baseline.
+pub fn set_cpu_fast_paths(on: bool) {
+    packed::set_enabled(on);
+    fastops::set_enabled(on);
+}
+
 /// Errors of the policy.
 #[derive(Debug, thiserror::Error)]
 pub enum PolicyError {

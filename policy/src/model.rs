@@ -188,18 +188,18 @@ pub fn time_embedding(
     Tensor::from_vec(out, (t.len(), width), dev)
 }
 
-/// Additive bias from a boolean mask: 0 where visible, [`MASK_VALUE`] elsewhere.
+/// Additive bias from a boolean mask: 0 where visible, [`MASK_VALUE`] elsewhere (f32: scores
+/// are masked and normalised in f32 whatever the model's dtype).
 fn bias_tensor(
     vis: Vec<bool>,
     shape: (usize, usize, usize, usize),
     dev: &Device,
-    dtype: DType,
 ) -> candle_core::Result<Tensor> {
     let v: Vec<f32> = vis
         .into_iter()
         .map(|b| if b { 0.0 } else { MASK_VALUE })
         .collect();
-    Tensor::from_vec(v, shape, dev)?.to_dtype(dtype)
+    Tensor::from_vec(v, shape, dev)
 }
 
 /// openpi `make_att_2d_masks`: query i sees key j iff `cum[j] <= cum[i]` and both are valid.
@@ -252,17 +252,20 @@ impl PiModel {
             eps,
             vb.pp("paligemma_with_expert.gemma_expert.model"),
         )?;
-        let action_in_proj = candle_nn::linear(a, we, vb.pp("action_in_proj"))?;
-        let action_out_proj = candle_nn::linear(we, a, vb.pp("action_out_proj"))?;
+        // The action/state projections and the time MLPs live outside openpi's
+        // `paligemma_with_expert` and stay f32 there whatever the model's dtype; so here.
+        let vf = vb.clone().set_dtype(DType::F32);
+        let action_in_proj = candle_nn::linear(a, we, vf.pp("action_in_proj"))?;
+        let action_out_proj = candle_nn::linear(we, a, vf.pp("action_out_proj"))?;
         let heads = match cfg.kind {
             ModelKind::Pi0 => SuffixHeads::Pi0 {
-                state_proj: candle_nn::linear(a, we, vb.pp("state_proj"))?,
-                mlp_in: candle_nn::linear(2 * we, we, vb.pp("action_time_mlp_in"))?,
-                mlp_out: candle_nn::linear(we, we, vb.pp("action_time_mlp_out"))?,
+                state_proj: candle_nn::linear(a, we, vf.pp("state_proj"))?,
+                mlp_in: candle_nn::linear(2 * we, we, vf.pp("action_time_mlp_in"))?,
+                mlp_out: candle_nn::linear(we, we, vf.pp("action_time_mlp_out"))?,
             },
             ModelKind::Pi05 => SuffixHeads::Pi05 {
-                time_in: candle_nn::linear(we, we, vb.pp("time_mlp_in"))?,
-                time_out: candle_nn::linear(we, we, vb.pp("time_mlp_out"))?,
+                time_in: candle_nn::linear(we, we, vf.pp("time_mlp_in"))?,
+                time_out: candle_nn::linear(we, we, vf.pp("time_mlp_out"))?,
             },
         };
         Ok(PiModel {
@@ -423,8 +426,11 @@ impl PiModel {
             None
         } else {
             let imgs: Vec<&Tensor> = run.iter().map(|&c| &inp.images[c]).collect();
-            let imgs = Tensor::cat(&imgs, 0)?.to_dtype(self.dtype)?;
-            Some(self.vision.forward_with(&imgs, diff)?)
+            Some(
+                self.vision
+                    .forward_with(&Tensor::cat(&imgs, 0)?, diff)?
+                    .to_dtype(self.dtype)?,
+            )
         };
         let mut parts = Vec::with_capacity(inp.images.len() + 1);
         for c in 0..inp.images.len() {
@@ -468,7 +474,7 @@ impl PiModel {
                 }
             }
         }
-        bias_tensor(vis, (b, 1, p, p), &self.device, self.dtype)
+        bias_tensor(vis, (b, 1, p, p), &self.device)
     }
 
     /// Suffix ar flags (π0: `[1, 1, 0, ..]`, π0.5: `[1, 0, ..]`).
@@ -499,10 +505,9 @@ impl PiModel {
             self.cfg.time_min_period,
             self.cfg.time_max_period,
             &self.device,
-        )?
-        .to_dtype(self.dtype)?;
-        // [B, H, We]
-        let a = self.action_in_proj.forward(&x_t.to_dtype(self.dtype)?)?;
+        )?;
+        // [B, H, We], in f32 like the heads; the tokens enter the expert in the model's dtype
+        let a = self.action_in_proj.forward(&x_t.to_dtype(DType::F32)?)?;
         match &self.heads {
             SuffixHeads::Pi0 {
                 state_proj,
@@ -516,16 +521,17 @@ impl PiModel {
                 if with_state {
                     // [B, 1, We]
                     let s = state_proj
-                        .forward(&state.to_dtype(self.dtype)?)?
+                        .forward(&state.to_dtype(DType::F32)?)?
                         .unsqueeze(1)?;
-                    Ok((Tensor::cat(&[&s, &at], 1)?, None))
+                    Ok((Tensor::cat(&[&s, &at], 1)?.to_dtype(self.dtype)?, None))
                 } else {
-                    Ok((at, None))
+                    Ok((at.to_dtype(self.dtype)?, None))
                 }
             }
             SuffixHeads::Pi05 { time_in, time_out } => {
+                // the adaRMS condition stays f32 (the norms' dense layers are f32)
                 let c = time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?;
-                Ok((a, Some(c)))
+                Ok((a.to_dtype(self.dtype)?, Some(c)))
             }
         }
     }
@@ -541,8 +547,7 @@ impl PiModel {
                     self.cfg.time_min_period,
                     self.cfg.time_max_period,
                     &self.device,
-                )?
-                .to_dtype(self.dtype)?;
+                )?;
                 Ok(Some(
                     time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?,
                 ))
@@ -695,7 +700,7 @@ impl PiModel {
             vis.extend_from_slice(row);
             vis.extend(std::iter::repeat_n(true, total - p));
         }
-        let step_bias = bias_tensor(vis, (b, 1, 1, t_step), &self.device, self.dtype)?;
+        let step_bias = bias_tensor(vis, (b, 1, 1, t_step), &self.device)?;
         // positions of the action tokens: n_valid + state_tokens + [0, H)
         let h = self.cfg.action_horizon;
         let apos: Vec<Vec<i64>> = layout
@@ -717,8 +722,9 @@ impl PiModel {
                 return Err(PolicyError::Config("pi0 without state_proj".into()));
             };
             let s = state_proj
-                .forward(&inp.state.to_dtype(self.dtype)?)?
-                .unsqueeze(1)?;
+                .forward(&inp.state.to_dtype(DType::F32)?)?
+                .unsqueeze(1)?
+                .to_dtype(self.dtype)?;
             let spos: Vec<Vec<i64>> = layout.n_valid.iter().map(|&n| vec![n as i64]).collect();
             let srope = Rope::new(
                 &spos,
@@ -732,7 +738,7 @@ impl PiModel {
                 svis.extend_from_slice(row);
                 svis.push(true);
             }
-            let sbias = bias_tensor(svis, (b, 1, 1, pc + 1), &self.device, self.dtype)?;
+            let sbias = bias_tensor(svis, (b, 1, 1, pc + 1), &self.device)?;
             let mut st = [Stream {
                 x: s,
                 expert: &self.expert,
@@ -828,8 +834,8 @@ impl PiModel {
             .norm
             .forward(&st[0].x, cond.as_ref(), differentiable)?
             .0;
-        // velocities in f32 whatever the model's dtype: the sampler state is f32
-        Ok(self.action_out_proj.forward(&out)?.to_dtype(DType::F32)?)
+        // velocities in f32 whatever the model's dtype (f32 head): the sampler state is f32
+        Ok(self.action_out_proj.forward(&out.to_dtype(DType::F32)?)?)
     }
 
     /// The full joint forward (no cache; training and the uncached sampler): prefix tokens through
@@ -875,7 +881,7 @@ impl PiModel {
             let n = layout.n_valid[bi] as i64;
             spos.push((0..s as i64).map(|i| n + i).collect::<Vec<_>>());
         }
-        let bias = bias_tensor(vis, (b, 1, p + s, p + s), &self.device, self.dtype)?;
+        let bias = bias_tensor(vis, (b, 1, p + s, p + s), &self.device)?;
         let d = &self.cfg.paligemma;
         let prope = Rope::new(
             &layout.pos,
@@ -935,8 +941,7 @@ impl PiModel {
         let h = self.cfg.action_horizon;
         Ok(self
             .action_out_proj
-            .forward(&so.narrow(1, s - h, h)?)?
-            .to_dtype(DType::F32)?)
+            .forward(&so.narrow(1, s - h, h)?.to_dtype(DType::F32)?)?)
     }
 
     /// Flow-matching sampler: Euler from t = 1 (noise) with `dt = -1/steps`, time accumulated in
@@ -1016,7 +1021,9 @@ impl PiModel {
     fn flow_loss(&self, so: &Tensor, u: &Tensor) -> Result<LossOutput, PolicyError> {
         let s = so.dim(1)?;
         let h = self.cfg.action_horizon;
-        let v_t = self.action_out_proj.forward(&so.narrow(1, s - h, h)?)?;
+        let v_t = self
+            .action_out_proj
+            .forward(&so.narrow(1, s - h, h)?.to_dtype(DType::F32)?)?;
         let per_element = (u - &v_t)?.sqr()?;
         let mean = per_element.mean_all()?;
         Ok(LossOutput {
@@ -1114,7 +1121,7 @@ impl PiModel {
             let n = layout.n_valid[bi] as i64;
             spos.push((0..s as i64).map(|i| n + i).collect::<Vec<_>>());
         }
-        let sbias = bias_tensor(vis, (bk, 1, s, p + s), &self.device, self.dtype)?;
+        let sbias = bias_tensor(vis, (bk, 1, s, p + s), &self.device)?;
         let srope = Rope::new(
             &spos,
             d.head_dim,

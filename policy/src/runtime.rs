@@ -98,7 +98,8 @@ impl Policy {
         let device = opts.device.open()?;
         let mut overrides = opts.overrides.clone();
         overrides.num_denoise_steps = Some(opts.num_steps);
-        let loaded = checkpoint::load_on(checkpoint_dir, &overrides, &device, opts.precision)?;
+        let dtype = super::device::model_dtype(&device, opts.precision);
+        let loaded = checkpoint::load_on(checkpoint_dir, &overrides, &device, dtype)?;
         let mut model = loaded.model;
         if device.is_cpu() && opts.precision == Precision::Bf16 && !model.use_bf16()? {
             tracing::warn!("policy.precision = bf16 needs Intel AMX or AVX512-BF16, which this CPU does not offer: running f32");

@@ -172,6 +172,8 @@ struct EncoderLayer {
 #[derive(Debug, Clone)]
 pub struct Vision {
     dims: VisionDims,
+    /// The tower's dtype (the model's).
+    dtype: DType,
     /// Patch embedding as a matrix over flattened (c, y, x) patches: [Dv, 3 p²], bias [Dv].
     patch: Dense,
     /// [T, Dv].
@@ -189,7 +191,9 @@ impl Vision {
         let t = dims.num_tokens();
         let eps = dims.layer_norm_eps;
         let vm = vb.pp("vision_tower.vision_model");
-        let emb = vm.pp("embeddings");
+        // the patch and position embeddings stay f32 whatever the model's dtype (openpi keeps
+        // them f32); the tower runs in the model's dtype from their sum on
+        let emb = vm.pp("embeddings").set_dtype(DType::F32);
         // conv weight [Dv, 3, p, p] -> [Dv, 3 p²] (row-major: c, then y, then x)
         let pw = emb.pp("patch_embedding").get_with_hints(
             (d, 3, p, p),
@@ -234,6 +238,7 @@ impl Vision {
         }
         let mut vision = Vision {
             dims: dims.clone(),
+            dtype: vb.dtype(),
             patch: Dense {
                 w: pw.reshape((d, 3 * p * p))?,
                 b: pb,
@@ -283,13 +288,14 @@ impl Vision {
         let hd = d / nh;
         // [N, 3, g, p, g, p] -> [N, g, g, 3, p, p] -> [N, T, 3 p²]
         let patches = images
+            .to_dtype(DType::F32)?
             .reshape((n, c, g, p, g, p))?
             .permute((0, 2, 4, 1, 3, 5))?
             .contiguous()?
             .reshape((n, g * g, c * p * p))?;
         // [N, T, Dv]
         let emb = self.patch.forward(&patches)?;
-        let mut x = fastops::add_or_broadcast(&emb, &self.pos, diff)?;
+        let mut x = fastops::add_or_broadcast(&emb, &self.pos, diff)?.to_dtype(self.dtype)?;
         let t = g * g;
         let scale = (hd as f64).powf(-0.5);
         for l in &self.layers {
@@ -314,13 +320,15 @@ impl Vision {
                     let q = (head(0)? * scale)?;
                     let k = head(1)?;
                     let v = head(2)?;
-                    // [N, nH, T, T]
-                    let sc = q.matmul(&k.t()?)?;
+                    // [N, nH, T, T], normalised in f32 whatever the model's dtype (HF's
+                    // SigLIP attention does its softmax in f32)
+                    let sc = q.matmul(&k.t()?)?.to_dtype(DType::F32)?;
                     let pr = if diff {
                         candle_nn::ops::softmax(&sc, D::Minus1)?
                     } else {
                         candle_nn::ops::softmax_last_dim(&sc)?
-                    };
+                    }
+                    .to_dtype(v.dtype())?;
                     // [N, nH, T, hd] -> [N, T, Dv]
                     pr.matmul(&v)?.transpose(1, 2)?.reshape((n, t, d))?
                 }

@@ -1,0 +1,130 @@
+//! The openpi fixtures in `tests/data` (model, inputs, reference outputs) and tensor comparison
+//! helpers, shared by the policy tests (`#[path = "common/fixture.rs"] mod fixture;`).
+#![allow(dead_code)]
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+use candle_core::{DType, Device, Tensor};
+use chunkrt::policy::checkpoint;
+use chunkrt::policy::model::{ModelInputs, PiModel};
+use chunkrt::policy::ConfigOverrides;
+
+pub fn data(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+pub struct Fixture {
+    pub model: PiModel,
+    pub inputs: ModelInputs,
+    pub raw: HashMap<String, Tensor>,
+    pub out: HashMap<String, Tensor>,
+}
+
+pub fn mask_vec(t: &Tensor) -> Vec<bool> {
+    t.flatten_all()
+        .unwrap()
+        .to_dtype(DType::U8)
+        .unwrap()
+        .to_vec1::<u8>()
+        .unwrap()
+        .into_iter()
+        .map(|v| v != 0)
+        .collect()
+}
+
+pub fn load(name: &str) -> Fixture {
+    load_on(name, &Device::Cpu, DType::F32)
+}
+
+/// The fixture's model on `device` with its tensors in `dtype`, and its inputs on that device.
+pub fn load_on(name: &str, device: &Device, dtype: DType) -> Fixture {
+    let dir = data(name);
+    let loaded = checkpoint::load_on(&dir, &ConfigOverrides::default(), device, dtype)
+        .expect("fixture loads");
+    let model = loaded.model;
+    let raw = candle_core::safetensors::load(dir.join("inputs.safetensors"), &Device::Cpu).unwrap();
+    let out =
+        candle_core::safetensors::load(dir.join("outputs.safetensors"), &Device::Cpu).unwrap();
+    let cams = model.cfg.cameras.clone();
+    let images = cams
+        .iter()
+        .map(|c| raw[&format!("image.{c}")].to_device(device).unwrap())
+        .collect();
+    let image_masks = cams
+        .iter()
+        .map(|c| mask_vec(&raw[&format!("image_mask.{c}")]))
+        .collect();
+    let tm = &raw["tokenized_prompt_mask"];
+    let (b, lt) = tm.dims2().unwrap();
+    let flat = mask_vec(tm);
+    let token_mask = (0..b)
+        .map(|i| flat[i * lt..(i + 1) * lt].to_vec())
+        .collect();
+    let inputs = ModelInputs {
+        images,
+        image_masks,
+        tokens: raw["tokenized_prompt"].to_device(device).unwrap(),
+        token_mask,
+        state: raw["state"].to_device(device).unwrap(),
+    };
+    Fixture {
+        model,
+        inputs,
+        raw,
+        out,
+    }
+}
+
+pub fn maxdiff(a: &Tensor, b: &Tensor) -> f32 {
+    assert_eq!(a.dims(), b.dims(), "shape");
+    (a - b)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+}
+
+/// Rows of `t` along `dim` where `valid` is true.
+pub fn valid_rows(t: &Tensor, dim: usize, valid: &[bool]) -> Tensor {
+    let idx: Vec<u32> = valid
+        .iter()
+        .enumerate()
+        .filter(|(_, v)| **v)
+        .map(|(i, _)| i as u32)
+        .collect();
+    let idx = Tensor::new(idx.as_slice(), &Device::Cpu).unwrap();
+    t.index_select(&idx, dim).unwrap()
+}
+
+/// max |a - b| / RMS(b): the relative deviation of `a` from the reference `b`.
+pub fn rel_maxdiff(a: &Tensor, b: &Tensor) -> f64 {
+    let rms = b
+        .to_dtype(DType::F32)
+        .unwrap()
+        .sqr()
+        .unwrap()
+        .mean_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+        .sqrt() as f64;
+    maxdiff(
+        &a.to_dtype(DType::F32)
+            .unwrap()
+            .to_device(&Device::Cpu)
+            .unwrap(),
+        &b.to_dtype(DType::F32)
+            .unwrap()
+            .to_device(&Device::Cpu)
+            .unwrap(),
+    ) as f64
+        / rms.max(1e-12)
+}
