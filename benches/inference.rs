@@ -1,6 +1,13 @@
 //! Inference benchmark: `cargo bench --bench inference [-- --quick] [--config pi05_bench]`
 //! (or in the dev profile: `cargo test --bench inference -- --quick`).
 //!
+//! Device mode, for GPUs (and the CPU): `cargo bench [--features cuda] --bench inference --
+//! --device cuda --preset pi05 [--precision bf16] [--calls 30] [--warmup 5]`: a random model of
+//! the preset (`pi0` / `pi05`: openpi's full size; `pi0_bench` / `pi05_bench`) made on the device,
+//! p50 / p90 / p99 / max of vision, prefix, one cached step and the full sample, by wall clock
+//! around the whole call and by CUDA events, the device memory in use, and the ratio to openpi's
+//! figures on an H100 (`benches/data/openpi_h100.json`).
+//!
 //! Random weights built in-process from `benches/data/*_bench.json`, 2 CPU threads (override with
 //! `RAYON_NUM_THREADS`), p50 / p99 of the vision pass, the prefix pass, one denoising step cached
 //! and uncached, and the full sample, with achieved GFLOP/s; compared with openpi's PyTorch
@@ -12,6 +19,14 @@ fn main() {
     }
     let args: Vec<String> = std::env::args().collect();
     let quick = args.iter().any(|a| a == "--quick");
+    let value = |flag: &str| {
+        args.iter()
+            .position(|a| a == flag)
+            .and_then(|i| args.get(i + 1).cloned())
+    };
+    if value("--device").is_some() || value("--preset").is_some() {
+        std::process::exit(device_mode(&value));
+    }
     // `--config NAME`: only one configuration (pi0_bench / pi05_bench)
     let only = args
         .iter()
@@ -63,6 +78,47 @@ fn main() {
         Err(e) => {
             eprintln!("bench failed: {e}");
             std::process::exit(1);
+        }
+    }
+}
+
+/// `--device D --preset P [--precision f32|bf16] [--calls N] [--warmup N]`; returns the exit code.
+fn device_mode(value: &dyn Fn(&str) -> Option<String>) -> i32 {
+    use chunkrt::policy::bench::{run_device, DeviceBenchOptions};
+    use chunkrt::policy::{model_dtype, DeviceSpec, Precision};
+    let run = || -> anyhow::Result<()> {
+        let spec: DeviceSpec = value("--device").unwrap_or_else(|| "cpu".into()).parse()?;
+        let precision: Precision = value("--precision")
+            .unwrap_or_else(|| "bf16".into())
+            .parse()?;
+        let device = spec.open()?;
+        let num = |flag: &str, default: usize| -> anyhow::Result<usize> {
+            match value(flag) {
+                Some(v) => Ok(v.parse()?),
+                None => Ok(default),
+            }
+        };
+        let presets = match value("--preset") {
+            Some(p) => vec![p],
+            None => vec!["pi05".to_string(), "pi0".to_string()],
+        };
+        for preset in presets {
+            let opts = DeviceBenchOptions {
+                preset,
+                dtype: model_dtype(&device, precision),
+                device: device.clone(),
+                calls: num("--calls", 30)?.clamp(1, 10_000),
+                warmup: num("--warmup", 5)?.min(1000),
+            };
+            println!("{}", run_device(&opts)?);
+        }
+        Ok(())
+    };
+    match run() {
+        Ok(()) => 0,
+        Err(e) => {
+            eprintln!("inference bench: {e:#}");
+            1
         }
     }
 }

@@ -10,6 +10,7 @@ use crate::policy::checkpoint;
 use crate::policy::config::ConfigOverrides;
 use crate::policy::model::ModelInputs;
 use crate::policy::preprocess::{resize_with_pad, to_model_chw};
+use crate::policy::{model_dtype, DeviceSpec, Precision};
 
 /// `chunkrt sample`: run the policy on a safetensors file of inputs.
 #[derive(Debug, clap::Args)]
@@ -31,6 +32,13 @@ pub struct SampleArgs {
     /// Run the full joint forward at every step instead of using the prefix KV cache.
     #[arg(long)]
     pub no_cache: bool,
+    /// Where to run: cpu, cuda or cuda:N (a GPU needs a build with `--features cuda`).
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
+    /// f32 or bf16 (on a GPU: the model's tensors in bf16; on a CPU: bf16 matrix products where
+    /// the CPU has them).
+    #[arg(long, default_value = "f32")]
+    pub precision: Precision,
 }
 
 /// `chunkrt inspect`: describe a checkpoint.
@@ -38,6 +46,12 @@ pub struct SampleArgs {
 pub struct InspectArgs {
     /// Checkpoint directory.
     pub dir: PathBuf,
+    /// Also say whether the model fits on this device (cpu, cuda, cuda:N) in `--precision`.
+    #[arg(long)]
+    pub device: Option<DeviceSpec>,
+    /// Precision for `--device`.
+    #[arg(long, default_value = "bf16")]
+    pub precision: Precision,
 }
 
 fn mask_rows(t: &Tensor) -> anyhow::Result<Vec<bool>> {
@@ -145,11 +159,22 @@ pub fn inputs_from_map(
 
 /// `chunkrt sample`.
 pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
-    let loaded = checkpoint::load(&args.checkpoint, &ConfigOverrides::default())?;
-    let model = loaded.model;
+    let device = args.device.open()?;
+    let dtype = model_dtype(&device, args.precision);
+    let loaded = checkpoint::load_on(
+        &args.checkpoint,
+        &ConfigOverrides::default(),
+        &device,
+        dtype,
+    )?;
+    let mut model = loaded.model;
+    if device.is_cpu() && args.precision == Precision::Bf16 && !model.use_bf16()? {
+        eprintln!("sample: this CPU has no bf16 kernel (AMX / AVX512-BF16): running f32");
+    }
     let m = candle_core::safetensors::load(&args.inputs, &Device::Cpu)
         .with_context(|| format!("reading {}", args.inputs.display()))?;
     let (inputs, noise) = inputs_from_map(&model.cfg, &m)?;
+    let inputs = inputs.to_device(&device)?;
     let b = inputs.batch();
     let noise = match noise {
         Some(n) => n,
@@ -159,7 +184,8 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
             (b, model.cfg.action_horizon, model.cfg.action_dim),
             &Device::Cpu,
         )?,
-    };
+    }
+    .to_device(&device)?;
     let steps = args.steps.unwrap_or(model.cfg.num_denoise_steps);
     let t0 = std::time::Instant::now();
     let out = if args.no_cache {
@@ -169,14 +195,31 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
         model.sample(&inputs, &noise, steps, Some(&mut cache))?
     };
     let dt = t0.elapsed();
+    let actions = out.actions.to_device(&Device::Cpu)?;
+    let finite = actions
+        .flatten_all()?
+        .to_vec1::<f32>()?
+        .iter()
+        .all(|x| x.is_finite());
+    anyhow::ensure!(
+        finite,
+        "the model produced non-finite actions (NaN or inf): check the checkpoint's weights \
+         (nothing written to {})",
+        args.output.display()
+    );
     let mut save = HashMap::new();
-    save.insert("actions".to_string(), out.actions.clone());
-    save.insert("v_t_step0".to_string(), out.v_t_step0.clone());
+    save.insert("actions".to_string(), actions);
+    save.insert(
+        "v_t_step0".to_string(),
+        out.v_t_step0.to_device(&Device::Cpu)?,
+    );
     candle_core::safetensors::save(&save, &args.output)
         .with_context(|| format!("writing {}", args.output.display()))?;
     println!(
-        "sampled {:?} actions in {:.1} ms ({} steps, {}) -> {}",
+        "sampled {:?} actions on {} ({:?}) in {:.1} ms ({} steps, {}) -> {}",
         out.actions.dims(),
+        args.device,
+        dtype,
         dt.as_secs_f64() * 1e3,
         steps,
         if args.no_cache {
@@ -192,5 +235,26 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
 /// `chunkrt inspect`.
 pub fn inspect(args: InspectArgs) -> anyhow::Result<()> {
     print!("{}", checkpoint::inspect(&args.dir)?);
+    if let Some(spec) = args.device {
+        let device = spec.open()?;
+        let need = checkpoint::model_bytes(&args.dir, model_dtype(&device, args.precision))?;
+        print!(
+            "on {spec} in {}: weights {:.2} GB",
+            args.precision,
+            need as f64 / 1e9
+        );
+        match crate::policy::gpu::memory(&device) {
+            Some((used, total)) => {
+                let free = total.saturating_sub(used);
+                println!(
+                    ", device free {:.2} GB of {:.2} GB: {}",
+                    free as f64 / 1e9,
+                    total as f64 / 1e9,
+                    if need < free { "fits" } else { "does NOT fit" }
+                );
+            }
+            None => println!(" (host memory)"),
+        }
+    }
     Ok(())
 }

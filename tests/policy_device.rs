@@ -100,3 +100,55 @@ fn cuda_f32_matches_openpi_and_bf16_stays_within_3_percent() {
         assert!(r < BF16_BOUND, "{name}: {r}");
     }
 }
+
+/// `chunkrt sample` on a device: without a GPU build it says how to get one; with NaN weights it
+/// exits non-zero and writes nothing (it used to write NaN actions and exit 0).
+#[test]
+fn sample_cli_device_errors_and_nan_weights() {
+    let exe = env!("CARGO_BIN_EXE_chunkrt");
+    let dir = fixture::data("pi0_tiny");
+    let tmp = std::env::temp_dir().join(format!("chunkrt_device_cli_{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let out = tmp.join("out.safetensors");
+    let sample = |ckpt: &std::path::Path, extra: &[&str]| {
+        std::process::Command::new(exe)
+            .args(["sample", "--checkpoint"])
+            .arg(ckpt)
+            .arg("--inputs")
+            .arg(dir.join("inputs.safetensors"))
+            .arg("--output")
+            .arg(&out)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    if !cfg!(feature = "cuda") {
+        let r = sample(&dir, &["--device", "cuda"]);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert!(!r.status.success(), "{err}");
+        assert!(err.contains("--features cuda"), "{err}");
+    }
+    let r = sample(&dir, &["--device", "gpu0"]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(!r.status.success() && err.contains("\"cuda:N\""), "{err}");
+
+    // one NaN in the action expert's output projection
+    let mut t =
+        candle_core::safetensors::load(dir.join("model.safetensors"), &Device::Cpu).unwrap();
+    let w = &t["action_out_proj.weight"];
+    let mut v = w.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    v[3] = f32::NAN;
+    let nan = Tensor::from_vec(v, w.shape(), &Device::Cpu).unwrap();
+    t.insert("action_out_proj.weight".into(), nan);
+    let bad = tmp.join("nan_ckpt");
+    std::fs::create_dir_all(&bad).unwrap();
+    candle_core::safetensors::save(&t, bad.join("model.safetensors")).unwrap();
+    std::fs::copy(dir.join("config.json"), bad.join("config.json")).unwrap();
+    std::fs::remove_file(&out).ok();
+    let r = sample(&bad, &[]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(!r.status.success(), "NaN weights must fail: {err}");
+    assert!(err.contains("non-finite actions"), "{err}");
+    assert!(!out.exists(), "nothing may be written");
+    std::fs::remove_dir_all(&tmp).ok();
+}

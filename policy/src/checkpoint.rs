@@ -368,6 +368,18 @@ pub fn load_on(
     })
 }
 
+/// Bytes the model's weights take in `dtype` (the f32-kept norms and heads counted as `dtype`:
+/// they are a few MB): what a device must hold before activations and the KV cache.
+pub fn model_bytes(dir: &Path, dtype: DType) -> Result<u64, PolicyError> {
+    let file = WeightFile::open(&dir.join("model.safetensors"))?;
+    let cfg = resolve_config(dir, file.shapes(), &ConfigOverrides::default())?;
+    let n: usize = expected_tensors(&cfg)
+        .iter()
+        .map(|(_, s)| s.iter().product::<usize>())
+        .sum();
+    Ok((n * dtype.size_in_bytes()) as u64)
+}
+
 /// Human-readable description of a checkpoint directory: architecture, parameter counts, dtypes,
 /// and what is missing or mismatched.
 pub fn inspect(dir: &Path) -> Result<String, PolicyError> {

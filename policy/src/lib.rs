@@ -13,6 +13,7 @@ pub mod config;
 pub mod device;
 pub mod fastops;
 pub mod gemma;
+pub mod gpu;
 pub mod model;
 pub mod packed;
 pub mod preprocess;

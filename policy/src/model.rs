@@ -30,6 +30,21 @@ pub struct ModelInputs {
 }
 
 impl ModelInputs {
+    /// The same inputs on `device` (images, tokens and state; masks are host data).
+    pub fn to_device(&self, device: &Device) -> candle_core::Result<Self> {
+        Ok(Self {
+            images: self
+                .images
+                .iter()
+                .map(|t| t.to_device(device))
+                .collect::<candle_core::Result<_>>()?,
+            image_masks: self.image_masks.clone(),
+            tokens: self.tokens.to_device(device)?,
+            token_mask: self.token_mask.clone(),
+            state: self.state.to_device(device)?,
+        })
+    }
+
     /// Batch size.
     pub fn batch(&self) -> usize {
         self.token_mask.len()

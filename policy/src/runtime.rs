@@ -99,6 +99,22 @@ impl Policy {
         let mut overrides = opts.overrides.clone();
         overrides.num_denoise_steps = Some(opts.num_steps);
         let dtype = super::device::model_dtype(&device, opts.precision);
+        if let Some((used, total)) = super::gpu::memory(&device) {
+            let need = checkpoint::model_bytes(checkpoint_dir, dtype)?;
+            let free = total.saturating_sub(used);
+            // weights plus a margin for the KV cache, activations and cuBLAS workspaces
+            if need + need / 10 + (1 << 30) > free {
+                return Err(PolicyError::Config(format!(
+                    "the model does not fit on {}: its weights take {:.2} GB in {}, the GPU has \
+                     {:.2} GB free of {:.2} GB (try precision = \"bf16\", or free the GPU)",
+                    opts.device,
+                    need as f64 / 1e9,
+                    opts.precision,
+                    free as f64 / 1e9,
+                    total as f64 / 1e9
+                )));
+            }
+        }
         let loaded = checkpoint::load_on(checkpoint_dir, &overrides, &device, dtype)?;
         let mut model = loaded.model;
         if device.is_cpu() && opts.precision == Precision::Bf16 && !model.use_bf16()? {
