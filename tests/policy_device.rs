@@ -152,3 +152,19 @@ fn sample_cli_device_errors_and_nan_weights() {
     assert!(!out.exists(), "nothing may be written");
     std::fs::remove_dir_all(&tmp).ok();
 }
+
+/// The time embedding and π0.5's adaRMS condition depend only on t: made once per time and
+/// kept on the device, so a denoising step uploads nothing and runs no time MLP.
+#[test]
+fn time_features_are_made_once_per_time() {
+    let f = load_on("pi05_tiny", &Device::Cpu, DType::F32);
+    let a = f.model.adarms_cond(&[0.3]).unwrap().unwrap();
+    let b = f.model.adarms_cond(&[0.3]).unwrap().unwrap();
+    assert_eq!(a.id(), b.id(), "the same tensor, not a recomputation");
+    let c = f.model.adarms_cond(&[0.4]).unwrap().unwrap();
+    assert_ne!(a.id(), c.id());
+    // rows at different times (training batches) are computed, not looked up
+    let d = f.model.adarms_cond(&[0.3, 0.4]).unwrap().unwrap();
+    assert_eq!(d.dims()[0], 2);
+    assert!(maxdiff(&d.get(0).unwrap(), &a.get(0).unwrap()) == 0.0);
+}

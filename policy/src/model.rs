@@ -5,6 +5,8 @@
 //! H horizon, A action dim, S suffix length (π0: 1 + H, π0.5: H), W / We widths of the VLM /
 //! action expert.
 
+use std::collections::HashMap;
+
 use candle_core::{DType, Device, Module, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
@@ -136,7 +138,12 @@ pub struct PiModel {
     /// The dtype of the weights, activations and KV cache (f32, or bf16 on a GPU); the sampler
     /// state and the returned velocities stay f32.
     dtype: DType,
+    /// [`Self::time_features`] by (time bits, batch), made once and kept.
+    time_table: TimeTable,
 }
+
+/// Per-time suffix tensors: (time bits, batch) -> (time embedding, adaRMS condition).
+type TimeTable = std::sync::Arc<std::sync::Mutex<HashMap<(u32, usize), (Tensor, Option<Tensor>)>>>;
 
 /// The flow-matching sampler's integration, written once for the plain, uncached and guided
 /// samplers: Euler from t = 1 (noise) to t = 0 (data) with `dt = -1/steps`, time accumulated in
@@ -294,6 +301,7 @@ impl PiModel {
             heads,
             device: vb.device().clone(),
             dtype: vb.dtype(),
+            time_table: TimeTable::default(),
         })
     }
 
@@ -514,13 +522,7 @@ impl PiModel {
         with_state: bool,
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
         let we = self.cfg.action_expert.width;
-        let te = time_embedding(
-            t,
-            we,
-            self.cfg.time_min_period,
-            self.cfg.time_max_period,
-            &self.device,
-        )?;
+        let (te, cond) = self.time_features(t)?;
         // [B, H, We], in f32 like the heads; the tokens enter the expert in the model's dtype
         let a = self.action_in_proj.forward(&x_t.to_dtype(DType::F32)?)?;
         match &self.heads {
@@ -543,31 +545,56 @@ impl PiModel {
                     Ok((at.to_dtype(self.dtype)?, None))
                 }
             }
-            SuffixHeads::Pi05 { time_in, time_out } => {
-                // the adaRMS condition stays f32 (the norms' dense layers are f32)
-                let c = time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?;
-                Ok((a.to_dtype(self.dtype)?, Some(c)))
+            SuffixHeads::Pi05 { .. } => Ok((a.to_dtype(self.dtype)?, cond)),
+        }
+    }
+
+    /// What the suffix needs of the time `t` [B]: the sinusoidal embedding [B, We] and, for
+    /// π0.5, the adaRMS condition [B, We] (the time MLP of it; f32, the norms' dense layers are
+    /// f32). Neither depends on the observation, so for a batch at one time they are made once
+    /// per model and time and kept on the device: a denoising step uploads nothing and runs no
+    /// time MLP. (Not for a model whose time MLP is being trained: its weights change.)
+    fn time_features(&self, t: &[f32]) -> candle_core::Result<(Tensor, Option<Tensor>)> {
+        let b = t.len();
+        let trainable = match &self.heads {
+            SuffixHeads::Pi0 { .. } => false,
+            SuffixHeads::Pi05 { time_in, .. } => time_in.weight().is_variable(),
+        };
+        let key = match t.first() {
+            Some(t0) if !trainable && t.iter().all(|x| x == t0) => Some((t0.to_bits(), b)),
+            _ => None,
+        };
+        if let Some(k) = key {
+            if let Some(v) = self.time_table.lock().ok().and_then(|m| m.get(&k).cloned()) {
+                return Ok(v);
             }
         }
+        let te = time_embedding(
+            t,
+            self.cfg.action_expert.width,
+            self.cfg.time_min_period,
+            self.cfg.time_max_period,
+            &self.device,
+        )?;
+        let cond = match &self.heads {
+            SuffixHeads::Pi0 { .. } => None,
+            SuffixHeads::Pi05 { time_in, time_out } => {
+                Some(time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?)
+            }
+        };
+        if let (Some(k), Ok(mut m)) = (key, self.time_table.lock()) {
+            // a handful of step counts in practice; bounded whatever a caller does
+            if m.len() >= 4096 {
+                m.clear();
+            }
+            m.insert(k, (te.clone(), cond.clone()));
+        }
+        Ok((te, cond))
     }
 
     /// The adaRMS condition at time `t` (π0.5; `None` for π0) [B, We].
     pub fn adarms_cond(&self, t: &[f32]) -> candle_core::Result<Option<Tensor>> {
-        match &self.heads {
-            SuffixHeads::Pi0 { .. } => Ok(None),
-            SuffixHeads::Pi05 { time_in, time_out } => {
-                let te = time_embedding(
-                    t,
-                    self.cfg.action_expert.width,
-                    self.cfg.time_min_period,
-                    self.cfg.time_max_period,
-                    &self.device,
-                )?;
-                Ok(Some(
-                    time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?,
-                ))
-            }
-        }
+        Ok(self.time_features(t)?.1)
     }
 
     /// `embed_suffix` output at time `t` (π0: state token first) [B, S, We].

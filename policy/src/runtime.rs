@@ -129,6 +129,9 @@ impl Policy {
                 )));
             }
         }
+        // Every upload of the weights has landed before another thread (the controller's
+        // inference thread, with its own per-thread CUDA stream) uses them.
+        device.synchronize()?;
         let tok_path = checkpoint_dir.join("tokenizer.json");
         let tokenizer = if tok_path.exists() {
             PromptTokenizer::from_file(&tok_path)?

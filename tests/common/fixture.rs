@@ -10,10 +10,16 @@ use chunkrt::policy::checkpoint;
 use chunkrt::policy::model::{ModelInputs, PiModel};
 use chunkrt::policy::ConfigOverrides;
 
+/// `tests/data/<name>` of this checkout; a test binary carried to another machine (the GPU
+/// machine: scripts/gpu-package.sh) finds it under the working directory instead.
 pub fn data(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(name)
+    let built = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let root = if built.exists() {
+        built
+    } else {
+        PathBuf::from("tests/data")
+    };
+    root.join(name)
 }
 
 pub struct Fixture {
