@@ -168,3 +168,59 @@ fn time_features_are_made_once_per_time() {
     assert_eq!(d.dims()[0], 2);
     assert!(maxdiff(&d.get(0).unwrap(), &a.get(0).unwrap()) == 0.0);
 }
+
+/// The GPU's fixed-shape step layout (suffix after all P prefix slots, the gap masked, the step's
+/// mask and RoPE tables refilled in place) computes what the compact layout computes: on the
+/// fixtures, again on the reused cache, and after the prompt's valid length changes.
+#[test]
+fn fixed_step_layout_equals_the_compact_one() {
+    for name in FIXTURES {
+        let mut fixed = load_on(name, &Device::Cpu, DType::F32);
+        fixed.model.set_fixed_step_shapes(true);
+        let compact = load_on(name, &Device::Cpu, DType::F32);
+        let noise = &fixed.raw["noise"];
+        let steps = fixed.model.cfg.num_denoise_steps;
+        let mut fc = None;
+        let mut cc = None;
+        let mut inputs = fixed.inputs.clone();
+        let mut first_ids = None;
+        for round in 0..3 {
+            if round == 2 {
+                // a shorter prompt: fewer valid tokens, a longer masked gap
+                let row = &mut inputs.token_mask[0];
+                let n = row.iter().filter(|&&v| v).count();
+                for v in row.iter_mut().skip(n / 2) {
+                    *v = false;
+                }
+            }
+            let a = fixed
+                .model
+                .sample(&inputs, noise, steps, Some(&mut fc))
+                .unwrap()
+                .actions;
+            let b = compact
+                .model
+                .sample(&inputs, noise, steps, Some(&mut cc))
+                .unwrap()
+                .actions;
+            let d = maxdiff(&a, &b);
+            println!("{name} round {round}: fixed vs compact max |diff| {d:.2e}");
+            assert!(d < 1e-5, "{name} round {round}: {d}");
+            if round < 2 {
+                let r = maxdiff(&a, &fixed.out["actions"]);
+                assert!(r < 5e-4, "{name} fixed vs openpi: {r}");
+            }
+            let c = fc.as_ref().unwrap();
+            let ids = (c.step_bias.id(), c.action_rope.cos.id(), c.k[0].id());
+            match &first_ids {
+                None => first_ids = Some(ids),
+                Some(f) => assert_eq!(f, &ids, "{name}: the step's buffers are refilled in place"),
+            }
+        }
+        let c = fc.unwrap();
+        assert_eq!(
+            c.step_bias.dims()[3],
+            fixed.model.cfg.prefix_len() + fixed.model.cfg.suffix_len()
+        );
+    }
+}

@@ -73,11 +73,13 @@ pub struct PrefixCache {
     /// Per layer [B, nKV, P + S, hd].
     pub v: Vec<Tensor>,
     /// Additive mask for action queries over the keys they see [B, 1, 1, Pc + S]: the compacted
-    /// prefix (Pc = the largest valid-token count of the batch), then the suffix.
+    /// prefix (Pc = the largest valid-token count of the batch), then the suffix; in the fixed
+    /// layout [B, 1, 1, P + S] with the slots [Pc, P) masked.
     pub step_bias: Tensor,
     /// RoPE tables of the action tokens.
     pub action_rope: Rope,
-    /// Sequence index of the first action token (`Pc + state_tokens`).
+    /// Sequence index of the first action token (`Pc + state_tokens`, fixed layout
+    /// `P + state_tokens`).
     pub action_offset: usize,
     /// Prefix layout the cache was built from.
     pub layout: PrefixLayout,
@@ -140,6 +142,8 @@ pub struct PiModel {
     dtype: DType,
     /// [`Self::time_features`] by (time bits, batch), made once and kept.
     time_table: TimeTable,
+    /// The prefix cache's fixed-shape step layout ([`Self::set_fixed_step_shapes`]).
+    fixed_step_shapes: bool,
 }
 
 /// Per-time suffix tensors: (time bits, batch) -> (time embedding, adaRMS condition).
@@ -302,6 +306,7 @@ impl PiModel {
             device: vb.device().clone(),
             dtype: vb.dtype(),
             time_table: TimeTable::default(),
+            fixed_step_shapes: !vb.device().is_cpu(),
         })
     }
 
@@ -313,6 +318,16 @@ impl PiModel {
     /// The dtype of weights, activations and the KV cache.
     pub fn dtype(&self) -> DType {
         self.dtype
+    }
+
+    /// The denoising steps' layout in the prefix cache. Compact (the CPU's default): a step
+    /// attends over the valid prefix tokens and the suffix only, so its shapes change with the
+    /// prompt's length. Fixed (the GPU's default): the suffix sits after all P prefix slots with
+    /// the unused ones masked, and the step's mask and RoPE tables are refilled in place: every
+    /// observation runs the same shapes on the same buffers (a captured CUDA graph replays it).
+    /// Both compute the same actions.
+    pub fn set_fixed_step_shapes(&mut self, fixed: bool) {
+        self.fixed_step_shapes = fixed;
     }
 
     /// Runs the inference fast path's matrix products (experts and SigLIP) with weights packed
@@ -636,8 +651,11 @@ impl PiModel {
         let total = p + self.cfg.suffix_len();
         let layout = self.prefix_layout(inp);
         let reuse = matches!(cache, Some(c) if c.batch == b && c.k.first().map(|k| k.dims() == [b, d.num_kv_heads, total, d.head_dim]).unwrap_or(false));
+        // the previous step tensors, refilled in place in the fixed-shape layout
+        let mut previous_step = None;
         let (ks, vs) = if reuse {
             let c = cache.take().expect("checked Some above");
+            previous_step = Some((c.step_bias, c.action_rope));
             (c.k, c.v)
         } else {
             let mut ks = Vec::with_capacity(d.depth);
@@ -732,14 +750,19 @@ impl PiModel {
         } else {
             None
         };
-        // The suffix goes right after the compacted prefix (at pc, not P), so a denoising step
-        // attends over pc + S keys instead of P + S: the padding slots are skipped, not masked.
+        // Where the suffix goes in the cache. Compact layout (the CPU's): right after the
+        // compacted prefix, at pc, so a denoising step attends over pc + S keys instead of
+        // P + S: the padding slots are skipped, not masked. Fixed layout (GPUs'): at P, with the
+        // slots [pc, P) masked, so a step's shapes, offsets and buffers are the same for every
+        // observation and the denoising loop can be replayed as a captured CUDA graph.
         // Key visibility for suffix queries: the valid compacted prefix (its fillers masked),
-        // then every suffix slot.
-        let t_step = pc + total - p;
+        // the masked gap (fixed layout), then every suffix slot.
+        let so = if self.fixed_step_shapes { p } else { pc };
+        let t_step = so + total - p;
         let mut vis = Vec::with_capacity(b * t_step);
         for row in &compact.pad {
             vis.extend_from_slice(row);
+            vis.extend(std::iter::repeat_n(false, so - pc));
             vis.extend(std::iter::repeat_n(true, total - p));
         }
         let step_bias = bias_tensor(vis, (b, 1, 1, t_step), &self.device)?;
@@ -757,6 +780,20 @@ impl PiModel {
             &self.device,
             self.dtype,
         )?;
+        // fixed layout: the same device buffers as for the previous observation, refilled
+        let (step_bias, action_rope) = match previous_step {
+            Some((pb, pr))
+                if self.fixed_step_shapes
+                    && pb.dims() == step_bias.dims()
+                    && pr.cos.dims() == action_rope.cos.dims() =>
+            {
+                pb.slice_set(&step_bias, 0, 0)?;
+                pr.cos.slice_set(&action_rope.cos, 0, 0)?;
+                pr.sin.slice_set(&action_rope.sin, 0, 0)?;
+                (pb, pr)
+            }
+            _ => (step_bias, action_rope),
+        };
         if ns == 1 {
             // π0: the state token sees the prefix and itself only, so its K/V do not depend on
             // x_t or t: run it once through the action expert and keep it in the cache at P.
@@ -775,12 +812,13 @@ impl PiModel {
                 &self.device,
                 self.dtype,
             )?;
-            let mut svis = Vec::with_capacity(b * (pc + 1));
+            let mut svis = Vec::with_capacity(b * (so + 1));
             for row in &compact.pad {
                 svis.extend_from_slice(row);
+                svis.extend(std::iter::repeat_n(false, so - pc));
                 svis.push(true);
             }
-            let sbias = bias_tensor(svis, (b, 1, 1, pc + 1), &self.device)?;
+            let sbias = bias_tensor(svis, (b, 1, 1, so + 1), &self.device)?;
             let mut st = [Stream {
                 x: s,
                 expert: &self.expert,
@@ -795,7 +833,7 @@ impl PiModel {
                     KvMode::Cached {
                         k: &ks[li],
                         v: &vs[li],
-                        offset: pc,
+                        offset: so,
                     },
                     false,
                 )?;
@@ -806,7 +844,7 @@ impl PiModel {
             v: vs,
             step_bias,
             action_rope,
-            action_offset: pc + ns,
+            action_offset: so + ns,
             layout,
             batch: b,
         });
