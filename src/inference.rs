@@ -51,6 +51,7 @@ pub fn load_options(cfg: &PolicyConfig) -> LoadOptions {
             num_denoise_steps: Some(cfg.num_steps),
             delta_action_mask: cfg.model.delta_action_mask.clone(),
         },
+        cuda_graph: true,
     }
 }
 

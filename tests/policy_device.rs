@@ -224,3 +224,47 @@ fn fixed_step_layout_equals_the_compact_one() {
         );
     }
 }
+
+/// The denoising loop as a captured CUDA graph gives the eager loop's actions for a new
+/// observation every call (new images, a prompt of another length, new noise): nothing stale is
+/// captured. GPU only.
+#[test]
+fn cuda_graph_replays_the_eager_loop_for_every_observation() {
+    use chunkrt::policy::bench::{device_bench_config, random_inputs_on, random_model_on};
+    use chunkrt::policy::graph::StepGraph;
+    let Some(dev) = cuda() else { return };
+    let (cfg, valid) = device_bench_config("pi05_bench").unwrap();
+    let steps = cfg.num_denoise_steps;
+    for (dtype, tol) in [(DType::F32, 1e-5), (DType::BF16, 2e-2)] {
+        let model = random_model_on(&cfg, &dev, dtype, 7).unwrap();
+        assert!(
+            model.fixed_step_shapes(),
+            "GPU models use the fixed step layout"
+        );
+        let mut cache = None;
+        let mut graph: Option<StepGraph> = None;
+        for obs in 0..4u64 {
+            let inp = random_inputs_on(&cfg, valid - 3 * obs as usize, 100 + obs, &dev).unwrap();
+            let noise =
+                Tensor::randn(0f32, 1f32, (1, cfg.action_horizon, cfg.action_dim), &dev).unwrap();
+            model.fill_cache(&inp, &mut cache, false).unwrap();
+            let c = cache.as_ref().unwrap();
+            let eager = model.denoise(c, &noise, steps).unwrap();
+            match &graph {
+                None => {
+                    graph = StepGraph::capture(&model, c, &noise, steps, &eager).unwrap();
+                    assert!(graph.is_some(), "a CUDA model captures its loop");
+                }
+                Some(g) => {
+                    assert!(g.fits(c, steps), "the cache buffers are reused in place");
+                    let r = g.run(&noise).unwrap();
+                    let d = rel_maxdiff(&r.actions, &eager.actions);
+                    println!(
+                        "{dtype:?} observation {obs}: graph vs eager max |diff| / RMS {d:.2e}"
+                    );
+                    assert!(d < tol, "{dtype:?} observation {obs}: {d}");
+                }
+            }
+        }
+    }
+}

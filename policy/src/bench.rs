@@ -731,6 +731,8 @@ pub struct DeviceReport {
     pub memory: Option<(u64, u64, u64)>,
     /// Seconds to build the random model.
     pub build_s: f64,
+    /// What happened to the CUDA graph of the denoising loop (GPU only).
+    pub graph: Option<String>,
 }
 
 impl DeviceReport {
@@ -783,7 +785,13 @@ impl std::fmt::Display for DeviceReport {
                 total as f64 / 1e9
             )?;
         }
-        if let Some(s) = self.phase("sample") {
+        if let Some(g) = &self.graph {
+            writeln!(f, "denoising loop as a CUDA graph: {g}")?;
+        }
+        for s in ["sample", "sample_graph"]
+            .iter()
+            .filter_map(|n| self.phase(n))
+        {
             let p50 = quantile(&s.wall_ms, 0.5);
             for (label, ms) in OPENPI_H100_SAMPLE_MS
                 .iter()
@@ -797,7 +805,8 @@ impl std::fmt::Display for DeviceReport {
             {
                 writeln!(
                     f,
-                    "full sample p50 {p50:.2} ms vs {label} {ms:.1} ms on an H100: {:.2}x",
+                    "{} p50 {p50:.2} ms vs {label} {ms:.1} ms on an H100: {:.2}x",
+                    s.name,
                     ms / p50
                 )?;
             }
@@ -903,6 +912,24 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             .to_vec1::<f32>()?;
         Ok(())
     })?;
+    // the denoising loop as a captured CUDA graph (GPU): the prefix pass eager, one launch
+    let mut graph_note = None;
+    if let Some(c) = scache.as_ref() {
+        let eager = model.denoise(c, &noise, steps)?;
+        match super::graph::StepGraph::capture(&model, c, &noise, steps, &eager) {
+            Ok(Some(g)) => {
+                graph_note = Some("captured".to_string());
+                time("sample_graph", opts.calls, &mut || {
+                    model.fill_cache(&inp, &mut scache, false)?;
+                    let out = g.run(&noise)?;
+                    out.actions.flatten_all()?.to_vec1::<f32>()?;
+                    Ok(())
+                })?;
+            }
+            Ok(None) => {}
+            Err(e) => graph_note = Some(format!("capture failed: {e}")),
+        }
+    }
     let params = super::checkpoint::expected_tensors(&cfg)
         .iter()
         .map(|(_, s)| s.iter().product::<usize>())
@@ -922,5 +949,6 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             _ => None,
         },
         build_s,
+        graph: graph_note,
     })
 }

@@ -14,6 +14,7 @@ pub mod device;
 pub mod fastops;
 pub mod gemma;
 pub mod gpu;
+pub mod graph;
 pub mod model;
 pub mod packed;
 pub mod preprocess;

@@ -330,6 +330,11 @@ impl PiModel {
         self.fixed_step_shapes = fixed;
     }
 
+    /// Whether the prefix cache uses the fixed-shape step layout.
+    pub fn fixed_step_shapes(&self) -> bool {
+        self.fixed_step_shapes
+    }
+
     /// Runs the inference fast path's matrix products (experts and SigLIP) with weights packed
     /// for `precision`: f32 (the default of inference models, where AVX-512 runs) or bf16 with
     /// f32 accumulation (`policy.precision = "bf16"`: Intel AMX, else AVX512-BF16). Returns false
@@ -1047,9 +1052,7 @@ impl PiModel {
             Some(cache) => {
                 self.fill_cache(inp, cache, false)?;
                 let c = cache.as_ref().expect("fill_cache stores the cache");
-                euler(noise, steps, |x, t| {
-                    self.velocity_at(c, x, &vec![t; b], false)
-                })
+                self.denoise(c, noise, steps)
             }
             None => {
                 let embs = self.embed_prefix(inp)?;
@@ -1058,6 +1061,20 @@ impl PiModel {
                 })
             }
         }
+    }
+
+    /// The denoising loop against a filled prefix cache: [`euler`] with the cached velocity.
+    /// `noise` [B, H, A].
+    pub fn denoise(
+        &self,
+        cache: &PrefixCache,
+        noise: &Tensor,
+        steps: usize,
+    ) -> Result<SampleOutput, PolicyError> {
+        let b = cache.batch;
+        euler(noise, steps, |x, t| {
+            self.velocity_at(cache, x, &vec![t; b], false)
+        })
     }
 
     /// Flow-matching training loss: `x_t = t*noise + (1-t)*actions`, `u = noise - actions`,

@@ -10,6 +10,7 @@ use rand::{Rng, SeedableRng};
 use super::checkpoint;
 use super::config::{ConfigOverrides, ModelKind};
 use super::device::{DeviceSpec, Precision};
+use super::graph::StepGraph;
 use super::model::{ModelInputs, PiModel, PrefixCache};
 use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
@@ -60,6 +61,9 @@ pub struct Policy {
     /// Added to each action row after un-normalisation: the observed joint position on the
     /// model's delta dims (`ModelConfig::delta_action_mask`), 0 on the others.
     offsets: Vec<f64>,
+    /// The captured denoising loop (GPU), and whether to (still) try one.
+    graph: Option<StepGraph>,
+    graph_on: bool,
 }
 
 /// How to load a policy (the controller builds this from its `[policy]` configuration).
@@ -75,6 +79,9 @@ pub struct LoadOptions {
     pub device: DeviceSpec,
     /// Overrides of the checkpoint's dimensions.
     pub overrides: ConfigOverrides,
+    /// On a GPU, replay the denoising loop as a captured CUDA graph ([`super::graph`]); it
+    /// falls back to the eager loop by itself if capture fails or disagrees with it.
+    pub cuda_graph: bool,
 }
 
 impl Default for LoadOptions {
@@ -85,6 +92,7 @@ impl Default for LoadOptions {
             precision: Precision::F32,
             device: DeviceSpec::Cpu,
             overrides: ConfigOverrides::default(),
+            cuda_graph: true,
         }
     }
 }
@@ -162,12 +170,52 @@ impl Policy {
             images: Vec::new(),
             noise: Vec::new(),
             offsets: Vec::new(),
+            graph: None,
+            graph_on: opts.cuda_graph && opts.device.is_cuda(),
         })
     }
 
     /// The model.
     pub fn model(&self) -> &PiModel {
         &self.model
+    }
+
+    /// Whether the denoising loop runs as a captured CUDA graph (captured at the first call).
+    pub fn uses_cuda_graph(&self) -> bool {
+        self.graph.is_some()
+    }
+
+    /// The cached sampler with the denoising loop as a CUDA graph: the prefix pass runs
+    /// eagerly (refilling the cache in place), then one graph launch runs every step. The first
+    /// call captures the graph and checks it against the eager loop; a failure turns graphs off
+    /// for this policy, with a warning, and the eager result is used.
+    fn sample_graph(
+        &mut self,
+        inputs: &ModelInputs,
+        noise: &Tensor,
+    ) -> Result<super::model::SampleOutput, PolicyError> {
+        self.model.fill_cache(inputs, &mut self.cache, false)?;
+        let cache = self
+            .cache
+            .as_ref()
+            .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
+        if let Some(g) = self.graph.as_ref().filter(|g| g.fits(cache, self.steps)) {
+            return g.run(noise);
+        }
+        let eager = self.model.denoise(cache, noise, self.steps)?;
+        match StepGraph::capture(&self.model, cache, noise, self.steps, &eager) {
+            Ok(Some(g)) => {
+                tracing::info!("policy: denoising loop captured as a CUDA graph");
+                self.graph = Some(g);
+            }
+            Ok(None) => self.graph_on = false,
+            Err(e) => {
+                tracing::warn!("policy: CUDA graph capture failed, running eagerly: {e}");
+                self.graph = None;
+                self.graph_on = false;
+            }
+        }
+        Ok(eager)
     }
 
     /// Action horizon H.
@@ -305,6 +353,7 @@ impl Policy {
         let noise = Tensor::from_slice(&self.noise, (1, cfg.action_horizon, cfg.action_dim), &dev)?;
         let out = match guidance {
             Some(g) => sample_guided(&self.model, inputs, &noise, self.steps, &mut self.cache, g)?,
+            None if self.graph_on => self.sample_graph(inputs, &noise)?,
             None => self
                 .model
                 .sample(inputs, &noise, self.steps, Some(&mut self.cache))?,
