@@ -10,8 +10,9 @@ A command received after its deadline is a deadline miss and is not applied; wit
 the arm holds and says so in ``status_flags``.
 
 The summary also reports what a robot can check of the controller's side of the contract:
-commands whose ``seq`` did not increase (``out_of_order``), commands whose deadline is not after
-their publish time or more than a second after it (``bad_deadlines``), and the controller's
+commands whose ``seq`` did not increase (``out_of_order``), commands with no deadline or one more
+than a second after their publish time (``bad_deadlines``; a deadline already past at publish is
+a late command, discarded like any other), and the controller's
 publish rate from the first and last command's ``seq`` and ``publish_time_ns``
 (``publish_rate_hz``, independent of how promptly this process drained its queue).
 
@@ -127,7 +128,7 @@ def main(argv):
                 first_cmd = cmd
             if last_cmd is not None and cmd.seq <= last_cmd.seq:
                 out_of_order += 1
-            if not (cmd.publish_time_ns < cmd.deadline_ns <= cmd.publish_time_ns + 10**9):
+            if cmd.deadline_ns == 0 or cmd.deadline_ns > cmd.publish_time_ns + 10**9:
                 bad_deadlines += 1
             last_cmd = cmd
             if cmd.deadline_ns < t:
