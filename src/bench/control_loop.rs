@@ -180,6 +180,8 @@ pub struct Scenario {
     pub ticks: u64,
     /// Ticks whose work ended after the next deadline.
     pub overruns: u64,
+    /// Deadlines skipped because a late tick passed them (every deadline is run or skipped).
+    pub skipped: u64,
     /// cyclictest latency on the same core under the same load.
     pub cyclictest: Option<LatencyRow>,
     /// Load throughput (GFLOP/s) when loaded.
@@ -289,6 +291,7 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
                 compute: LatencyRow::from_hist(&format!("{name}_compute"), &st.compute),
                 ticks: st.ticks,
                 overruns: st.overruns,
+                skipped: st.skipped,
                 cyclictest: ct
                     .as_ref()
                     .map(|c| LatencyRow::from_hist(&format!("{name}_cyclictest"), &c.latency)),
