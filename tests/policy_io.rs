@@ -536,3 +536,67 @@ fn bf16_precision_stays_close_to_f32() {
         "bf16 differs by {worst} (RMS {rms})"
     );
 }
+
+/// A checkpoint's config.json cannot crash the controller or make it allocate without bound:
+/// each out-of-range size is a load error that names its key (issue 16 point 7), and `chunkrt
+/// sample` exits non-zero with it.
+#[test]
+fn config_json_sizes_are_bounded_with_the_key_named() {
+    let dir = data("pi05_tiny");
+    let base: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("config.json")).unwrap()).unwrap();
+    let tmp = std::env::temp_dir().join(format!("chunkrt_cfg_bounds_{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    std::fs::copy(dir.join("model.safetensors"), tmp.join("model.safetensors")).unwrap();
+    let cases: [(&[&str], serde_json::Value, &str); 6] = [
+        (&["vision", "image_size"], 0.into(), "vision.image_size = 0"),
+        (
+            &["paligemma", "depth"],
+            1_000_000_000u64.into(),
+            "paligemma.depth",
+        ),
+        (
+            &["action_horizon"],
+            10_000_000_000u64.into(),
+            "action_horizon",
+        ),
+        (
+            &["max_token_len"],
+            10_000_000_000u64.into(),
+            "max_token_len",
+        ),
+        (
+            &["num_denoise_steps"],
+            1_000_000_000_000u64.into(),
+            "num_denoise_steps",
+        ),
+        (&["rope_theta"], (-1.0).into(), "rope_theta"),
+    ];
+    for (path, value, want) in cases {
+        let mut cfg = base.clone();
+        let mut node = &mut cfg;
+        for k in &path[..path.len() - 1] {
+            node = &mut node[*k];
+        }
+        node[path[path.len() - 1]] = value;
+        std::fs::write(tmp.join("config.json"), cfg.to_string()).unwrap();
+        let e = checkpoint::load(&tmp, &ConfigOverrides::default())
+            .err()
+            .unwrap_or_else(|| panic!("{path:?} loaded"))
+            .to_string();
+        assert!(e.contains(want), "{path:?}: {e}");
+    }
+    // the CLI: a clear error and a non-zero exit
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_chunkrt"))
+        .arg("inspect")
+        .arg(&tmp)
+        .output()
+        .unwrap();
+    assert!(!st.status.success());
+    assert!(
+        String::from_utf8_lossy(&st.stderr).contains("rope_theta"),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    std::fs::remove_dir_all(&tmp).ok();
+}

@@ -331,6 +331,8 @@ pub fn resolve_config(
             cfg.vocab_size = dims[0];
         }
     }
+    // before anything is sized from it (the expected tensor list, the model)
+    cfg.validate()?;
     Ok(cfg)
 }
 

@@ -208,6 +208,8 @@ impl ModelConfig {
         let s = std::fs::read_to_string(path)
             .map_err(|e| PolicyError::Io(format!("{}: {e}", path.display())))?;
         Self::from_json_str(&s)
+            .and_then(|c| c.validate().map(|()| c))
+            .map_err(|e| PolicyError::Config(format!("{}: {e}", path.display())))
     }
 
     /// Named presets for real checkpoints: `pi0` / `pi05` (PaliGemma gemma_2b + gemma_300m action
@@ -300,6 +302,47 @@ impl ModelConfig {
         }
         if self.cameras.is_empty() {
             errs.push("at least one camera is required".into());
+        }
+        // Sane limits, each naming its key: a checkpoint's config.json must not be able to ask
+        // for multi-GB allocations (depth 1e9, horizon 1e10) or make pre-processing panic
+        // (image_size 0). The bounds are far above openpi's largest models.
+        let mut bound = |key: &str, v: usize, lo: usize, hi: usize| {
+            if !(lo..=hi).contains(&v) {
+                errs.push(format!("{key} = {v} is outside {lo}..={hi}"));
+            }
+        };
+        bound("vision.hidden_size", v.hidden_size, 1, 8192);
+        bound("vision.num_hidden_layers", v.num_hidden_layers, 1, 128);
+        bound("vision.num_attention_heads", v.num_attention_heads, 1, 128);
+        bound("vision.intermediate_size", v.intermediate_size, 1, 65_536);
+        bound("vision.patch_size", v.patch_size, 1, 64);
+        bound("vision.image_size", v.image_size, v.patch_size.max(1), 1024);
+        for (n, g) in [("paligemma", p), ("action_expert", e)] {
+            bound(&format!("{n}.width"), g.width, 1, 16_384);
+            bound(&format!("{n}.depth"), g.depth, 1, 128);
+            bound(&format!("{n}.mlp_dim"), g.mlp_dim, 1, 131_072);
+            bound(&format!("{n}.num_heads"), g.num_heads, 1, 256);
+            bound(&format!("{n}.num_kv_heads"), g.num_kv_heads, 1, 256);
+            bound(&format!("{n}.head_dim"), g.head_dim, 2, 1024);
+        }
+        bound("vocab_size", self.vocab_size, 1, 1 << 20);
+        bound("action_dim", self.action_dim, 1, 1024);
+        bound("action_horizon", self.action_horizon, 1, 1000);
+        bound("max_token_len", self.max_token_len, 1, 8192);
+        bound("num_denoise_steps", self.num_denoise_steps, 1, 1000);
+        bound("cameras", self.cameras.len(), 1, 16);
+        for (key, x) in [
+            ("rms_norm_eps", self.rms_norm_eps),
+            ("rope_theta", self.rope_theta),
+            ("time_min_period", self.time_min_period),
+            ("time_max_period", self.time_max_period),
+        ] {
+            if !(x.is_finite() && x > 0.0) {
+                errs.push(format!("{key} = {x} must be finite and > 0"));
+            }
+        }
+        if self.time_min_period >= self.time_max_period {
+            errs.push("time_min_period must be below time_max_period".into());
         }
         if self.delta_action_mask.len() > self.action_dim {
             errs.push(format!(
