@@ -327,7 +327,12 @@ impl Observation {
                 .map(|c| Frame {
                     name: c.name.clone(),
                     header: CameraFrameHeader::default(),
-                    data: vec![0; c.width as usize * c.height as usize * 3],
+                    // the largest frame validation accepts: the widest row padding allowed
+                    data: vec![
+                        0;
+                        (2 * c.width as usize * 3 + chunkrt_ipc::STRIDE_ALIGN_SLACK as usize)
+                            * c.height as usize
+                    ],
                     valid: false,
                 })
                 .collect(),

@@ -81,7 +81,7 @@ typedef struct CameraFrameHeader {
     uint32_t encoding;        /**< CHUNKRT_ENCODING_* */
     uint32_t width;           /**< pixels per row */
     uint32_t height;          /**< rows */
-    uint32_t stride;          /**< bytes per row (>= width * bytes per pixel) */
+    uint32_t stride;          /**< bytes per row: width * bpp ..= 2 * width * bpp + 256 */
     uint32_t reserved;        /**< zero */
 } CameraFrameHeader;
 

@@ -93,6 +93,16 @@ pub enum ValidationError {
         bytes_per_pixel: u32,
     },
     #[error(
+        "frame stride {stride} is above {max} (2 x width {width} x {bytes_per_pixel} bytes per \
+         pixel + {STRIDE_ALIGN_SLACK} bytes of row alignment)"
+    )]
+    StrideTooLarge {
+        stride: u32,
+        width: u32,
+        bytes_per_pixel: u32,
+        max: u64,
+    },
+    #[error(
         "frame payload has {payload_len} bytes, stride {stride} x height {height} needs {expected}"
     )]
     PayloadLength {
@@ -128,6 +138,7 @@ impl ValidationError {
             }
             ValidationError::FrameTooLarge { .. }
             | ValidationError::StrideTooSmall { .. }
+            | ValidationError::StrideTooLarge { .. }
             | ValidationError::PayloadLength { .. }
             | ValidationError::EmptyFrame => RejectReason::FrameGeometry,
             ValidationError::WrongCamera { .. } => RejectReason::Other,
@@ -218,6 +229,17 @@ pub fn validate_frame(
             bytes_per_pixel: bpp,
         });
     }
+    // Rows may be padded (alignment), not padded without bound: a 64x64 frame with a 16 MiB
+    // stride would make every reader copy and keep megabytes per frame.
+    let max = 2 * header.width as u64 * bpp as u64 + STRIDE_ALIGN_SLACK;
+    if header.stride as u64 > max {
+        return Err(ValidationError::StrideTooLarge {
+            stride: header.stride,
+            width: header.width,
+            bytes_per_pixel: bpp,
+            max,
+        });
+    }
     let expected = header.stride as u64 * header.height as u64;
     if payload_len as u64 != expected {
         return Err(ValidationError::PayloadLength {
@@ -229,6 +251,10 @@ pub fn validate_frame(
     }
     Ok(())
 }
+
+/// Row padding a frame may carry beyond twice its pixel bytes (a row aligned to 256 bytes, as
+/// camera drivers and GPU buffers do, fits).
+pub const STRIDE_ALIGN_SLACK: u64 = 256;
 
 /// Time limits applied by [`StreamGuard`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -388,8 +414,23 @@ mod tests {
             validate_frame(&h, 24, 3, 64),
             Err(ValidationError::FrameTooLarge { .. })
         ));
-        // padded rows are fine
+        // padded rows are fine, up to twice the row plus alignment; not without bound
         assert!(validate_frame(&CameraFrameHeader { stride: 16, ..h }, 32, 64, 64).is_ok());
+        assert!(validate_frame(&CameraFrameHeader { stride: 280, ..h }, 560, 64, 64).is_ok());
+        assert!(matches!(
+            validate_frame(&CameraFrameHeader { stride: 281, ..h }, 562, 64, 64),
+            Err(ValidationError::StrideTooLarge { max: 280, .. })
+        ));
+        let wide = CameraFrameHeader {
+            width: 64,
+            height: 64,
+            stride: 16 << 20,
+            ..h
+        };
+        assert!(matches!(
+            validate_frame(&wide, (16 << 20) * 64, 64, 64),
+            Err(ValidationError::StrideTooLarge { .. })
+        ));
         // a huge stride x height must not overflow
         let big = CameraFrameHeader {
             stride: u32::MAX,
