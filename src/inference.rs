@@ -100,6 +100,13 @@ impl PolicySource {
             .map(|p| cfg.resolve(p))
             .context("policy.checkpoint is not set")?;
         let policy = load_policy(&dir, &cfg.policy)?;
+        anyhow::ensure!(
+            cfg.execution.execute_horizon <= policy.horizon(),
+            "execution.execute_horizon = {} exceeds the policy's action horizon {} (a chunk \
+             would run out before the next one is asked for: stop-and-go HOLDs)",
+            cfg.execution.execute_horizon,
+            policy.horizon()
+        );
         Ok(Self {
             policy,
             prompt: cfg.policy.prompt.clone(),

@@ -600,3 +600,17 @@ fn config_json_sizes_are_bounded_with_the_key_named() {
     );
     std::fs::remove_dir_all(&tmp).ok();
 }
+
+/// `execution.execute_horizon` longer than the loaded policy's chunk is refused at load (it
+/// made the controller stop and go, HOLDing every 0.9 s).
+#[test]
+fn execute_horizon_beyond_the_chunk_is_refused() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/pi05_tiny.toml");
+    let mut cfg = chunkrt::config::Config::load(std::path::Path::new(path)).unwrap();
+    cfg.execution.execute_horizon = 1000;
+    let e = chunkrt::inference::PolicySource::load(&cfg)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(e.contains("execution.execute_horizon = 1000"), "{e}");
+}

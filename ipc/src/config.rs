@@ -651,7 +651,10 @@ impl Config {
         }
         c.range("policy.num_steps", p.num_steps as f64, 1.0, 1000.0)?;
         c.range("policy.action_rate_hz", p.action_rate_hz, 1.0, 1000.0)?;
-        c.range("policy.threads", p.threads as f64, 0.0, 1024.0)?;
+        // more model threads than cores only starves the robot (1024 on 2 cores: 1028 threads,
+        // never RUNNING); 0 leaves candle's default
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        c.range("policy.threads", p.threads as f64, 0.0, cores as f64)?;
         if let Some(v) = p.model.action_horizon {
             c.range("policy.model.action_horizon", v as f64, 1.0, 1000.0)?;
         }
@@ -840,6 +843,20 @@ mod tests {
             let e = set(k, v).unwrap_err().to_string();
             assert!(e.contains(v) && e.contains(allowed), "{k} = {v}: {e}");
         }
+    }
+
+    #[test]
+    fn policy_threads_are_bounded_by_the_cores() {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let e = with(|t| {
+            t["policy"]
+                .as_table_mut()
+                .unwrap()
+                .insert("threads".into(), toml::Value::Integer(cores as i64 + 1));
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("policy.threads"), "{e}");
     }
 
     #[test]
