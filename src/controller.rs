@@ -250,6 +250,8 @@ pub struct Summary {
 pub struct Controller {
     shared: Arc<Shared>,
     executor_events: EventReader,
+    /// Repeated rejections: one full line per kind per second, then a count.
+    log_limit: crate::log_limit::LogLimiter,
     control: Option<JoinHandle<anyhow::Result<Summary>>>,
     observer: Option<JoinHandle<anyhow::Result<()>>>,
 }
@@ -294,6 +296,7 @@ impl Controller {
         let mut me = Self {
             shared,
             executor_events,
+            log_limit: crate::log_limit::LogLimiter::new(Duration::from_secs(1)),
             control: Some(control),
             observer: Some(observer),
         };
@@ -325,41 +328,52 @@ impl Controller {
             && self.observer.as_ref().is_some_and(|h| !h.is_finished())
     }
 
-    /// Logs the events queued by the real-time threads (at most `max` lines; the rest are
-    /// summarised in one line).
-    pub fn log_events(&self, cfg: &Config, max: usize) {
+    /// Logs the events queued by the real-time threads: the first of each kind (source and
+    /// reason) per second in full, then one summary line per kind and second with the count
+    /// ([`crate::log_limit`]).
+    pub fn log_events(&mut self, cfg: &Config) {
         self.executor_events.drain(|e| tracing::info!("state {e}"));
-        let mut logged = 0;
-        let mut skipped = 0;
+        let now = std::time::Instant::now();
+        let source = |s: Source| match s {
+            Source::JointState => "joint_state".to_string(),
+            Source::Camera(i) => format!(
+                "camera {}",
+                cfg.cameras.get(i).map(|c| c.name.as_str()).unwrap_or("?")
+            ),
+        };
         while let Some(ev) = self.shared.events.pop() {
-            if logged >= max {
-                skipped += 1;
-                continue;
-            }
-            logged += 1;
-            let source = |s: Source| match s {
-                Source::JointState => "joint_state".to_string(),
-                Source::Camera(i) => format!(
-                    "camera {}",
-                    cfg.cameras.get(i).map(|c| c.name.as_str()).unwrap_or("?")
-                ),
-            };
             match ev {
-                EdgeEvent::Rejected { source: s, error } => tracing::warn!(
-                    "rejected {} message ({}): {error}",
-                    source(s),
-                    error.reason().name()
-                ),
-                EdgeEvent::PortError { source: s, publish } => tracing::warn!(
-                    "iceoryx2 {} error on {}",
-                    if publish { "publish" } else { "receive" },
-                    source(s)
-                ),
+                EdgeEvent::Rejected { source: s, error } => {
+                    let (src, reason) = (source(s), error.reason().name());
+                    let line = || format!("rejected {src} message ({reason}): {error}");
+                    if self.log_limit.admit(
+                        &format!("rejected {src} message ({reason})"),
+                        line,
+                        now,
+                    ) {
+                        tracing::warn!("{}", line());
+                    }
+                }
+                EdgeEvent::PortError { source: s, publish } => {
+                    let line = || {
+                        format!(
+                            "iceoryx2 {} error on {}",
+                            if publish { "publish" } else { "receive" },
+                            source(s)
+                        )
+                    };
+                    let kind = line();
+                    if self.log_limit.admit(&kind, line, now) {
+                        tracing::warn!("{kind}");
+                    }
+                }
             }
         }
-        if skipped > 0 {
-            tracing::warn!("{skipped} more events not logged (see the counters)");
-        }
+        self.log_limit.flush(now, |kind, n, last| {
+            tracing::warn!(
+                "{kind}: {n} more in the last second (counted in the status; last: {last})"
+            )
+        });
     }
 
     fn join(&mut self) -> anyhow::Result<Summary> {
@@ -768,12 +782,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         PolicyKind::Pi0 | PolicyKind::Pi05 => Box::new(crate::inference::PolicySource::load(&cfg)?),
     };
     tracing::info!("chunk source: {}", source.name());
-    let controller = Controller::start(cfg.clone(), executor, source)?;
+    let mut controller = Controller::start(cfg.clone(), executor, source)?;
     let started = std::time::Instant::now();
     let mut last_log = std::time::Instant::now();
     while !stop_flag.load(Ordering::Relaxed) && controller.is_running() {
         std::thread::sleep(Duration::from_millis(20));
-        controller.log_events(&cfg, 20);
+        controller.log_events(&cfg);
         if args.log_every > 0.0 && last_log.elapsed().as_secs_f64() >= args.log_every {
             tracing::info!("{}", status_line(controller.shared()));
             last_log = std::time::Instant::now();

@@ -25,6 +25,7 @@ pub mod demo;
 pub mod edge;
 pub mod eval;
 pub mod inference;
+pub mod log_limit;
 pub mod policy_cli;
 pub mod report;
 pub mod rt;
