@@ -194,7 +194,20 @@ fn loss_is_differentiable_end_to_end_through_vision_and_transformer() {
     let time = Tensor::new(&[0.4f32, 0.9], &dev).unwrap();
     let fast = model.loss(&inp, &actions, &noise, &time, false).unwrap();
     let diff = model.loss(&inp, &actions, &noise, &time, true).unwrap();
-    assert!(maxdiff(&fast.per_element, &diff.per_element) < 1e-4);
+    // the same math by other ops: f32 rounding relative to the loss's size (random weights)
+    let scale = diff
+        .per_element
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+    let d = maxdiff(&fast.per_element, &diff.per_element);
+    assert!(
+        d <= 2e-5 * scale.max(1.0),
+        "fast vs differentiable loss {d} (scale {scale})"
+    );
     let grads = diff.mean.backward().unwrap();
     let vars = vm.data().lock().unwrap();
     let with_grad = vars
@@ -268,8 +281,22 @@ fn multi_sample_loss_equals_the_joint_loss_on_repeated_inputs() {
             let (joint, _) = model
                 .loss_tap(&rep, &rembs, &rep_actions, &noise, &time, diff, None)
                 .unwrap();
+            // the same sums in another order: f32 rounding relative to the loss's size (random
+            // weights make it vary from run to run; an absolute 1e-4 failed at 2.1e-4)
             let d = maxdiff(&multi.per_element, &joint.per_element);
-            assert!(d < 1e-4, "pi05 {pi05} diff {diff}: {d}");
+            let scale = joint
+                .per_element
+                .abs()
+                .unwrap()
+                .max_all()
+                .unwrap()
+                .to_scalar::<f32>()
+                .unwrap();
+            println!("pi05 {pi05} diff {diff}: max |diff| {d:.2e}, loss scale {scale:.2e}");
+            assert!(
+                d <= 2e-5 * scale.max(1.0),
+                "pi05 {pi05} diff {diff}: {d} (scale {scale})"
+            );
         }
         // gradients reach the vision tower through the shared prefix
         let embs = model.embed_prefix_with(&inp, true).unwrap();
