@@ -100,6 +100,9 @@ impl PolicySource {
             .map(|p| cfg.resolve(p))
             .context("policy.checkpoint is not set")?;
         let policy = load_policy(&dir, &cfg.policy)?;
+        policy
+            .check_dof(cfg.n_dof())
+            .with_context(|| format!("{}: norm_stats.json", dir.display()))?;
         anyhow::ensure!(
             cfg.execution.execute_horizon <= policy.horizon(),
             "execution.execute_horizon = {} exceeds the policy's action horizon {} (a chunk \

@@ -614,3 +614,46 @@ fn execute_horizon_beyond_the_chunk_is_refused() {
         .to_string();
     assert!(e.contains("execution.execute_horizon = 1000"), "{e}");
 }
+
+/// norm_stats.json is checked at load, not at the first inference: pi0.5 needs q01/q99 (it was
+/// found missing only at each inference, the controller stuck in STARTING), and statistics
+/// shorter than the robot's joints are refused (they were accepted).
+#[test]
+fn norm_stats_are_checked_at_load() {
+    let src = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/reach_pi05");
+    let tmp = std::env::temp_dir().join(format!("chunkrt_norm_{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    for f in ["config.json", "model.safetensors", "tokenizer.json"] {
+        std::fs::copy(src.join(f), tmp.join(f)).unwrap();
+    }
+    let base: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(src.join("norm_stats.json")).unwrap())
+            .unwrap();
+    let mut cfg = chunkrt::config::Config::embedded_default();
+    cfg.policy.checkpoint = Some(tmp.clone());
+    let load = |ns: &serde_json::Value| {
+        std::fs::write(tmp.join("norm_stats.json"), ns.to_string()).unwrap();
+        chunkrt::inference::PolicySource::load(&cfg)
+            .err()
+            .map(|e| format!("{e:#}"))
+    };
+    assert_eq!(load(&base), None, "the committed statistics load");
+    let mut no_q = base.clone();
+    no_q["norm_stats"]["actions"]
+        .as_object_mut()
+        .unwrap()
+        .remove("q01");
+    let e = load(&no_q).expect("missing q01 refused");
+    assert!(e.contains("norm_stats actions") && e.contains("q01"), "{e}");
+    let mut short = base.clone();
+    for k in ["mean", "std", "q01", "q99"] {
+        let v = short["norm_stats"]["state"][k].as_array_mut().unwrap();
+        v.truncate(2);
+    }
+    let e = load(&short).expect("short statistics refused");
+    assert!(
+        e.contains("norm_stats state: 2 values, the robot has 4 joints"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&tmp).ok();
+}

@@ -219,6 +219,38 @@ impl NormStats {
         }
         Ok(f.norm_stats)
     }
+
+    /// Checks at load what every inference will need: for `mode`, the statistics it uses
+    /// (z-score: mean and std; quantile: q01 and q99 too), finite, covering at least `n_dof`
+    /// values (the robot's joints; 0: not known yet), quantiles ordered.
+    pub fn check(&self, mode: NormMode, n_dof: usize) -> Result<(), PolicyError> {
+        for (n, st) in [("state", &self.state), ("actions", &self.actions)] {
+            let err = |m: String| PolicyError::Config(format!("norm_stats {n}: {m}"));
+            let len = st.mean.len();
+            if len == 0 || len < n_dof {
+                return Err(err(format!("{len} values, the robot has {n_dof} joints")));
+            }
+            if st.mean.iter().chain(&st.std).any(|x| !x.is_finite()) {
+                return Err(err("non-finite mean or std".into()));
+            }
+            if mode == NormMode::Quantile {
+                let (q01, q99) = quantiles(st).map_err(|_| {
+                    err("quantile normalisation (pi0.5) needs q01 and q99 of equal length".into())
+                })?;
+                if q01.len() != len {
+                    return Err(err(format!("{} quantiles for {len} means", q01.len())));
+                }
+                if q01
+                    .iter()
+                    .zip(q99)
+                    .any(|(a, b)| !(a.is_finite() && b.is_finite() && a <= b))
+                {
+                    return Err(err("q01 must be finite and at most q99".into()));
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 fn quantiles(s: &Stats) -> Result<(&[f32], &[f32]), PolicyError> {

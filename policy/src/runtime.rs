@@ -152,7 +152,14 @@ impl Policy {
         };
         let ns_path = checkpoint_dir.join("norm_stats.json");
         let norm = if ns_path.exists() {
-            Some(NormStats::from_file(&ns_path)?)
+            let ns = NormStats::from_file(&ns_path)?;
+            let mode = match model.cfg.kind {
+                ModelKind::Pi0 => NormMode::ZScore,
+                ModelKind::Pi05 => NormMode::Quantile,
+            };
+            ns.check(mode, 0)
+                .map_err(|e| PolicyError::Config(format!("{}: {e}", ns_path.display())))?;
+            Some(ns)
         } else {
             tracing::warn!(
                 "no norm_stats.json in {}: state/actions are not normalised",
@@ -221,6 +228,14 @@ impl Policy {
     /// Action horizon H.
     pub fn horizon(&self) -> usize {
         self.model.cfg.action_horizon
+    }
+
+    /// Checks that the normalisation statistics (if any) cover a robot of `n_dof` joints.
+    pub fn check_dof(&self, n_dof: usize) -> Result<(), PolicyError> {
+        match &self.norm {
+            Some(ns) => ns.check(self.mode(), n_dof),
+            None => Ok(()),
+        }
     }
 
     fn mode(&self) -> NormMode {
