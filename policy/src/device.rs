@@ -39,6 +39,9 @@ impl DeviceSpec {
                     )));
                 }
                 Device::new_cuda(n).map_err(|e| {
+                    // the driver's error on its first line (candle appends a backtrace)
+                    let e = e.to_string();
+                    let e = e.lines().next().unwrap_or("").trim_end_matches(':');
                     PolicyError::Config(format!(
                         "device {self}: no usable NVIDIA GPU ({e}); check the driver \
                          (nvidia-smi), libcuda.so.1 on the library path, and the GPU number"
