@@ -657,3 +657,30 @@ fn norm_stats_are_checked_at_load() {
     );
     std::fs::remove_dir_all(&tmp).ok();
 }
+
+/// A checkpoint without tokenizer.json no longer falls back silently to the byte stand-in (a
+/// real policy's arm went to its joint limit): it must declare the stand-in in config.json.
+#[test]
+fn a_missing_tokenizer_is_an_error_unless_declared() {
+    let dir = data("pi05_tiny");
+    let tmp = std::env::temp_dir().join(format!("chunkrt_tok_{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    std::fs::copy(dir.join("model.safetensors"), tmp.join("model.safetensors")).unwrap();
+    let mut cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("config.json")).unwrap()).unwrap();
+    let opts = chunkrt::policy::LoadOptions::default();
+    // the fixture declares its stand-in ("STAND-IN ..."): loads
+    std::fs::write(tmp.join("config.json"), cfg.to_string()).unwrap();
+    chunkrt::policy::Policy::load(&tmp, &opts).expect("declared stand-in loads");
+    cfg.as_object_mut().unwrap().remove("tokenizer");
+    std::fs::write(tmp.join("config.json"), cfg.to_string()).unwrap();
+    let e = chunkrt::policy::Policy::load(&tmp, &opts)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(e.contains("no tokenizer.json"), "{e}");
+    cfg["tokenizer"] = "byte_stand_in".into();
+    std::fs::write(tmp.join("config.json"), cfg.to_string()).unwrap();
+    chunkrt::policy::Policy::load(&tmp, &opts).expect("declared stand-in loads");
+    std::fs::remove_dir_all(&tmp).ok();
+}

@@ -110,6 +110,10 @@ pub struct ModelConfig {
     /// transform: the robot gets `state + action` on these dims, the action itself on the rest).
     /// Empty: every dim is absolute. At most `action_dim` entries; dims past the end are absolute.
     pub delta_action_mask: Vec<bool>,
+    /// The checkpoint declares that its prompts were tokenized by the byte stand-in (`config.json`
+    /// `"tokenizer": "byte_stand_in"`, or the fixtures' "STAND-IN ..." description), so no
+    /// `tokenizer.json` is needed. Without it a missing `tokenizer.json` is a load error.
+    pub byte_tokenizer: bool,
 }
 
 /// The fixtures' `config.json` (only the fields we read; everything else is ignored).
@@ -139,6 +143,8 @@ struct FileConfig {
     rope_theta: Option<f64>,
     #[serde(default)]
     delta_action_mask: Option<Vec<bool>>,
+    #[serde(default)]
+    tokenizer: Option<serde_json::Value>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -198,6 +204,11 @@ impl ModelConfig {
             time_min_period: 4e-3,
             time_max_period: 4.0,
             delta_action_mask: f.delta_action_mask.unwrap_or_default(),
+            byte_tokenizer: f
+                .tokenizer
+                .as_ref()
+                .and_then(|t| t.as_str())
+                .is_some_and(|t| t == "byte_stand_in" || t.starts_with("STAND-IN")),
         };
         cfg.validate()?;
         Ok(cfg)
@@ -260,6 +271,7 @@ impl ModelConfig {
             time_min_period: 4e-3,
             time_max_period: 4.0,
             delta_action_mask: Vec::new(),
+            byte_tokenizer: false,
         })
     }
 

@@ -143,12 +143,20 @@ impl Policy {
         let tok_path = checkpoint_dir.join("tokenizer.json");
         let tokenizer = if tok_path.exists() {
             PromptTokenizer::from_file(&tok_path)?
-        } else {
-            tracing::warn!(
-                "no tokenizer.json in {}: using the byte stand-in tokenizer",
+        } else if model.cfg.byte_tokenizer {
+            tracing::info!(
+                "{}: the byte stand-in tokenizer, as config.json declares",
                 checkpoint_dir.display()
             );
             PromptTokenizer::ByteStandIn
+        } else {
+            // a silent stand-in sent a real policy's arm to its joint limit
+            return Err(PolicyError::Tokenizer(format!(
+                "no tokenizer.json in {}: the prompt would be tokenized by a byte stand-in the \
+                 policy was not trained with; put the model's tokenizer.json there (HF tokenizers \
+                 format), or declare \"tokenizer\": \"byte_stand_in\" in its config.json",
+                checkpoint_dir.display()
+            )));
         };
         let ns_path = checkpoint_dir.join("norm_stats.json");
         let norm = if ns_path.exists() {
