@@ -82,37 +82,25 @@ fn main() {
     }
 }
 
-/// `--device D --preset P [--precision f32|bf16] [--calls N] [--warmup N]`; returns the exit code.
+/// `--device D --preset P [--precision f32|bf16] [--calls N] [--warmup N]`: the same as
+/// `chunkrt bench-inference`; returns the exit code.
 fn device_mode(value: &dyn Fn(&str) -> Option<String>) -> i32 {
-    use chunkrt::policy::bench::{run_device, DeviceBenchOptions};
-    use chunkrt::policy::{model_dtype, DeviceSpec, Precision};
     let run = || -> anyhow::Result<()> {
-        let spec: DeviceSpec = value("--device").unwrap_or_else(|| "cpu".into()).parse()?;
-        let precision: Precision = value("--precision")
-            .unwrap_or_else(|| "bf16".into())
-            .parse()?;
-        let device = spec.open()?;
-        let num = |flag: &str, default: usize| -> anyhow::Result<usize> {
+        let num = |flag: &str, default: u32| -> anyhow::Result<u32> {
             match value(flag) {
                 Some(v) => Ok(v.parse()?),
                 None => Ok(default),
             }
         };
-        let presets = match value("--preset") {
-            Some(p) => vec![p],
-            None => vec!["pi05".to_string(), "pi0".to_string()],
-        };
-        for preset in presets {
-            let opts = DeviceBenchOptions {
-                preset,
-                dtype: model_dtype(&device, precision),
-                device: device.clone(),
-                calls: num("--calls", 30)?.clamp(1, 10_000),
-                warmup: num("--warmup", 5)?.min(1000),
-            };
-            println!("{}", run_device(&opts)?);
-        }
-        Ok(())
+        chunkrt::policy_cli::bench(chunkrt::policy_cli::BenchArgs {
+            device: value("--device").unwrap_or_else(|| "cpu".into()).parse()?,
+            preset: value("--preset"),
+            precision: value("--precision")
+                .unwrap_or_else(|| "bf16".into())
+                .parse()?,
+            calls: num("--calls", 30)?.clamp(1, 10_000),
+            warmup: num("--warmup", 5)?.min(1000),
+        })
     };
     match run() {
         Ok(()) => 0,

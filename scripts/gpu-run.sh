@@ -9,7 +9,8 @@ here=$(cd "$(dirname "$0")" && pwd)
 out=${OUT:-/tmp/chunkrt-gpu}
 what=${1:-all}
 mkdir -p "$out" /tmp/chunkrt-bin
-for n in chunkrt inference policy_device; do
+for n in chunkrt policy_device; do
+  [ -f "$here/$n.xz" ] || continue
   xz -dc "$here/$n.xz" > "/tmp/chunkrt-bin/$n" && chmod +x "/tmp/chunkrt-bin/$n"
 done
 # the driver's libcuda, and the CUDA 13 runtime libraries from wherever they are installed
@@ -26,15 +27,23 @@ if ldd /tmp/chunkrt-bin/chunkrt | grep "not found"; then
 fi
 rc=0
 if [ "$what" = tests ] || [ "$what" = all ]; then
-  /tmp/chunkrt-bin/policy_device --test-threads 1 --nocapture 2>&1 | tee "$out/tests.log" || rc=1
+  # the fixtures on the GPU through the CLI (f32 and bf16), then the GPU tests if packed
+  for p in f32 bf16; do
+    /tmp/chunkrt-bin/chunkrt sample --device cuda --precision $p --checkpoint tests/data/pi05_tiny \
+      --inputs tests/data/pi05_tiny/inputs.safetensors --output "$out/pi05_tiny_$p.safetensors" \
+      2>&1 | tee -a "$out/tests.log" || rc=1
+  done
+  if [ -x /tmp/chunkrt-bin/policy_device ]; then
+    /tmp/chunkrt-bin/policy_device --test-threads 1 --nocapture 2>&1 | tee -a "$out/tests.log" || rc=1
+  fi
 fi
 if [ "$what" = bench ] || [ "$what" = all ]; then
   for p in pi05 pi0; do
-    /tmp/chunkrt-bin/inference --device cuda --preset "$p" --precision bf16 --calls 30 --warmup 5 \
+    /tmp/chunkrt-bin/chunkrt bench-inference --device cuda --preset "$p" --precision bf16 --calls 30 --warmup 5 \
       2>&1 | tee "$out/bench_$p.txt" || rc=1
   done
   for p in pi05_bench pi0_bench; do
-    /tmp/chunkrt-bin/inference --device cuda --preset "$p" --precision f32 --calls 30 --warmup 5 \
+    /tmp/chunkrt-bin/chunkrt bench-inference --device cuda --preset "$p" --precision f32 --calls 30 --warmup 5 \
       2>&1 | tee "$out/bench_$p.txt" || rc=1
   done
 fi

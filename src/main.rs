@@ -26,6 +26,9 @@ enum Command {
     Sample(chunkrt::policy_cli::SampleArgs),
     /// Describe a checkpoint: architecture, parameter counts, dtype, what is missing.
     Inspect(chunkrt::policy_cli::InspectArgs),
+    /// Time a random model of a preset on a device (GPU or CPU): vision, prefix, one step, the
+    /// full sample eager and as a CUDA graph; p50/p90/p99/max by wall clock and CUDA events.
+    BenchInference(chunkrt::policy_cli::BenchArgs),
     /// Render a folder of HdrHistogram logs into a PNG plot and a Markdown table.
     Report(chunkrt::report::ReportArgs),
     /// Train the reach task's π0.5 with the flow-matching loss (expert demonstrations,
@@ -47,6 +50,7 @@ fn main() {
         Command::Monitor(a) => chunkrt_tools::monitor::run(a),
         Command::Sample(a) => chunkrt::policy_cli::sample(a),
         Command::Inspect(a) => chunkrt::policy_cli::inspect(a),
+        Command::BenchInference(a) => chunkrt::policy_cli::bench(a),
         Command::Report(a) => chunkrt::report::run(a),
         Command::Train(a) => chunkrt::train::run(a),
         Command::Eval(a) => chunkrt::eval::run(a),

@@ -54,6 +54,46 @@ pub struct InspectArgs {
     pub precision: Precision,
 }
 
+/// `chunkrt bench-inference` (also `cargo bench --bench inference -- --device ...`).
+#[derive(Debug, clap::Args)]
+pub struct BenchArgs {
+    /// Where to run: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cuda")]
+    pub device: DeviceSpec,
+    /// pi0, pi05 (openpi's full size), pi0_bench or pi05_bench; default: pi05 then pi0.
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// f32 or bf16 (the model's dtype on a GPU).
+    #[arg(long, default_value = "bf16")]
+    pub precision: Precision,
+    /// Timed calls per phase (a cached step: 10x as many).
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=10_000))]
+    pub calls: u32,
+    /// Untimed calls before each phase.
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(0..=1000))]
+    pub warmup: u32,
+}
+
+/// `chunkrt bench-inference`: [`crate::policy::bench::run_device`] for each preset.
+pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
+    let device = args.device.open()?;
+    let presets = match &args.preset {
+        Some(p) => vec![p.clone()],
+        None => vec!["pi05".to_string(), "pi0".to_string()],
+    };
+    for preset in presets {
+        let opts = crate::policy::bench::DeviceBenchOptions {
+            preset,
+            dtype: model_dtype(&device, args.precision),
+            device: device.clone(),
+            calls: args.calls as usize,
+            warmup: args.warmup as usize,
+        };
+        println!("{}", crate::policy::bench::run_device(&opts)?);
+    }
+    Ok(())
+}
+
 fn mask_rows(t: &Tensor) -> anyhow::Result<Vec<bool>> {
     Ok(t.flatten_all()?
         .to_dtype(DType::F32)?
