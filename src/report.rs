@@ -319,14 +319,85 @@ fn base64_decode(s: &str) -> Option<Vec<u8>> {
     Some(out)
 }
 
+/// Interval logs larger than this are refused (a 10-minute soak writes well under 1 MB).
+pub const MAX_LOG_BYTES: u64 = 256 << 20;
+
+/// What one encoded histogram may unpack to.
+const MAX_HISTOGRAM_BYTES: u64 = 16 << 20;
+
+/// Checks an encoded histogram's header before the deserializer sizes anything from it, and
+/// returns it in the uncompressed V2 encoding. A crafted 1.6 KB log used to make `report`
+/// allocate 4.2 GB (a payload length or range taken on trust).
+fn checked_histogram(raw: &[u8]) -> Result<Vec<u8>, String> {
+    const V2: u32 = 0x1c84_9303;
+    const V2_DEFLATE: u32 = 0x1c84_9304;
+    const HEADER: usize = 40;
+    let be32 = |b: &[u8], at: usize| -> Result<u32, String> {
+        b.get(at..at + 4)
+            .map(|x| u32::from_be_bytes([x[0], x[1], x[2], x[3]]))
+            .ok_or_else(|| "truncated histogram".to_string())
+    };
+    let be64 = |b: &[u8], at: usize| -> Result<u64, String> {
+        b.get(at..at + 8)
+            .map(|x| u64::from_be_bytes([x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]]))
+            .ok_or_else(|| "truncated histogram".to_string())
+    };
+    // the cookie's bits 4-7 carry the word size; the base identifies the encoding
+    let plain = match be32(raw, 0)? & !0xf0 {
+        V2 => raw.to_vec(),
+        V2_DEFLATE => {
+            use std::io::Read;
+            let n = be32(raw, 4)? as usize;
+            let z = raw
+                .get(8..8 + n)
+                .ok_or_else(|| format!("compressed length {n} beyond the data"))?;
+            let mut out = Vec::new();
+            flate2::read::ZlibDecoder::new(z)
+                .take(MAX_HISTOGRAM_BYTES + 1)
+                .read_to_end(&mut out)
+                .map_err(|e| format!("inflate: {e}"))?;
+            if out.len() as u64 > MAX_HISTOGRAM_BYTES {
+                return Err(format!("unpacks to more than {MAX_HISTOGRAM_BYTES} bytes"));
+            }
+            out
+        }
+        c => return Err(format!("unknown histogram encoding {c:#x}")),
+    };
+    if be32(&plain, 0)? & !0xf0 != V2 {
+        return Err("compressed histogram does not hold a V2 histogram".into());
+    }
+    let payload = be32(&plain, 4)? as usize;
+    if payload > plain.len().saturating_sub(HEADER) {
+        return Err(format!(
+            "payload length {payload} beyond the {} bytes present",
+            plain.len()
+        ));
+    }
+    let digits = be32(&plain, 12)?;
+    let (lowest, highest) = (be64(&plain, 16)?, be64(&plain, 24)?);
+    // chunkrt's logs: 1 ns .. 60 s at 3 digits; anything far beyond is not a latency log
+    if !(1..=3).contains(&digits) || lowest == 0 || highest > 1 << 42 || highest < 2 * lowest {
+        return Err(format!(
+            "range {lowest}..{highest} at {digits} significant digits is not a latency histogram"
+        ));
+    }
+    Ok(plain)
+}
+
 /// Reads an interval log; intervals with the same tag are added into one series (untagged
 /// intervals form the series named after the file). Series keep the order of first appearance.
 pub fn read_interval_log(path: &Path) -> Result<Vec<Series>, ReportError> {
-    let bytes = std::fs::read(path).map_err(io_err(path))?;
     let bad = |reason: String| ReportError::BadLog {
         path: path.to_path_buf(),
         reason,
     };
+    let len = std::fs::metadata(path).map_err(io_err(path))?.len();
+    if len > MAX_LOG_BYTES {
+        return Err(bad(format!(
+            "{len} bytes; logs of more than {MAX_LOG_BYTES} bytes are not read"
+        )));
+    }
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
     let default_name = path
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
@@ -344,6 +415,7 @@ pub fn read_interval_log(path: &Path) -> Result<Vec<Series>, ReportError> {
             .unwrap_or_else(|| default_name.clone());
         let raw = base64_decode(iv.encoded_histogram())
             .ok_or_else(|| bad(format!("series '{name}': invalid base64")))?;
+        let raw = checked_histogram(&raw).map_err(|e| bad(format!("series '{name}': {e}")))?;
         let h: Histogram<u64> = de
             .deserialize(&mut std::io::Cursor::new(raw))
             .map_err(|e| bad(format!("series '{name}': {e:?}")))?;
@@ -549,6 +621,46 @@ pub fn run(args: ReportArgs) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn crafted_histograms_are_refused_before_anything_is_sized() {
+        use hdrhistogram::serialization::{Serializer, V2Serializer};
+        use std::io::Write;
+        let h = hist([1_000, 2_000, 50_000]);
+        let mut plain = Vec::new();
+        V2Serializer::new().serialize(&h, &mut plain).unwrap();
+        let mut packed = Vec::new();
+        V2DeflateSerializer::new()
+            .serialize(&h, &mut packed)
+            .unwrap();
+        assert_eq!(checked_histogram(&plain).unwrap(), plain);
+        assert_eq!(checked_histogram(&packed).unwrap(), plain);
+        // a payload length of 4 GB in 1.6 KB (it made `report` allocate 4.2 GB)
+        let mut huge = plain.clone();
+        huge[4..8].copy_from_slice(&u32::MAX.to_be_bytes());
+        let e = checked_histogram(&huge).unwrap_err();
+        assert!(e.contains("payload length"), "{e}");
+        // the same inside the compressed encoding
+        let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::default());
+        z.write_all(&huge).unwrap();
+        let z = z.finish().unwrap();
+        let mut crafted = packed[0..4].to_vec();
+        crafted.extend((z.len() as u32).to_be_bytes());
+        crafted.extend(z);
+        assert!(checked_histogram(&crafted)
+            .unwrap_err()
+            .contains("payload length"));
+        // a range no latency log has
+        let mut wide = plain.clone();
+        wide[24..32].copy_from_slice(&u64::MAX.to_be_bytes());
+        assert!(checked_histogram(&wide).is_err());
+        // a compressed length beyond the data, garbage, truncation
+        let mut short = packed.clone();
+        short[4..8].copy_from_slice(&u32::MAX.to_be_bytes());
+        assert!(checked_histogram(&short).is_err());
+        assert!(checked_histogram(&[1, 2, 3]).is_err());
+        assert!(checked_histogram(&plain[..20]).is_err());
+    }
 
     fn hist(values: impl IntoIterator<Item = u64>) -> Histogram<u64> {
         let mut h = latency_histogram();

@@ -11,6 +11,10 @@ use chunkrt::policy::preprocess::{
 };
 use chunkrt::policy::{ConfigOverrides, RawFrame, RawObservation};
 
+#[path = "common/fixture.rs"]
+mod fixture;
+use fixture::maxdiff;
+
 fn data(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("tests/data")
@@ -264,16 +268,7 @@ fn runtime_prepares_fixture_inputs_and_infers() {
         vec![vec![true], vec![true], vec![false]]
     );
     let img = &prepared.images[0];
-    let d = (img - &inp["image.base_0_rgb"])
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap();
+    let d = maxdiff(img, &inp["image.base_0_rgb"]);
     assert!(d <= 2.0 / 255.0 + 1e-6, "model image differs by {d}");
     let acts = policy.infer(&obs).unwrap();
     assert_eq!(acts.len(), 10 * 6);
@@ -331,16 +326,7 @@ fn cli_sample_and_inspect() {
         let got = candle_core::safetensors::load(&out, &Device::Cpu).unwrap();
         let want =
             candle_core::safetensors::load(dir.join("outputs.safetensors"), &Device::Cpu).unwrap();
-        let d = (&got["actions"] - &want["actions"])
-            .unwrap()
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
+        let d = maxdiff(&got["actions"], &want["actions"]);
         assert!(d < 5e-4, "cli actions {extra:?} differ by {d}");
         assert_eq!(got["v_t_step0"].dims(), &[1, 10, 8]);
     }

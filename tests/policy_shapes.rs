@@ -6,6 +6,10 @@ use chunkrt::policy::bench::random_model;
 use chunkrt::policy::model::{ModelInputs, PiModel};
 use chunkrt::policy::ModelConfig;
 
+#[path = "common/fixture.rs"]
+mod fixture;
+use fixture::maxdiff;
+
 fn small_config(pi05: bool) -> ModelConfig {
     ModelConfig::from_json_str(&small_config_json(pi05)).expect("valid test config")
 }
@@ -58,19 +62,6 @@ fn row(inp: &ModelInputs, i: usize) -> ModelInputs {
         token_mask: vec![inp.token_mask[i].clone()],
         state: inp.state.narrow(0, i, 1).unwrap(),
     }
-}
-
-fn maxdiff(a: &Tensor, b: &Tensor) -> f32 {
-    (a - b)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar()
-        .unwrap()
 }
 
 fn check_kind(pi05: bool) {
