@@ -242,3 +242,47 @@ fn starting_waits_for_joint_state_and_bad_robot_faults() {
     exec.events().drain(|e| ev.push(e));
     assert_eq!(ev[0].reason, Reason::BadJointState);
 }
+
+/// A robot that restarts elsewhere while the controller holds (issue 16 point 5): leaving HOLD
+/// starts from the measured state, not from the controller's last command, and moves to the
+/// chunk within the limits. (It resumed 1.58 rad away from the restarted robot.)
+#[test]
+fn resume_after_a_robot_restart_starts_from_the_measured_position() {
+    let (cfg, mut s) = sim(10_000.0);
+    s.run(1500);
+    assert_eq!(s.exec.state(), State::Running);
+    s.robot_reports = false;
+    s.run(300);
+    assert_eq!(s.exec.state(), State::Hold);
+    // the robot comes back, at rest somewhere else
+    let mut measured = s.joint_state.position;
+    measured[0] += 1.2;
+    measured[1] -= 0.8;
+    let resume_at = s.commands.len();
+    for _ in 0..400 {
+        s.joint_state.seq += 1;
+        s.joint_state.measurement_time_ns = s.now_ns;
+        if s.exec.state() == State::Hold {
+            // standing still where it restarted until the controller resumes
+            s.joint_state.position = measured;
+            s.joint_state.velocity = [0.0; chunkrt::ipc::MAX_DOF];
+        } else if let Some(c) = s.commands.last() {
+            s.joint_state.position = c.position;
+            s.joint_state.velocity = c.velocity;
+        }
+        s.step();
+    }
+    let first_running = s.reports[s.reports.len() - 400..]
+        .iter()
+        .position(|r| r.state == State::Running)
+        .expect("resumes");
+    let first = &s.commands[resume_at + first_running];
+    for j in 0..cfg.n_dof() {
+        let d = (first.position[j] - measured[j]).abs();
+        assert!(
+            d < 0.01,
+            "joint {j}: first command {d} rad from the measured position"
+        );
+    }
+    assert_brakes_within_limits_partial(&cfg, &s.commands[resume_at + first_running..]);
+}

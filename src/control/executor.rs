@@ -138,6 +138,10 @@ const CHUNK_SLOTS: usize = 16;
 const SYNC_NONE: i32 = 3;
 const GRAVEYARD: usize = 32;
 /// Velocity below which a braking joint counts as stopped (per second).
+/// Leaving HOLD, a measured position further than this from the generator's own (a robot that
+/// restarted or was moved) restarts the generator from the measured state (rad or unit).
+const RESUME_TOLERANCE: f64 = 0.01;
+
 const STOPPED_VELOCITY: f64 = 1e-6;
 /// Acceleration below which a braking joint counts as stopped (per second²).
 const STOPPED_ACCELERATION: f64 = 1e-6;
@@ -477,6 +481,20 @@ impl Executor {
                 } else if now_ns.saturating_sub(self.hold_since_ns) >= self.cfg.hold_to_fault_ns {
                     self.transition(now_ns, State::Fault, Reason::HoldTimeout);
                 } else if problem.is_none() {
+                    // Resume from where the robot is, not from where the controller last
+                    // commanded it: after a robot restart they can be far apart, and the
+                    // generator then moves from the measured state within the limits. A robot
+                    // that followed the braking keeps the generator's own (continuous) state.
+                    if let Some(js) = joint_state {
+                        let n = self.cfg.n;
+                        let away = (0..n).any(|j| {
+                            (js.position[j] - self.otg_in.current_position[j]).abs()
+                                > RESUME_TOLERANCE
+                        });
+                        if away {
+                            self.init_generator(js);
+                        }
+                    }
                     self.transition(now_ns, State::Running, Reason::InputsGood);
                 }
             }
