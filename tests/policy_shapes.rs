@@ -8,7 +8,7 @@ use chunkrt::policy::ModelConfig;
 
 #[path = "common/fixture.rs"]
 mod fixture;
-use fixture::maxdiff;
+use fixture::{absmax, maxdiff};
 
 fn small_config(pi05: bool) -> ModelConfig {
     ModelConfig::from_json_str(&small_config_json(pi05)).expect("valid test config")
@@ -186,14 +186,7 @@ fn loss_is_differentiable_end_to_end_through_vision_and_transformer() {
     let fast = model.loss(&inp, &actions, &noise, &time, false).unwrap();
     let diff = model.loss(&inp, &actions, &noise, &time, true).unwrap();
     // the same math by other ops: f32 rounding relative to the loss's size (random weights)
-    let scale = diff
-        .per_element
-        .abs()
-        .unwrap()
-        .max_all()
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap();
+    let scale = absmax(&diff.per_element);
     let d = maxdiff(&fast.per_element, &diff.per_element);
     assert!(
         d <= 2e-5 * scale.max(1.0),
@@ -275,14 +268,7 @@ fn multi_sample_loss_equals_the_joint_loss_on_repeated_inputs() {
             // the same sums in another order: f32 rounding relative to the loss's size (random
             // weights make it vary from run to run; an absolute 1e-4 failed at 2.1e-4)
             let d = maxdiff(&multi.per_element, &joint.per_element);
-            let scale = joint
-                .per_element
-                .abs()
-                .unwrap()
-                .max_all()
-                .unwrap()
-                .to_scalar::<f32>()
-                .unwrap();
+            let scale = absmax(&joint.per_element);
             println!("pi05 {pi05} diff {diff}: max |diff| {d:.2e}, loss scale {scale:.2e}");
             assert!(
                 d <= 2e-5 * scale.max(1.0),

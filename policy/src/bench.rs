@@ -307,6 +307,17 @@ pub fn random_inputs(
     })
 }
 
+/// A bench configuration (the fixtures' schema) and its `valid_prompt_tokens` (default: all).
+fn config_and_valid_tokens(json: &str) -> Result<(ModelConfig, usize), PolicyError> {
+    let cfg = ModelConfig::from_json_str(json)?;
+    let v: serde_json::Value =
+        serde_json::from_str(json).map_err(|e| PolicyError::Config(e.to_string()))?;
+    let valid = v["valid_prompt_tokens"]
+        .as_u64()
+        .unwrap_or(cfg.max_token_len as u64) as usize;
+    Ok((cfg, valid))
+}
+
 /// One way of running the model in the bench.
 struct Variant<'a> {
     model: &'a PiModel,
@@ -333,12 +344,7 @@ impl Variant<'_> {
 /// sample, the headline figure, is timed in interleaved rounds (one run of each variant per
 /// round), so that a slow period of this shared VM slows every variant alike.
 pub fn run_configs(name: &str, json: &str, quick: bool) -> Result<Vec<ConfigReport>, PolicyError> {
-    let cfg = ModelConfig::from_json_str(json)?;
-    let v: serde_json::Value =
-        serde_json::from_str(json).map_err(|e| PolicyError::Config(e.to_string()))?;
-    let valid = v["valid_prompt_tokens"]
-        .as_u64()
-        .unwrap_or(cfg.max_token_len as u64) as usize;
+    let (cfg, valid) = config_and_valid_tokens(json)?;
     let steps = cfg.num_denoise_steps;
     let m32 = random_inference_model(&cfg)?;
     let mut m16 = m32.clone();
@@ -667,13 +673,7 @@ pub fn device_bench_config(name: &str) -> Result<(ModelConfig, usize), PolicyErr
                     "unknown bench preset {name:?}: pi0, pi05, pi0_bench or pi05_bench"
                 ))
             })?;
-            let cfg = ModelConfig::from_json_str(json)?;
-            let v: serde_json::Value =
-                serde_json::from_str(json).map_err(|e| PolicyError::Config(e.to_string()))?;
-            let valid = v["valid_prompt_tokens"]
-                .as_u64()
-                .unwrap_or(cfg.max_token_len as u64) as usize;
-            Ok((cfg, valid))
+            config_and_valid_tokens(json)
         }
     }
 }

@@ -110,6 +110,18 @@ pub fn valid_rows(t: &Tensor, dim: usize, valid: &[bool]) -> Tensor {
     t.index_select(&idx, dim).unwrap()
 }
 
+/// max |t| (f32).
+pub fn absmax(t: &Tensor) -> f32 {
+    t.to_dtype(DType::F32)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+}
+
 /// max |a - b| / RMS(b): the relative deviation of `a` from the reference `b`.
 pub fn rel_maxdiff(a: &Tensor, b: &Tensor) -> f64 {
     let rms = b
