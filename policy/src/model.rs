@@ -320,6 +320,18 @@ impl PiModel {
         self.dtype
     }
 
+    /// RoPE tables for positions `pos[b][l]` on the model's device, in its dtype (both experts
+    /// share the head dimension).
+    fn rope(&self, pos: &[Vec<i64>]) -> candle_core::Result<Rope> {
+        Rope::new(
+            pos,
+            self.cfg.paligemma.head_dim,
+            self.cfg.rope_theta,
+            &self.device,
+            self.dtype,
+        )
+    }
+
     /// The denoising steps' layout in the prefix cache. Compact (the CPU's default): a step
     /// attends over the valid prefix tokens and the suffix only, so its shapes change with the
     /// prompt's length. Fixed (the GPU's default): the suffix sits after all P prefix slots with
@@ -720,13 +732,7 @@ impl PiModel {
             pos: cpos,
             n_valid: layout.n_valid.clone(),
         };
-        let rope = Rope::new(
-            &compact.pos,
-            d.head_dim,
-            self.cfg.rope_theta,
-            &self.device,
-            self.dtype,
-        )?;
+        let rope = self.rope(&compact.pos)?;
         let bias = self.prefix_bias(&compact)?;
         let mut streams = [Stream {
             x,
@@ -778,13 +784,7 @@ impl PiModel {
             .iter()
             .map(|&n| (0..h).map(|i| (n + ns + i) as i64).collect())
             .collect();
-        let action_rope = Rope::new(
-            &apos,
-            d.head_dim,
-            self.cfg.rope_theta,
-            &self.device,
-            self.dtype,
-        )?;
+        let action_rope = self.rope(&apos)?;
         // fixed layout: the same device buffers as for the previous observation, refilled
         let (step_bias, action_rope) = match previous_step {
             Some((pb, pr))
@@ -810,13 +810,7 @@ impl PiModel {
                 .unsqueeze(1)?
                 .to_dtype(self.dtype)?;
             let spos: Vec<Vec<i64>> = layout.n_valid.iter().map(|&n| vec![n as i64]).collect();
-            let srope = Rope::new(
-                &spos,
-                d.head_dim,
-                self.cfg.rope_theta,
-                &self.device,
-                self.dtype,
-            )?;
+            let srope = self.rope(&spos)?;
             let mut svis = Vec::with_capacity(b * (so + 1));
             for row in &compact.pad {
                 svis.extend_from_slice(row);
@@ -968,20 +962,8 @@ impl PiModel {
         }
         let bias = bias_tensor(vis, (b, 1, p + s, p + s), &self.device)?;
         let d = &self.cfg.paligemma;
-        let prope = Rope::new(
-            &layout.pos,
-            d.head_dim,
-            self.cfg.rope_theta,
-            &self.device,
-            self.dtype,
-        )?;
-        let srope = Rope::new(
-            &spos,
-            d.head_dim,
-            self.cfg.rope_theta,
-            &self.device,
-            self.dtype,
-        )?;
+        let prope = self.rope(&layout.pos)?;
+        let srope = self.rope(&spos)?;
         let mut streams = [
             Stream {
                 x: prefix_embs.clone(),
@@ -1169,13 +1151,7 @@ impl PiModel {
         let layout = self.prefix_layout(inp);
         let p = self.cfg.prefix_len();
         let d = &self.cfg.paligemma;
-        let prope = Rope::new(
-            &layout.pos,
-            d.head_dim,
-            self.cfg.rope_theta,
-            &self.device,
-            self.dtype,
-        )?;
+        let prope = self.rope(&layout.pos)?;
         let pbias = self.prefix_bias(&layout)?;
         let mut prefix = [Stream {
             x: embs.clone(),
@@ -1219,13 +1195,7 @@ impl PiModel {
             spos.push((0..s as i64).map(|i| n + i).collect::<Vec<_>>());
         }
         let sbias = bias_tensor(vis, (bk, 1, s, p + s), &self.device)?;
-        let srope = Rope::new(
-            &spos,
-            d.head_dim,
-            self.cfg.rope_theta,
-            &self.device,
-            self.dtype,
-        )?;
+        let srope = self.rope(&spos)?;
         let mut st = [Stream {
             x: suffix,
             expert: &self.expert,
