@@ -82,9 +82,10 @@ fn main() {
     }
 }
 
-/// `--device D --preset P [--precision f32|bf16] [--calls N] [--warmup N]`: the same as
-/// `chunkrt bench-inference`; returns the exit code.
+/// `--device D --preset P [--precision f32|bf16] [--calls N] [--warmup N] [--unfused]
+/// [--check-f32] [--profile]`: the same as `chunkrt bench-inference`; returns the exit code.
 fn device_mode(value: &dyn Fn(&str) -> Option<String>) -> i32 {
+    let flag = |f: &str| std::env::args().any(|a| a == f);
     let run = || -> anyhow::Result<()> {
         let num = |flag: &str, default: u32| -> anyhow::Result<u32> {
             match value(flag) {
@@ -100,6 +101,9 @@ fn device_mode(value: &dyn Fn(&str) -> Option<String>) -> i32 {
                 .parse()?,
             calls: num("--calls", 30)?.clamp(1, 10_000),
             warmup: num("--warmup", 5)?.min(1000),
+            unfused: flag("--unfused"),
+            check_f32: flag("--check-f32"),
+            profile: flag("--profile"),
         })
     };
     match run() {

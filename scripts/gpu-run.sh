@@ -20,18 +20,25 @@ for d in /usr/local/cuda/lib64 /usr/local/cuda-13.0/lib64 \
          $(python3 -c 'import nvidia, os; print(os.path.join(nvidia.__path__[0], "cu13", "lib"))' 2>/dev/null); do
   [ -d "$d" ] && libs="$libs:$d"
 done
-export LD_LIBRARY_PATH="$libs${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+export LD_LIBRARY_PATH="$libs:$here/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$out/gpu.txt"
 if ldd /tmp/chunkrt-bin/chunkrt | grep "not found"; then
   echo "gpu-run: missing libraries (LD_LIBRARY_PATH=$LD_LIBRARY_PATH)" >&2; exit 1
 fi
 rc=0
 if [ "$what" = tests ] || [ "$what" = all ]; then
-  # the fixtures on the GPU through the CLI (f32 and bf16), then the GPU tests if packed
-  for p in f32 bf16; do
-    /tmp/chunkrt-bin/chunkrt sample --device cuda --precision $p --checkpoint tests/data/pi05_tiny \
-      --inputs tests/data/pi05_tiny/inputs.safetensors --output "$out/pi05_tiny_$p.safetensors" \
-      2>&1 | tee -a "$out/tests.log" || rc=1
+  # the fixtures on the GPU through the CLI (f32 within 1e-4 of the RMS, bf16 within 3 %), then
+  # the GPU tests if packed
+  for f in pi05_tiny pi0_tiny; do
+    for p in f32 bf16; do
+      tol="0.03 --actions-only"; [ $p = f32 ] && tol=1e-4
+      /tmp/chunkrt-bin/chunkrt sample --device cuda --precision $p --checkpoint tests/data/$f \
+        --inputs tests/data/$f/inputs.safetensors --output "$out/${f}_$p.safetensors" \
+        2>&1 | tee -a "$out/tests.log" || rc=1
+      echo "== $f $p vs openpi" | tee -a "$out/tests.log"
+      python3 scripts/gpu-compare.py tests/data/$f/outputs.safetensors "$out/${f}_$p.safetensors" \
+        --rel-tol $tol 2>&1 | tee -a "$out/tests.log" || rc=1
+    done
   done
   if [ -x /tmp/chunkrt-bin/policy_device ]; then
     /tmp/chunkrt-bin/policy_device --test-threads 1 --nocapture 2>&1 | tee -a "$out/tests.log" || rc=1

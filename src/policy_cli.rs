@@ -39,6 +39,9 @@ pub struct SampleArgs {
     /// the CPU has them).
     #[arg(long, default_value = "f32")]
     pub precision: Precision,
+    /// Run candle's op-by-op path instead of chunkrt's fused CUDA kernels (to compare them).
+    #[arg(long)]
+    pub unfused: bool,
 }
 
 /// `chunkrt inspect`: describe a checkpoint.
@@ -72,11 +75,32 @@ pub struct BenchArgs {
     /// Untimed calls before each phase.
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(0..=1000))]
     pub warmup: u32,
+    /// Run candle's op-by-op path instead of chunkrt's fused CUDA kernels (to compare them).
+    #[arg(long)]
+    pub unfused: bool,
+    /// Also build the model in f32 with the same weights and report how far the --precision
+    /// actions are from its actions (needs the memory of both models).
+    #[arg(long)]
+    pub check_f32: bool,
+    /// Profile one eager sample and stop: run under `ncu --profile-from-start off`.
+    #[arg(long)]
+    pub profile: bool,
 }
 
 /// `chunkrt bench-inference`: [`crate::policy::bench::run_device`] for each preset.
 pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
     let device = args.device.open()?;
+    crate::policy::kernels::set_enabled(!args.unfused);
+    if !device.is_cpu() {
+        println!(
+            "kernels: {}",
+            if args.unfused {
+                "candle's op by op (--unfused)"
+            } else {
+                "chunkrt's fused CUDA kernels"
+            }
+        );
+    }
     let presets = match &args.preset {
         Some(p) => vec![p.clone()],
         None => vec!["pi05".to_string(), "pi0".to_string()],
@@ -88,6 +112,8 @@ pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
             device: device.clone(),
             calls: args.calls as usize,
             warmup: args.warmup as usize,
+            check_f32: args.check_f32,
+            profile: args.profile,
         };
         println!("{}", crate::policy::bench::run_device(&opts)?);
     }
@@ -200,6 +226,7 @@ pub fn inputs_from_map(
 /// `chunkrt sample`.
 pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
     let device = args.device.open()?;
+    crate::policy::kernels::set_enabled(!args.unfused);
     let dtype = model_dtype(&device, args.precision);
     let loaded = checkpoint::load_on(
         &args.checkpoint,

@@ -211,7 +211,7 @@ fn fixed_step_layout_equals_the_compact_one() {
                 assert!(r < 5e-4, "{name} fixed vs openpi: {r}");
             }
             let c = fc.as_ref().unwrap();
-            let ids = (c.step_bias.id(), c.action_rope.cos.id(), c.k[0].id());
+            let ids = (c.statics.ids(), c.k[0].id());
             match &first_ids {
                 None => first_ids = Some(ids),
                 Some(f) => assert_eq!(f, &ids, "{name}: the step's buffers are refilled in place"),
@@ -219,19 +219,20 @@ fn fixed_step_layout_equals_the_compact_one() {
         }
         let c = fc.unwrap();
         assert_eq!(
-            c.step_bias.dims()[3],
-            fixed.model.cfg.prefix_len() + fixed.model.cfg.suffix_len()
+            c.step_bias().dims()[3],
+            (fixed.model.cfg.prefix_len() + fixed.model.cfg.suffix_len()).next_multiple_of(8),
+            "the fixed layout's steps attend over every slot, padded to a multiple of 8"
         );
     }
 }
 
-/// The denoising loop as a captured CUDA graph gives the eager loop's actions for a new
+/// The whole sample as a captured CUDA graph gives the eager run's actions for a new
 /// observation every call (new images, a prompt of another length, new noise): nothing stale is
 /// captured. GPU only.
 #[test]
 fn cuda_graph_replays_the_eager_loop_for_every_observation() {
     use chunkrt::policy::bench::{device_bench_config, random_inputs_on, random_model_on};
-    use chunkrt::policy::graph::StepGraph;
+    use chunkrt::policy::graph::SampleGraph;
     let Some(dev) = cuda() else { return };
     let (cfg, valid) = device_bench_config("pi05_bench").unwrap();
     let steps = cfg.num_denoise_steps;
@@ -242,18 +243,17 @@ fn cuda_graph_replays_the_eager_loop_for_every_observation() {
             "GPU models use the fixed step layout"
         );
         let mut cache = None;
-        let mut graph: Option<StepGraph> = None;
+        let mut graph: Option<SampleGraph> = None;
         for obs in 0..4u64 {
             let inp = random_inputs_on(&cfg, valid - 3 * obs as usize, 100 + obs, &dev).unwrap();
             let noise =
                 Tensor::randn(0f32, 1f32, (1, cfg.action_horizon, cfg.action_dim), &dev).unwrap();
-            model.fill_cache(&inp, &mut cache, false).unwrap();
-            let c = cache.as_ref().unwrap();
-            let eager = model.denoise(c, &noise, steps).unwrap();
+            let eager = model.sample(&inp, &noise, steps, Some(&mut cache)).unwrap();
+            let c = model.prepare_prefix(&inp, &mut cache, true).unwrap();
             match &graph {
                 None => {
-                    graph = StepGraph::capture(&model, c, &noise, steps, &eager).unwrap();
-                    assert!(graph.is_some(), "a CUDA model captures its loop");
+                    graph = SampleGraph::capture(&model, c, &noise, steps).unwrap().1;
+                    assert!(graph.is_some(), "a CUDA model captures its sample");
                 }
                 Some(g) => {
                     assert!(g.fits(c, steps), "the cache buffers are reused in place");

@@ -731,8 +731,10 @@ pub struct DeviceReport {
     pub memory: Option<(u64, u64, u64)>,
     /// Seconds to build the random model.
     pub build_s: f64,
-    /// What happened to the CUDA graph of the denoising loop (GPU only).
+    /// What happened to the CUDA graph of the sample (GPU only), and its check.
     pub graph: Option<String>,
+    /// The model dtype's actions against an f32 model's ([`DeviceBenchOptions::check_f32`]).
+    pub accuracy: Option<String>,
 }
 
 impl DeviceReport {
@@ -786,7 +788,10 @@ impl std::fmt::Display for DeviceReport {
             )?;
         }
         if let Some(g) = &self.graph {
-            writeln!(f, "denoising loop as a CUDA graph: {g}")?;
+            writeln!(f, "sample as one CUDA graph: {g}")?;
+        }
+        if let Some(a) = &self.accuracy {
+            writeln!(f, "accuracy: {a}")?;
         }
         for s in ["sample", "sample_graph"]
             .iter()
@@ -833,6 +838,12 @@ pub struct DeviceBenchOptions {
     pub calls: usize,
     /// Untimed calls before.
     pub warmup: usize,
+    /// Also build the model in f32 (same weights) and compare its actions (needs the memory
+    /// of both models).
+    pub check_f32: bool,
+    /// Only run one eager sample between profiler start and stop, after one warm-up sample
+    /// (`ncu --profile-from-start off`), and return an empty report.
+    pub profile: bool,
 }
 
 /// Builds a random model of `opts.preset` on the device and times the vision pass, the prefix
@@ -862,6 +873,25 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
     let mut cache = None;
     model.fill_cache(&inp, &mut cache, false)?;
     let mut phases = Vec::new();
+    if opts.profile {
+        model.sample(&inp, &noise, steps, Some(&mut cache))?;
+        dev.synchronize()?;
+        super::gpu::profiler(true);
+        model.sample(&inp, &noise, steps, Some(&mut cache))?;
+        dev.synchronize()?;
+        super::gpu::profiler(false);
+        return Ok(DeviceReport {
+            name: format!("{} (profiled one sample)", opts.preset),
+            device: super::DeviceSpec::of(dev).to_string(),
+            dtype: opts.dtype,
+            params: 0,
+            phases,
+            memory: None,
+            build_s,
+            graph: None,
+            accuracy: None,
+        });
+    }
     let mut time = |name: &str, n: usize, f: &mut dyn FnMut() -> Result<(), PolicyError>| {
         for _ in 0..opts.warmup {
             f()?;
@@ -912,23 +942,49 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             .to_vec1::<f32>()?;
         Ok(())
     })?;
-    // the denoising loop as a captured CUDA graph (GPU): the prefix pass eager, one launch
+    // the whole sample as one captured CUDA graph (GPU), a new observation every call: two
+    // observations alternate, and the replay for the second is checked against the eager run
     let mut graph_note = None;
-    if let Some(c) = scache.as_ref() {
-        let eager = model.denoise(c, &noise, steps)?;
-        match super::graph::StepGraph::capture(&model, c, &noise, steps, &eager) {
-            Ok(Some(g)) => {
-                graph_note = Some("captured".to_string());
-                time("sample_graph", opts.calls, &mut || {
-                    model.fill_cache(&inp, &mut scache, false)?;
-                    let out = g.run(&noise)?;
-                    out.actions.flatten_all()?.to_vec1::<f32>()?;
-                    Ok(())
-                })?;
-            }
-            Ok(None) => {}
-            Err(e) => graph_note = Some(format!("capture failed: {e}")),
+    let inp2 = random_inputs_on(&cfg, valid, 12, dev)?;
+    let c = model.prepare_prefix(&inp, &mut scache, true)?;
+    match super::graph::SampleGraph::capture(&model, c, &noise, steps) {
+        Ok((_, Some(g))) => {
+            let mut flip = false;
+            time("sample_graph", opts.calls, &mut || {
+                flip = !flip;
+                model.prepare_prefix(if flip { &inp2 } else { &inp }, &mut scache, true)?;
+                let out = g.run(&noise)?;
+                out.actions.flatten_all()?.to_vec1::<f32>()?;
+                Ok(())
+            })?;
+            model.prepare_prefix(&inp2, &mut scache, true)?;
+            let replay = g.run(&noise)?.actions;
+            let eager = model
+                .sample(&inp2, &noise, steps, Some(&mut scache))?
+                .actions;
+            let (d, rms) = diff_rms(&replay, &eager)?;
+            graph_note = Some(format!(
+                "captured; replay vs eager on another observation: max |diff| {d:.3e}, {:.4} % of the RMS",
+                100.0 * d / rms.max(1e-30)
+            ));
         }
+        Ok((_, None)) => {}
+        Err(e) => graph_note = Some(format!("capture failed: {e}")),
+    }
+    // bf16 against an f32 model with the same weights (eager, same observation and noise)
+    let mut accuracy = None;
+    if opts.check_f32 && opts.dtype != DType::F32 {
+        let low = model.sample(&inp, &noise, steps, None)?.actions;
+        drop(scache);
+        drop(model);
+        let full = random_model_on(&cfg, dev, DType::F32, 7)?;
+        let reference = full.sample(&inp, &noise, steps, None)?.actions;
+        let (d, rms) = diff_rms(&low, &reference)?;
+        accuracy = Some(format!(
+            "{:?} vs f32 actions (same weights, inputs and noise): max |diff| {d:.3e}, {:.2} % of the f32 RMS {rms:.3e}",
+            opts.dtype,
+            100.0 * d / rms.max(1e-30)
+        ));
     }
     let params = super::checkpoint::expected_tensors(&cfg)
         .iter()
@@ -950,5 +1006,14 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         },
         build_s,
         graph: graph_note,
+        accuracy,
     })
+}
+
+/// Max |a - b| and the RMS of `b` (both as f32).
+fn diff_rms(a: &Tensor, b: &Tensor) -> Result<(f32, f32), PolicyError> {
+    let (a, b) = (a.to_dtype(DType::F32)?, b.to_dtype(DType::F32)?);
+    let d = (&a - &b)?.abs()?.max_all()?.to_scalar::<f32>()?;
+    let rms = b.sqr()?.mean_all()?.to_scalar::<f32>()?.sqrt();
+    Ok((d, rms))
 }

@@ -38,7 +38,7 @@ impl DeviceSpec {
                          `cargo build --release --features cuda` (README, section GPU)"
                     )));
                 }
-                Device::new_cuda(n).map_err(|e| {
+                let dev = Device::new_cuda(n).map_err(|e| {
                     // the driver's error on its first line (candle appends a backtrace)
                     let e = e.to_string();
                     let e = e.lines().next().unwrap_or("").trim_end_matches(':');
@@ -46,7 +46,16 @@ impl DeviceSpec {
                         "device {self}: no usable NVIDIA GPU ({e}); check the driver \
                          (nvidia-smi), libcuda.so.1 on the library path, and the GPU number"
                     ))
-                })
+                })?;
+                #[cfg(feature = "cuda")]
+                if let Ok(c) = dev.as_cuda_device() {
+                    // SAFETY: the policy runs every op on candle's one stream of this device
+                    // (the inference thread's), so the per-access CUDA events that order tensor
+                    // uses across streams order nothing here and only cost two driver calls per
+                    // kernel; frees stay stream-ordered.
+                    unsafe { c.disable_event_tracking() };
+                }
+                Ok(dev)
             }
         }
     }

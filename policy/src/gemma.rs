@@ -42,8 +42,19 @@ pub enum Norm {
         ones: Tensor,
         /// eps.
         eps: f64,
+        /// `dense(cond)` [B, 3W] f32 by condition tensor (inference models): the condition
+        /// depends on the time only, the sampler's times repeat, so a denoising step runs no
+        /// modulation product ([`Norm::modulation`]).
+        mods: ModulationCache,
     },
 }
+
+/// A norm as the fused kernel takes it: `1 + w` (plain), the modulation (adaptive), eps.
+type FusedNorm<'a> = (Option<&'a Tensor>, Option<Tensor>, f64);
+
+/// [`Norm::Ada`]'s modulations by condition tensor.
+pub type ModulationCache =
+    std::sync::Arc<std::sync::Mutex<std::collections::HashMap<candle_core::TensorId, Tensor>>>;
 
 /// `x * rsqrt(mean(x^2) + eps)` without weight; `x` [.., W].
 fn rms_plain(x: &Tensor, ones: &Tensor, eps: f64, diff: bool) -> candle_core::Result<Tensor> {
@@ -64,7 +75,12 @@ impl Norm {
         if ada {
             let dense = candle_nn::linear(width, 3 * width, vb.pp("dense"))?;
             let ones = Tensor::ones(width, DType::F32, vb.device())?;
-            Ok(Norm::Ada { dense, ones, eps })
+            Ok(Norm::Ada {
+                dense,
+                ones,
+                eps,
+                mods: Default::default(),
+            })
         } else {
             let w = vb.get_with_hints(width, "weight", candle_nn::Init::Const(0.0))?;
             let alpha = if w.is_variable() {
@@ -80,6 +96,51 @@ impl Norm {
         }
     }
 
+    /// AdaRMSNorm's `dense(cond)` [B, 3W] f32 (scale, shift, gate), kept per condition tensor
+    /// when the dense layer is not being trained (the time features that make `cond` are kept
+    /// per model and time, so the same tensor comes back at every step at that time).
+    pub fn modulation(&self, cond: &Tensor) -> candle_core::Result<Option<Tensor>> {
+        let Norm::Ada { dense, mods, .. } = self else {
+            return Ok(None);
+        };
+        let cacheable = !dense.weight().is_variable();
+        if cacheable {
+            if let Some(m) = mods.lock().ok().and_then(|m| m.get(&cond.id()).cloned()) {
+                return Ok(Some(m));
+            }
+        }
+        let m = dense.forward(&cond.to_dtype(DType::F32)?)?.contiguous()?;
+        if cacheable {
+            if let Ok(mut c) = mods.lock() {
+                // the sampler's handful of times in practice; bounded whatever a caller does
+                if c.len() >= 64 {
+                    c.clear();
+                }
+                c.insert(cond.id(), m.clone());
+            }
+        }
+        Ok(Some(m))
+    }
+
+    /// The fused kernel's operands: (`1 + w`, modulation); None where the kernel does not
+    /// apply (a training model's plain norm derives `1 + w` at every forward).
+    fn fused_operands(&self, cond: Option<&Tensor>) -> candle_core::Result<Option<FusedNorm<'_>>> {
+        match self {
+            Norm::Rms {
+                alpha: Some(a),
+                eps,
+                ..
+            } => Ok(Some((Some(a), None, *eps))),
+            Norm::Rms { alpha: None, .. } => Ok(None),
+            Norm::Ada { eps, .. } => {
+                let cond = cond.ok_or_else(|| {
+                    candle_core::Error::Msg("adaRMSNorm needs a condition".into())
+                })?;
+                Ok(Some((None, self.modulation(cond)?, *eps)))
+            }
+        }
+    }
+
     /// `x` [B, L, W], `cond` [B, Wc] f32 (adaptive only). Returns the normed `x` and the gate
     /// [B, 1, W] (adaptive only), both in `x`'s dtype; the statistics, the `(1 + w)` scaling and
     /// the adaptive modulation are computed in f32 (openpi's `GemmaRMSNorm`).
@@ -90,6 +151,22 @@ impl Norm {
         diff: bool,
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
         let dtype = x.dtype();
+        if !diff && x.rank() == 3 && super::kernels::enabled(x.device()) {
+            if let Some((alpha, m, eps)) = self.fused_operands(cond)? {
+                if let Some((_, h)) =
+                    super::kernels::add_norm(x, None, None, alpha, m.as_ref(), eps, false)?
+                {
+                    let gate = match m {
+                        Some(m) => {
+                            let w = x.dim(D::Minus1)?;
+                            Some(m.narrow(1, 2 * w, w)?.unsqueeze(1)?.to_dtype(dtype)?)
+                        }
+                        None => None,
+                    };
+                    return Ok((h, gate));
+                }
+            }
+        }
         let x = &x.to_dtype(DType::F32)?;
         match self {
             Norm::Rms { weight, alpha, eps } => {
@@ -110,12 +187,20 @@ impl Norm {
                 };
                 Ok((y.to_dtype(dtype)?, None))
             }
-            Norm::Ada { dense, ones, eps } => {
+            Norm::Ada {
+                dense, ones, eps, ..
+            } => {
                 let cond = cond.ok_or_else(|| {
                     candle_core::Error::Msg("adaRMSNorm needs a condition".into())
                 })?;
                 // [B, 3W] -> [B, 1, 3W]
-                let m = dense.forward(&cond.to_dtype(DType::F32)?)?.unsqueeze(1)?;
+                let m = if diff {
+                    dense.forward(&cond.to_dtype(DType::F32)?)?
+                } else {
+                    self.modulation(cond)?
+                        .ok_or_else(|| candle_core::Error::Msg("no modulation".into()))?
+                }
+                .unsqueeze(1)?;
                 let w = m.dim(D::Minus1)? / 3;
                 let scale = m.narrow(D::Minus1, 0, w)?;
                 let shift = m.narrow(D::Minus1, w, w)?;
@@ -390,6 +475,7 @@ pub struct Stream<'a> {
 }
 
 /// Where the keys/values of a layer come from.
+#[derive(Clone, Copy)]
 pub enum KvMode<'a> {
     /// Keys/values are only those of the streams (prefix pass, joint pass). When `store` is
     /// given, the (post-RoPE) K/V are written there at sequence offset 0.
@@ -528,6 +614,90 @@ fn qkv_fused(
     })
 }
 
+/// [`joint_layer`] for one stream with the fused CUDA kernels ([`super::kernels`]): per layer
+/// the norm, the Q/K/V product, head split + RoPE + cache write, scores, softmax, values, the O
+/// product, gated residual + norm, the gate/up product, gelu·up, the down product and the gated
+/// residual — 13 kernels. `None` where they do not apply (CPU, no fused weights, no cache
+/// buffers to write K/V into).
+fn joint_layer_fused(
+    li: usize,
+    s: &mut Stream<'_>,
+    bias: &Tensor,
+    kv: KvMode<'_>,
+) -> candle_core::Result<Option<(Tensor, Tensor)>> {
+    use super::kernels;
+    let layer = &s.expert.layers[li];
+    let d = &s.expert.dims;
+    let (Some(wqkv), Some(wgu), true) =
+        (&layer.qkv, &layer.gate_up, kernels::enabled(s.x.device()))
+    else {
+        return Ok(None);
+    };
+    let (kb, vb, offset) = match kv {
+        KvMode::Own {
+            store: Some((k, v)),
+        } => (k, v, 0),
+        KvMode::Cached { k, v, offset } => (k, v, offset),
+        KvMode::Own { store: None } => return Ok(None),
+    };
+    let (Some((alpha1, m1, eps1)), Some((alpha2, m2, eps2))) = (
+        layer.input_norm.fused_operands(s.cond)?,
+        layer.post_norm.fused_operands(s.cond)?,
+    ) else {
+        return Ok(None);
+    };
+    let (b, l, _) = s.x.dims3()?;
+    let (nh, nkv, hd) = (d.num_heads, d.num_kv_heads, d.head_dim);
+    let Some((_, h)) = kernels::add_norm(&s.x, None, None, alpha1, m1.as_ref(), eps1, false)?
+    else {
+        return Ok(None);
+    };
+    // [B, L, (nH + 2 nKV) hd]
+    let y = matmul_2d(&h, wqkv)?;
+    let heads = kernels::Heads {
+        q: nh,
+        kv: nkv,
+        dim: hd,
+    };
+    let Some(Some(q)) =
+        kernels::qkv_rope(&y, heads, Some((&s.rope.cos, &s.rope.sin)), kb, vb, offset)?
+    else {
+        return Ok(None);
+    };
+    // the keys the bias covers: the streams' own (prefix pass) or the cache's first T
+    let t = bias.dim(3)?;
+    let keys = kb.narrow(2, 0, t)?;
+    let values = vb.narrow(2, 0, t)?;
+    let g = nh / nkv;
+    // [B, nKV, g L, T]: query heads are kv-head-major
+    let scores = q.reshape((b, nkv, g * l, hd))?.matmul(&keys.t()?)?;
+    let Some(p) = kernels::softmax_bias(&scores, Some(bias), l, (hd as f64).powf(-0.5))? else {
+        return Ok(None);
+    };
+    // [B, nKV, g L, hd] -> [B, L, nH hd]
+    let o = p
+        .matmul(&values)?
+        .reshape((b, nh, l, hd))?
+        .transpose(1, 2)?
+        .reshape((b, l, nh * hd))?;
+    let o = matmul_2d(&o, &layer.o.weight().t()?)?;
+    let Some((Some(x1), h2)) =
+        kernels::add_norm(&s.x, Some(&o), m1.as_ref(), alpha2, m2.as_ref(), eps2, true)?
+    else {
+        return Ok(None);
+    };
+    let f = wgu.dim(1)? / 2;
+    let Some(a) = kernels::gelu_mul(&matmul_2d(&h2, wgu)?, f)? else {
+        return Ok(None);
+    };
+    let m = matmul_2d(&a, &layer.down.weight().t()?)?;
+    let Some(x) = kernels::gated_add(&x1, &m, m2.as_ref())? else {
+        return Ok(None);
+    };
+    s.x = x;
+    Ok(Some((kb.narrow(2, offset, l)?, vb.narrow(2, offset, l)?)))
+}
+
 /// Only the post-RoPE K/V of layer `li` for one stream (the last prefix layer: its attention
 /// output and MLP feed nothing the sampler uses), written to `kb` / `vb` at offset 0.
 pub fn kv_only_layer(
@@ -539,6 +709,20 @@ pub fn kv_only_layer(
     let layer = &s.expert.layers[li];
     let d = &s.expert.dims;
     let (h, _) = layer.input_norm.forward(&s.x, s.cond, false)?;
+    if let (Some(w), true) = (&layer.qkv, super::kernels::enabled(h.device())) {
+        let (qd, kvd) = (d.num_heads * d.head_dim, d.num_kv_heads * d.head_dim);
+        let y = matmul_2d(&h, &w.narrow(1, qd, 2 * kvd)?)?;
+        let heads = super::kernels::Heads {
+            q: 0,
+            kv: d.num_kv_heads,
+            dim: d.head_dim,
+        };
+        if super::kernels::qkv_rope(&y, heads, Some((&s.rope.cos, &s.rope.sin)), kb, vb, 0)?
+            .is_some()
+        {
+            return Ok(());
+        }
+    }
     if let Some((_, k, v)) = qkv_fused(layer, d, &h, s.rope, false)? {
         kb.slice_set(&k, 2, 0)?;
         return vb.slice_set(&v, 2, 0);
@@ -560,6 +744,11 @@ pub fn joint_layer(
     kv: KvMode<'_>,
     diff: bool,
 ) -> candle_core::Result<(Tensor, Tensor)> {
+    if let ([s], false) = (&mut *streams, diff) {
+        if let Some(kv) = joint_layer_fused(li, s, bias, kv)? {
+            return Ok(kv);
+        }
+    }
     let mut qs = Vec::with_capacity(streams.len());
     let mut ks = Vec::with_capacity(streams.len());
     let mut vs = Vec::with_capacity(streams.len());

@@ -83,3 +83,23 @@ pub fn name(device: &Device) -> Option<String> {
         None
     }
 }
+
+/// Starts (`true`) or stops the CUDA profilers' collection (`ncu --profile-from-start off`
+/// profiles only what runs in between). No-op without the `cuda` feature.
+pub fn profiler(on: bool) {
+    #[cfg(feature = "cuda")]
+    {
+        use candle_core::cuda_backend::cudarc::driver::sys;
+        // SAFETY: plain driver calls without arguments; an error (no profiler attached) is
+        // harmless and ignored.
+        unsafe {
+            if on {
+                sys::cuProfilerStart();
+            } else {
+                sys::cuProfilerStop();
+            }
+        }
+    }
+    #[cfg(not(feature = "cuda"))]
+    let _ = on;
+}

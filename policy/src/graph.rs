@@ -1,27 +1,28 @@
-//! The denoising loop replayed as a captured CUDA graph.
+//! The whole sample — prefix pass and denoising loop — replayed as one captured CUDA graph.
 //!
-//! Candle launches one kernel per op; a denoising step of a full-size action expert is hundreds
-//! of them, which at batch 1 costs more than the arithmetic. The loop's shapes, offsets and
-//! buffers are the same for every observation in the fixed step layout
-//! ([`PiModel::set_fixed_step_shapes`]), the time features are made once per model
-//! ([`PiModel::sample`] warms them up), and the loop reads nothing back to the host, so the whole
-//! loop is captured once on candle's stream and replayed: a new observation refills the prefix
-//! cache in place (eagerly), its noise is copied into the graph's input buffer, one launch runs
-//! all steps.
+//! Candle launches one kernel per op, and on a GPU at batch 1 the host's launches, not the
+//! arithmetic, set the pace. In the fixed layout ([`PiModel::set_fixed_step_shapes`]) every
+//! shape, offset and buffer of a sample is the same for every observation:
+//! [`PiModel::prepare_prefix`] does the host work (checks, masks, RoPE tables) and copies the
+//! observation into the prefix cache's buffers, [`PiModel::run_prefix`] and
+//! [`PiModel::denoise`] then read nothing but those buffers and the weights, and nothing back
+//! to the host. So that device half is captured once on candle's stream and replayed with one
+//! launch per observation: the vision tower, the VLM prefix pass filling the KV cache, and every
+//! denoising step.
 //!
-//! Self-checking: the first replay is compared with the eager loop on the same inputs (the same
+//! Self-checking: the first replay is compared with the eager run on the same inputs (the same
 //! kernels in the same order, so they must agree to rounding); on any capture error or mismatch
 //! the graph is dropped and the runtime stays eager, with a warning. Without the `cuda` feature
-//! (or on a CPU device) [`StepGraph::capture`] reports that no graph applies.
+//! (or on a CPU device) [`SampleGraph::capture`] reports that no graph applies.
 
-use candle_core::{DType, Tensor};
+use candle_core::{DType, Tensor, TensorId};
 
 use crate::model::{PiModel, PrefixCache, SampleOutput};
 use crate::PolicyError;
 
-/// A captured denoising loop, its input (noise) and output (x_0) buffers, and what it was
-/// captured against.
-pub struct StepGraph {
+/// A captured sample (prefix pass + denoising loop), its noise input and outputs, and the
+/// buffers it was captured against.
+pub struct SampleGraph {
     #[cfg(feature = "cuda")]
     graph: candle_core::cuda_backend::cudarc::driver::CudaGraph,
     /// The noise buffer [B, H, A] f32 the graph reads.
@@ -32,26 +33,31 @@ pub struct StepGraph {
     v0: Tensor,
     times: Vec<f32>,
     steps: usize,
-    /// Identity of the cache buffers the graph reads (K/V of layer 0, the step mask).
-    cache_ids: (candle_core::TensorId, candle_core::TensorId),
+    /// Identity of every buffer the graph reads (KV cache, the observation's buffers).
+    buffers: Vec<TensorId>,
 }
 
 // SAFETY: cudarc's CudaGraph holds raw driver handles and is not Sync; the driver requires that
-// calls on one graph are serialised. A StepGraph is owned by one `Policy`, which is used by one
+// calls on one graph are serialised. A SampleGraph is owned by one `Policy`, which is used by one
 // thread at a time (`&mut self` on every call); moving it to the inference thread is a move, not
 // shared access.
-unsafe impl Send for StepGraph {}
+unsafe impl Send for SampleGraph {}
 
-impl StepGraph {
-    /// Whether `self` was captured against `cache` for `steps` steps.
+/// The buffers a sample reads besides the weights.
+fn buffer_ids(cache: &PrefixCache) -> Vec<TensorId> {
+    let mut v: Vec<TensorId> = cache.k.iter().chain(&cache.v).map(|t| t.id()).collect();
+    v.extend(cache.statics.ids());
+    v
+}
+
+impl SampleGraph {
+    /// Whether `self` was captured against `cache`'s buffers for `steps` steps.
     pub fn fits(&self, cache: &PrefixCache, steps: usize) -> bool {
-        self.steps == steps
-            && cache.k.first().map(|k| k.id()) == Some(self.cache_ids.0)
-            && cache.step_bias.id() == self.cache_ids.1
+        self.steps == steps && cache.rows.is_empty() && self.buffers == buffer_ids(cache)
     }
 
-    /// Replays the loop for `noise` [B, H, A] against the cache the graph was captured with
-    /// (refilled in place for the current observation).
+    /// Replays prefix pass and loop for the observation [`PiModel::prepare_prefix`] copied
+    /// into the cache the graph was captured with, from `noise` [B, H, A].
     pub fn run(&self, noise: &Tensor) -> Result<SampleOutput, PolicyError> {
         self.noise
             .slice_set(&noise.to_dtype(DType::F32)?.contiguous()?, 0, 0)?;
@@ -78,26 +84,31 @@ impl StepGraph {
         ))
     }
 
-    /// Captures the cached denoising loop of `model` against `cache` (filled for the current
-    /// observation) and checks its first replay against `eager`, the eager loop's result for
-    /// `noise`. `Ok(None)`: no graph applies here (CPU, no `cuda` feature, compact layout).
+    /// Runs the device half of a sample eagerly against `cache` (prepared for the current
+    /// observation), captures it, and checks the first replay against the eager result, which
+    /// is returned with the graph. `Ok((eager, None))`: no graph applies here (CPU, no `cuda`
+    /// feature, compact layout).
     #[allow(unused_variables)]
     pub fn capture(
         model: &PiModel,
         cache: &PrefixCache,
         noise: &Tensor,
         steps: usize,
-        eager: &SampleOutput,
-    ) -> Result<Option<Self>, PolicyError> {
+    ) -> Result<(SampleOutput, Option<Self>), PolicyError> {
+        let once = |x: &Tensor| -> Result<SampleOutput, PolicyError> {
+            model.run_prefix(cache, None, false)?;
+            model.denoise(cache, x, steps)
+        };
         #[cfg(feature = "cuda")]
         {
             use candle_core::cuda_backend::cudarc::driver::sys;
-            let Ok(dev) = model.device().as_cuda_device() else {
-                return Ok(None);
+            let (Ok(dev), true, true) = (
+                model.device().as_cuda_device(),
+                model.fixed_step_shapes(),
+                cache.rows.is_empty(),
+            ) else {
+                return Ok((once(noise)?, None));
             };
-            if !model.fixed_step_shapes() {
-                return Ok(None);
-            }
             let err = |what: &str, e: &dyn std::fmt::Display| {
                 PolicyError::Candle(candle_core::Error::Msg(format!("{what}: {e}")))
             };
@@ -105,14 +116,19 @@ impl StepGraph {
             // one eager run with the graph's own buffers fills that cache
             let _cache_uploads = dev.enable_cuda_graph_htod_cache();
             let buf = noise.to_dtype(DType::F32)?.contiguous()?.copy()?;
-            let loop_once = |x: &Tensor| model.denoise(cache, x, steps);
-            loop_once(&buf)?;
+            let eager = once(&buf)?;
+            // the eager result must outlive the replays that overwrite nothing of it
+            let eager = SampleOutput {
+                actions: eager.actions.copy()?,
+                v_t_step0: eager.v_t_step0.copy()?,
+                times: eager.times,
+            };
             model.device().synchronize()?;
             let stream = dev.cuda_stream();
             stream
                 .begin_capture(sys::CUstreamCaptureMode::CU_STREAM_CAPTURE_MODE_THREAD_LOCAL)
                 .map_err(|e| err("begin capture", &e))?;
-            let captured = loop_once(&buf);
+            let captured = once(&buf);
             // always end the capture, whatever happened inside, so the stream is usable again
             let graph = stream.end_capture(
                 sys::CUgraphInstantiate_flags::CUDA_GRAPH_INSTANTIATE_FLAG_AUTO_FREE_ON_LAUNCH,
@@ -121,21 +137,14 @@ impl StepGraph {
             let graph = graph
                 .map_err(|e| err("end capture", &e))?
                 .ok_or_else(|| err("end capture", &"the driver returned no graph"))?;
-            let g = StepGraph {
+            let g = SampleGraph {
                 graph,
                 noise: buf,
                 out: captured.actions,
                 v0: captured.v_t_step0,
                 times: captured.times,
                 steps,
-                cache_ids: (
-                    cache
-                        .k
-                        .first()
-                        .map(|k| k.id())
-                        .ok_or_else(|| err("capture", &"empty cache"))?,
-                    cache.step_bias.id(),
-                ),
+                buffers: buffer_ids(cache),
             };
             let replay = g.run(noise)?;
             let d = (&replay.actions - &eager.actions)?
@@ -146,14 +155,14 @@ impl StepGraph {
             if !(d <= 1e-3 * rms.max(1e-6)) {
                 return Err(err(
                     "graph check",
-                    &format!("replay differs from the eager loop by {d} (RMS {rms})"),
+                    &format!("replay differs from the eager run by {d} (RMS {rms})"),
                 ));
             }
-            Ok(Some(g))
+            Ok((eager, Some(g)))
         }
         #[cfg(not(feature = "cuda"))]
         {
-            Ok(None)
+            Ok((once(noise)?, None))
         }
     }
 }

@@ -15,6 +15,7 @@ pub mod fastops;
 pub mod gemma;
 pub mod gpu;
 pub mod graph;
+pub mod kernels;
 pub mod model;
 pub mod packed;
 pub mod preprocess;

@@ -65,19 +65,20 @@ pub struct PrefixLayout {
 }
 
 /// Post-RoPE K/V of the prefix (and, for π0, of the state token) for every layer, in buffers of
-/// length `P + S` that are reused across denoising steps and observations.
+/// length `P + S` that are reused across denoising steps and observations, and the device copies
+/// of everything else a prefix pass and a denoising step read ([`PrefixStatics`]).
 #[derive(Debug)]
 pub struct PrefixCache {
     /// Per layer [B, nKV, P + S, hd].
     pub k: Vec<Tensor>,
     /// Per layer [B, nKV, P + S, hd].
     pub v: Vec<Tensor>,
-    /// Additive mask for action queries over the keys they see [B, 1, 1, Pc + S]: the compacted
-    /// prefix (Pc = the largest valid-token count of the batch), then the suffix; in the fixed
-    /// layout [B, 1, 1, P + S] with the slots [Pc, P) masked.
-    pub step_bias: Tensor,
-    /// RoPE tables of the action tokens.
-    pub action_rope: Rope,
+    /// The observation's tensors on the device (refilled in place in the fixed layout).
+    pub statics: PrefixStatics,
+    /// Cameras run through the vision tower (compact layout: those valid in some batch row).
+    pub cams: Vec<usize>,
+    /// Compaction: per batch row, the prefix slots computed, in order (empty: all P slots).
+    pub rows: Vec<Tensor>,
     /// Sequence index of the first action token (`Pc + state_tokens`, fixed layout
     /// `P + state_tokens`).
     pub action_offset: usize,
@@ -85,6 +86,120 @@ pub struct PrefixCache {
     pub layout: PrefixLayout,
     /// Batch size.
     pub batch: usize,
+}
+
+impl PrefixCache {
+    /// Additive mask for action queries over the keys they see [B, 1, 1, Pc + S].
+    pub fn step_bias(&self) -> &Tensor {
+        &self.statics.step_bias
+    }
+
+    /// RoPE tables of the action tokens.
+    pub fn action_rope(&self) -> &Rope {
+        &self.statics.action_rope
+    }
+}
+
+/// One observation's tensors as the prefix pass and the denoising steps read them. In the fixed
+/// layout their shapes do not depend on the observation, and [`PiModel::prepare_prefix`]
+/// copies each new observation into the same buffers.
+#[derive(Debug)]
+pub struct PrefixStatics {
+    /// The cameras that run the vision tower, batched [C·B, 3, S, S] f32.
+    pub images: Tensor,
+    /// Token ids [B · Lt] u32.
+    pub ids: Tensor,
+    /// State [B, A] f32.
+    pub state: Tensor,
+    /// Prefix self-attention bias [B, 1, Pc, Pc] f32.
+    pub prefix_bias: Tensor,
+    /// RoPE tables of the prefix tokens computed.
+    pub prefix_rope: Rope,
+    /// Additive mask for action queries [B, 1, 1, Pc + S] f32: the prefix slots computed
+    /// (padding masked), then the suffix (fixed layout: rounded up to a multiple of 8 slots,
+    /// the extra ones masked).
+    pub step_bias: Tensor,
+    /// RoPE tables of the action tokens.
+    pub action_rope: Rope,
+    /// π0's state token: its mask [B, 1, 1, Pc + 1] and RoPE tables.
+    pub state_bias: Option<Tensor>,
+    /// See `state_bias`.
+    pub state_rope: Option<Rope>,
+}
+
+impl PrefixStatics {
+    /// `new` copied into `self`'s buffers where every shape and dtype matches (fixed layout:
+    /// the buffers keep their addresses), else `new` itself.
+    fn refill(self, new: PrefixStatics) -> candle_core::Result<PrefixStatics> {
+        fn same(a: &Tensor, b: &Tensor) -> bool {
+            a.dims() == b.dims() && a.dtype() == b.dtype()
+        }
+        let ropes = |a: &Rope, b: &Rope| same(&a.cos, &b.cos) && same(&a.sin, &b.sin);
+        let fits = same(&self.images, &new.images)
+            && same(&self.ids, &new.ids)
+            && same(&self.state, &new.state)
+            && same(&self.prefix_bias, &new.prefix_bias)
+            && ropes(&self.prefix_rope, &new.prefix_rope)
+            && same(&self.step_bias, &new.step_bias)
+            && ropes(&self.action_rope, &new.action_rope)
+            && match (&self.state_bias, &new.state_bias) {
+                (Some(a), Some(b)) => same(a, b),
+                (None, None) => true,
+                _ => false,
+            }
+            && match (&self.state_rope, &new.state_rope) {
+                (Some(a), Some(b)) => ropes(a, b),
+                (None, None) => true,
+                _ => false,
+            };
+        if !fits {
+            return Ok(new);
+        }
+        let pairs = [
+            (&self.images, &new.images),
+            (&self.ids, &new.ids),
+            (&self.state, &new.state),
+            (&self.prefix_bias, &new.prefix_bias),
+            (&self.prefix_rope.cos, &new.prefix_rope.cos),
+            (&self.prefix_rope.sin, &new.prefix_rope.sin),
+            (&self.step_bias, &new.step_bias),
+            (&self.action_rope.cos, &new.action_rope.cos),
+            (&self.action_rope.sin, &new.action_rope.sin),
+        ];
+        for (dst, src) in pairs {
+            dst.slice_set(&src.contiguous()?, 0, 0)?;
+        }
+        if let (Some(a), Some(b)) = (&self.state_bias, &new.state_bias) {
+            a.slice_set(&b.contiguous()?, 0, 0)?;
+        }
+        if let (Some(a), Some(b)) = (&self.state_rope, &new.state_rope) {
+            a.cos.slice_set(&b.cos.contiguous()?, 0, 0)?;
+            a.sin.slice_set(&b.sin.contiguous()?, 0, 0)?;
+        }
+        Ok(self)
+    }
+
+    /// Identities of every buffer (a captured graph checks it still reads the same ones).
+    pub fn ids(&self) -> Vec<candle_core::TensorId> {
+        let mut v = vec![
+            self.images.id(),
+            self.ids.id(),
+            self.state.id(),
+            self.prefix_bias.id(),
+            self.prefix_rope.cos.id(),
+            self.prefix_rope.sin.id(),
+            self.step_bias.id(),
+            self.action_rope.cos.id(),
+            self.action_rope.sin.id(),
+        ];
+        v.extend(self.state_bias.iter().map(|t| t.id()));
+        v.extend(
+            self.state_rope
+                .iter()
+                .flat_map(|r| [r.cos.id(), r.sin.id()]),
+        );
+        v
+    }
 }
 
 /// Result of [`PiModel::sample`].
@@ -640,17 +755,21 @@ impl PiModel {
     }
 
     /// Runs the prefix through the VLM expert only, filling `cache` (reusing its buffers when the
-    /// shapes match). Only valid prefix tokens are computed: row `b` of the cache holds the valid
-    /// tokens in order at `[0, n_valid[b])`. Returns the prefix output (after the final norm) of
-    /// those compacted tokens [B, max n_valid, W] when `want_out`.
+    /// shapes match). In the compact layout only valid prefix tokens are computed: row `b` of the
+    /// cache holds the valid tokens in order at `[0, n_valid[b])`. Returns the prefix output
+    /// (after the final norm) of the tokens computed [B, Pc, W] when `want_out`.
+    ///
+    /// Two halves: [`Self::prepare_prefix`] (host work and uploads) and [`Self::run_prefix`]
+    /// (device work only, reading the inputs from the cache's buffers: what a captured CUDA
+    /// graph replays, [`crate::graph`]).
     pub fn fill_cache(
         &self,
         inp: &ModelInputs,
         cache: &mut Option<PrefixCache>,
         want_out: bool,
     ) -> Result<Option<Tensor>, PolicyError> {
-        let embs = self.embed_prefix_inner(inp, !want_out, false)?;
-        self.fill_cache_from_embs(inp, &embs, cache, want_out)
+        let c = self.prepare_prefix(inp, cache, !want_out)?;
+        self.run_prefix(c, None, want_out)
     }
 
     /// [`Self::fill_cache`] from precomputed prefix embeddings [B, P, W].
@@ -661,53 +780,78 @@ impl PiModel {
         cache: &mut Option<PrefixCache>,
         want_out: bool,
     ) -> Result<Option<Tensor>, PolicyError> {
+        let c = self.prepare_prefix(inp, cache, false)?;
+        self.run_prefix(c, Some(embs), want_out)
+    }
+
+    /// The host half of [`Self::fill_cache`]: checks the inputs, plans the prefix layout and
+    /// copies everything the device half reads into the cache (allocating it, or reusing its
+    /// buffers when the shapes match). In the fixed layout every buffer keeps its address across
+    /// observations, so a graph captured over [`Self::run_prefix`] reads the new observation.
+    /// `skip_masked`: cameras masked in every batch row skip the vision pass (compact layout only).
+    pub fn prepare_prefix<'c>(
+        &self,
+        inp: &ModelInputs,
+        cache: &'c mut Option<PrefixCache>,
+        skip_masked: bool,
+    ) -> Result<&'c mut PrefixCache, PolicyError> {
         let b = self.check_inputs(inp)?;
         let d = &self.cfg.paligemma;
         let p = self.cfg.prefix_len();
         let ns = self.cfg.state_tokens();
-        let total = p + self.cfg.suffix_len();
-        let layout = self.prefix_layout(inp);
-        let reuse = matches!(cache, Some(c) if c.batch == b && c.k.first().map(|k| k.dims() == [b, d.num_kv_heads, total, d.head_dim]).unwrap_or(false));
-        // the previous step tensors, refilled in place in the fixed-shape layout
-        let mut previous_step = None;
-        let (ks, vs) = if reuse {
-            let c = cache.take().expect("checked Some above");
-            previous_step = Some((c.step_bias, c.action_rope));
-            (c.k, c.v)
+        let fixed = self.fixed_step_shapes;
+        // cache length: P + S, in the fixed layout rounded up to a multiple of 8 slots (masked)
+        // so that the step's score and probability rows start 16-byte aligned in bf16 (cuBLAS
+        // falls back to slow kernels for misaligned leading dimensions)
+        let total = if fixed {
+            (p + self.cfg.suffix_len()).next_multiple_of(8)
         } else {
-            let mut ks = Vec::with_capacity(d.depth);
-            let mut vs = Vec::with_capacity(d.depth);
-            for _ in 0..d.depth {
-                ks.push(Tensor::zeros(
-                    (b, d.num_kv_heads, total, d.head_dim),
-                    self.dtype,
-                    &self.device,
-                )?);
-                vs.push(Tensor::zeros(
-                    (b, d.num_kv_heads, total, d.head_dim),
-                    self.dtype,
-                    &self.device,
-                )?);
-            }
-            (ks, vs)
+            p + self.cfg.suffix_len()
         };
-        // Compaction: padding tokens and masked cameras never influence valid tokens (they are
-        // masked as keys everywhere), so the prefix pass runs over the valid tokens only, in
-        // order, padded per row to the largest valid count `pc` with (masked) filler tokens.
-        let pc = layout.n_valid.iter().copied().max().unwrap_or(0).max(1);
+        let tail = total - p - self.cfg.suffix_len();
+        // token ids in range (one host read; the embedding lookup would fault otherwise)
+        let ids = inp.tokens.flatten_all()?.to_dtype(DType::U32)?;
+        let vocab = self.embed_tokens.dim(0)?;
+        let id_range = inp.tokens.flatten_all()?.to_dtype(DType::F64)?;
+        let (min_id, max_id) = (
+            id_range.min(0)?.to_scalar::<f64>()?,
+            id_range.max(0)?.to_scalar::<f64>()?,
+        );
+        if min_id < 0.0 || max_id >= vocab as f64 {
+            return Err(PolicyError::Input(format!(
+                "token ids must be in [0, {vocab}), got [{min_id}, {max_id}]"
+            )));
+        }
+        let layout = self.prefix_layout(inp);
+        // cameras through the vision tower: all in the fixed layout (same work every time)
+        let cams: Vec<usize> = (0..inp.images.len())
+            .filter(|&c| fixed || !skip_masked || inp.image_masks[c].iter().any(|&m| m))
+            .collect();
+        // Compaction (compact layout): padding tokens and masked cameras never influence valid
+        // tokens (they are masked as keys everywhere), so the prefix pass runs over the valid
+        // tokens only, in order, padded per row to the largest valid count `pc` with (masked)
+        // filler tokens. The fixed layout runs all P slots, masked the same way.
+        let pc = if fixed {
+            p
+        } else {
+            layout.n_valid.iter().copied().max().unwrap_or(0).max(1)
+        };
         let mut rows = Vec::with_capacity(b);
         let mut cpad = Vec::with_capacity(b);
         let mut cpos = Vec::with_capacity(b);
         for bi in 0..b {
             let pad = &layout.pad[bi];
-            let mut idx: Vec<u32> = (0..p).filter(|&j| pad[j]).map(|j| j as u32).collect();
+            let mut idx: Vec<u32> = (0..p)
+                .filter(|&j| fixed || pad[j])
+                .map(|j| j as u32)
+                .collect();
             idx.extend(
                 (0..p)
-                    .filter(|&j| !pad[j])
-                    .take(pc - layout.n_valid[bi])
+                    .filter(|&j| !fixed && !pad[j])
+                    .take(pc - idx.len().min(pc))
                     .map(|j| j as u32),
             );
-            cpad.push((0..pc).map(|i| i < layout.n_valid[bi]).collect::<Vec<_>>());
+            cpad.push(idx.iter().map(|&j| pad[j as usize]).collect::<Vec<_>>());
             cpos.push(
                 idx.iter()
                     .map(|&j| layout.pos[bi][j as usize])
@@ -715,43 +859,167 @@ impl PiModel {
             );
             rows.push(idx);
         }
-        let x = if pc == p {
-            embs.clone()
-        } else if b == 1 {
-            embs.index_select(&Tensor::new(rows[0].as_slice(), &self.device)?, 1)?
+        let rows = if pc == p
+            && rows
+                .iter()
+                .all(|r| r.iter().enumerate().all(|(i, &j)| i == j as usize))
+        {
+            Vec::new()
         } else {
-            let mut parts = Vec::with_capacity(b);
-            for (bi, r) in rows.iter().enumerate() {
-                let idx = Tensor::new(r.as_slice(), &self.device)?;
-                parts.push(embs.narrow(0, bi, 1)?.index_select(&idx, 1)?);
-            }
-            Tensor::cat(&parts, 0)?
+            rows.iter()
+                .map(|r| Tensor::new(r.as_slice(), &self.device))
+                .collect::<candle_core::Result<Vec<_>>>()?
         };
         let compact = PrefixLayout {
             pad: cpad,
             pos: cpos,
             n_valid: layout.n_valid.clone(),
         };
-        let rope = self.rope(&compact.pos)?;
-        let bias = self.prefix_bias(&compact)?;
+        // Where the suffix goes in the cache. Compact layout (the CPU's): right after the
+        // compacted prefix, at pc, so a denoising step attends over pc + S keys instead of
+        // P + S: the padding slots are skipped, not masked. Fixed layout (GPUs'): at P, so a
+        // step's shapes, offsets and buffers are the same for every observation.
+        // Key visibility for suffix queries: the computed prefix slots (padding masked), then
+        // every suffix slot.
+        let so = pc;
+        let t_step = so + total - p;
+        let mut vis = Vec::with_capacity(b * t_step);
+        for row in &compact.pad {
+            vis.extend_from_slice(row);
+            vis.extend(std::iter::repeat_n(true, total - p - tail));
+            vis.extend(std::iter::repeat_n(false, tail));
+        }
+        // positions of the action tokens: n_valid + state_tokens + [0, H)
+        let h = self.cfg.action_horizon;
+        let apos: Vec<Vec<i64>> = layout
+            .n_valid
+            .iter()
+            .map(|&n| (0..h).map(|i| (n + ns + i) as i64).collect())
+            .collect();
+        // π0: the state token sees the computed prefix and itself
+        let state_part = if ns == 1 {
+            let spos: Vec<Vec<i64>> = layout.n_valid.iter().map(|&n| vec![n as i64]).collect();
+            let mut svis = Vec::with_capacity(b * (so + 1));
+            for row in &compact.pad {
+                svis.extend_from_slice(row);
+                svis.push(true);
+            }
+            Some((
+                bias_tensor(svis, (b, 1, 1, so + 1), &self.device)?,
+                self.rope(&spos)?,
+            ))
+        } else {
+            None
+        };
+        let images = {
+            let imgs: Vec<Tensor> = cams
+                .iter()
+                .map(|&c| inp.images[c].to_dtype(DType::F32))
+                .collect::<candle_core::Result<_>>()?;
+            Tensor::cat(&imgs, 0)?
+        };
+        // own copies: the caller's tensors may be reused or freed (a conversion to the same
+        // dtype, or a cat of one camera, would alias them)
+        let fresh = PrefixStatics {
+            images: images.copy()?,
+            ids: ids.copy()?,
+            state: inp.state.to_dtype(DType::F32)?.copy()?,
+            prefix_bias: self.prefix_bias(&compact)?,
+            prefix_rope: self.rope(&compact.pos)?,
+            step_bias: bias_tensor(vis, (b, 1, 1, t_step), &self.device)?,
+            action_rope: self.rope(&apos)?,
+            state_bias: state_part.as_ref().map(|s| s.0.clone()),
+            state_rope: state_part.map(|s| s.1),
+        };
+        let reuse = matches!(cache, Some(c) if c.batch == b && c.k.first().map(|k| k.dims() == [b, d.num_kv_heads, total, d.head_dim]).unwrap_or(false));
+        let c = match cache.take() {
+            Some(mut c) if reuse => {
+                // fixed layout: the same device buffers as for the previous observation, refilled
+                c.statics = if fixed {
+                    c.statics.refill(fresh)?
+                } else {
+                    fresh
+                };
+                c.cams = cams;
+                c.rows = rows;
+                c.action_offset = so + ns;
+                c.layout = layout;
+                c
+            }
+            _ => {
+                let mut ks = Vec::with_capacity(d.depth);
+                let mut vs = Vec::with_capacity(d.depth);
+                for _ in 0..d.depth {
+                    for kv in [&mut ks, &mut vs] {
+                        kv.push(Tensor::zeros(
+                            (b, d.num_kv_heads, total, d.head_dim),
+                            self.dtype,
+                            &self.device,
+                        )?);
+                    }
+                }
+                PrefixCache {
+                    k: ks,
+                    v: vs,
+                    statics: fresh,
+                    cams,
+                    rows,
+                    action_offset: so + ns,
+                    layout,
+                    batch: b,
+                }
+            }
+        };
+        Ok(cache.insert(c))
+    }
+
+    /// The device half of [`Self::fill_cache`]: the vision tower, the embeddings and the VLM
+    /// expert over the prefix (and π0's state token through the action expert), K/V into the
+    /// cache, reading only the cache's buffers ([`Self::prepare_prefix`] filled them): no host
+    /// read or upload of anything observation-dependent. `embs`: precomputed prefix embeddings
+    /// [B, P, W] instead of the vision pass.
+    pub fn run_prefix(
+        &self,
+        c: &PrefixCache,
+        embs: Option<&Tensor>,
+        want_out: bool,
+    ) -> Result<Option<Tensor>, PolicyError> {
+        let d = &self.cfg.paligemma;
+        let b = c.batch;
+        let s = &c.statics;
+        let embs = match embs {
+            Some(e) => e.clone(),
+            None => self.embed_from(c)?,
+        };
+        let x = match c.rows.as_slice() {
+            [] => embs,
+            [r] if b == 1 => embs.index_select(r, 1)?,
+            rs => {
+                let mut parts = Vec::with_capacity(b);
+                for (bi, r) in rs.iter().enumerate() {
+                    parts.push(embs.narrow(0, bi, 1)?.index_select(r, 1)?);
+                }
+                Tensor::cat(&parts, 0)?
+            }
+        };
         let mut streams = [Stream {
             x,
             expert: &self.vlm,
             cond: None,
-            rope: &rope,
+            rope: &s.prefix_rope,
         }];
         for li in 0..d.depth {
             if li + 1 == d.depth && !want_out {
                 // the last layer only has to provide K/V
-                kv_only_layer(li, &streams[0], &ks[li], &vs[li])?;
+                kv_only_layer(li, &streams[0], &c.k[li], &c.v[li])?;
                 continue;
             }
             joint_layer(
                 li,
                 &mut streams,
-                &bias,
+                &s.prefix_bias,
                 KvMode::Own {
-                    store: Some((&ks[li], &vs[li])),
+                    store: Some((&c.k[li], &c.v[li])),
                 },
                 false,
             )?;
@@ -761,93 +1029,67 @@ impl PiModel {
         } else {
             None
         };
-        // Where the suffix goes in the cache. Compact layout (the CPU's): right after the
-        // compacted prefix, at pc, so a denoising step attends over pc + S keys instead of
-        // P + S: the padding slots are skipped, not masked. Fixed layout (GPUs'): at P, with the
-        // slots [pc, P) masked, so a step's shapes, offsets and buffers are the same for every
-        // observation and the denoising loop can be replayed as a captured CUDA graph.
-        // Key visibility for suffix queries: the valid compacted prefix (its fillers masked),
-        // the masked gap (fixed layout), then every suffix slot.
-        let so = if self.fixed_step_shapes { p } else { pc };
-        let t_step = so + total - p;
-        let mut vis = Vec::with_capacity(b * t_step);
-        for row in &compact.pad {
-            vis.extend_from_slice(row);
-            vis.extend(std::iter::repeat_n(false, so - pc));
-            vis.extend(std::iter::repeat_n(true, total - p));
-        }
-        let step_bias = bias_tensor(vis, (b, 1, 1, t_step), &self.device)?;
-        // positions of the action tokens: n_valid + state_tokens + [0, H)
-        let h = self.cfg.action_horizon;
-        let apos: Vec<Vec<i64>> = layout
-            .n_valid
-            .iter()
-            .map(|&n| (0..h).map(|i| (n + ns + i) as i64).collect())
-            .collect();
-        let action_rope = self.rope(&apos)?;
-        // fixed layout: the same device buffers as for the previous observation, refilled
-        let (step_bias, action_rope) = match previous_step {
-            Some((pb, pr))
-                if self.fixed_step_shapes
-                    && pb.dims() == step_bias.dims()
-                    && pr.cos.dims() == action_rope.cos.dims() =>
-            {
-                pb.slice_set(&step_bias, 0, 0)?;
-                pr.cos.slice_set(&action_rope.cos, 0, 0)?;
-                pr.sin.slice_set(&action_rope.sin, 0, 0)?;
-                (pb, pr)
-            }
-            _ => (step_bias, action_rope),
-        };
-        if ns == 1 {
+        if let (Some(sbias), Some(srope)) = (&s.state_bias, &s.state_rope) {
             // π0: the state token sees the prefix and itself only, so its K/V do not depend on
             // x_t or t: run it once through the action expert and keep it in the cache at P.
             let SuffixHeads::Pi0 { state_proj, .. } = &self.heads else {
                 return Err(PolicyError::Config("pi0 without state_proj".into()));
             };
-            let s = state_proj
-                .forward(&inp.state.to_dtype(DType::F32)?)?
+            let st = state_proj
+                .forward(&s.state)?
                 .unsqueeze(1)?
                 .to_dtype(self.dtype)?;
-            let spos: Vec<Vec<i64>> = layout.n_valid.iter().map(|&n| vec![n as i64]).collect();
-            let srope = self.rope(&spos)?;
-            let mut svis = Vec::with_capacity(b * (so + 1));
-            for row in &compact.pad {
-                svis.extend_from_slice(row);
-                svis.extend(std::iter::repeat_n(false, so - pc));
-                svis.push(true);
-            }
-            let sbias = bias_tensor(svis, (b, 1, 1, so + 1), &self.device)?;
             let mut st = [Stream {
-                x: s,
+                x: st,
                 expert: &self.expert,
                 cond: None,
-                rope: &srope,
+                rope: srope,
             }];
             for li in 0..d.depth {
                 joint_layer(
                     li,
                     &mut st,
-                    &sbias,
+                    sbias,
                     KvMode::Cached {
-                        k: &ks[li],
-                        v: &vs[li],
-                        offset: so,
+                        k: &c.k[li],
+                        v: &c.v[li],
+                        offset: c.action_offset - 1,
                     },
                     false,
                 )?;
             }
         }
-        *cache = Some(PrefixCache {
-            k: ks,
-            v: vs,
-            step_bias,
-            action_rope,
-            action_offset: so + ns,
-            layout,
-            batch: b,
-        });
         Ok(out)
+    }
+
+    /// Prefix embeddings [B, P, W] from the cache's images and token ids: image embeddings per
+    /// camera (zeros for a camera that skipped the vision pass), then `embed(ids) * sqrt(W)`.
+    fn embed_from(&self, c: &PrefixCache) -> Result<Tensor, PolicyError> {
+        let b = c.batch;
+        let t = self.cfg.vision.num_tokens();
+        let w = self.cfg.paligemma.width;
+        let emb = if c.cams.is_empty() {
+            None
+        } else {
+            Some(
+                self.vision
+                    .forward_with(&c.statics.images, false)?
+                    .to_dtype(self.dtype)?,
+            )
+        };
+        let mut parts = Vec::with_capacity(self.cfg.cameras.len() + 1);
+        for cam in 0..self.cfg.cameras.len() {
+            match (c.cams.iter().position(|&r| r == cam), &emb) {
+                (Some(i), Some(e)) => parts.push(e.narrow(0, i * b, b)?),
+                _ => parts.push(Tensor::zeros((b, t, w), self.dtype, &self.device)?),
+            }
+        }
+        let text = self
+            .embed_tokens
+            .index_select(&c.statics.ids, 0)?
+            .reshape((b, self.cfg.max_token_len, w))?;
+        parts.push((text * (w as f64).sqrt())?);
+        Ok(Tensor::cat(&parts, 1)?)
     }
 
     /// One velocity evaluation against the prefix cache: only the action expert runs, over the
@@ -893,13 +1135,13 @@ impl PiModel {
             x: tokens,
             expert: &self.expert,
             cond: cond.as_ref(),
-            rope: &cache.action_rope,
+            rope: cache.action_rope(),
         }];
         for li in 0..self.cfg.action_expert.depth {
             joint_layer(
                 li,
                 &mut st,
-                &cache.step_bias,
+                cache.step_bias(),
                 KvMode::Cached {
                     k: &cache.k[li],
                     v: &cache.v[li],

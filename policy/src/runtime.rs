@@ -10,7 +10,7 @@ use rand::{Rng, SeedableRng};
 use super::checkpoint;
 use super::config::{ConfigOverrides, ModelKind};
 use super::device::{DeviceSpec, Precision};
-use super::graph::StepGraph;
+use super::graph::SampleGraph;
 use super::model::{ModelInputs, PiModel, PrefixCache};
 use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
@@ -62,7 +62,7 @@ pub struct Policy {
     /// model's delta dims (`ModelConfig::delta_action_mask`), 0 on the others.
     offsets: Vec<f64>,
     /// The captured denoising loop (GPU), and whether to (still) try one.
-    graph: Option<StepGraph>,
+    graph: Option<SampleGraph>,
     graph_on: bool,
 }
 
@@ -195,42 +195,45 @@ impl Policy {
         &self.model
     }
 
-    /// Whether the denoising loop runs as a captured CUDA graph (captured at the first call).
+    /// Whether samples run as a captured CUDA graph (captured at the first call).
     pub fn uses_cuda_graph(&self) -> bool {
         self.graph.is_some()
     }
 
-    /// The cached sampler with the denoising loop as a CUDA graph: the prefix pass runs
-    /// eagerly (refilling the cache in place), then one graph launch runs every step. The first
-    /// call captures the graph and checks it against the eager loop; a failure turns graphs off
-    /// for this policy, with a warning, and the eager result is used.
+    /// The cached sampler as one CUDA graph ([`super::graph`]): the host half of the prefix
+    /// pass copies the observation into the cache's buffers, then one launch runs the vision
+    /// tower, the prefix pass and every denoising step. The first call captures the graph and
+    /// checks it against the eager run; a failure turns graphs off for this policy, with a
+    /// warning, and the eager result is used.
     fn sample_graph(
         &mut self,
         inputs: &ModelInputs,
         noise: &Tensor,
     ) -> Result<super::model::SampleOutput, PolicyError> {
-        self.model.fill_cache(inputs, &mut self.cache, false)?;
-        let cache = self
-            .cache
-            .as_ref()
-            .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
+        let cache = self.model.prepare_prefix(inputs, &mut self.cache, true)?;
         if let Some(g) = self.graph.as_ref().filter(|g| g.fits(cache, self.steps)) {
             return g.run(noise);
         }
-        let eager = self.model.denoise(cache, noise, self.steps)?;
-        match StepGraph::capture(&self.model, cache, noise, self.steps, &eager) {
-            Ok(Some(g)) => {
-                tracing::info!("policy: denoising loop captured as a CUDA graph");
+        self.graph = None;
+        match SampleGraph::capture(&self.model, cache, noise, self.steps) {
+            Ok((eager, Some(g))) => {
+                tracing::info!(
+                    "policy: sample (prefix pass and denoising loop) captured as a CUDA graph"
+                );
                 self.graph = Some(g);
+                Ok(eager)
             }
-            Ok(None) => self.graph_on = false,
+            Ok((eager, None)) => {
+                self.graph_on = false;
+                Ok(eager)
+            }
             Err(e) => {
                 tracing::warn!("policy: CUDA graph capture failed, running eagerly: {e}");
-                self.graph = None;
                 self.graph_on = false;
+                self.model.run_prefix(cache, None, false)?;
+                self.model.denoise(cache, noise, self.steps)
             }
         }
-        Ok(eager)
     }
 
     /// Action horizon H.

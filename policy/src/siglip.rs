@@ -168,6 +168,54 @@ struct EncoderLayer {
     fc2: Dense,
 }
 
+impl EncoderLayer {
+    /// The layer with chunkrt's fused CUDA kernels ([`super::kernels`]): bias, activation and
+    /// residual folded into one kernel after each product, the Q/K/V head split in one pass, the
+    /// scaled softmax in f32 in place. `None` where they do not apply (CPU, training layers).
+    fn forward_fused(
+        &self,
+        x: &Tensor,
+        nh: usize,
+        hd: usize,
+        scale: f64,
+    ) -> candle_core::Result<Option<Tensor>> {
+        use super::kernels;
+        let Qkv::Fused(qkv) = &self.qkv else {
+            return Ok(None);
+        };
+        let (n, t, d) = x.dims3()?;
+        // x [N, T, K] · w[O, K]^T, without the bias
+        let mm = |x: &Tensor, w: &Tensor| -> candle_core::Result<Tensor> {
+            let k = x.dim(D::Minus1)?;
+            x.reshape((n * t, k))?
+                .matmul(&w.t()?)?
+                .reshape((n, t, w.dim(0)?))
+        };
+        let h = self.ln1.forward(x, false)?;
+        let Some(y) = kernels::bias_act(&mm(&h, &qkv.w)?, Some(&qkv.b), false, None)? else {
+            return Ok(None);
+        };
+        let Some((q, k, v)) = kernels::split_qkv(&y, nh, hd)? else {
+            return Ok(None);
+        };
+        let Some(p) = kernels::softmax_bias(&q.matmul(&k.t()?)?, None, t, scale)? else {
+            return Ok(None);
+        };
+        // [N, nH, T, hd] -> [N, T, D]
+        let o = p.matmul(&v)?.transpose(1, 2)?.reshape((n, t, d))?;
+        let Some(x) = kernels::bias_act(&mm(&o, &self.out.w)?, Some(&self.out.b), false, Some(x))?
+        else {
+            return Ok(None);
+        };
+        let h = self.ln2.forward(&x, false)?;
+        let Some(f) = kernels::bias_act(&mm(&h, &self.fc1.w)?, Some(&self.fc1.b), true, None)?
+        else {
+            return Ok(None);
+        };
+        kernels::bias_act(&mm(&f, &self.fc2.w)?, Some(&self.fc2.b), false, Some(&x))
+    }
+}
+
 /// Vision tower and projector.
 #[derive(Debug, Clone)]
 pub struct Vision {
@@ -299,6 +347,12 @@ impl Vision {
         let t = g * g;
         let scale = (hd as f64).powf(-0.5);
         for l in &self.layers {
+            if !diff && super::kernels::enabled(x.device()) {
+                if let Some(y) = l.forward_fused(&x, nh, hd, scale)? {
+                    x = y;
+                    continue;
+                }
+            }
             let h = l.ln1.forward(&x, diff)?;
             // [N, T, 3 Dv]
             let qkv = l.qkv.forward(&h)?;
