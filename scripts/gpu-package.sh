@@ -40,5 +40,11 @@ for pair in $pairs; do
   xz -T0 -6 -f "$out/$name"
   echo "gpu-package: $out/$name.xz ($(du -h "$out/$name.xz" | cut -f1))" >&2
 done
+# the libraries the binary links beyond what a CUDA machine image has (the plots' fonts and
+# PNG encoder); run.sh puts them last on the library path, so the machine's own come first
+mkdir -p "$out/lib"
+for l in $(ldd "$CARGO_TARGET_DIR/release/chunkrt" | awk '/fontconfig|freetype|png|brotli|expat/ {print $3}'); do
+  cp -L "$l" "$out/lib/"
+done
 cp scripts/gpu-run.sh "$out/run.sh"
 echo "gpu-package: done; on the GPU machine, from the checkout's root: bash $out/run.sh" >&2

@@ -787,6 +787,14 @@ impl std::fmt::Display for DeviceReport {
                 total as f64 / 1e9
             )?;
         }
+        if let (Some(g), Some(u)) = (self.phase("step_guided"), self.phase("step_cached")) {
+            let (g50, u50) = (quantile(&g.wall_ms, 0.5), quantile(&u.wall_ms, 0.5));
+            writeln!(
+                f,
+                "RTC guided step (forward + vector-Jacobian product) p50 {g50:.2} ms = {:.1}x an unguided step ({u50:.2} ms, both eager)",
+                g50 / u50.max(1e-9)
+            )?;
+        }
         if let Some(g) = &self.graph {
             writeln!(f, "sample as one CUDA graph: {g}")?;
         }
@@ -930,6 +938,17 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             model.velocity_at(c, &noise, &[0.5], false)?;
             Ok(())
         })?;
+        // a real-time-chunking guided step: a differentiable forward and one vector-Jacobian
+        // product through the action expert (candle autograd, op by op)
+        let target = super::rtc::GuidanceTarget {
+            y: noise.zeros_like()?,
+            w: Tensor::ones((1, cfg.action_horizon, cfg.action_dim), DType::F32, dev)?,
+            beta: 5.0,
+        };
+        time("step_guided", opts.calls, &mut || {
+            super::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
+            Ok(())
+        })?;
     }
     let mut scache = None;
     time("sample", opts.calls, &mut || {
@@ -957,6 +976,11 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
                 out.actions.flatten_all()?.to_vec1::<f32>()?;
                 Ok(())
             })?;
+            // the prefix pass alone as a graph: how the captured sample's time splits
+            let c = model.prepare_prefix(&inp, &mut scache, true)?;
+            if let Some(pg) = super::graph::PrefixGraph::capture(&model, c)? {
+                time("prefix_graph", opts.calls, &mut || pg.run())?;
+            }
             model.prepare_prefix(&inp2, &mut scache, true)?;
             let replay = g.run(&noise)?.actions;
             let eager = model

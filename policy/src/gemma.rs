@@ -472,6 +472,34 @@ pub struct Stream<'a> {
     pub cond: Option<&'a Tensor>,
     /// RoPE tables for this stream's positions.
     pub rope: &'a Rope,
+    /// A gated residual not yet added (fused path): the hidden states are
+    /// `x + m * gmod[.., 2W..3W]` (`gmod` None: `x + m`). The next fused layer adds it inside its
+    /// first norm's kernel; [`Stream::settle`] adds it for anything else. Construct with `None`.
+    pub pending: Option<(Tensor, Option<Tensor>)>,
+}
+
+impl Stream<'_> {
+    /// Adds a pending gated residual into `x`.
+    pub fn settle(&mut self) -> candle_core::Result<()> {
+        if let Some((m, gmod)) = self.pending.take() {
+            self.x = match super::kernels::gated_add(&self.x, &m, gmod.as_ref())? {
+                Some(x) => x,
+                None => {
+                    let w = self.x.dim(D::Minus1)?;
+                    let gate = match &gmod {
+                        Some(g) => Some(
+                            g.narrow(1, 2 * w, w)?
+                                .unsqueeze(1)?
+                                .to_dtype(self.x.dtype())?,
+                        ),
+                        None => None,
+                    };
+                    gated_residual(&self.x, &m, gate.as_ref(), false)?
+                }
+            };
+        }
+        Ok(())
+    }
 }
 
 /// Where the keys/values of a layer come from.
@@ -648,10 +676,20 @@ fn joint_layer_fused(
     };
     let (b, l, _) = s.x.dims3()?;
     let (nh, nkv, hd) = (d.num_heads, d.num_kv_heads, d.head_dim);
-    let Some((_, h)) = kernels::add_norm(&s.x, None, None, alpha1, m1.as_ref(), eps1, false)?
-    else {
-        return Ok(None);
+    // the previous layer's gated residual, added in this norm's kernel
+    let (x0, h) = {
+        let (m0, g0) = match &s.pending {
+            Some((m, g)) => (Some(m), g.as_ref()),
+            None => (None, None),
+        };
+        match kernels::add_norm(&s.x, m0, g0, alpha1, m1.as_ref(), eps1, m0.is_some())? {
+            Some((Some(x0), h)) => (x0, h),
+            Some((None, h)) => (s.x.clone(), h),
+            None => return Ok(None),
+        }
     };
+    s.x = x0;
+    s.pending = None;
     // [B, L, (nH + 2 nKV) hd]
     let y = matmul_2d(&h, wqkv)?;
     let heads = kernels::Heads {
@@ -691,10 +729,13 @@ fn joint_layer_fused(
         return Ok(None);
     };
     let m = matmul_2d(&a, &layer.down.weight().t()?)?;
-    let Some(x) = kernels::gated_add(&x1, &m, m2.as_ref())? else {
-        return Ok(None);
-    };
-    s.x = x;
+    // the gated residual goes to the next layer's first norm (the last layer adds it here, so
+    // that whoever reads `x` after the loop reads the final hidden states)
+    s.x = x1;
+    s.pending = Some((m, m2));
+    if li + 1 == s.expert.layers.len() {
+        s.settle()?;
+    }
     Ok(Some((kb.narrow(2, offset, l)?, vb.narrow(2, offset, l)?)))
 }
 
@@ -708,7 +749,20 @@ pub fn kv_only_layer(
 ) -> candle_core::Result<()> {
     let layer = &s.expert.layers[li];
     let d = &s.expert.dims;
-    let (h, _) = layer.input_norm.forward(&s.x, s.cond, false)?;
+    let settled;
+    let x = match &s.pending {
+        None => &s.x,
+        Some((m, g)) => {
+            settled = match super::kernels::gated_add(&s.x, m, g.as_ref())? {
+                Some(x) => x,
+                None => candle_core::bail!(
+                    "kv_only_layer: a pending residual without the fused kernels"
+                ),
+            };
+            &settled
+        }
+    };
+    let (h, _) = layer.input_norm.forward(x, s.cond, false)?;
     if let (Some(w), true) = (&layer.qkv, super::kernels::enabled(h.device())) {
         let (qd, kvd) = (d.num_heads * d.head_dim, d.num_kv_heads * d.head_dim);
         let y = matmul_2d(&h, &w.narrow(1, qd, 2 * kvd)?)?;
@@ -748,6 +802,9 @@ pub fn joint_layer(
         if let Some(kv) = joint_layer_fused(li, s, bias, kv)? {
             return Ok(kv);
         }
+    }
+    for s in streams.iter_mut() {
+        s.settle()?;
     }
     let mut qs = Vec::with_capacity(streams.len());
     let mut ks = Vec::with_capacity(streams.len());

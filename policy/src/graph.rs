@@ -43,6 +43,70 @@ pub struct SampleGraph {
 // shared access.
 unsafe impl Send for SampleGraph {}
 
+/// The prefix pass alone as a captured graph (a diagnostic: the bench splits a captured
+/// sample's time into prefix pass and denoising loop with it).
+pub struct PrefixGraph {
+    #[cfg(feature = "cuda")]
+    graph: candle_core::cuda_backend::cudarc::driver::CudaGraph,
+}
+
+// SAFETY: as for SampleGraph: one owner, calls serialised.
+unsafe impl Send for PrefixGraph {}
+
+impl PrefixGraph {
+    /// Captures [`PiModel::run_prefix`] against `cache` (prepared); `None` where graphs do not
+    /// apply.
+    #[allow(unused_variables)]
+    pub fn capture(model: &PiModel, cache: &PrefixCache) -> Result<Option<Self>, PolicyError> {
+        #[cfg(feature = "cuda")]
+        {
+            use candle_core::cuda_backend::cudarc::driver::sys;
+            let (Ok(dev), true, true) = (
+                model.device().as_cuda_device(),
+                model.fixed_step_shapes(),
+                cache.rows.is_empty(),
+            ) else {
+                return Ok(None);
+            };
+            let err = |what: &str, e: &dyn std::fmt::Display| {
+                PolicyError::Candle(candle_core::Error::Msg(format!("{what}: {e}")))
+            };
+            let _cache_uploads = dev.enable_cuda_graph_htod_cache();
+            model.run_prefix(cache, None, false)?;
+            model.device().synchronize()?;
+            let stream = dev.cuda_stream();
+            stream
+                .begin_capture(sys::CUstreamCaptureMode::CU_STREAM_CAPTURE_MODE_THREAD_LOCAL)
+                .map_err(|e| err("begin capture", &e))?;
+            let captured = model.run_prefix(cache, None, false);
+            let graph = stream.end_capture(
+                sys::CUgraphInstantiate_flags::CUDA_GRAPH_INSTANTIATE_FLAG_AUTO_FREE_ON_LAUNCH,
+            );
+            captured?;
+            let graph = graph
+                .map_err(|e| err("end capture", &e))?
+                .ok_or_else(|| err("end capture", &"the driver returned no graph"))?;
+            Ok(Some(PrefixGraph { graph }))
+        }
+        #[cfg(not(feature = "cuda"))]
+        Ok(None)
+    }
+
+    /// Replays the prefix pass.
+    pub fn run(&self) -> Result<(), PolicyError> {
+        #[cfg(feature = "cuda")]
+        {
+            self.graph.launch().map_err(|e| {
+                PolicyError::Candle(candle_core::Error::Msg(format!("graph launch: {e}")))
+            })
+        }
+        #[cfg(not(feature = "cuda"))]
+        Err(PolicyError::Config(
+            "CUDA graphs need a build with --features cuda".into(),
+        ))
+    }
+}
+
 /// The buffers a sample reads besides the weights.
 fn buffer_ids(cache: &PrefixCache) -> Vec<TensorId> {
     let mut v: Vec<TensorId> = cache.k.iter().chain(&cache.v).map(|t| t.id()).collect();

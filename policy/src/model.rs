@@ -1007,6 +1007,7 @@ impl PiModel {
             expert: &self.vlm,
             cond: None,
             rope: &s.prefix_rope,
+            pending: None,
         }];
         for li in 0..d.depth {
             if li + 1 == d.depth && !want_out {
@@ -1044,6 +1045,7 @@ impl PiModel {
                 expert: &self.expert,
                 cond: None,
                 rope: srope,
+                pending: None,
             }];
             for li in 0..d.depth {
                 joint_layer(
@@ -1136,6 +1138,7 @@ impl PiModel {
             expert: &self.expert,
             cond: cond.as_ref(),
             rope: cache.action_rope(),
+            pending: None,
         }];
         for li in 0..self.cfg.action_expert.depth {
             joint_layer(
@@ -1212,12 +1215,14 @@ impl PiModel {
                 expert: &self.vlm,
                 cond: None,
                 rope: &prope,
+                pending: None,
             },
             Stream {
                 x: suffix,
                 expert: &self.expert,
                 cond: cond.as_ref(),
                 rope: &srope,
+                pending: None,
             },
         ];
         let mut tapped = None;
@@ -1400,6 +1405,7 @@ impl PiModel {
             expert: &self.vlm,
             cond: None,
             rope: &prope,
+            pending: None,
         }];
         let mut kvs = Vec::with_capacity(d.depth);
         let mut tapped = None;
@@ -1443,6 +1449,7 @@ impl PiModel {
             expert: &self.expert,
             cond: cond.as_ref(),
             rope: &srope,
+            pending: None,
         }];
         for (li, (kp, vp)) in kvs.iter().enumerate() {
             let (mut kr, mut vr) = if k == 1 {

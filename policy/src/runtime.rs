@@ -79,8 +79,8 @@ pub struct LoadOptions {
     pub device: DeviceSpec,
     /// Overrides of the checkpoint's dimensions.
     pub overrides: ConfigOverrides,
-    /// On a GPU, replay the denoising loop as a captured CUDA graph ([`super::graph`]); it
-    /// falls back to the eager loop by itself if capture fails or disagrees with it.
+    /// On a GPU, replay each sample (prefix pass and denoising loop) as one captured CUDA graph
+    /// ([`super::graph`]); it falls back to eager by itself if capture fails or disagrees.
     pub cuda_graph: bool,
 }
 
