@@ -93,41 +93,44 @@ __device__ void gated_add(const T* __restrict__ x, const T* __restrict__ y, cons
 // The fused Q/K/V projection's output y [B*L, ncols] split into heads, Q and K rotated
 // (rotate-half RoPE with cos/sin [B, L, hd/2]; cos null: no rotation, SigLIP):
 //   q [B, nH, L, hd] (q null: skipped), k / v into [B, nKV, kv_len, hd] at sequence kv_off.
-// Grid: (B*L, nH + 2 nKV); block: hd/2 threads (one rotation pair each).
+// Grid: B*L rows; the block's threads stride over the (head, rotation pair) of the row.
 template <typename T>
 __device__ void qkv_rope(const T* __restrict__ y, int ncols, T* __restrict__ q, T* __restrict__ k,
                          T* __restrict__ v, const T* __restrict__ cos_t, const T* __restrict__ sin_t,
                          int L, int nH, int nKV, int hd, int q_col, int k_col, int v_col, int kv_len,
                          int kv_off) {
-  const int row = blockIdx.x, head = blockIdx.y, half = hd / 2, i = threadIdx.x;
-  if (i >= half) return;
+  const int row = blockIdx.x, half = hd / 2;
   const int b = row / L, l = row % L;
   const T* yr = y + (size_t)row * ncols;
-  T* dst;
-  const T* src;
-  bool rot = true;
-  if (head < nH) {
-    if (!q) return;
-    src = yr + q_col + head * hd;
-    dst = q + (((size_t)b * nH + head) * L + l) * hd;
-  } else if (head < nH + nKV) {
-    const int h = head - nH;
-    src = yr + k_col + h * hd;
-    dst = k + (((size_t)b * nKV + h) * kv_len + kv_off + l) * hd;
-  } else {
-    const int h = head - nH - nKV;
-    src = yr + v_col + h * hd;
-    dst = v + (((size_t)b * nKV + h) * kv_len + kv_off + l) * hd;
-    rot = false;
-  }
-  const float x1 = to_f(src[i]), x2 = to_f(src[i + half]);
-  if (rot && cos_t) {
-    const float c = to_f(cos_t[(size_t)row * half + i]), s = to_f(sin_t[(size_t)row * half + i]);
-    dst[i] = from_f<T>(x1 * c - x2 * s);
-    dst[i + half] = from_f<T>(x2 * c + x1 * s);
-  } else {
-    dst[i] = from_f<T>(x1);
-    dst[i + half] = from_f<T>(x2);
+  const int pairs = (nH + 2 * nKV) * half;
+  for (int p = threadIdx.x; p < pairs; p += blockDim.x) {
+    const int head = p / half, i = p % half;
+    T* dst;
+    const T* src;
+    bool rot = true;
+    if (head < nH) {
+      if (!q) continue;
+      src = yr + q_col + head * hd;
+      dst = q + (((size_t)b * nH + head) * L + l) * hd;
+    } else if (head < nH + nKV) {
+      const int h = head - nH;
+      src = yr + k_col + h * hd;
+      dst = k + (((size_t)b * nKV + h) * kv_len + kv_off + l) * hd;
+    } else {
+      const int h = head - nH - nKV;
+      src = yr + v_col + h * hd;
+      dst = v + (((size_t)b * nKV + h) * kv_len + kv_off + l) * hd;
+      rot = false;
+    }
+    const float x1 = to_f(src[i]), x2 = to_f(src[i + half]);
+    if (rot && cos_t) {
+      const float c = to_f(cos_t[(size_t)row * half + i]), s = to_f(sin_t[(size_t)row * half + i]);
+      dst[i] = from_f<T>(x1 * c - x2 * s);
+      dst[i + half] = from_f<T>(x2 * c + x1 * s);
+    } else {
+      dst[i] = from_f<T>(x1);
+      dst[i + half] = from_f<T>(x2);
+    }
   }
 }
 
@@ -188,6 +191,7 @@ __device__ void softmax_bias(T* __restrict__ s, const float* __restrict__ bias, 
   const float inv = 1.f / sum;
   for (int i = threadIdx.x; i < n; i += blockDim.x) sr[i] = from_f<T>(buf[i] * inv);
 }
+
 
 #define INSTANTIATE(T, S)                                                                              \
   extern "C" __global__ void add_norm_##S(const T* x, const T* y, const float* gmod, T* out_x1, T* out_h, \

@@ -268,6 +268,30 @@ impl Rope {
         })
     }
 
+    /// Tables from positions `pos` [B, L] f32 on its device (f32 `inv_freq * pos`, as
+    /// [`Rope::new`] computes on the host), stored in `dtype`.
+    pub fn from_positions(
+        pos: &Tensor,
+        head_dim: usize,
+        theta: f64,
+        dtype: DType,
+    ) -> candle_core::Result<Self> {
+        let half = head_dim / 2;
+        let inv: Vec<f32> = (0..half)
+            .map(|i| 1.0f32 / (theta as f32).powf((2 * i) as f32 / head_dim as f32))
+            .collect();
+        let inv = Tensor::from_vec(inv, (1, 1, half), pos.device())?;
+        // [B, L, 1] * [1, 1, hd/2]
+        let a = pos
+            .to_dtype(DType::F32)?
+            .unsqueeze(2)?
+            .broadcast_mul(&inv)?;
+        Ok(Rope {
+            cos: a.cos()?.to_dtype(dtype)?,
+            sin: a.sin()?.to_dtype(dtype)?,
+        })
+    }
+
     /// Applies the rotation to `x` [B, H, L, hd] (contiguous in the fast path).
     pub fn apply(&self, x: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
         if diff {
@@ -642,6 +666,36 @@ fn qkv_fused(
     })
 }
 
+/// The fused path's attention through cuBLAS products and the in-place softmax kernel:
+/// `q` [B, nH, L, hd] against the first `bias.dim(3)` keys of `kb`/`vb`, returned as
+/// [B, L, nH·hd]. `None` where the softmax kernel does not apply.
+fn attention_matmul(
+    q: &Tensor,
+    kb: &Tensor,
+    vb: &Tensor,
+    bias: &Tensor,
+    scale: f64,
+    (b, l, nh, nkv, hd): (usize, usize, usize, usize, usize),
+) -> candle_core::Result<Option<Tensor>> {
+    // the keys the bias covers: the streams' own (prefix pass) or the cache's first T
+    let t = bias.dim(3)?;
+    let keys = kb.narrow(2, 0, t)?;
+    let values = vb.narrow(2, 0, t)?;
+    let g = nh / nkv;
+    // [B, nKV, g L, T]: query heads are kv-head-major
+    let scores = q.reshape((b, nkv, g * l, hd))?.matmul(&keys.t()?)?;
+    let Some(p) = super::kernels::softmax_bias(&scores, Some(bias), l, scale)? else {
+        return Ok(None);
+    };
+    // [B, nKV, g L, hd] -> [B, L, nH hd]
+    Ok(Some(
+        p.matmul(&values)?
+            .reshape((b, nh, l, hd))?
+            .transpose(1, 2)?
+            .reshape((b, l, nh * hd))?,
+    ))
+}
+
 /// [`joint_layer`] for one stream with the fused CUDA kernels ([`super::kernels`]): per layer
 /// the norm, the Q/K/V product, head split + RoPE + cache write, scores, softmax, values, the O
 /// product, gated residual + norm, the gate/up product, gelu·up, the down product and the gated
@@ -702,22 +756,10 @@ fn joint_layer_fused(
     else {
         return Ok(None);
     };
-    // the keys the bias covers: the streams' own (prefix pass) or the cache's first T
-    let t = bias.dim(3)?;
-    let keys = kb.narrow(2, 0, t)?;
-    let values = vb.narrow(2, 0, t)?;
-    let g = nh / nkv;
-    // [B, nKV, g L, T]: query heads are kv-head-major
-    let scores = q.reshape((b, nkv, g * l, hd))?.matmul(&keys.t()?)?;
-    let Some(p) = kernels::softmax_bias(&scores, Some(bias), l, (hd as f64).powf(-0.5))? else {
+    let scale = (hd as f64).powf(-0.5);
+    let Some(o) = attention_matmul(&q, kb, vb, bias, scale, (b, l, nh, nkv, hd))? else {
         return Ok(None);
     };
-    // [B, nKV, g L, hd] -> [B, L, nH hd]
-    let o = p
-        .matmul(&values)?
-        .reshape((b, nh, l, hd))?
-        .transpose(1, 2)?
-        .reshape((b, l, nh * hd))?;
     let o = matmul_2d(&o, &layer.o.weight().t()?)?;
     let Some((Some(x1), h2)) =
         kernels::add_norm(&s.x, Some(&o), m1.as_ref(), alpha2, m2.as_ref(), eps2, true)?

@@ -359,9 +359,10 @@ pub fn qkv_rope(
         let qc = 0;
         let kc = heads.q * hd;
         let vc = kc + heads.kv * hd;
+        let pairs = (heads.q + 2 * heads.kv) * half;
         let cfg = LaunchConfig {
-            grid_dim: (int(b * l)? as u32, int(heads.q + 2 * heads.kv)? as u32, 1),
-            block_dim: (half.next_multiple_of(32).min(1024) as u32, 1, 1),
+            grid_dim: (int(b * l)? as u32, 1, 1),
+            block_dim: (pairs.next_multiple_of(32).clamp(32, 256) as u32, 1, 1),
             shared_mem_bytes: 0,
         };
         imp::launch(

@@ -111,10 +111,13 @@ pub struct PrefixStatics {
     pub ids: Tensor,
     /// State [B, A] f32.
     pub state: Tensor,
-    /// Prefix self-attention bias [B, 1, Pc, Pc] f32.
-    pub prefix_bias: Tensor,
-    /// RoPE tables of the prefix tokens computed.
-    pub prefix_rope: Rope,
+    /// Validity of the prefix slots computed [B, Pc] f32 (1 valid, 0 padding): the prefix
+    /// self-attention mask is made from it on the device ([`PiModel::run_prefix`]), not uploaded
+    /// as a [B, 1, Pc, Pc] table.
+    pub prefix_valid: Tensor,
+    /// RoPE positions of the prefix slots computed [B, Pc] f32 (the tables are made on the
+    /// device).
+    pub prefix_pos: Tensor,
     /// Additive mask for action queries [B, 1, 1, Pc + S] f32: the prefix slots computed
     /// (padding masked), then the suffix (fixed layout: rounded up to a multiple of 8 slots,
     /// the extra ones masked).
@@ -138,8 +141,8 @@ impl PrefixStatics {
         let fits = same(&self.images, &new.images)
             && same(&self.ids, &new.ids)
             && same(&self.state, &new.state)
-            && same(&self.prefix_bias, &new.prefix_bias)
-            && ropes(&self.prefix_rope, &new.prefix_rope)
+            && same(&self.prefix_valid, &new.prefix_valid)
+            && same(&self.prefix_pos, &new.prefix_pos)
             && same(&self.step_bias, &new.step_bias)
             && ropes(&self.action_rope, &new.action_rope)
             && match (&self.state_bias, &new.state_bias) {
@@ -159,9 +162,8 @@ impl PrefixStatics {
             (&self.images, &new.images),
             (&self.ids, &new.ids),
             (&self.state, &new.state),
-            (&self.prefix_bias, &new.prefix_bias),
-            (&self.prefix_rope.cos, &new.prefix_rope.cos),
-            (&self.prefix_rope.sin, &new.prefix_rope.sin),
+            (&self.prefix_valid, &new.prefix_valid),
+            (&self.prefix_pos, &new.prefix_pos),
             (&self.step_bias, &new.step_bias),
             (&self.action_rope.cos, &new.action_rope.cos),
             (&self.action_rope.sin, &new.action_rope.sin),
@@ -185,9 +187,8 @@ impl PrefixStatics {
             self.images.id(),
             self.ids.id(),
             self.state.id(),
-            self.prefix_bias.id(),
-            self.prefix_rope.cos.id(),
-            self.prefix_rope.sin.id(),
+            self.prefix_valid.id(),
+            self.prefix_pos.id(),
             self.step_bias.id(),
             self.action_rope.cos.id(),
             self.action_rope.sin.id(),
@@ -924,8 +925,19 @@ impl PiModel {
             images: images.copy()?,
             ids: ids.copy()?,
             state: inp.state.to_dtype(DType::F32)?.copy()?,
-            prefix_bias: self.prefix_bias(&compact)?,
-            prefix_rope: self.rope(&compact.pos)?,
+            prefix_valid: {
+                let v: Vec<f32> = compact
+                    .pad
+                    .iter()
+                    .flatten()
+                    .map(|&m| m as u8 as f32)
+                    .collect();
+                Tensor::from_vec(v, (b, pc), &self.device)?
+            },
+            prefix_pos: {
+                let v: Vec<f32> = compact.pos.iter().flatten().map(|&p| p as f32).collect();
+                Tensor::from_vec(v, (b, pc), &self.device)?
+            },
             step_bias: bias_tensor(vis, (b, 1, 1, t_step), &self.device)?,
             action_rope: self.rope(&apos)?,
             state_bias: state_part.as_ref().map(|s| s.0.clone()),
@@ -1002,11 +1014,24 @@ impl PiModel {
                 Tensor::cat(&parts, 0)?
             }
         };
+        // the mask [B, 1, Pc, Pc] (0 where both tokens are valid, the mask value elsewhere) and
+        // the RoPE tables, made on the device from the observation's validity and positions
+        let prefix_bias = {
+            let v = &s.prefix_valid;
+            let both = v.unsqueeze(2)?.broadcast_mul(&v.unsqueeze(1)?)?;
+            ((both - 1.0)? * (-(MASK_VALUE as f64)))?.unsqueeze(1)?
+        };
+        let prefix_rope = Rope::from_positions(
+            &s.prefix_pos,
+            self.cfg.paligemma.head_dim,
+            self.cfg.rope_theta,
+            self.dtype,
+        )?;
         let mut streams = [Stream {
             x,
             expert: &self.vlm,
             cond: None,
-            rope: &s.prefix_rope,
+            rope: &prefix_rope,
             pending: None,
         }];
         for li in 0..d.depth {
@@ -1018,7 +1043,7 @@ impl PiModel {
             joint_layer(
                 li,
                 &mut streams,
-                &s.prefix_bias,
+                &prefix_bias,
                 KvMode::Own {
                     store: Some((&c.k[li], &c.v[li])),
                 },
