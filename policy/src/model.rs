@@ -912,7 +912,11 @@ impl PiModel {
         } else {
             None
         };
-        let images = {
+        let images = if cams.is_empty() {
+            // every camera masked: no vision pass (their tokens are padding)
+            let s = self.cfg.vision.image_size;
+            Tensor::zeros((0, 3, s, s), DType::F32, &self.device)?
+        } else {
             let imgs: Vec<Tensor> = cams
                 .iter()
                 .map(|&c| inp.images[c].to_dtype(DType::F32))
