@@ -92,6 +92,31 @@ pub trait ChunkSource: Send {
         obs: &Observation,
         request: &InferenceRequest,
     ) -> anyhow::Result<Option<ActionChunk>>;
+    /// Whether the chunks depend on the camera frames: then a missing or stale frame stops
+    /// the source (and the controller holds) until every camera is fresh again.
+    fn uses_cameras(&self) -> bool {
+        false
+    }
+}
+
+/// Cameras whose frame is missing or older than `max_age_ns` at `now_ns` (bit i = camera i).
+pub fn stale_cameras(frames: &[crate::edge::Frame], now_ns: u64, max_age_ns: u64) -> u64 {
+    frames
+        .iter()
+        .enumerate()
+        .filter(|(_, f)| !f.valid || now_ns.saturating_sub(f.header.capture_time_ns) > max_age_ns)
+        .fold(0, |m, (i, _)| m | 1u64 << i.min(63))
+}
+
+/// The names of the cameras in `mask` ("base, wrist").
+pub fn camera_names(cfg: &Config, mask: u64) -> String {
+    cfg.cameras
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| mask & (1u64 << (*i).min(63)) != 0)
+        .map(|(_, c)| c.name.as_str())
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// The source used when no policy is configured: it never produces a chunk, so the
@@ -197,6 +222,9 @@ pub struct Shared {
     pub last_inference_latency_ns: AtomicU64,
     /// Transitions into HOLD.
     pub hold_entries: AtomicU64,
+    /// Cameras the policy would use with a missing or stale frame (bit i = camera i), as the
+    /// observation thread last saw them.
+    pub stale_cameras: AtomicU64,
     /// Latest status as published (for the periodic log line).
     pub lateness_p50_ns: AtomicU64,
     pub lateness_p99_ns: AtomicU64,
@@ -226,6 +254,7 @@ impl Shared {
             chunks: AtomicU64::new(0),
             last_inference_latency_ns: AtomicU64::new(0),
             hold_entries: AtomicU64::new(0),
+            stale_cameras: AtomicU64::new(0),
             lateness_p50_ns: AtomicU64::new(0),
             lateness_p99_ns: AtomicU64::new(0),
             lateness_max_ns: AtomicU64::new(0),
@@ -446,16 +475,46 @@ fn observation_thread(
     let poll_period_ns = 2_000_000;
     let mut next = monotonic_ns();
     let mut source_failures = 0u64;
+    let frame_max_age_ns = (cfg.control.frame_max_age_ms * 1e6) as u64;
+    let watch_cameras = source.uses_cameras();
+    let mut stale_before = 0u64;
     while !shared.stop.load(Ordering::Relaxed) {
         next += poll_period_ns;
         sleep_until_ns(next);
-        let now = monotonic_ns();
         cams.poll(&mut obs.frames, &shared.counters, &shared.events);
+        let now = monotonic_ns();
+        // freshness at the time of use: a camera that stopped sending stops the policy (the
+        // control tick sees the mask and holds), and the policy resumes when it is back
+        let stale = if watch_cameras {
+            stale_cameras(&obs.frames, now, frame_max_age_ns)
+        } else {
+            0
+        };
+        link.stale_cameras.store(stale, Ordering::Relaxed);
+        shared.stale_cameras.store(stale, Ordering::Relaxed);
+        if stale != stale_before {
+            let gone = stale & !stale_before;
+            let back = stale_before & !stale;
+            if gone != 0 {
+                tracing::warn!(
+                    "camera {}: no frame newer than {} ms: holding until it is back",
+                    camera_names(cfg, gone),
+                    cfg.control.frame_max_age_ms
+                );
+            }
+            if back != 0 {
+                tracing::info!("camera {}: frames again", camera_names(cfg, back));
+            }
+            stale_before = stale;
+        }
         js.poll(&private, &private_events);
         while private_events.pop().is_some() {}
         // chunk buffers the control thread is done with are dropped here, off the RT path
         while link.chunks.take_recycled().is_some() {}
         let Some(state) = js.latest() else { continue };
+        if stale != 0 {
+            continue;
+        }
         let Some(request) = link.requests.try_recv() else {
             continue;
         };
@@ -610,6 +669,7 @@ impl ControlLoop {
             .map(|s| wake_ns.saturating_sub(s.measurement_time_ns))
             .unwrap_or(u64::MAX);
         st.hold_entries = shared.hold_entries.load(Ordering::Relaxed);
+        st.stale_cameras = shared.stale_cameras.load(Ordering::Relaxed);
         st.publish_time_ns = monotonic_ns();
         self.status_out.publish(st);
         let store = |a: &AtomicU64, v: u64| a.store(v, Ordering::Relaxed);

@@ -231,6 +231,10 @@ impl ChunkSource for PolicySource {
         "policy"
     }
 
+    fn uses_cameras(&self) -> bool {
+        true
+    }
+
     fn compute(
         &mut self,
         obs: &Observation,

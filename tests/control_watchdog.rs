@@ -286,3 +286,78 @@ fn resume_after_a_robot_restart_starts_from_the_measured_position() {
     }
     assert_brakes_within_limits_partial(&cfg, &s.commands[resume_at + first_running..]);
 }
+
+/// A camera the policy uses stops sending (the inference thread sets its bit in the link's
+/// `stale_cameras`): the next tick holds, brakes within the limits, and the status names the
+/// camera; when frames are back the executor runs again.
+#[test]
+fn stale_camera_holds_at_once_and_recovers() {
+    let (cfg, mut s) = sim(10_000.0);
+    s.run(1500);
+    assert_eq!(s.exec.state(), State::Running);
+    events(&s);
+    let link = s.exec.connect();
+    link.stale_cameras
+        .store(0b1, std::sync::atomic::Ordering::Relaxed);
+    let stop_tick = s.commands.len();
+    s.run(600);
+    let ev = events(&s);
+    assert_eq!(ev.len(), 1, "{ev:?}");
+    assert_eq!(ev[0].reason, Reason::StaleCamera);
+    assert_eq!((ev[0].from, ev[0].to), (State::Running, State::Hold));
+    assert_eq!(
+        s.reports[stop_tick].state,
+        State::Hold,
+        "held on the first tick that saw the stale camera"
+    );
+    assert_brakes_within_limits(&cfg, &s.commands[stop_tick - 2..]);
+    let mut st = chunkrt::ipc::ControllerStatus::default();
+    s.exec.fill_status(&mut st);
+    assert_eq!(st.state, CONTROLLER_STATE_HOLD);
+    assert_eq!(st.stale_cameras, 0b1, "the status says which camera");
+    assert_eq!(
+        chunkrt::controller::camera_names(&cfg, st.stale_cameras),
+        cfg.cameras[0].name
+    );
+    // frames again: RUNNING (the scripted source kept producing chunks)
+    link.stale_cameras
+        .store(0, std::sync::atomic::Ordering::Relaxed);
+    s.run(300);
+    assert_eq!(s.exec.state(), State::Running);
+    s.exec.fill_status(&mut st);
+    assert_eq!(st.stale_cameras, 0);
+}
+
+/// The inference thread's verdict: a camera is stale when it never sent a frame or its newest
+/// frame is older than the maximum age at the time of use.
+#[test]
+fn stale_cameras_mask_from_frame_ages() {
+    use chunkrt::edge::Observation;
+    let mut c = Config::embedded_default();
+    let mut second = c.cameras[0].clone();
+    second.name = "wrist".into();
+    c.cameras.push(second);
+    let mut obs = Observation::new(&c);
+    let now = 5_000_000_000u64;
+    let max_age = 200_000_000u64;
+    assert_eq!(
+        chunkrt::controller::stale_cameras(&obs.frames, now, max_age),
+        0b11,
+        "no frame yet: stale"
+    );
+    obs.frames[0].valid = true;
+    obs.frames[0].header.capture_time_ns = now - max_age;
+    obs.frames[1].valid = true;
+    obs.frames[1].header.capture_time_ns = now - max_age - 1;
+    assert_eq!(
+        chunkrt::controller::stale_cameras(&obs.frames, now, max_age),
+        0b10
+    );
+    assert_eq!(chunkrt::controller::camera_names(&c, 0b10), "wrist");
+    // a frame stamped slightly in the future (within the validated bound) is fresh
+    obs.frames[1].header.capture_time_ns = now + 1_000;
+    assert_eq!(
+        chunkrt::controller::stale_cameras(&obs.frames, now, max_age),
+        0
+    );
+}

@@ -407,7 +407,7 @@ fn bad_config_is_a_clear_error() {
 }
 
 #[test]
-fn controller_runs_the_real_policy_within_limits() {
+fn controller_runs_the_real_policy_within_limits_and_holds_for_a_dead_camera() {
     let _serial = serial();
     let ns = unique_namespace("policy");
     let cfg_path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/pi05_tiny.toml");
@@ -437,8 +437,53 @@ fn controller_runs_the_real_policy_within_limits() {
             assert!(c.acceleration[i].abs() <= j.max_acceleration * 1.0001);
         }
     }
+    // The camera dies: once its newest frames are older than frame_max_age_ms the policy
+    // stops, the controller holds and its status names the cameras; a new camera process brings it
+    // back to RUNNING with new chunks. (Bounds: the detection itself is exact to the 2 ms poll;
+    // the margins are for a loaded machine.)
+    kill9(camera);
+    let killed = Instant::now();
+    // one fake-camera process publishes every configured camera
+    let all = (1u64 << cfg.cameras.len()) - 1;
+    w.wait_for(Duration::from_secs(20), "HOLD for the dead camera", |w| {
+        w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_HOLD
+            && w.last_status.stale_cameras == all
+    });
+    let max_age = Duration::from_secs_f64(cfg.control.frame_max_age_ms / 1e3);
+    assert!(
+        killed.elapsed() >= max_age / 2,
+        "held after {:?}, before the frame could be stale (max age {max_age:?})",
+        killed.elapsed()
+    );
+    let chunks_held = w.last_status.chunks;
+    w.pump(Duration::from_millis(500));
+    assert_eq!(
+        w.last_status.state,
+        chunkrt_ipc::CONTROLLER_STATE_HOLD,
+        "no chunk from an old frame"
+    );
+    assert!(
+        w.last_status.chunks <= chunks_held + 1,
+        "chunks kept coming from a dead camera: {} -> {}",
+        chunks_held,
+        w.last_status.chunks
+    );
+    let camera = start("fake-camera", &ns, &["--config", cfg_path]);
+    w.wait_for(
+        Duration::from_secs(60),
+        "RUNNING after the camera is back",
+        |w| {
+            w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING
+                && w.last_status.stale_cameras == 0
+                && w.last_status.chunks > chunks_held + 1
+        },
+    );
     let out = ctl.terminate(Duration::from_secs(15));
     assert_eq!(out.code, Some(0), "{}", out.stderr);
+    assert!(
+        out.stdout.contains("no frame newer than") || out.stderr.contains("no frame newer than"),
+        "the log names the stale camera"
+    );
     let r = robot.terminate(Duration::from_secs(5));
     assert_eq!(
         summary_value(&r.stdout, "commands_rejected"),

@@ -37,7 +37,7 @@ extern "C" {
 #define CHUNKRT_TYPE_NAME_CAMERA_FRAME_HEADER "chunkrt.CameraFrameHeader.v1"
 #define CHUNKRT_TYPE_NAME_JOINT_STATE "chunkrt.JointState.v1"
 #define CHUNKRT_TYPE_NAME_JOINT_COMMAND "chunkrt.JointCommand.v1"
-#define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v1"
+#define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v2"
 /** Element type name of the camera pixel slice. */
 #define CHUNKRT_TYPE_NAME_PIXEL "u8"
 
@@ -169,6 +169,9 @@ typedef struct ControllerStatus {
     uint64_t compute_max_ns;
     uint64_t joint_state_age_ns;
     uint64_t hold_entries;
+    /* bit i: camera i (configuration order) missing or older than frame_max_age_ms when the
+       policy would use it; while any is set no chunk is computed and the controller holds */
+    uint64_t stale_cameras;
 } ControllerStatus;
 
 /* ---- compile-time layout checks (the full per-field check is in tests/ipc_layout.rs) ---- */
@@ -181,7 +184,7 @@ typedef struct ControllerStatus {
 CHUNKRT_STATIC_ASSERT(sizeof(CameraFrameHeader) == 48, "CameraFrameHeader size");
 CHUNKRT_STATIC_ASSERT(sizeof(JointState) == 24 + 3 * 8 * CHUNKRT_MAX_DOF, "JointState size");
 CHUNKRT_STATIC_ASSERT(sizeof(JointCommand) == 48 + 3 * 8 * CHUNKRT_MAX_DOF, "JointCommand size");
-CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 9 * 8,
+CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 10 * 8,
                       "ControllerStatus size");
 
 #ifdef __cplusplus

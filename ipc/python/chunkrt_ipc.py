@@ -101,7 +101,7 @@ REJECT_REASON_NAMES = [
 TYPE_NAME_CAMERA_FRAME_HEADER = "chunkrt.CameraFrameHeader.v1"
 TYPE_NAME_JOINT_STATE = "chunkrt.JointState.v1"
 TYPE_NAME_JOINT_COMMAND = "chunkrt.JointCommand.v1"
-TYPE_NAME_CONTROLLER_STATUS = "chunkrt.ControllerStatus.v1"
+TYPE_NAME_CONTROLLER_STATUS = "chunkrt.ControllerStatus.v2"
 
 _F64xDOF = ctypes.c_double * MAX_DOF
 
@@ -191,6 +191,7 @@ class ControllerStatus(ctypes.Structure):
         ("compute_max_ns", ctypes.c_uint64),
         ("joint_state_age_ns", ctypes.c_uint64),
         ("hold_entries", ctypes.c_uint64),
+        ("stale_cameras", ctypes.c_uint64),
     ]
 
     @staticmethod

@@ -205,7 +205,7 @@ pub const REJECT_REASON_COUNT: usize = 8;
 
 /// Status published by the controller (a few times per second).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("chunkrt.ControllerStatus.v1")]
+#[type_name("chunkrt.ControllerStatus.v2")]
 #[repr(C)]
 pub struct ControllerStatus {
     /// Message counter.
@@ -246,6 +246,10 @@ pub struct ControllerStatus {
     pub joint_state_age_ns: u64,
     /// Number of state transitions into HOLD.
     pub hold_entries: u64,
+    /// Cameras whose newest frame is missing or older than `frame_max_age_ms` when the policy
+    /// would use it: bit i = camera i in configuration order (0: all fresh). While any is set,
+    /// no chunk is computed and the controller holds.
+    pub stale_cameras: u64,
 }
 
 impl Default for ControllerStatus {
@@ -270,6 +274,7 @@ impl Default for ControllerStatus {
             compute_max_ns: 0,
             joint_state_age_ns: 0,
             hold_entries: 0,
+            stale_cameras: 0,
         }
     }
 }
@@ -286,7 +291,7 @@ const _: () = {
     assert!(align_of::<JointState>() == 8);
     assert!(size_of::<JointCommand>() == 48 + 3 * 8 * MAX_DOF);
     assert!(align_of::<JointCommand>() == 8);
-    assert!(size_of::<ControllerStatus>() == 24 + 5 * 8 + 8 * REJECT_REASON_COUNT + 9 * 8);
+    assert!(size_of::<ControllerStatus>() == 24 + 5 * 8 + 8 * REJECT_REASON_COUNT + 10 * 8);
     assert!(align_of::<ControllerStatus>() == 8);
     assert!(MAX_DOF >= 16);
 };
@@ -326,7 +331,7 @@ pub fn layouts() -> Vec<(&'static str, (usize, Vec<FieldOffset>))> {
             layout_of!(ControllerStatus; seq, publish_time_ns, state, n_dof, ticks, overruns,
                 chunks, joint_states, frames, rejected, last_inference_latency_ns,
                 lateness_p50_ns, lateness_p99_ns, lateness_max_ns, compute_p50_ns,
-                compute_p99_ns, compute_max_ns, joint_state_age_ns, hold_entries),
+                compute_p99_ns, compute_max_ns, joint_state_age_ns, hold_entries, stale_cameras),
         ),
     ]
 }

@@ -90,13 +90,17 @@ pub struct TickReport {
     pub generator: OtgResult,
 }
 
-/// Both ends the inference thread needs: where to send chunks, where to read requests.
+/// Both ends the inference thread needs: where to send chunks, where to read requests, and
+/// where to say which cameras are stale.
 #[derive(Clone)]
 pub struct InferenceLink {
     /// Chunks, inference → control.
     pub chunks: ChunkSender,
     /// Inference requests, control → inference.
     pub requests: RequestReceiver,
+    /// Cameras the policy would use with a missing or too old frame (bit i = camera i), set by
+    /// the inference thread at every poll; the control tick holds while it is non-zero.
+    pub stale_cameras: std::sync::Arc<std::sync::atomic::AtomicU64>,
 }
 
 struct Slot {
@@ -159,6 +163,10 @@ pub struct Executor {
     graveyard: Vec<ActionChunk>,
     had_chunk: bool,
     bad_input: Option<Reason>,
+    /// See [`InferenceLink::stale_cameras`].
+    stale_cameras: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    /// Its value at the last tick (for the status).
+    stale_seen: u64,
     chunk_rx: ChunkReceiver,
     chunk_tx: ChunkSender,
     req_tx: RequestSender,
@@ -290,6 +298,8 @@ impl Executor {
             graveyard: Vec::with_capacity(GRAVEYARD),
             had_chunk: false,
             bad_input: None,
+            stale_cameras: Default::default(),
+            stale_seen: 0,
             chunk_rx,
             chunk_tx,
             req_tx,
@@ -318,6 +328,7 @@ impl Executor {
         InferenceLink {
             chunks: self.chunk_tx.clone(),
             requests: self.req_rx.clone(),
+            stale_cameras: self.stale_cameras.clone(),
         }
     }
 
@@ -387,6 +398,7 @@ impl Executor {
         st.compute_max_ns = c.max;
         st.joint_state_age_ns = self.joint_state_age_ns;
         st.hold_entries = self.hold_entries;
+        st.stale_cameras = self.stale_seen;
     }
 
     /// Hands a chunk to the executor directly (instead of through [`Executor::connect`]);
@@ -425,6 +437,11 @@ impl Executor {
             }
         }
 
+        // Cameras (the inference thread's verdict, one atomic load).
+        self.stale_seen = self
+            .stale_cameras
+            .load(std::sync::atomic::Ordering::Relaxed);
+
         // Target.
         let primary = self.evaluate(now);
         let n = self.cfg.n;
@@ -436,6 +453,8 @@ impl Executor {
             Some(Reason::BadJointState)
         } else if !js_fresh {
             Some(Reason::StaleJointState)
+        } else if self.stale_seen != 0 {
+            Some(Reason::StaleCamera)
         } else if let Some(r) = self.bad_input {
             Some(r)
         } else if primary.is_none() {

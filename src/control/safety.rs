@@ -51,6 +51,9 @@ pub enum Reason {
     StaleJointState,
     /// No chunk has arrived yet.
     NoChunk,
+    /// A camera the policy uses has no frame, or its newest frame is older than
+    /// `frame_max_age_ms` (which: the status's `stale_cameras`).
+    StaleCamera,
     /// Every chunk's last action is in the past.
     ChunkExpired,
     /// A chunk (or the sampled target) contained a non-finite value.
@@ -75,6 +78,7 @@ impl std::fmt::Display for Reason {
             Self::InputsGood => "inputs good",
             Self::StaleJointState => "joint state missing or stale",
             Self::NoChunk => "no chunk yet",
+            Self::StaleCamera => "camera frames missing or stale",
             Self::ChunkExpired => "chunk expired",
             Self::NonFiniteAction => "non-finite action",
             Self::BadChunk => "malformed chunk",
