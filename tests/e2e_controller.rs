@@ -265,6 +265,90 @@ fn controller_survives_robot_and_camera_restarts() {
     drop((robot, camera));
 }
 
+/// Hostile peers on a running system (robot + controller holding): a rogue process publishes
+/// joint commands to 2.5 rad and forged joint states interleaved with the robot's (decreasing
+/// seq, current timestamps). The robot obeys only its bound controller and counts the rogue
+/// commands; the controller rejects the forged states as a second publisher and keeps acting
+/// on the robot's own; the arm does not move.
+#[test]
+fn rogue_publishers_move_nothing_and_are_counted() {
+    let _serial = serial();
+    let ns = unique_namespace("rogue");
+    let cfg = Config::embedded_default();
+    let robot = start("fake-robot", &ns, &[]);
+    let ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
+    let mut w = Watch::new(&ns);
+    w.wait_for(Duration::from_secs(15), "the controller to hold", |w| {
+        holding(&w.last_status) && w.last_status.joint_states > 100 && !w.commands.is_empty()
+    });
+    let start_pos = w.last_js.position;
+    let nsp = Namespace::new(&ns).unwrap();
+    let node = services::node("test-rogue").unwrap();
+    let cmd_pub = services::publisher(
+        &services::joint_command_service(&node, &nsp.joint_command()).unwrap(),
+        "rogue-cmd",
+    )
+    .unwrap();
+    let js_pub = services::publisher(
+        &services::joint_state_service(&node, &nsp.joint_state()).unwrap(),
+        "rogue-js",
+    )
+    .unwrap();
+    let n = cfg.n_dof() as u32;
+    let t_end = Instant::now() + Duration::from_secs(2);
+    let mut k = 0u64;
+    while Instant::now() < t_end {
+        k += 1;
+        let now = monotonic_ns();
+        let mut c = JointCommand {
+            seq: k,
+            publish_time_ns: now,
+            deadline_ns: now + 50_000_000,
+            n_dof: n,
+            mode: chunkrt_ipc::COMMAND_MODE_POSITION,
+            ..Default::default()
+        };
+        c.position[0] = 2.5;
+        cmd_pub.send_copy(c).unwrap();
+        let mut js = JointState {
+            seq: 1_000_000 - k,
+            measurement_time_ns: now,
+            n_dof: n,
+            ..Default::default()
+        };
+        js.position[1] = 3.4;
+        js_pub.send_copy(js).unwrap();
+        w.pump(Duration::from_micros(500));
+    }
+    w.pump(Duration::from_millis(300));
+    let foreign = w.last_status.rejected[RejectReason::ForeignPublisher.code()];
+    assert!(
+        foreign > k / 4,
+        "{foreign} of {k} forged states rejected as a second publisher: {:?}",
+        w.last_status.rejected
+    );
+    assert!(holding(&w.last_status), "state {}", w.last_status.state);
+    // the arm stayed where it was (the hold policy commands the measured position)
+    for j in 0..n as usize {
+        assert!(
+            (w.last_js.position[j] - start_pos[j]).abs() < 0.05,
+            "joint {j} moved from {} to {}",
+            start_pos[j],
+            w.last_js.position[j]
+        );
+    }
+    // every command the controller published reached the robot; the rogue's were refused
+    let out = ctl.terminate(Duration::from_secs(5));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    let r = robot.terminate(Duration::from_secs(5));
+    let rejected = summary_value(&r.stdout, "commands_rejected").unwrap_or(0.0);
+    assert!(
+        rejected >= (k / 2) as f64,
+        "the robot refused {rejected} of {k} rogue commands: {}",
+        r.stdout
+    );
+}
+
 #[test]
 fn malformed_messages_are_rejected_and_counted() {
     let _serial = serial();

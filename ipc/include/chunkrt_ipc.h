@@ -138,7 +138,7 @@ typedef struct JointCommand {
 #define CHUNKRT_CONTROLLER_STATE_FAULT 3u
 
 /* Rejection reasons: indices into ControllerStatus.rejected. */
-#define CHUNKRT_REJECT_REASON_COUNT 8
+#define CHUNKRT_REJECT_REASON_COUNT 9
 #define CHUNKRT_REJECT_N_DOF 0u
 #define CHUNKRT_REJECT_NON_FINITE 1u
 #define CHUNKRT_REJECT_FRAME_GEOMETRY 2u
@@ -147,6 +147,7 @@ typedef struct JointCommand {
 #define CHUNKRT_REJECT_FROM_FUTURE 5u
 #define CHUNKRT_REJECT_STALE 6u
 #define CHUNKRT_REJECT_OTHER 7u
+#define CHUNKRT_REJECT_FOREIGN_PUBLISHER 8u /* a second writer while the bound one is alive */
 
 /** Status published by the controller. */
 typedef struct ControllerStatus {

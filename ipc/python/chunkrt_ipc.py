@@ -76,7 +76,7 @@ CONTROLLER_STATE_NAMES = {0: "starting", 1: "hold", 2: "running", 3: "fault"}
 
 # ---- rejection reasons (indices into ControllerStatus.rejected) -----------------------------
 
-REJECT_REASON_COUNT = 8
+REJECT_REASON_COUNT = 9
 REJECT_N_DOF = 0
 REJECT_NON_FINITE = 1
 REJECT_FRAME_GEOMETRY = 2
@@ -85,6 +85,7 @@ REJECT_OUT_OF_ORDER = 4
 REJECT_FROM_FUTURE = 5
 REJECT_STALE = 6
 REJECT_OTHER = 7
+REJECT_FOREIGN_PUBLISHER = 8
 REJECT_REASON_NAMES = [
     "n_dof",
     "non_finite",
@@ -94,6 +95,7 @@ REJECT_REASON_NAMES = [
     "from_future",
     "stale",
     "other",
+    "foreign_publisher",
 ]
 
 # ---- iceoryx2 type names (must equal the Rust #[type_name]s) --------------------------------

@@ -201,7 +201,7 @@ pub const fn controller_state_name(state: u32) -> &'static str {
 
 /// Number of rejection counters in [`ControllerStatus::rejected`], indexed by
 /// [`crate::RejectReason`] codes.
-pub const REJECT_REASON_COUNT: usize = 8;
+pub const REJECT_REASON_COUNT: usize = 9;
 
 /// Status published by the controller (a few times per second).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]

@@ -27,6 +27,8 @@ pub enum RejectReason {
     Stale = 6,
     /// Any other problem (e.g. wrong camera id).
     Other = 7,
+    /// A second publisher on a channel whose bound publisher is alive (one writer per channel).
+    ForeignPublisher = 8,
 }
 
 impl RejectReason {
@@ -40,6 +42,7 @@ impl RejectReason {
         RejectReason::FromFuture,
         RejectReason::Stale,
         RejectReason::Other,
+        RejectReason::ForeignPublisher,
     ];
 
     /// Index into the rejection counters.
@@ -58,6 +61,7 @@ impl RejectReason {
             RejectReason::FromFuture => "from_future",
             RejectReason::Stale => "stale",
             RejectReason::Other => "other",
+            RejectReason::ForeignPublisher => "foreign_publisher",
         }
     }
 }
@@ -123,6 +127,10 @@ pub enum ValidationError {
     FromFuture { ahead_ns: u64 },
     #[error("message is {age_ns} ns old, the limit is {max_age_ns} ns")]
     Stale { age_ns: u64, max_age_ns: u64 },
+    #[error(
+        "a second publisher on this channel while the bound one is alive (last message {silent_ns} ns ago)"
+    )]
+    ForeignPublisher { silent_ns: u64 },
 }
 
 impl ValidationError {
@@ -146,6 +154,7 @@ impl ValidationError {
             | ValidationError::TimeWentBackwards { .. } => RejectReason::OutOfOrder,
             ValidationError::FromFuture { .. } => RejectReason::FromFuture,
             ValidationError::Stale { .. } => RejectReason::Stale,
+            ValidationError::ForeignPublisher { .. } => RejectReason::ForeignPublisher,
         }
     }
 }
@@ -265,13 +274,20 @@ pub struct Freshness {
     pub max_future_ns: u64,
 }
 
-/// Per-stream ordering and freshness check. A new publisher (restarted process) starts a new
-/// stream: its sequence numbers may begin again from zero.
+/// Per-stream ordering and freshness check, bound to one publisher at a time. Messages from
+/// another publisher are rejected ([`ValidationError::ForeignPublisher`]) while the bound one is
+/// alive, i.e. while its newest message is younger than the channel's maximum age; after that
+/// silence (a restarted process) the next publisher binds and starts a new stream, whose
+/// sequence numbers may begin again from zero. So two interleaved publishers cannot both pass
+/// as new streams, and a rogue second writer is counted, not obeyed.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct StreamGuard {
     publisher: Option<u128>,
     last_seq: u64,
     last_time_ns: u64,
+    /// Silence of the bound publisher after which another may bind (None: the channel's
+    /// maximum age).
+    rebind_after_ns: Option<u64>,
 }
 
 impl StreamGuard {
@@ -281,6 +297,16 @@ impl StreamGuard {
             publisher: None,
             last_seq: 0,
             last_time_ns: 0,
+            rebind_after_ns: None,
+        }
+    }
+
+    /// A guard whose bound publisher may be replaced after `ns` of silence (for a channel
+    /// whose messages have no maximum age, e.g. commands that carry their own deadline).
+    pub const fn with_rebind_after(ns: u64) -> Self {
+        Self {
+            rebind_after_ns: Some(ns),
+            ..Self::new()
         }
     }
 
@@ -305,6 +331,12 @@ impl StreamGuard {
                 age_ns,
                 max_age_ns: limits.max_age_ns,
             });
+        }
+        if self.publisher.is_some_and(|p| p != publisher) {
+            let silent_ns = now_ns.saturating_sub(self.last_time_ns);
+            if silent_ns <= self.rebind_after_ns.unwrap_or(limits.max_age_ns) {
+                return Err(ValidationError::ForeignPublisher { silent_ns });
+            }
         }
         if self.publisher == Some(publisher) {
             if seq <= self.last_seq {
@@ -464,8 +496,48 @@ mod tests {
             g.check(1, 7, 100, 5_000, lim).unwrap_err().reason(),
             RejectReason::Stale
         );
-        // a restarted publisher may start its sequence again
+        // a restarted publisher may start its sequence again (the first one has been silent
+        // for longer than the maximum age)
         assert!(g.check(2, 0, 4_500, 5_000, lim).is_ok());
         assert!(g.check(2, 1, 4_600, 5_000, lim).is_ok());
+    }
+
+    /// Two publishers interleaving on one channel: the one bound first is obeyed, every message
+    /// of the other is rejected while the first is alive, whatever its seq and time; when the
+    /// first falls silent for longer than the maximum age, the other binds.
+    #[test]
+    fn stream_guard_binds_one_publisher() {
+        let lim = Freshness {
+            max_age_ns: 1_000,
+            max_future_ns: 10,
+        };
+        let mut g = StreamGuard::new();
+        let mut forged = 0;
+        for k in 0..100u64 {
+            let t = 10_000 + 10 * k;
+            assert!(g.check(7, k + 1, t, t, lim).is_ok(), "genuine message {k}");
+            // the forger: decreasing seq, plausible times, same instant
+            let r = g.check(9, 1_000 - k, t + 5, t + 5, lim);
+            assert_eq!(
+                r.unwrap_err().reason(),
+                RejectReason::ForeignPublisher,
+                "forged message {k}"
+            );
+            forged += 1;
+        }
+        assert_eq!(forged, 100);
+        // the genuine publisher's stream is intact
+        assert!(g.check(7, 101, 11_000, 11_000, lim).is_ok());
+        // it falls silent: within the maximum age the forger is still refused, after it binds
+        assert_eq!(
+            g.check(9, 1, 11_900, 11_900, lim).unwrap_err().reason(),
+            RejectReason::ForeignPublisher
+        );
+        assert!(g.check(9, 1, 12_100, 12_100, lim).is_ok());
+        // and now the first one is the foreign one
+        assert_eq!(
+            g.check(7, 102, 12_150, 12_150, lim).unwrap_err().reason(),
+            RejectReason::ForeignPublisher
+        );
     }
 }

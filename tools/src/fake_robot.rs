@@ -264,7 +264,9 @@ impl Robot {
             arm,
             command_timeout_ns,
             max_future_ns,
-            guard: StreamGuard::new(),
+            // one controller at a time: another command publisher is refused while the bound
+            // one is alive; after a command timeout of silence (the robot holds) one may bind
+            guard: StreamGuard::with_rebind_after(command_timeout_ns),
             active: None,
             last_command_ns: now_ns,
             holding: true,
