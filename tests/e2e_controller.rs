@@ -329,12 +329,14 @@ fn rogue_publishers_move_nothing_and_are_counted() {
     );
     assert!(holding(&w.last_status), "state {}", w.last_status.state);
     // the arm stayed where it was (the hold policy commands the measured position)
-    for j in 0..n as usize {
+    for (j, (now, before)) in w.last_js.position[..n as usize]
+        .iter()
+        .zip(&start_pos)
+        .enumerate()
+    {
         assert!(
-            (w.last_js.position[j] - start_pos[j]).abs() < 0.05,
-            "joint {j} moved from {} to {}",
-            start_pos[j],
-            w.last_js.position[j]
+            (now - before).abs() < 0.05,
+            "joint {j} moved from {before} to {now}"
         );
     }
     // every command the controller published reached the robot; the rogue's were refused
