@@ -226,6 +226,13 @@ pub fn gated_residual(
     }
 }
 
+/// RoPE inverse frequencies `theta^(-2i / hd)`, i < hd/2 (HF, f32).
+fn inv_freq(head_dim: usize, theta: f64) -> Vec<f32> {
+    (0..head_dim / 2)
+        .map(|i| 1.0f32 / (theta as f32).powf((2 * i) as f32 / head_dim as f32))
+        .collect()
+}
+
 /// RoPE tables for one stream: `cos`, `sin` [B, L, head_dim/2] (computed in f32 from positions,
 /// stored in the model's dtype).
 #[derive(Debug, Clone)]
@@ -246,9 +253,7 @@ impl Rope {
         dtype: DType,
     ) -> candle_core::Result<Self> {
         let half = head_dim / 2;
-        let inv: Vec<f32> = (0..half)
-            .map(|i| 1.0f32 / (theta as f32).powf((2 * i) as f32 / head_dim as f32))
-            .collect();
+        let inv = inv_freq(head_dim, theta);
         let b = pos.len();
         let l = pos.first().map(|p| p.len()).unwrap_or(0);
         let mut c = Vec::with_capacity(b * l * half);
@@ -277,9 +282,7 @@ impl Rope {
         dtype: DType,
     ) -> candle_core::Result<Self> {
         let half = head_dim / 2;
-        let inv: Vec<f32> = (0..half)
-            .map(|i| 1.0f32 / (theta as f32).powf((2 * i) as f32 / head_dim as f32))
-            .collect();
+        let inv = inv_freq(head_dim, theta);
         let inv = Tensor::from_vec(inv, (1, 1, half), pos.device())?;
         // [B, L, 1] * [1, 1, hd/2]
         let a = pos

@@ -20,6 +20,69 @@ use candle_core::{DType, Tensor, TensorId};
 use crate::model::{PiModel, PrefixCache, SampleOutput};
 use crate::PolicyError;
 
+/// What the captures and replays share.
+#[cfg(feature = "cuda")]
+mod cuda {
+    use candle_core::cuda_backend::cudarc::driver::{sys, CudaGraph};
+    use candle_core::cuda_backend::CudaDevice;
+
+    use crate::model::{PiModel, PrefixCache};
+    use crate::PolicyError;
+
+    fn err(what: &str, e: &dyn std::fmt::Display) -> PolicyError {
+        PolicyError::Candle(candle_core::Error::Msg(format!("{what}: {e}")))
+    }
+
+    /// The model's CUDA device where a graph applies: a GPU model in the fixed layout, a cache
+    /// without compaction.
+    pub fn device<'m>(model: &'m PiModel, cache: &PrefixCache) -> Option<&'m CudaDevice> {
+        match model.device().as_cuda_device() {
+            Ok(dev) if model.fixed_step_shapes() && cache.rows.is_empty() => Some(dev),
+            _ => None,
+        }
+    }
+
+    /// Captures what `f` launches on candle's stream. The caller has run `f` eagerly under
+    /// `enable_cuda_graph_htod_cache` (the small per-op uploads are then cached by content).
+    /// The capture always ends, whatever happened inside, so the stream stays usable.
+    pub fn capture<T>(
+        dev: &CudaDevice,
+        f: impl FnOnce() -> Result<T, PolicyError>,
+    ) -> Result<(T, CudaGraph), PolicyError> {
+        let stream = dev.cuda_stream();
+        stream
+            .begin_capture(sys::CUstreamCaptureMode::CU_STREAM_CAPTURE_MODE_THREAD_LOCAL)
+            .map_err(|e| err("begin capture", &e))?;
+        let captured = f();
+        let graph = stream.end_capture(
+            sys::CUgraphInstantiate_flags::CUDA_GRAPH_INSTANTIATE_FLAG_AUTO_FREE_ON_LAUNCH,
+        );
+        let captured = captured?;
+        let graph = graph
+            .map_err(|e| err("end capture", &e))?
+            .ok_or_else(|| err("end capture", &"the driver returned no graph"))?;
+        Ok((captured, graph))
+    }
+
+    /// One replay.
+    pub fn launch(graph: &CudaGraph) -> Result<(), PolicyError> {
+        graph.launch().map_err(|e| err("graph launch", &e))
+    }
+
+    /// A graph check failure.
+    pub fn mismatch(d: f32, rms: f32) -> PolicyError {
+        err(
+            "graph check",
+            &format!("replay differs from the eager run by {d} (RMS {rms})"),
+        )
+    }
+}
+
+#[cfg(not(feature = "cuda"))]
+fn no_cuda() -> PolicyError {
+    PolicyError::Config("CUDA graphs need a build with --features cuda".into())
+}
+
 /// A captured sample (prefix pass + denoising loop), its noise input and outputs, and the
 /// buffers it was captured against.
 pub struct SampleGraph {
@@ -60,32 +123,13 @@ impl PrefixGraph {
     pub fn capture(model: &PiModel, cache: &PrefixCache) -> Result<Option<Self>, PolicyError> {
         #[cfg(feature = "cuda")]
         {
-            use candle_core::cuda_backend::cudarc::driver::sys;
-            let (Ok(dev), true, true) = (
-                model.device().as_cuda_device(),
-                model.fixed_step_shapes(),
-                cache.rows.is_empty(),
-            ) else {
+            let Some(dev) = cuda::device(model, cache) else {
                 return Ok(None);
-            };
-            let err = |what: &str, e: &dyn std::fmt::Display| {
-                PolicyError::Candle(candle_core::Error::Msg(format!("{what}: {e}")))
             };
             let _cache_uploads = dev.enable_cuda_graph_htod_cache();
             model.run_prefix(cache, None, false)?;
             model.device().synchronize()?;
-            let stream = dev.cuda_stream();
-            stream
-                .begin_capture(sys::CUstreamCaptureMode::CU_STREAM_CAPTURE_MODE_THREAD_LOCAL)
-                .map_err(|e| err("begin capture", &e))?;
-            let captured = model.run_prefix(cache, None, false);
-            let graph = stream.end_capture(
-                sys::CUgraphInstantiate_flags::CUDA_GRAPH_INSTANTIATE_FLAG_AUTO_FREE_ON_LAUNCH,
-            );
-            captured?;
-            let graph = graph
-                .map_err(|e| err("end capture", &e))?
-                .ok_or_else(|| err("end capture", &"the driver returned no graph"))?;
+            let (_, graph) = cuda::capture(dev, || model.run_prefix(cache, None, false))?;
             Ok(Some(PrefixGraph { graph }))
         }
         #[cfg(not(feature = "cuda"))]
@@ -95,15 +139,9 @@ impl PrefixGraph {
     /// Replays the prefix pass.
     pub fn run(&self) -> Result<(), PolicyError> {
         #[cfg(feature = "cuda")]
-        {
-            self.graph.launch().map_err(|e| {
-                PolicyError::Candle(candle_core::Error::Msg(format!("graph launch: {e}")))
-            })
-        }
+        return cuda::launch(&self.graph);
         #[cfg(not(feature = "cuda"))]
-        Err(PolicyError::Config(
-            "CUDA graphs need a build with --features cuda".into(),
-        ))
+        Err(no_cuda())
     }
 }
 
@@ -136,16 +174,12 @@ impl SampleGraph {
 
     #[cfg(feature = "cuda")]
     fn launch(&self) -> Result<(), PolicyError> {
-        self.graph
-            .launch()
-            .map_err(|e| PolicyError::Candle(candle_core::Error::Msg(format!("graph launch: {e}"))))
+        cuda::launch(&self.graph)
     }
 
     #[cfg(not(feature = "cuda"))]
     fn launch(&self) -> Result<(), PolicyError> {
-        Err(PolicyError::Config(
-            "CUDA graphs need a build with --features cuda".into(),
-        ))
+        Err(no_cuda())
     }
 
     /// Runs the device half of a sample eagerly against `cache` (prepared for the current
@@ -165,16 +199,8 @@ impl SampleGraph {
         };
         #[cfg(feature = "cuda")]
         {
-            use candle_core::cuda_backend::cudarc::driver::sys;
-            let (Ok(dev), true, true) = (
-                model.device().as_cuda_device(),
-                model.fixed_step_shapes(),
-                cache.rows.is_empty(),
-            ) else {
+            let Some(dev) = cuda::device(model, cache) else {
                 return Ok((once(noise)?, None));
-            };
-            let err = |what: &str, e: &dyn std::fmt::Display| {
-                PolicyError::Candle(candle_core::Error::Msg(format!("{what}: {e}")))
             };
             // small host uploads (kernel dims/strides) are cached by content from here on, and
             // one eager run with the graph's own buffers fills that cache
@@ -188,19 +214,7 @@ impl SampleGraph {
                 times: eager.times,
             };
             model.device().synchronize()?;
-            let stream = dev.cuda_stream();
-            stream
-                .begin_capture(sys::CUstreamCaptureMode::CU_STREAM_CAPTURE_MODE_THREAD_LOCAL)
-                .map_err(|e| err("begin capture", &e))?;
-            let captured = once(&buf);
-            // always end the capture, whatever happened inside, so the stream is usable again
-            let graph = stream.end_capture(
-                sys::CUgraphInstantiate_flags::CUDA_GRAPH_INSTANTIATE_FLAG_AUTO_FREE_ON_LAUNCH,
-            );
-            let captured = captured?;
-            let graph = graph
-                .map_err(|e| err("end capture", &e))?
-                .ok_or_else(|| err("end capture", &"the driver returned no graph"))?;
+            let (captured, graph) = cuda::capture(dev, || once(&buf))?;
             let g = SampleGraph {
                 graph,
                 noise: buf,
@@ -217,10 +231,7 @@ impl SampleGraph {
                 .to_scalar::<f32>()?;
             let rms = eager.actions.sqr()?.mean_all()?.to_scalar::<f32>()?.sqrt();
             if !(d <= 1e-3 * rms.max(1e-6)) {
-                return Err(err(
-                    "graph check",
-                    &format!("replay differs from the eager run by {d} (RMS {rms})"),
-                ));
+                return Err(cuda::mismatch(d, rms));
             }
             Ok((eager, Some(g)))
         }
