@@ -117,7 +117,10 @@ pub fn run_periodic<T: TickBody + 'static>(
                     overruns += 1;
                     // Deadlines already passed are skipped, not run back to back.
                     let behind = (done - deadline) / period;
-                    skipped += behind;
+                    // only the deadlines inside the window count: a late last tick must not
+                    // skip deadlines the window never had
+                    let left = end.saturating_sub(deadline).div_ceil(period);
+                    skipped += behind.min(left);
                     deadline += behind * period;
                 }
             }
