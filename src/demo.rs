@@ -59,13 +59,18 @@ pub struct DemoArgs {
     pub log_dir: Option<PathBuf>,
 }
 
-struct Proc {
-    name: &'static str,
-    child: Child,
-    log: PathBuf,
+pub(crate) struct Proc {
+    pub(crate) name: &'static str,
+    pub(crate) child: Child,
+    pub(crate) log: PathBuf,
 }
 
-fn spawn(exe: &Path, name: &'static str, args: &[String], log_dir: &Path) -> anyhow::Result<Proc> {
+pub(crate) fn spawn(
+    exe: &Path,
+    name: &'static str,
+    args: &[String],
+    log_dir: &Path,
+) -> anyhow::Result<Proc> {
     let log = log_dir.join(format!("{name}.log"));
     let out = File::create(&log).with_context(|| format!("cannot create {}", log.display()))?;
     let err = out.try_clone()?;
@@ -79,7 +84,7 @@ fn spawn(exe: &Path, name: &'static str, args: &[String], log_dir: &Path) -> any
     Ok(Proc { name, child, log })
 }
 
-fn stop(p: &mut Proc, timeout: Duration) -> String {
+pub(crate) fn stop(p: &mut Proc, timeout: Duration) -> String {
     // SIGINT first: every chunkrt process stops cleanly on it and prints its summary
     // SAFETY: plain kill(2) on our own child's pid.
     unsafe { libc::kill(p.child.id() as libc::pid_t, libc::SIGINT) };

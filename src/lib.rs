@@ -15,7 +15,8 @@
 //! - [`policy`]: the `chunkrt-policy` crate (π0 / π0.5 in candle, pre/post-processing,
 //!   checkpoints), re-exported; [`policy_cli`]: `chunkrt sample` / `chunkrt inspect`.
 //! - [`report`]: latency histograms → logs, tables, plots.
-//! - [`demo`]: starts the fake devices and the controller as processes.
+//! - [`demo`]: starts the fake devices and the controller as processes; [`soak`]: the same
+//!   stack for a long run, with overruns, lateness, holds, rejections, RSS and fds.
 
 pub mod bench;
 pub mod chunk;
@@ -29,6 +30,7 @@ pub mod log_limit;
 pub mod policy_cli;
 pub mod report;
 pub mod rt;
+pub mod soak;
 pub mod task;
 pub mod train;
 

@@ -16,6 +16,9 @@ enum Command {
     Run(chunkrt::controller::RunArgs),
     /// Start fake camera, simulated robot and controller as processes and show them working.
     Demo(chunkrt::demo::DemoArgs),
+    /// Run the demo stack for a long time (default 10 min): commands/s, overruns, lateness
+    /// p50/p99/max, holds, rejections by reason, RSS and fds at start and end.
+    Soak(chunkrt::soak::SoakArgs),
     /// Publish synthetic camera frames (same as the `fake-camera` tool).
     FakeCamera(chunkrt_tools::fake_camera::Args),
     /// Simulate an N-DoF arm (same as the `fake-robot` tool).
@@ -45,6 +48,7 @@ fn main() {
     let result = match cli.command {
         Command::Run(a) => chunkrt::controller::run(a),
         Command::Demo(a) => chunkrt::demo::run(a),
+        Command::Soak(a) => chunkrt::soak::run(a),
         Command::FakeCamera(a) => chunkrt_tools::fake_camera::run(a),
         Command::FakeRobot(a) => chunkrt_tools::fake_robot::run(a),
         Command::Monitor(a) => chunkrt_tools::monitor::run(a),
