@@ -23,6 +23,7 @@ use chunkrt_ipc::services;
 use chunkrt_ipc::{
     controller_state_name, monotonic_ns, sleep_until_ns, Config, ControllerStatus, JointCommand,
     JointState, RejectReason, CONTROLLER_STATE_HOLD, CONTROLLER_STATE_STARTING,
+    CONTROLLER_STATE_STOPPED,
 };
 
 use crate::chunk::ActionChunk;
@@ -511,7 +512,10 @@ fn observation_thread(
         while private_events.pop().is_some() {}
         // chunk buffers the control thread is done with are dropped here, off the RT path
         while link.chunks.take_recycled().is_some() {}
-        let Some(state) = js.latest() else { continue };
+        // a second joint-state publisher: nothing trusted, no observation from a forged state
+        let Some(state) = js.trusted(now) else {
+            continue;
+        };
         if stale != 0 {
             continue;
         }
@@ -575,16 +579,19 @@ impl ControlLoop {
         cfg: &Config,
     ) -> anyhow::Result<Self> {
         let ns = cfg.namespace();
+        let cmd_out = CommandOutput::new(node, &ns)?;
+        let mut status = ControllerStatus {
+            n_dof: cfg.n_dof() as u32,
+            ..Default::default()
+        };
+        status.set_command_publisher(cmd_out.id());
         Ok(Self {
             js: JointStateInput::new(node, &ns, cfg)?,
-            cmd_out: CommandOutput::new(node, &ns)?,
+            cmd_out,
             status_out: StatusOutput::new(node, &ns)?,
             hist: TickHistograms::new(),
             cmd: JointCommand::default(),
-            status: ControllerStatus {
-                n_dof: cfg.n_dof() as u32,
-                ..Default::default()
-            },
+            status,
             state: CONTROLLER_STATE_STARTING,
             ticks: 0,
             overruns: 0,
@@ -607,7 +614,12 @@ impl ControlLoop {
             .lateness
             .saturating_record(wake_ns.saturating_sub(scheduled_ns).max(1));
         self.js.poll(&shared.counters, &shared.events);
-        let out = tick.tick(wake_ns, self.js.latest(), &mut self.cmd);
+        if self.ticks == 0 {
+            // announce the command publisher before the first command, so the robot's
+            // session is bound when that command arrives
+            self.publish_status(wake_ns, shared);
+        }
+        let out = tick.tick(wake_ns, self.js.trusted(wake_ns), &mut self.cmd);
         if out.publish {
             self.cmd.seq += 1;
             self.cmd.deadline_ns = wake_ns + self.deadline_ns;
@@ -643,6 +655,13 @@ impl ControlLoop {
     pub fn count_overrun(&mut self, shared: &Shared) {
         self.overruns += 1;
         shared.overruns.store(self.overruns, Ordering::Relaxed);
+    }
+
+    /// The last status of a clean stop (`CONTROLLER_STATE_STOPPED`): the robot's session with
+    /// this controller ends at once, so the next controller is obeyed without a pause.
+    pub fn publish_stopped(&mut self, shared: &Shared) {
+        self.state = CONTROLLER_STATE_STOPPED;
+        self.publish_status(monotonic_ns(), shared);
     }
 
     fn publish_status(&mut self, wake_ns: u64, shared: &Shared) {
@@ -729,6 +748,7 @@ fn control_thread(
             next += ((end - next) / period) * period;
         }
     }
+    lp.publish_stopped(shared);
     Ok(Summary {
         seconds: (monotonic_ns() - start) as f64 / 1e9,
         histograms: lp.hist,

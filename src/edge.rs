@@ -111,6 +111,8 @@ pub struct JointStateInput {
     n_dof: u32,
     latest: JointState,
     has_latest: bool,
+    /// A second joint-state publisher spoke: the stream is ambiguous until then (ns).
+    ambiguous_until_ns: u64,
 }
 
 impl JointStateInput {
@@ -125,6 +127,7 @@ impl JointStateInput {
             n_dof: cfg.n_dof() as u32,
             latest: JointState::default(),
             has_latest: false,
+            ambiguous_until_ns: 0,
         })
     }
 
@@ -168,6 +171,12 @@ impl JointStateInput {
                     counters.joint_states.fetch_add(1, Ordering::Relaxed);
                 }
                 Err(error) => {
+                    if matches!(error, ValidationError::ForeignPublisher { .. }) {
+                        // two publishers of joint state: which one is the robot cannot be
+                        // told apart, so none is trusted until the second has been quiet
+                        // for the channel's maximum age
+                        self.ambiguous_until_ns = now_ns.saturating_add(self.freshness.max_age_ns);
+                    }
                     counters.reject(error.reason());
                     let _ = events.push(EdgeEvent::Rejected {
                         source: Source::JointState,
@@ -183,6 +192,23 @@ impl JointStateInput {
     /// `measurement_time_ns`).
     pub fn latest(&self) -> Option<&JointState> {
         self.has_latest.then_some(&self.latest)
+    }
+
+    /// The newest valid joint state unless the stream is ambiguous at `now_ns` (a second
+    /// publisher spoke within `joint_state_max_age_ms`): then none, and the controller holds
+    /// as for a missing state. Covers a forger that bound first as well as one that came
+    /// second.
+    pub fn trusted(&self, now_ns: u64) -> Option<&JointState> {
+        if now_ns < self.ambiguous_until_ns {
+            None
+        } else {
+            self.latest()
+        }
+    }
+
+    /// True while a second joint-state publisher makes the stream ambiguous.
+    pub fn ambiguous(&self, now_ns: u64) -> bool {
+        now_ns < self.ambiguous_until_ns
     }
 }
 
@@ -372,6 +398,12 @@ impl CommandOutput {
         Ok(Self {
             publisher: services::publisher(&factory, &name)?,
         })
+    }
+
+    /// iceoryx2's unique id of the command publisher, announced in the status so that the
+    /// robot binds to this controller for the session ([`chunkrt_ipc::SessionGate`]).
+    pub fn id(&self) -> u128 {
+        self.publisher.id().value()
     }
 
     /// Publishes one command (stamping `publish_time_ns`); false if iceoryx2 refused.

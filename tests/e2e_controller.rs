@@ -351,6 +351,95 @@ fn rogue_publishers_move_nothing_and_are_counted() {
     );
 }
 
+/// A rogue command publisher that starts before the robot and the controller is never
+/// obeyed: the robot binds to the command publisher announced in the controller's status
+/// (session binding), not to the first one it hears. A clean controller stop releases the
+/// session and the next controller is obeyed.
+#[test]
+fn a_rogue_that_starts_first_moves_nothing_and_a_new_controller_rebinds() {
+    let _serial = serial();
+    let ns = unique_namespace("rogue-first");
+    let cfg = Config::embedded_default();
+    let nsp = Namespace::new(&ns).unwrap();
+    let node = services::node("test-rogue-first").unwrap();
+    let rogue = services::publisher(
+        &services::joint_command_service(&node, &nsp.joint_command()).unwrap(),
+        "rogue-cmd",
+    )
+    .unwrap();
+    let n = cfg.n_dof() as u32;
+    let mut k = 0u64;
+    let mut send_rogue = |k: &mut u64| {
+        *k += 1;
+        let now = monotonic_ns();
+        let mut c = JointCommand {
+            seq: *k,
+            publish_time_ns: now,
+            deadline_ns: now + 50_000_000,
+            n_dof: n,
+            mode: chunkrt_ipc::COMMAND_MODE_POSITION,
+            ..Default::default()
+        };
+        c.position[0] = 2.5;
+        rogue.send_copy(c).unwrap();
+    };
+    for _ in 0..20 {
+        send_rogue(&mut k);
+    }
+    let robot = start("fake-robot", &ns, &[]);
+    let mut w = Watch::new(&ns);
+    let rogue_for = |w: &mut Watch, k: &mut u64, d: Duration, send: &mut dyn FnMut(&mut u64)| {
+        let t_end = Instant::now() + d;
+        while Instant::now() < t_end {
+            send(k);
+            w.pump(Duration::from_millis(1));
+        }
+    };
+    // no controller yet: the rogue alone for a second
+    rogue_for(&mut w, &mut k, Duration::from_secs(1), &mut send_rogue);
+    let p0 = cfg.robot.joints[0].initial_position;
+    assert!(w.last_js.seq > 0, "the robot publishes");
+    assert!(
+        (w.last_js.position[0] - p0).abs() < 0.01,
+        "the robot obeyed a command publisher that no controller announced: shoulder at {}",
+        w.last_js.position[0]
+    );
+    // the controller (hold policy: it commands the measured position) while the rogue goes on
+    for round in 0..2 {
+        let ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
+        let seen = w.commands.len();
+        let mut ok = false;
+        let t_end = Instant::now() + Duration::from_secs(20);
+        while Instant::now() < t_end && !ok {
+            rogue_for(&mut w, &mut k, Duration::from_millis(50), &mut send_rogue);
+            ok = w.commands.len() > seen + 200 && holding(&w.last_status);
+        }
+        assert!(
+            ok,
+            "round {round}: the controller did not command the robot"
+        );
+        rogue_for(&mut w, &mut k, Duration::from_secs(1), &mut send_rogue);
+        assert!(
+            (w.last_js.position[0] - p0).abs() < 0.05,
+            "round {round}: shoulder moved to {} (rogue commands 2.5)",
+            w.last_js.position[0]
+        );
+        let out = ctl.terminate(Duration::from_secs(5));
+        assert_eq!(out.code, Some(0), "{}", out.stderr);
+    }
+    let r = robot.terminate(Duration::from_secs(5));
+    // refused: while a controller was bound (rejected) or before / between controllers
+    // (unbound: nothing is obeyed without a session)
+    let refused = summary_value(&r.stdout, "commands_rejected").unwrap_or(0.0)
+        + summary_value(&r.stdout, "commands_unbound").unwrap_or(0.0);
+    let applied = summary_value(&r.stdout, "commands_applied").unwrap_or(0.0);
+    assert!(
+        refused >= (k / 2) as f64 && applied > 400.0,
+        "{k} rogue commands sent; the robot: {}",
+        r.stdout
+    );
+}
+
 #[test]
 fn malformed_messages_are_rejected_and_counted() {
     let _serial = serial();
@@ -562,6 +651,43 @@ fn controller_runs_the_real_policy_within_limits_and_holds_for_a_dead_camera() {
             w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING
                 && w.last_status.stale_cameras == 0
                 && w.last_status.chunks > chunks_held + 1
+        },
+    );
+    // Forged joint states interleaved with the robot's (a second publisher): the stream is
+    // ambiguous, so the controller trusts neither and holds; it runs again once the forger
+    // has been quiet for joint_state_max_age_ms.
+    let nsp = Namespace::new(&ns).unwrap();
+    let node = services::node("test-forger").unwrap();
+    let forger = services::publisher(
+        &services::joint_state_service(&node, &nsp.joint_state()).unwrap(),
+        "forged-js",
+    )
+    .unwrap();
+    let n = cfg.n_dof() as u32;
+    let (mut k, mut held) = (0u64, false);
+    let t_end = Instant::now() + Duration::from_secs(2);
+    while Instant::now() < t_end {
+        k += 1;
+        let mut js = JointState {
+            seq: 1_000_000 - k,
+            measurement_time_ns: monotonic_ns(),
+            n_dof: n,
+            ..Default::default()
+        };
+        js.position[1] = 2.5;
+        forger.send_copy(js).unwrap();
+        w.pump(Duration::from_micros(500));
+        held |= w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_HOLD;
+    }
+    assert!(held, "no HOLD while {k} forged states were interleaved");
+    assert!(w.last_status.rejected[RejectReason::ForeignPublisher.code()] > 0);
+    let chunks_forged = w.last_status.chunks;
+    w.wait_for(
+        Duration::from_secs(60),
+        "RUNNING after the forger stopped",
+        |w| {
+            w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING
+                && w.last_status.chunks > chunks_forged
         },
     );
     let out = ctl.terminate(Duration::from_secs(15));

@@ -103,6 +103,9 @@ fn tools_fake_robot_follows_commands_and_holds() {
             "20",
             "--command-timeout-ms",
             "100",
+            // this test is the controller: obey the first command publisher
+            "--session",
+            "first",
         ],
     )
     .expect("spawn chunkrt fake-robot");

@@ -37,7 +37,7 @@ extern "C" {
 #define CHUNKRT_TYPE_NAME_CAMERA_FRAME_HEADER "chunkrt.CameraFrameHeader.v1"
 #define CHUNKRT_TYPE_NAME_JOINT_STATE "chunkrt.JointState.v1"
 #define CHUNKRT_TYPE_NAME_JOINT_COMMAND "chunkrt.JointCommand.v1"
-#define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v2"
+#define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v3"
 /** Element type name of the camera pixel slice. */
 #define CHUNKRT_TYPE_NAME_PIXEL "u8"
 
@@ -136,6 +136,7 @@ typedef struct JointCommand {
 #define CHUNKRT_CONTROLLER_STATE_HOLD 1u
 #define CHUNKRT_CONTROLLER_STATE_RUNNING 2u
 #define CHUNKRT_CONTROLLER_STATE_FAULT 3u
+#define CHUNKRT_CONTROLLER_STATE_STOPPED 4u /* last status of a clean stop: session released */
 
 /* Rejection reasons: indices into ControllerStatus.rejected. */
 #define CHUNKRT_REJECT_REASON_COUNT 9
@@ -173,6 +174,12 @@ typedef struct ControllerStatus {
     /* bit i: camera i (configuration order) missing or older than frame_max_age_ms when the
        policy would use it; while any is set no chunk is computed and the controller holds */
     uint64_t stale_cameras;
+    /* iceoryx2 unique id of the controller's joint-command publisher: [0] low 64 bits, [1] high
+       64 bits (0: not known yet). Session binding: a robot obeys only commands whose sample
+       publisher id equals the id announced by the status publisher it is bound to; before the
+       first status, and while a second status publisher speaks, it obeys none (README
+       "Isolation"; the Rust reference is chunkrt_ipc::SessionGate). */
+    uint64_t command_publisher_id[2];
 } ControllerStatus;
 
 /* ---- compile-time layout checks (the full per-field check is in tests/ipc_layout.rs) ---- */
@@ -185,7 +192,7 @@ typedef struct ControllerStatus {
 CHUNKRT_STATIC_ASSERT(sizeof(CameraFrameHeader) == 48, "CameraFrameHeader size");
 CHUNKRT_STATIC_ASSERT(sizeof(JointState) == 24 + 3 * 8 * CHUNKRT_MAX_DOF, "JointState size");
 CHUNKRT_STATIC_ASSERT(sizeof(JointCommand) == 48 + 3 * 8 * CHUNKRT_MAX_DOF, "JointCommand size");
-CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 10 * 8,
+CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 12 * 8,
                       "ControllerStatus size");
 
 #ifdef __cplusplus

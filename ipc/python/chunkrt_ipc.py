@@ -72,6 +72,7 @@ CONTROLLER_STATE_STARTING = 0
 CONTROLLER_STATE_HOLD = 1
 CONTROLLER_STATE_RUNNING = 2
 CONTROLLER_STATE_FAULT = 3
+CONTROLLER_STATE_STOPPED = 4  # last status of a clean stop: the session is released
 CONTROLLER_STATE_NAMES = {0: "starting", 1: "hold", 2: "running", 3: "fault"}
 
 # ---- rejection reasons (indices into ControllerStatus.rejected) -----------------------------
@@ -103,7 +104,7 @@ REJECT_REASON_NAMES = [
 TYPE_NAME_CAMERA_FRAME_HEADER = "chunkrt.CameraFrameHeader.v1"
 TYPE_NAME_JOINT_STATE = "chunkrt.JointState.v1"
 TYPE_NAME_JOINT_COMMAND = "chunkrt.JointCommand.v1"
-TYPE_NAME_CONTROLLER_STATUS = "chunkrt.ControllerStatus.v2"
+TYPE_NAME_CONTROLLER_STATUS = "chunkrt.ControllerStatus.v3"
 
 _F64xDOF = ctypes.c_double * MAX_DOF
 
@@ -194,7 +195,14 @@ class ControllerStatus(ctypes.Structure):
         ("joint_state_age_ns", ctypes.c_uint64),
         ("hold_entries", ctypes.c_uint64),
         ("stale_cameras", ctypes.c_uint64),
+        # iceoryx2 unique id of the controller's joint-command publisher, [low, high] 64-bit
+        # words (0: not known yet); see command_publisher() and SessionGate below
+        ("command_publisher_id", ctypes.c_uint64 * 2),
     ]
+
+    def command_publisher(self) -> int:
+        """The announced command publisher id as one integer (0: none yet)."""
+        return int(self.command_publisher_id[0]) | (int(self.command_publisher_id[1]) << 64)
 
     @staticmethod
     def type_name() -> str:

@@ -19,5 +19,5 @@ pub use messages::*;
 pub use services::{IpcError, Namespace};
 pub use validate::{
     validate_frame, validate_joint_command, validate_joint_state, Freshness, RejectReason,
-    StreamGuard, ValidationError, STRIDE_ALIGN_SLACK,
+    SessionGate, SessionState, StreamGuard, ValidationError, STRIDE_ALIGN_SLACK,
 };

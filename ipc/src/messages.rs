@@ -187,6 +187,9 @@ pub const CONTROLLER_STATE_HOLD: u32 = 1;
 pub const CONTROLLER_STATE_RUNNING: u32 = 2;
 /// Needs an explicit re-arm or restart.
 pub const CONTROLLER_STATE_FAULT: u32 = 3;
+/// The controller's last status when it stops cleanly: the robot's session with it ends at
+/// once (a robot holds until the next controller's status binds it).
+pub const CONTROLLER_STATE_STOPPED: u32 = 4;
 
 /// Name of a `CONTROLLER_STATE_*` code.
 pub const fn controller_state_name(state: u32) -> &'static str {
@@ -195,6 +198,7 @@ pub const fn controller_state_name(state: u32) -> &'static str {
         CONTROLLER_STATE_HOLD => "hold",
         CONTROLLER_STATE_RUNNING => "running",
         CONTROLLER_STATE_FAULT => "fault",
+        CONTROLLER_STATE_STOPPED => "stopped",
         _ => "unknown",
     }
 }
@@ -205,7 +209,7 @@ pub const REJECT_REASON_COUNT: usize = 9;
 
 /// Status published by the controller (a few times per second).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("chunkrt.ControllerStatus.v2")]
+#[type_name("chunkrt.ControllerStatus.v3")]
 #[repr(C)]
 pub struct ControllerStatus {
     /// Message counter.
@@ -250,6 +254,22 @@ pub struct ControllerStatus {
     /// would use it: bit i = camera i in configuration order (0: all fresh). While any is set,
     /// no chunk is computed and the controller holds.
     pub stale_cameras: u64,
+    /// iceoryx2's unique id of the publisher this controller sends its joint commands from
+    /// (low 64 bits, high 64 bits; 0: not known yet). A robot obeys commands from this
+    /// publisher only (`SessionGate`): the session binding of README section "Isolation".
+    pub command_publisher_id: [u64; 2],
+}
+
+impl ControllerStatus {
+    /// The announced command publisher id as one number (0: none).
+    pub const fn command_publisher(&self) -> u128 {
+        (self.command_publisher_id[0] as u128) | ((self.command_publisher_id[1] as u128) << 64)
+    }
+
+    /// Announces `id` as the command publisher.
+    pub fn set_command_publisher(&mut self, id: u128) {
+        self.command_publisher_id = [id as u64, (id >> 64) as u64];
+    }
 }
 
 impl Default for ControllerStatus {
@@ -275,6 +295,7 @@ impl Default for ControllerStatus {
             joint_state_age_ns: 0,
             hold_entries: 0,
             stale_cameras: 0,
+            command_publisher_id: [0; 2],
         }
     }
 }
@@ -291,7 +312,7 @@ const _: () = {
     assert!(align_of::<JointState>() == 8);
     assert!(size_of::<JointCommand>() == 48 + 3 * 8 * MAX_DOF);
     assert!(align_of::<JointCommand>() == 8);
-    assert!(size_of::<ControllerStatus>() == 24 + 5 * 8 + 8 * REJECT_REASON_COUNT + 10 * 8);
+    assert!(size_of::<ControllerStatus>() == 24 + 5 * 8 + 8 * REJECT_REASON_COUNT + 12 * 8);
     assert!(align_of::<ControllerStatus>() == 8);
     assert!(MAX_DOF >= 16);
 };
@@ -331,7 +352,8 @@ pub fn layouts() -> Vec<(&'static str, (usize, Vec<FieldOffset>))> {
             layout_of!(ControllerStatus; seq, publish_time_ns, state, n_dof, ticks, overruns,
                 chunks, joint_states, frames, rejected, last_inference_latency_ns,
                 lateness_p50_ns, lateness_p99_ns, lateness_max_ns, compute_p50_ns,
-                compute_p99_ns, compute_max_ns, joint_state_age_ns, hold_entries, stale_cameras),
+                compute_p99_ns, compute_max_ns, joint_state_age_ns, hold_entries, stale_cameras,
+                command_publisher_id),
         ),
     ]
 }

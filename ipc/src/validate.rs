@@ -131,6 +131,35 @@ pub enum ValidationError {
         "a second publisher on this channel while the bound one is alive (last message {silent_ns} ns ago)"
     )]
     ForeignPublisher { silent_ns: u64 },
+    #[error("command from publisher {publisher:#x}, which is not the controller of this session ({session})")]
+    NotSessionPublisher {
+        publisher: u128,
+        /// What the receiver's session is: "none yet", "ambiguous: two status publishers",
+        /// or the bound controller's publisher id.
+        session: SessionState,
+    },
+}
+
+/// A robot's view of its session with a controller (see [`SessionGate`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SessionState {
+    /// No controller status received yet: no command is obeyed.
+    None,
+    /// A second status publisher spoke while the bound one is alive: no command is obeyed
+    /// until it has been quiet for the gate's timeout.
+    Ambiguous,
+    /// Commands from this publisher id (announced in the bound controller's status) are obeyed.
+    Bound(u128),
+}
+
+impl std::fmt::Display for SessionState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SessionState::None => write!(f, "no controller status yet"),
+            SessionState::Ambiguous => write!(f, "ambiguous: a second status publisher"),
+            SessionState::Bound(id) => write!(f, "bound to command publisher {id:#x}"),
+        }
+    }
 }
 
 impl ValidationError {
@@ -154,7 +183,8 @@ impl ValidationError {
             | ValidationError::TimeWentBackwards { .. } => RejectReason::OutOfOrder,
             ValidationError::FromFuture { .. } => RejectReason::FromFuture,
             ValidationError::Stale { .. } => RejectReason::Stale,
-            ValidationError::ForeignPublisher { .. } => RejectReason::ForeignPublisher,
+            ValidationError::ForeignPublisher { .. }
+            | ValidationError::NotSessionPublisher { .. } => RejectReason::ForeignPublisher,
         }
     }
 }
@@ -310,6 +340,11 @@ impl StreamGuard {
         }
     }
 
+    /// The publisher this stream is bound to, if any.
+    pub const fn bound(&self) -> Option<u128> {
+        self.publisher
+    }
+
     /// Checks one message and, if accepted, remembers it. `publisher` identifies the sending
     /// port (iceoryx2's unique publisher id), `time_ns` is the message's own timestamp.
     pub fn check(
@@ -356,6 +391,180 @@ impl StreamGuard {
         self.last_seq = seq;
         self.last_time_ns = time_ns;
         Ok(())
+    }
+}
+
+/// A robot's binding to one controller for a session: the robot obeys the command publisher
+/// that the controller announces in its own status (`ControllerStatus::command_publisher_id`),
+/// not whoever published a command first.
+///
+/// - The status stream is bound like any stream ([`StreamGuard`]): the first status publisher
+///   binds; another one may bind after `timeout_ns` of silence of the bound one (a restarted
+///   controller re-binds cleanly after that pause; the robot holds meanwhile).
+/// - A second status publisher while the bound one is alive makes the session ambiguous for
+///   `timeout_ns` after its last sample: no command is obeyed (the robot holds).
+/// - Before the first status, no command is obeyed; a status with state
+///   `CONTROLLER_STATE_STOPPED` (a clean stop) ends the session at once.
+///
+/// So a rogue that publishes commands before the controller starts, or interleaves with it,
+/// moves nothing; a rogue would have to forge the status too, and a forged status next to the
+/// real controller's is detected as ambiguous. No allocation; usable in a robot's real-time
+/// loop.
+#[derive(Debug, Clone, Copy)]
+pub struct SessionGate {
+    status: StreamGuard,
+    timeout_ns: u64,
+    max_future_ns: u64,
+    controller: Option<u128>,
+    ambiguous_until_ns: u64,
+}
+
+impl SessionGate {
+    /// A gate with no session; `timeout_ns` is the status silence after which another
+    /// controller may take over (a few status periods: the controller publishes at
+    /// `control.status_rate_hz`).
+    pub const fn new(timeout_ns: u64, max_future_ns: u64) -> Self {
+        Self {
+            status: StreamGuard::with_rebind_after(timeout_ns),
+            timeout_ns,
+            max_future_ns,
+            controller: None,
+            ambiguous_until_ns: 0,
+        }
+    }
+
+    /// Takes one controller status from publisher `origin` (iceoryx2's publisher id of the
+    /// sample) received at `now_ns`. A rejected status is returned as the error (count it).
+    pub fn on_status(
+        &mut self,
+        status: &ControllerStatus,
+        origin: u128,
+        now_ns: u64,
+    ) -> Result<(), ValidationError> {
+        let limits = Freshness {
+            max_age_ns: u64::MAX,
+            max_future_ns: self.max_future_ns,
+        };
+        let previous = self.status.bound();
+        match self
+            .status
+            .check(origin, status.seq, status.publish_time_ns, now_ns, limits)
+        {
+            Ok(()) => {
+                if previous != Some(origin) {
+                    // a new controller took over after the old one's silence: a new session
+                    self.ambiguous_until_ns = 0;
+                }
+                if status.state == CONTROLLER_STATE_STOPPED {
+                    // a clean stop releases the session: the next controller binds at once
+                    self.controller = None;
+                    self.status = StreamGuard::with_rebind_after(self.timeout_ns);
+                    return Ok(());
+                }
+                let id = status.command_publisher();
+                if id != 0 {
+                    self.controller = Some(id);
+                }
+                Ok(())
+            }
+            Err(e) => {
+                if matches!(e, ValidationError::ForeignPublisher { .. }) {
+                    self.ambiguous_until_ns = now_ns.saturating_add(self.timeout_ns);
+                }
+                Err(e)
+            }
+        }
+    }
+
+    /// The session as of `now_ns`.
+    pub fn state(&self, now_ns: u64) -> SessionState {
+        if now_ns < self.ambiguous_until_ns {
+            SessionState::Ambiguous
+        } else {
+            match self.controller {
+                Some(id) => SessionState::Bound(id),
+                None => SessionState::None,
+            }
+        }
+    }
+
+    /// Whether a command from publisher `origin` may be obeyed at `now_ns`.
+    pub fn admit(&self, origin: u128, now_ns: u64) -> Result<(), ValidationError> {
+        match self.state(now_ns) {
+            SessionState::Bound(id) if id == origin => Ok(()),
+            session => Err(ValidationError::NotSessionPublisher {
+                publisher: origin,
+                session,
+            }),
+        }
+    }
+}
+
+#[cfg(test)]
+mod session_tests {
+    use super::*;
+
+    fn status(seq: u64, t: u64, id: u128) -> ControllerStatus {
+        let mut s = ControllerStatus {
+            seq,
+            publish_time_ns: t,
+            ..Default::default()
+        };
+        s.set_command_publisher(id);
+        s
+    }
+
+    #[test]
+    fn the_announced_publisher_is_obeyed_and_nobody_else() {
+        let ms = 1_000_000;
+        let mut g = SessionGate::new(500 * ms, ms);
+        // before any status: nothing is obeyed, not even the first publisher
+        assert!(matches!(
+            g.admit(7, 10 * ms),
+            Err(ValidationError::NotSessionPublisher {
+                session: SessionState::None,
+                ..
+            })
+        ));
+        g.on_status(&status(1, 10 * ms, 42), 100, 10 * ms).unwrap();
+        assert!(g.admit(42, 11 * ms).is_ok());
+        assert_eq!(
+            g.admit(7, 11 * ms).unwrap_err().reason(),
+            RejectReason::ForeignPublisher
+        );
+        // a forged status next to the live one: ambiguous, nothing obeyed for the timeout
+        let e = g
+            .on_status(&status(1, 20 * ms, 7), 200, 20 * ms)
+            .unwrap_err();
+        assert_eq!(e.reason(), RejectReason::ForeignPublisher);
+        assert_eq!(g.state(21 * ms), SessionState::Ambiguous);
+        assert!(g.admit(42, 21 * ms).is_err() && g.admit(7, 21 * ms).is_err());
+        g.on_status(&status(2, 100 * ms, 42), 100, 100 * ms)
+            .unwrap();
+        assert!(g.admit(42, 519 * ms).is_err(), "still within the timeout");
+        assert!(
+            g.admit(42, 521 * ms).is_ok(),
+            "the forger has been quiet for the timeout"
+        );
+        // a restarted controller (new status publisher announcing a new command publisher):
+        // refused while the old one may be alive, bound after its silence, ambiguity cleared
+        assert!(g
+            .on_status(&status(1, 550 * ms, 43), 300, 550 * ms)
+            .is_err());
+        assert!(g.admit(42, 560 * ms).is_err());
+        g.on_status(&status(2, 650 * ms, 43), 300, 650 * ms)
+            .unwrap();
+        assert!(g.admit(43, 651 * ms).is_ok());
+        assert!(g.admit(42, 651 * ms).is_err());
+        // a clean stop releases the session; the next controller binds without waiting
+        let mut stopped = status(3, 700 * ms, 43);
+        stopped.state = CONTROLLER_STATE_STOPPED;
+        g.on_status(&stopped, 300, 700 * ms).unwrap();
+        assert_eq!(g.state(701 * ms), SessionState::None);
+        assert!(g.admit(43, 701 * ms).is_err());
+        g.on_status(&status(1, 710 * ms, 44), 400, 710 * ms)
+            .unwrap();
+        assert!(g.admit(44, 711 * ms).is_ok());
     }
 }
 

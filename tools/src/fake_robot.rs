@@ -51,7 +51,25 @@ pub struct Args {
     /// Initial positions, comma separated (default: `initial_position` of each joint).
     #[arg(long, value_name = "P0,P1,...", value_delimiter = ',')]
     pub initial: Option<Vec<f64>>,
+    /// Whose commands are obeyed. `controller`: only the command publisher that the
+    /// controller's status announces (session binding; nothing before the first status, nothing
+    /// while a second status publisher speaks). `first`: the first command publisher heard
+    /// (for a test or driver that commands the robot without a controller).
+    #[arg(long, value_enum, default_value_t = Session::Controller)]
+    pub session: Session,
 }
+
+/// How the robot picks the command publisher it obeys (`--session`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Session {
+    /// The publisher announced in the controller's status ([`SessionGate`]).
+    Controller,
+    /// The first publisher heard ([`StreamGuard`] binding only).
+    First,
+}
+
+/// Status silence after which another controller may bind the robot's session.
+pub const SESSION_TIMEOUT_NS: u64 = 500_000_000;
 
 impl Default for Args {
     /// The same values as an empty command line.
@@ -65,6 +83,7 @@ impl Default for Args {
             command_timeout_ms: 50.0,
             omega: 60.0,
             initial: None,
+            session: Session::Controller,
         }
     }
 }
@@ -78,8 +97,15 @@ pub struct Summary {
     pub commands_applied: u64,
     /// Commands received after their deadline (ignored).
     pub commands_expired: u64,
-    /// Commands that failed validation or arrived out of order.
+    /// Commands that failed validation, arrived out of order or came from a publisher other
+    /// than the session's controller.
     pub commands_rejected: u64,
+    /// Commands ignored while the robot has no session: before the first controller status
+    /// reached it (a controller's first commands can arrive before its status does), or while
+    /// a second status publisher made the session ambiguous.
+    pub commands_unbound: u64,
+    /// Controller statuses refused (a second status publisher, out of order).
+    pub status_rejected: u64,
     /// Transitions into the watchdog hold.
     pub holds: u64,
     /// Ticks spent in the watchdog hold.
@@ -95,12 +121,14 @@ impl std::fmt::Display for Summary {
         write!(
             f,
             "fake-robot summary: states_published={} commands_applied={} commands_expired={} \
-             commands_rejected={} holds={} hold_ticks={} max_tracking_error={:.6} \
-             max_lateness_us={:.1}",
+             commands_rejected={} commands_unbound={} status_rejected={} holds={} \
+             hold_ticks={} max_tracking_error={:.6} max_lateness_us={:.1}",
             self.states_published,
             self.commands_applied,
             self.commands_expired,
             self.commands_rejected,
+            self.commands_unbound,
+            self.status_rejected,
             self.holds,
             self.hold_ticks,
             self.max_tracking_error,
@@ -240,6 +268,9 @@ pub struct Robot {
     command_timeout_ns: u64,
     max_future_ns: u64,
     guard: StreamGuard,
+    /// Session binding to one controller (None: `--session first`).
+    session: Option<SessionGate>,
+    session_id: Option<u128>,
     active: Option<JointCommand>,
     last_command_ns: u64,
     holding: bool,
@@ -267,6 +298,8 @@ impl Robot {
             // one controller at a time: another command publisher is refused while the bound
             // one is alive; after a command timeout of silence (the robot holds) one may bind
             guard: StreamGuard::with_rebind_after(command_timeout_ns),
+            session: None,
+            session_id: None,
             active: None,
             last_command_ns: now_ns,
             holding: true,
@@ -277,11 +310,53 @@ impl Robot {
         }
     }
 
+    /// Obeys only the command publisher announced by the controller's status from now on.
+    pub fn bind_to_controller(&mut self, timeout_ns: u64) {
+        self.session = Some(SessionGate::new(timeout_ns, self.max_future_ns));
+    }
+
+    /// Handles one controller status from publisher `origin` (session binding).
+    pub fn on_status(&mut self, status: &ControllerStatus, origin: u128, now_ns: u64) {
+        let Some(gate) = self.session.as_mut() else {
+            return;
+        };
+        if let Err(e) = gate.on_status(status, origin, now_ns) {
+            self.summary.status_rejected += 1;
+            if self.summary.status_rejected <= 10 {
+                tracing::warn!("fake-robot: controller status rejected: {e}");
+            }
+        }
+        if let SessionState::Bound(id) = gate.state(now_ns) {
+            if self.session_id != Some(id) {
+                // a new controller: its command stream starts afresh
+                tracing::info!("fake-robot: session bound to command publisher {id:#x}");
+                self.session_id = Some(id);
+                self.guard = StreamGuard::with_rebind_after(self.command_timeout_ns);
+            }
+        }
+    }
+
     /// Handles one received command from publisher `origin`.
     pub fn on_command(&mut self, cmd: &JointCommand, origin: u128, now_ns: u64) {
         if let Err(e) = validate_joint_command(cmd, Some(self.arm.n_dof() as u32)) {
             self.reject(&e);
             return;
+        }
+        if let Some(gate) = &self.session {
+            match gate.admit(origin, now_ns) {
+                Ok(()) => {}
+                Err(ValidationError::NotSessionPublisher {
+                    session: SessionState::None | SessionState::Ambiguous,
+                    ..
+                }) => {
+                    self.summary.commands_unbound += 1;
+                    return;
+                }
+                Err(e) => {
+                    self.reject(&e);
+                    return;
+                }
+            }
         }
         let limits = Freshness {
             max_age_ns: u64::MAX,
@@ -414,9 +489,19 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
     let state_pub = services::publisher(&state_service, &state_name)?;
     let cmd_service = services::joint_command_service(&node, &cmd_name)?;
     let cmd_sub = services::subscriber(&cmd_service, &cmd_name)?;
+    let status_name = ns.status();
+    let status_sub = services::subscriber(
+        &services::status_service(&node, &status_name)?,
+        &status_name,
+    )?;
     tracing::info!(
         "fake-robot: {n_dof} joints at {rate_hz} Hz, publishing '{state_name}', \
-         following '{cmd_name}' (command timeout {timeout_ms} ms)"
+         following '{cmd_name}' (command timeout {timeout_ms} ms; {})",
+        match args.session {
+            Session::Controller =>
+                "obeying the command publisher announced in the controller's status",
+            Session::First => "obeying the first command publisher heard",
+        }
     );
 
     let period_ns = (1e9 / rate_hz).round() as u64;
@@ -425,6 +510,9 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
     let end = end_time_ns(start, args.duration)?;
     let max_future_ns = (cfg.control.max_future_ms * 1e6) as u64;
     let mut robot = Robot::new(arm, (timeout_ms * 1e6) as u64, max_future_ns, start);
+    if args.session == Session::Controller {
+        robot.bind_to_controller(SESSION_TIMEOUT_NS);
+    }
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
     let mut seq = 0u64;
     let mut next = start;
@@ -435,6 +523,9 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
         let now = monotonic_ns();
         if now >= end {
             break;
+        }
+        while let Ok(Some(sample)) = status_sub.receive() {
+            robot.on_status(sample.payload(), sample.origin().value(), monotonic_ns());
         }
         loop {
             match cmd_sub.receive() {

@@ -75,7 +75,7 @@ impl Kind {
         match (payload, user_header) {
             ("chunkrt.JointState.v1", "()") => Kind::JointState,
             ("chunkrt.JointCommand.v1", "()") => Kind::JointCommand,
-            ("chunkrt.ControllerStatus.v2", "()") => Kind::Status,
+            ("chunkrt.ControllerStatus.v3", "()") => Kind::Status,
             ("u8", "chunkrt.CameraFrameHeader.v1") => Kind::Camera,
             _ => Kind::Unknown,
         }
