@@ -1,13 +1,13 @@
 //! Fuzz (issue 16, bounded inputs): hostile values at every boundary parser and validator — IPC
 //! message validation and the per-publisher stream guard, the TOML configuration, a checkpoint's
-//! `config.json` and `norm_stats.json`, and `chunkrt report`'s histogram-log reader — give an
+//! `config.json`, `norm_stats.json` and `tokenizer.json`, and `chunkrt report`'s histogram-log reader — give an
 //! `Ok` or a typed error, never a panic. proptest with fixed seeds: a short run in the default
 //! suite, 40x longer with `cargo test --test fuzz_inputs -- --ignored`.
 
 use std::path::PathBuf;
 
 use chunkrt::policy::config::ModelConfig;
-use chunkrt::policy::preprocess::{NormMode, NormStats};
+use chunkrt::policy::preprocess::{NormMode, NormStats, PromptTokenizer};
 use chunkrt_ipc::{
     validate_frame, validate_joint_command, validate_joint_state, CameraFrameHeader, Config,
     Freshness, JointCommand, JointState, StreamGuard, MAX_DOF,
@@ -239,6 +239,76 @@ fn checkpoint_json(cases: u32) {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// The committed policy's `tokenizer.json` with hostile numbers or strings in its fields (ids,
+/// merges, vocabulary entries), or cut short / with bytes overwritten: loading it and
+/// tokenizing prompts gives ids or a typed error, never a panic. Ids outside the model's
+/// vocabulary are the model's check (`token ids must be in [0, vocab)`), tested in policy_io.
+fn tokenizer_json(cases: u32) {
+    let base_text = std::fs::read_to_string(repo("models/reach_pi05/tokenizer.json")).unwrap();
+    let base: serde_json::Value = serde_json::from_str(&base_text).unwrap();
+    let dir = std::env::temp_dir().join(format!("chunkrt-fuzz-tok-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = dir.join("tokenizer.json");
+    let value = prop_oneof![
+        Just(serde_json::json!(-1)),
+        Just(serde_json::json!(u64::MAX)),
+        Just(serde_json::json!(1e300)),
+        Just(serde_json::json!(null)),
+        Just(serde_json::json!("")),
+        Just(serde_json::json!([])),
+        any::<i64>().prop_map(|v| serde_json::json!(v)),
+        "\\PC{0,12}".prop_map(|v| serde_json::json!(v)),
+    ];
+    let edit = prop_oneof![
+        // a JSON edit: the k-th number replaced
+        prop::collection::vec((0usize..4096, value), 1..4).prop_map(Err),
+        // a byte-level edit: cut at, or overwrite bytes from, a position
+        (
+            0usize..8192,
+            prop::collection::vec(any::<u8>(), 0..16),
+            any::<bool>()
+        )
+            .prop_map(Ok),
+    ];
+    let prompts = ["reach the red target", "", "ünïcödé ✓ \n\t", "x"];
+    runner(cases, 11)
+        .run(&edit, |edit| {
+            let bytes = match edit {
+                Err(edits) => {
+                    let mut v = base.clone();
+                    for (k, n) in edits {
+                        let mut k = k;
+                        set_number(&mut v, &mut k, &n);
+                    }
+                    v.to_string().into_bytes()
+                }
+                Ok((at, junk, cut)) => {
+                    let mut b = base_text.clone().into_bytes();
+                    let at = at.min(b.len());
+                    if cut {
+                        b.truncate(at);
+                    }
+                    for (i, x) in junk.iter().enumerate() {
+                        if let Some(y) = b.get_mut(at + i) {
+                            *y = *x;
+                        }
+                    }
+                    b
+                }
+            };
+            std::fs::write(&out, &bytes).unwrap();
+            if let Ok(tok) = PromptTokenizer::from_file(&out) {
+                for p in prompts {
+                    let _ = tok.tokenize(p, None, 48);
+                    let _ = tok.tokenize(p, Some(&[0, 255, 128]), 64);
+                }
+            }
+            Ok(())
+        })
+        .unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 fn report_logs(cases: u32) {
     let dir = std::env::temp_dir().join(format!("chunkrt-fuzz-log-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
@@ -277,6 +347,11 @@ fn fuzz_checkpoint_json_never_panics() {
 }
 
 #[test]
+fn fuzz_tokenizer_json_never_panics() {
+    tokenizer_json(SHORT);
+}
+
+#[test]
 fn fuzz_report_logs_never_panic() {
     report_logs(SHORT);
 }
@@ -287,5 +362,6 @@ fn fuzz_long() {
     messages(LONG);
     config_toml(LONG);
     checkpoint_json(LONG);
+    tokenizer_json(LONG);
     report_logs(LONG);
 }
