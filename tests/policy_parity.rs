@@ -215,3 +215,50 @@ fn pi05_tiny_matches_openpi() {
 fn pi0_tiny_matches_openpi() {
     parity("pi0_tiny");
 }
+
+/// The same fixture on the AVX2 + FMA f32 kernel, forced where AVX-512 would be picked (on a CPU
+/// without AVX-512 it is the default path, and without AVX2 the candle fallback runs).
+#[test]
+fn pi05_tiny_matches_openpi_on_the_avx2_kernel() {
+    chunkrt::policy::packed::force_avx2(true);
+    parity("pi05_tiny");
+}
+
+/// The fixtures on a CPU with neither AVX-512 nor AVX2 (emulated: this test binary re-runs the
+/// π0 and π0.5 parity tests in a child process with `CHUNKRT_CPU_ISA=baseline`, so the packed
+/// products fall back to candle and the fused small ops run their portable code).
+#[test]
+fn fixtures_match_on_the_portable_fallback() {
+    if std::env::var_os(chunkrt::policy::packed::ISA_ENV).is_some() {
+        return; // already the child (or capped by the caller)
+    }
+    let exe = std::env::current_exe().expect("test binary path");
+    for test in [
+        "the_isa_cap_is_honoured",
+        "pi05_tiny_matches_openpi",
+        "pi0_tiny_matches_openpi",
+    ] {
+        let out = std::process::Command::new(&exe)
+            .env(chunkrt::policy::packed::ISA_ENV, "baseline")
+            .args([test, "--exact", "--test-threads", "1"])
+            .output()
+            .expect("re-run the test binary");
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success() && text.contains("1 passed"),
+            "{test} on the portable fallback:\n{text}\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+}
+
+/// In the child of [`fixtures_match_on_the_portable_fallback`]: no kernel is picked.
+#[test]
+fn the_isa_cap_is_honoured() {
+    let s = chunkrt::policy::packed::support();
+    match std::env::var(chunkrt::policy::packed::ISA_ENV).as_deref() {
+        Ok("baseline") => assert_eq!(s, chunkrt::policy::packed::Support::NONE),
+        Ok("avx2") => assert!(!s.avx512 && !s.avx512_bf16 && !s.amx),
+        _ => {}
+    }
+}

@@ -23,7 +23,11 @@ pub const CONFIGS: [(&str, &str); 2] = [
     ),
 ];
 
-/// openpi's PyTorch medians on the same kind of machine (s): π0, π0.5.
+/// Where [`OPENPI_SAMPLE_S`] were measured: they are stored figures, not this run's.
+pub const OPENPI_SAMPLE_CPU: &str =
+    "stored, not this run: 2-core AMD EPYC Zen 4 VM (AVX-512), 2 threads, PyTorch f32";
+
+/// openpi's PyTorch medians (s): π0, π0.5, measured as [`OPENPI_SAMPLE_CPU`] says.
 pub const OPENPI_SAMPLE_S: [(&str, f64); 2] = [("pi0_bench", 0.4073), ("pi05_bench", 0.5219)];
 
 /// Timing of one phase.
@@ -158,6 +162,10 @@ impl std::fmt::Display for BenchReport {
             }
         }
         writeln!(f, "== full cached sample, p50 (interleaved rounds) ==")?;
+        writeln!(
+            f,
+            "openpi figures: {OPENPI_SAMPLE_CPU}; on another CPU compare with the in-run candle baseline"
+        )?;
         for c in &self.configs {
             let base = self.baseline(&c.name);
             let vs_base = match (base, c.phase("sample_cached")) {
@@ -359,10 +367,10 @@ pub fn run_configs(name: &str, json: &str, quick: bool) -> Result<Vec<ConfigRepo
     let mut variants = vec![Variant {
         model: &m32,
         precision: "f32",
-        kernels: if super::packed::support().avx512 {
-            "packed f32, avx-512"
-        } else {
-            "candle f32"
+        kernels: match super::packed::support().f32_kernel() {
+            "avx-512" => "packed f32, avx-512",
+            "avx2" => "packed f32, avx2",
+            _ => "candle f32",
         },
         packed: true,
     }];
@@ -380,7 +388,7 @@ pub fn run_configs(name: &str, json: &str, quick: bool) -> Result<Vec<ConfigRepo
             packed: true,
         });
     }
-    if super::packed::support().avx512 {
+    if super::packed::support().f32_packed() {
         variants.push(Variant {
             model: &m32,
             precision: "f32",

@@ -32,13 +32,12 @@ macro_rules! multiversion {
                 unsafe fn v3($($arg: $ty),*) {
                     imp($($arg),*)
                 }
-                if std::arch::is_x86_feature_detected!("avx512f") {
+                let isa = crate::packed::support();
+                if isa.avx512 {
                     // SAFETY: the CPU supports the features `v4` is compiled for.
                     return unsafe { v4($($arg),*) };
                 }
-                if std::arch::is_x86_feature_detected!("avx2")
-                    && std::arch::is_x86_feature_detected!("fma")
-                {
+                if isa.avx2_fma {
                     // SAFETY: the CPU supports the features `v3` is compiled for.
                     return unsafe { v3($($arg),*) };
                 }
@@ -449,7 +448,7 @@ pub fn attention(
     if ks[3] != 1 || vs[3] != 1 {
         return Ok(None);
     }
-    if super::packed::support().avx512 && super::packed::enabled() {
+    if super::packed::support().f32_packed() && super::packed::enabled() {
         return attention_packed(q, k, v, bias, scale);
     }
     let (k_b, k_h, k_r) = (ks[0], ks[1], ks[2]);

@@ -10,13 +10,16 @@
 //! - `F32` on AVX-512F: `W` in panels of [`NR`] = 32 columns, [N/32][K][32] f32, and a 12 × 32
 //!   register tile (24 zmm accumulators) of FMAs. Same precision as candle's matmul (only the
 //!   summation order differs); the default.
+//! - `F32` on AVX2 + FMA (no AVX-512: AMD Zen 1-3, Intel desktop parts): the same packing, each
+//!   panel taken as two halves of 16 columns by a 6 × 16 register tile (12 ymm accumulators, two
+//!   for the panel's row, one broadcast: 15 of the 16 ymm registers).
 //! - `Bf16` on AVX512-BF16 (AMD Zen 4, Intel Cooper Lake and later): `W` rounded to bf16 once,
 //!   in panels [N/32][K/2][32][2] (the pair order `vdpbf16ps` reads); `x` rounded per call;
 //!   products accumulated in f32.
 //! - `Amx`: bf16 on Intel AMX tiles ([`super::amx`]), preferred for bf16 where it runs.
 //!
-//! Without AVX-512 nothing is packed ([`PackedRhs::pack`] returns `None`) and callers keep
-//! candle's matmul.
+//! Without AVX-512 or AVX2 + FMA nothing is packed ([`PackedRhs::pack`] returns `None`) and
+//! callers keep candle's matmul (the portable fallback; [`set_enabled`]`(false)` forces it).
 //!
 //! Blocking (GotoBLAS-style): the K dimension in blocks of [`KC_F32`] (f32) or [`KC_BF16`] (bf16)
 //! values, so one panel's slice of `W` (32 KB) stays in L1 while every row block of `x` passes
@@ -31,6 +34,8 @@ use super::amx;
 pub const NR: usize = 32;
 /// Rows per register tile.
 pub const MR: usize = 12;
+/// Rows per register tile of the AVX2 kernel.
+pub const MR_AVX2: usize = 6;
 /// K block of the f32 kernel (values).
 pub const KC_F32: usize = 256;
 /// K block of the bf16 kernel (values; an even number).
@@ -50,38 +55,94 @@ pub enum Precision {
 pub struct Support {
     /// AVX-512F (the f32 kernel).
     pub avx512: bool,
+    /// AVX2 and FMA (the f32 kernel without AVX-512).
+    pub avx2_fma: bool,
     /// AVX512-BF16 (`vdpbf16ps`).
     pub avx512_bf16: bool,
     /// AMX-BF16 with the kernel's permission ([`amx::available`]).
     pub amx: bool,
 }
 
-/// What this CPU supports (detected once).
+/// Environment variable that caps the instruction sets the CPU kernels use: `avx2` (as on a CPU
+/// without AVX-512: AVX2 + FMA kernels, no bf16 backend) or `baseline` (neither: candle's
+/// kernels and the portable small ops). To measure or test another CPU's paths on this one.
+pub const ISA_ENV: &str = "CHUNKRT_CPU_ISA";
+
+/// What this CPU supports (detected once), capped by [`ISA_ENV`].
 pub fn support() -> Support {
     use std::sync::OnceLock;
     static S: OnceLock<Support> = OnceLock::new();
     *S.get_or_init(|| {
-        #[cfg(target_arch = "x86_64")]
-        {
-            let avx512 = std::arch::is_x86_feature_detected!("avx512f");
-            Support {
-                avx512,
-                avx512_bf16: avx512 && std::arch::is_x86_feature_detected!("avx512bf16"),
-                amx: amx::available(),
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            Support {
-                avx512: false,
-                avx512_bf16: false,
-                amx: false,
-            }
+        let cap = std::env::var(ISA_ENV).unwrap_or_default();
+        let detected = detect();
+        match cap.as_str() {
+            "avx2" => Support {
+                avx2_fma: detected.avx2_fma,
+                ..Support::NONE
+            },
+            "baseline" | "none" => Support::NONE,
+            _ => detected,
         }
     })
 }
 
+fn detect() -> Support {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let avx512 = std::arch::is_x86_feature_detected!("avx512f");
+        Support {
+            avx512,
+            avx2_fma: std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma"),
+            avx512_bf16: avx512 && std::arch::is_x86_feature_detected!("avx512bf16"),
+            amx: amx::available(),
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        Support::NONE
+    }
+}
+
+impl Support {
+    /// No kernel at all.
+    pub const NONE: Support = Support {
+        avx512: false,
+        avx2_fma: false,
+        avx512_bf16: false,
+        amx: false,
+    };
+
+    /// Some f32 kernel runs here (AVX-512F or AVX2 + FMA).
+    pub fn f32_packed(&self) -> bool {
+        self.avx512 || self.avx2_fma
+    }
+
+    /// Name of the f32 kernel in use: "avx-512", "avx2", or "none" (candle's matmul).
+    pub fn f32_kernel(&self) -> &'static str {
+        if self.avx512 && !AVX512_OFF.load(std::sync::atomic::Ordering::Relaxed) {
+            "avx-512"
+        } else if self.avx2_fma {
+            "avx2"
+        } else {
+            "none"
+        }
+    }
+}
+
 static DISABLED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+static AVX512_OFF: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Runs the f32 products on the AVX2 kernel even where AVX-512 exists (`true`), for tests and
+/// benchmarks of that path on an AVX-512 machine; both read the same packing. No effect on a
+/// CPU without AVX2 + FMA.
+pub fn force_avx2(on: bool) {
+    AVX512_OFF.store(on, std::sync::atomic::Ordering::Relaxed);
+}
+
+fn use_avx512() -> bool {
+    support().avx512 && !AVX512_OFF.load(std::sync::atomic::Ordering::Relaxed)
+}
 
 /// Turns the packed kernels off (`false`) or back on for the whole process: products against
 /// packed weights and the packed attention then report `None` and callers run candle's matmul
@@ -141,7 +202,7 @@ impl PackedRhs {
     ) -> Option<Self> {
         let s = support();
         let data = match precision {
-            Precision::F32 if s.avx512 => {
+            Precision::F32 if s.f32_packed() => {
                 let mut d = vec![0f32; panels(n) * k * NR];
                 for (p, panel) in d.chunks_exact_mut(k * NR).enumerate() {
                     for (kk, row) in panel.chunks_exact_mut(NR).enumerate() {
@@ -352,11 +413,19 @@ impl PackedRhs {
         match &self.data {
             Data::F32(d) => {
                 let job = job(a.as_ptr(), lda, d.as_ptr() as *const u8);
+                let wide = use_avx512();
                 split_panels(job, threads, |j, r| {
-                    // SAFETY: `pack_with` builds F32 data only where AVX-512F runs; the job's
-                    // pointers cover the shapes (asserted, and the caller's contract for `c`);
-                    // the panel ranges are disjoint.
-                    unsafe { x86::f32_panels(j, r) }
+                    // SAFETY: `pack_with` builds F32 data only where AVX-512F or AVX2 + FMA
+                    // runs, and `wide` picks AVX-512 only where it runs; the job's pointers
+                    // cover the shapes (asserted, and the caller's contract for `c`); the panel
+                    // ranges are disjoint.
+                    unsafe {
+                        if wide {
+                            x86::f32_panels(j, r)
+                        } else {
+                            x86::f32_panels_avx2(j, r)
+                        }
+                    }
                 });
             }
             Data::Bf16(d) => {
@@ -466,7 +535,7 @@ fn split_panels(job: Job, threads: usize, f: impl Fn(Job, std::ops::Range<usize>
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{Job, KC_BF16, KC_F32, MR, NR};
+    use super::{Job, KC_BF16, KC_F32, MR, MR_AVX2, NR};
     use std::arch::x86_64::*;
 
     /// Column masks of the two zmm halves of a panel with `ncols` valid columns.
@@ -650,6 +719,148 @@ mod x86 {
         }
     }
 
+    /// Stores (or adds into) the `R` × 16 tile at `c` with `ncols` (1..=16) valid columns; the
+    /// first K block adds `bias` (the half panel's values, or null).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn store_avx2<const R: usize>(
+        acc0: &[__m256; R],
+        acc1: &[__m256; R],
+        c: *mut f32,
+        ldc: usize,
+        ncols: usize,
+        first: bool,
+        bias: *const f32,
+    ) {
+        let mut bt = [0f32; 16];
+        if first && !bias.is_null() {
+            std::ptr::copy_nonoverlapping(bias, bt.as_mut_ptr(), ncols);
+        }
+        let (b0, b1) = (
+            _mm256_loadu_ps(bt.as_ptr()),
+            _mm256_loadu_ps(bt.as_ptr().add(8)),
+        );
+        for i in 0..R {
+            let cp = c.add(i * ldc);
+            let (mut r0, mut r1) = (acc0[i], acc1[i]);
+            if ncols == 16 {
+                if first {
+                    r0 = _mm256_add_ps(r0, b0);
+                    r1 = _mm256_add_ps(r1, b1);
+                } else {
+                    r0 = _mm256_add_ps(r0, _mm256_loadu_ps(cp));
+                    r1 = _mm256_add_ps(r1, _mm256_loadu_ps(cp.add(8)));
+                }
+                _mm256_storeu_ps(cp, r0);
+                _mm256_storeu_ps(cp.add(8), r1);
+            } else {
+                // a ragged last panel: through a small buffer, never past column N
+                let mut t = [0f32; 16];
+                _mm256_storeu_ps(t.as_mut_ptr(), r0);
+                _mm256_storeu_ps(t.as_mut_ptr().add(8), r1);
+                for (jj, v) in t.iter().enumerate().take(ncols) {
+                    let base = if first { bt[jj] } else { *cp.add(jj) };
+                    *cp.add(jj) = v + base;
+                }
+            }
+        }
+    }
+
+    /// `R` rows × 16 columns (half a panel: `b` at the half's first column, rows [`NR`] apart)
+    /// over `kc` values of K, with AVX2 + FMA.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile_f32_avx2<const R: usize>(
+        kc: usize,
+        a: *const f32,
+        lda: usize,
+        b: *const f32,
+        c: *mut f32,
+        ldc: usize,
+        ncols: usize,
+        first: bool,
+        bias: *const f32,
+    ) {
+        let mut acc0 = [_mm256_setzero_ps(); R];
+        let mut acc1 = [_mm256_setzero_ps(); R];
+        for p in 0..kc {
+            let b0 = _mm256_loadu_ps(b.add(p * NR));
+            let b1 = _mm256_loadu_ps(b.add(p * NR + 8));
+            for i in 0..R {
+                let av = _mm256_broadcast_ss(&*a.add(i * lda + p));
+                acc0[i] = _mm256_fmadd_ps(av, b0, acc0[i]);
+                acc1[i] = _mm256_fmadd_ps(av, b1, acc1[i]);
+            }
+        }
+        store_avx2(&acc0, &acc1, c, ldc, ncols, first, bias);
+    }
+
+    /// The f32 product for the panels `r` with AVX2 + FMA (the same packing as the AVX-512
+    /// kernel; each panel as two halves of 16 columns).
+    ///
+    /// # Safety
+    /// AVX2 and FMA; `j.b` points to f32 panels [N/32][K][32]; the pointers cover the shapes.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn f32_panels_avx2(j: Job, r: std::ops::Range<usize>) {
+        let b = j.b as *const f32;
+        let mut k0 = 0;
+        while k0 < j.k {
+            let kc = KC_F32.min(j.k - k0);
+            for p in r.clone() {
+                let ncols = NR.min(j.n - p * NR);
+                for half in 0..2 {
+                    let cols = ncols.saturating_sub(16 * half).min(16);
+                    if cols == 0 {
+                        break;
+                    }
+                    let bp = b.add(p * j.k * NR + k0 * NR + 16 * half);
+                    let bias = panel_bias(&j, p);
+                    let bias = if bias.is_null() {
+                        bias
+                    } else {
+                        bias.add(16 * half)
+                    };
+                    let mut m0 = 0;
+                    while m0 < j.m {
+                        let rows = MR_AVX2.min(j.m - m0);
+                        let a = j.a.add(m0 * j.lda + k0);
+                        let c = j.c.add(m0 * j.ldc + p * NR + 16 * half);
+                        let args = (kc, a, j.lda, bp, c, j.ldc, cols, k0 == 0, bias);
+                        match rows {
+                            6 => tile_f32_avx2::<6>(
+                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
+                                args.8,
+                            ),
+                            5 => tile_f32_avx2::<5>(
+                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
+                                args.8,
+                            ),
+                            4 => tile_f32_avx2::<4>(
+                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
+                                args.8,
+                            ),
+                            3 => tile_f32_avx2::<3>(
+                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
+                                args.8,
+                            ),
+                            2 => tile_f32_avx2::<2>(
+                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
+                                args.8,
+                            ),
+                            _ => tile_f32_avx2::<1>(
+                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
+                                args.8,
+                            ),
+                        }
+                        m0 += rows;
+                    }
+                }
+            }
+            k0 += kc;
+        }
+    }
+
     /// The bf16 product for the panels `r`.
     ///
     /// # Safety
@@ -696,6 +907,7 @@ mod x86 {
 mod x86 {
     use super::Job;
     pub(super) unsafe fn f32_panels(_: Job, _: std::ops::Range<usize>) {}
+    pub(super) unsafe fn f32_panels_avx2(_: Job, _: std::ops::Range<usize>) {}
     pub(super) unsafe fn bf16_panels(_: Job, _: std::ops::Range<usize>) {}
 }
 
@@ -709,11 +921,22 @@ mod tests {
     #[test]
     fn packed_products_match_a_reference() {
         let s = support();
-        for prec in [Precision::F32, Precision::Bf16] {
+        // the AVX-512 kernel where it runs, and the AVX2 one (forced there, the only one elsewhere)
+        for (prec, avx2) in [
+            (Precision::F32, false),
+            (Precision::F32, true),
+            (Precision::Bf16, false),
+        ] {
+            if avx2 && !s.avx2_fma {
+                continue;
+            }
+            force_avx2(avx2);
             for &(m, k, n, lda, ldc, threads) in &[
                 (1, 3, 5, 3, 5, 1),
                 (13, 37, 33, 40, 35, 2),
                 (50, 600, 70, 600, 70, 2),
+                (7, 300, 48, 300, 50, 1),
+                (9, 257, 20, 260, 21, 2),
                 (25, 1030, 64, 1030, 64, 1),
             ] {
                 let mut r = lcg((m * k * n) as u64);
@@ -753,9 +976,10 @@ mod tests {
                 }
                 assert!(
                     worst < 2e-6 * k as f64,
-                    "{prec:?} {m}x{k}x{n}: max error {worst}"
+                    "{prec:?} (avx2 {avx2}) {m}x{k}x{n}: max error {worst}"
                 );
             }
+            force_avx2(false);
         }
     }
 
