@@ -14,7 +14,7 @@ use chunkrt::ipc::{monotonic_ns, JointState};
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
-use counting_alloc::allocations;
+use counting_alloc::thread_allocations;
 
 #[test]
 fn control_tick_with_ipc_allocates_only_the_iceoryx2_loan() {
@@ -63,9 +63,10 @@ fn control_tick_with_ipc_allocates_only_the_iceoryx2_loan() {
             publishes_before = shared.commands.load(Ordering::Relaxed);
         }
         // measured: one tick exactly as the control thread runs it
-        let (a0, c0) = (allocations(), cxx_allocations());
+        // this thread's allocations: the tick's, not the test harness's own threads'
+        let (a0, c0) = (thread_allocations(), cxx_allocations());
         lp.step(now, monotonic_ns(), &shared, &mut exec);
-        let (a1, c1) = (allocations(), cxx_allocations());
+        let (a1, c1) = (thread_allocations(), cxx_allocations());
         if k >= warmup {
             allocs += a1 - a0;
             cxx += c1 - c0;
