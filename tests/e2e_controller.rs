@@ -234,8 +234,9 @@ fn controller_survives_robot_and_camera_restarts() {
     assert!(holding(&w.last_status), "state {}", w.last_status.state);
     assert!(ctl.running(), "controller died with its robot");
     let before = w.last_status;
-    // restart both; the controller picks them up again (new publishers, seq from 0)
-    let robot = start("fake-robot", &ns, &[]);
+    // restart both, the robot 0.8 rad away in the shoulder (as after being moved by hand while
+    // its driver was down); the controller picks them up again (new publishers, seq from 0)
+    let robot = start("fake-robot", &ns, &["--initial", "0.8,1.2,0.6,0"]);
     let camera = start("fake-camera", &ns, &[]);
     w.wait_for(Duration::from_secs(15), "hold again", |w| {
         holding(&w.last_status)
@@ -259,6 +260,24 @@ fn controller_survives_robot_and_camera_restarts() {
         0,
         "a restarted publisher starts a new stream, not an out-of-order one"
     );
+    // safe resume: every command since the robot came back is where the robot is
+    let (js, n) = (w.last_js, Config::embedded_default().n_dof());
+    assert!(
+        (js.position[0] - 0.8).abs() < 0.01,
+        "robot at {:?}",
+        &js.position[..n]
+    );
+    for c in &w.commands {
+        for j in 0..n {
+            assert!(
+                (c.position[j] - js.position[j]).abs() < 0.01,
+                "command seq {} joint {j} at {} but the restarted robot is at {}",
+                c.seq,
+                c.position[j],
+                js.position[j]
+            );
+        }
+    }
     assert!(ctl.running());
     let out = ctl.terminate(Duration::from_secs(5));
     assert_eq!(out.code, Some(0), "{}", out.stderr);

@@ -141,11 +141,12 @@ const CHUNK_SLOTS: usize = 16;
 /// ruckig's `Synchronization::None`.
 const SYNC_NONE: i32 = 3;
 const GRAVEYARD: usize = 32;
-/// Velocity below which a braking joint counts as stopped (per second).
-/// Leaving HOLD, a measured position further than this from the generator's own (a robot that
-/// restarted or was moved) restarts the generator from the measured state (rad or unit).
+/// After a gap in the joint state, and when leaving HOLD, a measured position further than this
+/// from the generator's own (a robot that restarted or was moved) restarts the generator from
+/// the measured state (rad or unit).
 const RESUME_TOLERANCE: f64 = 0.01;
 
+/// Velocity below which a braking joint counts as stopped (per second).
 const STOPPED_VELOCITY: f64 = 1e-6;
 /// Acceleration below which a braking joint counts as stopped (per second²).
 const STOPPED_ACCELERATION: f64 = 1e-6;
@@ -167,6 +168,9 @@ pub struct Executor {
     stale_cameras: std::sync::Arc<std::sync::atomic::AtomicU64>,
     /// Its value at the last tick (for the status).
     stale_seen: u64,
+    /// The joint state was missing or stale at some tick since the last fresh one (a robot
+    /// restart, a stalled driver): on the next fresh state the generator may have to re-sync.
+    js_gap: bool,
     chunk_rx: ChunkReceiver,
     chunk_tx: ChunkSender,
     req_tx: RequestSender,
@@ -300,6 +304,7 @@ impl Executor {
             bad_input: None,
             stale_cameras: Default::default(),
             stale_seen: 0,
+            js_gap: false,
             chunk_rx,
             chunk_tx,
             req_tx,
@@ -437,6 +442,20 @@ impl Executor {
             }
         }
 
+        // A fresh state after a gap: the robot may have restarted or been moved meanwhile. If it
+        // is away from the generator, brake (and later resume) from where it is, not from where
+        // the controller last commanded it (a restarted robot must never be commanded back).
+        if !js_fresh {
+            self.js_gap = true;
+        } else if self.js_gap {
+            self.js_gap = false;
+            if let Some(js) = joint_state {
+                if self.initialized && self.state != State::Running && self.away_from(js) {
+                    self.init_generator(js);
+                }
+            }
+        }
+
         // Cameras (the inference thread's verdict, one atomic load).
         self.stale_seen = self
             .stale_cameras
@@ -505,12 +524,7 @@ impl Executor {
                     // generator then moves from the measured state within the limits. A robot
                     // that followed the braking keeps the generator's own (continuous) state.
                     if let Some(js) = joint_state {
-                        let n = self.cfg.n;
-                        let away = (0..n).any(|j| {
-                            (js.position[j] - self.otg_in.current_position[j]).abs()
-                                > RESUME_TOLERANCE
-                        });
-                        if away {
+                        if self.away_from(js) {
                             self.init_generator(js);
                         }
                     }
@@ -661,6 +675,12 @@ impl Executor {
         report.chunk_id = cid;
         self.maybe_request(now_ns, &mut report);
         report
+    }
+
+    /// The measured position is further than [`RESUME_TOLERANCE`] from the generator's.
+    fn away_from(&self, js: &JointState) -> bool {
+        (0..self.cfg.n)
+            .any(|j| (js.position[j] - self.otg_in.current_position[j]).abs() > RESUME_TOLERANCE)
     }
 
     fn init_generator(&mut self, js: &JointState) {
