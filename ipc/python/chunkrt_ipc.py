@@ -196,7 +196,11 @@ class ControllerStatus(ctypes.Structure):
         ("hold_entries", ctypes.c_uint64),
         ("stale_cameras", ctypes.c_uint64),
         # iceoryx2 unique id of the controller's joint-command publisher, [low, high] 64-bit
-        # words (0: not known yet); see command_publisher() and SessionGate below
+        # words (0: not known yet). Session binding (the Rust reference is
+        # chunkrt_ipc::SessionGate): a robot obeys only commands whose sample publisher id is
+        # the one announced by the status publisher it is bound to; nothing before the first
+        # status, nothing while a second status publisher speaks, and a status with state
+        # CONTROLLER_STATE_STOPPED ends the session at once.
         ("command_publisher_id", ctypes.c_uint64 * 2),
     ]
 
