@@ -73,9 +73,21 @@ pub struct ConfigReport {
     /// bf16 only: max |bf16 − f32| over the sampled actions (model space, same weights, inputs
     /// and noise), divided by the RMS of the f32 actions.
     pub bf16_rel_action_diff: Option<f64>,
+    /// Denoising steps of a sample.
+    pub steps: usize,
 }
 
 impl ConfigReport {
+    /// (vision + prefix + steps × cached step, the full cached sample), p50 ms: whether the
+    /// phases account for the sample.
+    pub fn phase_sum_ms(&self) -> Option<(f64, f64)> {
+        let p = |n: &str| self.phase(n).map(|p| p.p50_ms);
+        Some((
+            p("vision")? + p("prefix")? + self.steps as f64 * p("step_cached")?,
+            p("sample_cached")?,
+        ))
+    }
+
     /// A short name of the variant: `f32`, `bf16` or `f32_candle` (the in-run baseline).
     pub fn tag(&self) -> String {
         if self.kernels.contains("baseline") {
@@ -145,6 +157,14 @@ impl std::fmt::Display for BenchReport {
                     p.gflops(),
                     p.cpu_ms,
                     p.flops / (p.cpu_ms * 1e-3) / 1e9
+                )?;
+            }
+            if let Some((sum, total)) = c.phase_sum_ms() {
+                writeln!(
+                    f,
+                    "phases: vision + prefix + {} x cached step = {sum:.1} ms of the sample's {total:.1} ms ({:+.1} ms outside every phase)",
+                    c.steps,
+                    total - sum
                 )?;
             }
             writeln!(
@@ -460,6 +480,7 @@ pub fn run_configs(name: &str, json: &str, quick: bool) -> Result<Vec<ConfigRepo
             } else {
                 None
             },
+            steps,
         });
     }
     // the headline: the full cached sample, interleaved rounds over the variants
