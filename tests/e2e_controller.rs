@@ -41,6 +41,21 @@ fn kill9(g: ChildGuard) {
     drop(g);
 }
 
+/// A valid-looking command from a rogue publisher: shoulder to 2.5 rad, live for 50 ms.
+fn rogue_command(seq: u64, n_dof: u32) -> JointCommand {
+    let now = monotonic_ns();
+    let mut c = JointCommand {
+        seq,
+        publish_time_ns: now,
+        deadline_ns: now + 50_000_000,
+        n_dof,
+        mode: chunkrt_ipc::COMMAND_MODE_POSITION,
+        ..Default::default()
+    };
+    c.position[0] = 2.5;
+    c
+}
+
 /// Receives everything the test needs to watch, from the test process itself.
 struct Watch {
     _node: Node<Ipc>,
@@ -319,16 +334,7 @@ fn rogue_publishers_move_nothing_and_are_counted() {
     while Instant::now() < t_end {
         k += 1;
         let now = monotonic_ns();
-        let mut c = JointCommand {
-            seq: k,
-            publish_time_ns: now,
-            deadline_ns: now + 50_000_000,
-            n_dof: n,
-            mode: chunkrt_ipc::COMMAND_MODE_POSITION,
-            ..Default::default()
-        };
-        c.position[0] = 2.5;
-        cmd_pub.send_copy(c).unwrap();
+        cmd_pub.send_copy(rogue_command(k, n)).unwrap();
         let mut js = JointState {
             seq: 1_000_000 - k,
             measurement_time_ns: now,
@@ -390,17 +396,7 @@ fn a_rogue_that_starts_first_moves_nothing_and_a_new_controller_rebinds() {
     let mut k = 0u64;
     let mut send_rogue = |k: &mut u64| {
         *k += 1;
-        let now = monotonic_ns();
-        let mut c = JointCommand {
-            seq: *k,
-            publish_time_ns: now,
-            deadline_ns: now + 50_000_000,
-            n_dof: n,
-            mode: chunkrt_ipc::COMMAND_MODE_POSITION,
-            ..Default::default()
-        };
-        c.position[0] = 2.5;
-        rogue.send_copy(c).unwrap();
+        rogue.send_copy(rogue_command(*k, n)).unwrap();
     };
     for _ in 0..20 {
         send_rogue(&mut k);

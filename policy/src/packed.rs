@@ -826,33 +826,19 @@ mod x86 {
                         let rows = MR_AVX2.min(j.m - m0);
                         let a = j.a.add(m0 * j.lda + k0);
                         let c = j.c.add(m0 * j.ldc + p * NR + 16 * half);
-                        let args = (kc, a, j.lda, bp, c, j.ldc, cols, k0 == 0, bias);
-                        match rows {
-                            6 => tile_f32_avx2::<6>(
-                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
-                                args.8,
-                            ),
-                            5 => tile_f32_avx2::<5>(
-                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
-                                args.8,
-                            ),
-                            4 => tile_f32_avx2::<4>(
-                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
-                                args.8,
-                            ),
-                            3 => tile_f32_avx2::<3>(
-                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
-                                args.8,
-                            ),
-                            2 => tile_f32_avx2::<2>(
-                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
-                                args.8,
-                            ),
-                            _ => tile_f32_avx2::<1>(
-                                args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7,
-                                args.8,
-                            ),
-                        }
+                        dispatch_rows!(
+                            tile_f32_avx2,
+                            rows,
+                            kc,
+                            a,
+                            j.lda,
+                            bp,
+                            c,
+                            j.ldc,
+                            cols,
+                            k0 == 0,
+                            bias
+                        );
                         m0 += rows;
                     }
                 }
