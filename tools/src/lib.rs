@@ -2,6 +2,7 @@
 //! Each is a module with clap `Args` and a `run` function, used by the standalone binaries and
 //! by the `chunkrt` multi-call binary (so `chunkrt demo` can start them as processes).
 
+pub mod cli;
 pub mod common;
 pub mod fake_camera;
 pub mod fake_robot;

@@ -1,22 +1,7 @@
-use clap::Parser;
-
-#[derive(Debug, Parser)]
-#[command(version, about = "A simulated N-DoF arm over iceoryx2")]
-struct Cli {
-    #[command(flatten)]
-    args: chunkrt_tools::fake_robot::Args,
-}
-
 fn main() {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
-    if let Err(e) = chunkrt_tools::fake_robot::run(Cli::parse().args) {
-        eprintln!("fake_robot: error: {e:#}");
-        std::process::exit(1);
-    }
+    chunkrt_tools::cli::main_of(
+        "fake-robot",
+        "A simulated N-DoF arm over iceoryx2",
+        chunkrt_tools::fake_robot::run,
+    );
 }
