@@ -569,6 +569,7 @@ pub struct ControlLoop {
     ticks: u64,
     overruns: u64,
     deadline_ns: u64,
+    period_ns: u64,
     status_every: u64,
 }
 
@@ -596,13 +597,15 @@ impl ControlLoop {
             ticks: 0,
             overruns: 0,
             deadline_ns: (cfg.control.command_deadline_ms * 1e6) as u64,
+            period_ns: cfg.control_period_ns(),
             status_every: ((cfg.control.rate_hz / cfg.control.status_rate_hz).round() as u64)
                 .max(1),
         })
     }
 
     /// One control tick that was due at `scheduled_ns` and woke at `wake_ns`. Returns the
-    /// time the tick's work ended. No allocation but the one iceoryx2 makes per loan.
+    /// time the tick's work ended, and counts the tick as an overrun when that is after the
+    /// next deadline. No allocation but the one iceoryx2 makes per loan.
     pub fn step(
         &mut self,
         scheduled_ns: u64,
@@ -648,13 +651,12 @@ impl ControlLoop {
         self.hist
             .compute
             .saturating_record(end.saturating_sub(wake_ns).max(1));
+        if end > scheduled_ns + self.period_ns {
+            // finished after the next deadline
+            self.overruns += 1;
+            shared.overruns.store(self.overruns, Ordering::Relaxed);
+        }
         end
-    }
-
-    /// Counts a tick that ended after the next deadline.
-    pub fn count_overrun(&mut self, shared: &Shared) {
-        self.overruns += 1;
-        shared.overruns.store(self.overruns, Ordering::Relaxed);
     }
 
     /// The last status of a clean stop (`CONTROLLER_STATE_STOPPED`): the robot's session with
@@ -735,19 +737,15 @@ fn control_thread(
     };
     let period = cfg.control_period_ns();
     let start = monotonic_ns();
-    let mut next = start + period;
-    while !shared.stop.load(Ordering::Relaxed) {
-        sleep_until_ns(next);
-        let wake = monotonic_ns();
-        let end = lp.step(next, wake, shared, tick);
-        next += period;
-        if end > next {
-            // finished after the next deadline: count it, and skip the ticks already missed
-            // instead of bursting to catch up
-            lp.count_overrun(shared);
-            next += ((end - next) / period) * period;
-        }
-    }
+    // absolute deadlines; a tick that ends after the next deadline is counted by `step` and
+    // the deadlines it passed are skipped, not burst (the same loop the control_loop bench times)
+    rt::run_periodic(
+        period,
+        start + period,
+        u64::MAX,
+        || !shared.stop.load(Ordering::Relaxed),
+        |deadline, wake| lp.step(deadline, wake, shared, tick),
+    );
     lp.publish_stopped(shared);
     Ok(Summary {
         seconds: (monotonic_ns() - start) as f64 / 1e9,

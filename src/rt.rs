@@ -151,9 +151,97 @@ pub fn make_current_thread_realtime(core: Option<usize>, priority: i32, lock: bo
     }
 }
 
+/// What [`run_periodic`] counted.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct PeriodicCounts {
+    /// Ticks run.
+    pub ticks: u64,
+    /// Ticks whose work ended after the next tick's deadline.
+    pub overruns: u64,
+    /// Deadlines skipped because an overrun passed them (only those before `end_ns`).
+    pub skipped: u64,
+}
+
+/// The control loop's schedule, shared by the controller's control thread and the
+/// `control_loop` bench: sleeps to absolute `CLOCK_MONOTONIC` deadlines `first_deadline_ns +
+/// k·period_ns` (so lateness never accumulates), calls `step(deadline, wake)` (which returns when
+/// its work ended), and after a tick that ended past the next deadline skips the deadlines
+/// already missed instead of running them back to back. Runs while `running()` and the next
+/// deadline is before `end_ns`. No allocation.
+pub fn run_periodic(
+    period_ns: u64,
+    first_deadline_ns: u64,
+    end_ns: u64,
+    running: impl Fn() -> bool,
+    mut step: impl FnMut(u64, u64) -> u64,
+) -> PeriodicCounts {
+    let period = period_ns.max(1);
+    let mut c = PeriodicCounts::default();
+    let mut deadline = first_deadline_ns;
+    while deadline < end_ns && running() {
+        chunkrt_ipc::sleep_until_ns(deadline);
+        let wake = chunkrt_ipc::monotonic_ns();
+        let done = step(deadline, wake);
+        c.ticks += 1;
+        deadline += period;
+        if done > deadline {
+            c.overruns += 1;
+            let behind = (done - deadline) / period;
+            // only the deadlines inside the window count: a late last tick must not skip
+            // deadlines the window never had
+            let left = end_ns.saturating_sub(deadline).div_ceil(period);
+            c.skipped += behind.min(left);
+            deadline += behind * period;
+        }
+    }
+    c
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn periodic_runs_on_deadlines_and_counts_overruns() {
+        let period = 2_000_000;
+        let first = chunkrt_ipc::monotonic_ns() + period;
+        let end = first + 100 * period;
+        let mut deadlines = Vec::with_capacity(200);
+        let c = run_periodic(
+            period,
+            first,
+            end,
+            || true,
+            |d, wake| {
+                deadlines.push(d);
+                assert!(wake >= d, "woke before its deadline");
+                chunkrt_ipc::monotonic_ns()
+            },
+        );
+        // every one of the 100 deadlines is run or skipped (a loaded 2-core machine may miss
+        // wake-ups), none twice, each on the grid
+        assert!(c.ticks + c.skipped == 100 && c.ticks >= 5, "{c:?}");
+        assert!(deadlines
+            .windows(2)
+            .all(|w| w[1] > w[0] && (w[1] - w[0]) % period == 0));
+        // a body slower than the period overruns every tick and skips deadlines
+        let first = chunkrt_ipc::monotonic_ns() + period;
+        let c = run_periodic(
+            period,
+            first,
+            first + 50 * period,
+            || true,
+            |_, _| {
+                std::thread::sleep(std::time::Duration::from_millis(5));
+                chunkrt_ipc::monotonic_ns()
+            },
+        );
+        assert_eq!(c.overruns, c.ticks);
+        assert!(c.skipped >= c.ticks && c.ticks + c.skipped <= 50, "{c:?}");
+        // `running` ends it
+        let c = run_periodic(period, first, u64::MAX, || false, |_, w| w);
+        assert_eq!(c, PeriodicCounts::default());
+    }
 
     #[test]
     fn pinning_works_and_bad_core_is_an_error() {

@@ -12,7 +12,6 @@ use std::time::Instant;
 
 use candle_core::{Device, Tensor};
 
-use super::periodic::pin_to;
 use super::BenchError;
 
 /// A running matmul load.
@@ -49,7 +48,7 @@ impl MatmulLoad {
             .name("chunkrt-load".into())
             .spawn(move || -> Result<(), String> {
                 if let Some(c) = core {
-                    pin_to(c);
+                    let _ = crate::rt::pin_current_thread(c);
                 }
                 let dev = Device::Cpu;
                 let a = Tensor::randn(0f32, 1.0, (size, size), &dev).map_err(|e| e.to_string())?;

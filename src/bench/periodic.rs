@@ -1,16 +1,17 @@
-//! A periodic thread on absolute deadlines that measures itself: wake-up lateness (how long after
-//! its deadline the thread ran) and compute time (how long the tick body took), into histograms
-//! allocated before the loop starts. The tick body is pluggable ([`TickBody`]); the control
-//! thread's real tick plugs in here when it lands.
+//! The `control_loop` bench's harness: the controller's periodic loop ([`crate::rt::run_periodic`],
+//! the one its control thread runs) on a thread of its own, measuring wake-up lateness (how long
+//! after its deadline the thread ran) and compute time (how long the tick body took) into
+//! histograms allocated before the loop starts. The tick body is pluggable ([`TickBody`]).
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use chunkrt_ipc::{monotonic_ns, sleep_until_ns};
+use chunkrt_ipc::monotonic_ns;
 use hdrhistogram::Histogram;
 
 use super::BenchError;
 use crate::report::latency_histogram;
+use crate::rt;
 
 /// The work done every tick. Must not allocate, lock or do I/O other than IPC (rule 2).
 pub trait TickBody: Send {
@@ -56,32 +57,10 @@ pub struct PeriodicStats {
     pub policy: String,
 }
 
-/// Asks for SCHED_FIFO at `prio` for the calling thread; returns the policy in effect.
-pub fn set_fifo(prio: Option<i32>) -> String {
-    let Some(prio) = prio else {
-        return "SCHED_OTHER".into();
-    };
-    let param = libc::sched_param {
-        sched_priority: prio,
-    };
-    // SAFETY: pthread_self() is the calling thread; `param` is a valid sched_param.
-    let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &param) };
-    if rc == 0 {
-        format!("SCHED_FIFO({prio})")
-    } else {
-        "SCHED_OTHER (SCHED_FIFO refused)".into()
-    }
-}
-
-/// Pins the calling thread to `core`; false if that core does not exist or pinning failed.
-pub fn pin_to(core: usize) -> bool {
-    core_affinity::get_core_ids()
-        .and_then(|ids| ids.into_iter().find(|c| c.id == core))
-        .is_some_and(core_affinity::set_for_current)
-}
-
 /// Runs `body` every `period_ns` on absolute deadlines for `duration_ns` in a new thread (pinned,
-/// SCHED_FIFO if allowed) and returns the measurements and the body. `stop` ends it early.
+/// SCHED_FIFO if allowed) and returns the measurements and the body. `stop` ends it early. The
+/// schedule is the controller's own ([`crate::rt::run_periodic`]), and so are the pinning and
+/// the SCHED_FIFO request ([`crate::rt`]); this harness adds only the histograms.
 pub fn run_periodic<T: TickBody + 'static>(
     cfg: &PeriodicConfig,
     mut body: T,
@@ -94,43 +73,38 @@ pub fn run_periodic<T: TickBody + 'static>(
     let handle = std::thread::Builder::new()
         .name("chunkrt-periodic".into())
         .spawn(move || {
-            let pinned = cfg.core.is_some_and(pin_to);
-            let policy = set_fifo(cfg.fifo_priority);
+            let pinned = cfg.core.is_some_and(|c| rt::pin_current_thread(c).is_ok());
+            let policy = match cfg.fifo_priority.map(rt::set_current_thread_fifo) {
+                Some(Ok(p)) => format!("SCHED_FIFO({p})"),
+                Some(Err(_)) => "SCHED_OTHER (SCHED_FIFO refused)".to_string(),
+                None => "SCHED_OTHER".to_string(),
+            };
             // Everything the loop touches is allocated here, before the first deadline.
             let mut lateness = latency_histogram();
             let mut compute = latency_histogram();
-            let (mut ticks, mut overruns, mut skipped) = (0u64, 0u64, 0u64);
-            let period = cfg.period_ns;
-            let start = monotonic_ns() + period;
-            let end = start + cfg.duration_ns;
-            let mut deadline = start;
-            while deadline < end && !stop.load(Ordering::Relaxed) {
-                sleep_until_ns(deadline);
-                let woke = monotonic_ns();
-                lateness.saturating_record(woke.saturating_sub(deadline));
-                body.tick(ticks, deadline);
-                let done = monotonic_ns();
-                compute.saturating_record(done - woke);
-                ticks += 1;
-                deadline += period;
-                if done > deadline {
-                    overruns += 1;
-                    // Deadlines already passed are skipped, not run back to back.
-                    let behind = (done - deadline) / period;
-                    // only the deadlines inside the window count: a late last tick must not
-                    // skip deadlines the window never had
-                    let left = end.saturating_sub(deadline).div_ceil(period);
-                    skipped += behind.min(left);
-                    deadline += behind * period;
-                }
-            }
+            let mut index = 0u64;
+            let first = monotonic_ns() + cfg.period_ns;
+            let counts = rt::run_periodic(
+                cfg.period_ns,
+                first,
+                first + cfg.duration_ns,
+                || !stop.load(Ordering::Relaxed),
+                |deadline, woke| {
+                    lateness.saturating_record(woke.saturating_sub(deadline));
+                    body.tick(index, deadline);
+                    index += 1;
+                    let done = monotonic_ns();
+                    compute.saturating_record(done - woke);
+                    done
+                },
+            );
             (
                 PeriodicStats {
                     lateness,
                     compute,
-                    ticks,
-                    overruns,
-                    skipped,
+                    ticks: counts.ticks,
+                    overruns: counts.overruns,
+                    skipped: counts.skipped,
                     pinned,
                     policy,
                 },
