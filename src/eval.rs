@@ -77,11 +77,12 @@ fn run_probe(cfg: &Config, args: &EvalArgs) -> anyhow::Result<()> {
             .as_ref()
             .context("the configuration names no policy checkpoint")?,
     );
-    let mut policy = crate::inference::load_policy(&dir, &cfg.policy)?;
+    let pool = crate::inference::policy_pool(&cfg.policy)?;
+    let mut policy = pool.install(|| crate::inference::load_policy(&dir, &cfg.policy))?;
     let n = if args.quick { 4 } else { args.episodes };
     let eps = held_out_episodes(cfg, PROBE_SCENE_BASE, n, 9);
     let t0 = Instant::now();
-    let r = crate::task::probe::probe(&mut policy, cfg, &eps, args.expert)?;
+    let r = pool.install(|| crate::task::probe::probe(&mut policy, cfg, &eps, args.expert))?;
     let text = format!(
         "checkpoint {}, {} held-out episodes (scenes {PROBE_SCENE_BASE}..), expert {}, {:.1} s\n\n{r}",
         dir.display(),

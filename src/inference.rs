@@ -55,15 +55,23 @@ pub fn load_options(cfg: &PolicyConfig) -> LoadOptions {
     }
 }
 
-/// Loads the policy of a `[policy]` section from `dir`. `policy.threads` sizes candle's CPU
-/// thread pool (it reads `RAYON_NUM_THREADS` once, on first use), unless the environment
-/// already sets it.
+/// Loads the policy of a `[policy]` section from `dir` (call it inside [`policy_pool`]'s
+/// `install` so the packing at load runs on the policy's threads too).
 pub fn load_policy(dir: &std::path::Path, cfg: &PolicyConfig) -> anyhow::Result<Policy> {
-    if cfg.threads > 0 && std::env::var_os("RAYON_NUM_THREADS").is_none() {
-        std::env::set_var("RAYON_NUM_THREADS", cfg.threads.to_string());
-    }
     Policy::load(dir, &load_options(cfg))
         .with_context(|| format!("cannot load the policy from {}", dir.display()))
+}
+
+/// The policy's own thread pool: `policy.threads` workers (0: one per core), named
+/// `chunkrt-policy-N`. Everything the policy computes runs inside its `install` (candle's CPU
+/// ops and chunkrt's kernels split their work over the current rayon pool), so the process's
+/// global pool and environment stay untouched and the pool's size is the configured one.
+pub fn policy_pool(cfg: &PolicyConfig) -> anyhow::Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(cfg.threads)
+        .thread_name(|i| format!("chunkrt-policy-{i}"))
+        .build()
+        .context("cannot start the policy's thread pool")
 }
 
 /// The policy's pixel layout for an IPC `ENCODING_*` code (the edge has validated it).
@@ -79,6 +87,7 @@ pub fn frame_encoding(code: u32) -> anyhow::Result<Encoding> {
 /// π0 / π0.5 loaded from the configured checkpoint.
 pub struct PolicySource {
     policy: Policy,
+    pool: rayon::ThreadPool,
     prompt: String,
     period_ns: u64,
     n_dof: usize,
@@ -99,7 +108,8 @@ impl PolicySource {
             .as_ref()
             .map(|p| cfg.resolve(p))
             .context("policy.checkpoint is not set")?;
-        let policy = load_policy(&dir, &cfg.policy)?;
+        let pool = policy_pool(&cfg.policy)?;
+        let policy = pool.install(|| load_policy(&dir, &cfg.policy))?;
         policy
             .check_dof(cfg.n_dof())
             .with_context(|| format!("{}: norm_stats.json", dir.display()))?;
@@ -112,6 +122,7 @@ impl PolicySource {
         );
         Ok(Self {
             policy,
+            pool,
             prompt: cfg.policy.prompt.clone(),
             period_ns: (1e9 / cfg.policy.action_rate_hz).round() as u64,
             n_dof: cfg.n_dof(),
@@ -189,9 +200,11 @@ impl PolicySource {
                 weights: &self.weights,
                 beta: request.beta as f32,
             };
-            self.policy.infer_guided(&raw, Some(&g))?
+            let policy = &mut self.policy;
+            self.pool.install(|| policy.infer_guided(&raw, Some(&g)))?
         } else {
-            self.policy.infer(&raw)?
+            let policy = &mut self.policy;
+            self.pool.install(|| policy.infer(&raw))?
         };
         let chunk = ActionChunk {
             id: next_chunk_id(),

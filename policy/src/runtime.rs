@@ -101,7 +101,7 @@ impl Policy {
     /// Loads `checkpoint_dir` (`model.safetensors`, `config.json` or a preset by kind, optional
     /// `tokenizer.json` and `norm_stats.json`) onto `opts.device`, each weight read from the
     /// file straight into the model's dtype on that device. Thread pools are the caller's
-    /// business (candle's CPU pool reads `RAYON_NUM_THREADS` on first use).
+    /// business: CPU work runs on the current rayon pool (call inside a pool's `install`).
     pub fn load(checkpoint_dir: &Path, opts: &LoadOptions) -> Result<Self, PolicyError> {
         let device = opts.device.open()?;
         let mut overrides = opts.overrides.clone();
