@@ -294,7 +294,8 @@ pub struct PolicyConfig {
     /// Action rate of the policy (Hz); the chunk's action period is its inverse.
     #[serde(default = "default_action_rate_hz")]
     pub action_rate_hz: f64,
-    /// Threads for the model (0: all cores but the control core).
+    /// Threads of the policy's own pool (0: one per core; the control thread, pinned and
+    /// SCHED_FIFO, preempts them on its core).
     #[serde(default)]
     pub threads: usize,
     /// Arithmetic of the model's matrix products: `f32` (the reference) or `bf16` (inputs
