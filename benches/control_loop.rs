@@ -1,7 +1,7 @@
 //! `cargo bench --bench control_loop [-- --quick]`: control-thread wake-up lateness and tick
 //! compute at 500 Hz / 1 kHz, idle and under a candle matmul load, vs cyclictest.
 //! See `chunkrt::bench::control_loop`. The tick body is the controller's executor tick
-//! (`ExecutorTick`: chunk timeline, rtc blending, ruckig, safety state machine).
+//! (`ControllerTick`: `ControlLoop::step` with its iceoryx2 ports, the executor, ruckig).
 
 mod common;
 

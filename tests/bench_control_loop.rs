@@ -41,6 +41,22 @@ fn control_loop_quick() {
         // 9-18 µs): it fits its period with room to spare, even in this dev build under load.
         assert!(sc.compute.p50_ns < (1e9 / sc.rate_hz) as u64 / 2, "{sc:?}");
         assert_eq!(sc.loaded, sc.load_gflops.is_some());
+        // the controller's own tick ran: the executor reached RUNNING on scripted chunks, with
+        // joint states over iceoryx2 (it may hold at the end if the robot thread was starved on
+        // a loaded machine), and published commands
+        assert!(
+            sc.body.contains("reached RUNNING: yes"),
+            "{}: {}",
+            sc.name,
+            sc.body
+        );
+        let published: u64 = sc
+            .body
+            .split(' ')
+            .next()
+            .and_then(|n| n.parse().ok())
+            .unwrap_or(0);
+        assert!(published > sc.ticks / 2, "{}: {}", sc.name, sc.body);
         if cyclictest::available() {
             let c = sc.cyclictest.as_ref().expect("cyclictest ran");
             assert!(c.count as f64 >= sc.rate_hz * 0.5 * 0.9, "{c:?}");

@@ -2,11 +2,13 @@
 //! 1 kHz, idle and with a candle matmul load saturating the other core, next to `cyclictest` on
 //! the same core under the same load (the platform's floor).
 //!
-//! The tick body is pluggable ([`TickFactory`]). By default it is the controller's real tick,
-//! [`ExecutorTick`]: the executor (chunk timeline, rtc transitions, ruckig, safety state
-//! machine) of the embedded demo robot, fed by a scripted chunk source (a test double of the
-//! policy, named as such) answering its inference requests from another thread through the
-//! real hand-off channels. [`SyntheticTick`] (a few hundred flops) remains as the floor.
+//! The schedule is the controller's own ([`crate::rt::run_periodic`]). The tick body is
+//! pluggable ([`TickFactory`]). By default it is the controller's real tick, [`ControllerTick`]:
+//! [`ControlLoop::step`] with its iceoryx2 ports and the executor (chunk timeline, rtc
+//! transitions, ruckig, safety state machine) of the embedded demo robot, a robot that follows
+//! the commands and a scripted chunk source (a test double of the policy, named as such) on
+//! another thread over the same services and hand-off channels. [`SyntheticTick`] (a few hundred
+//! flops) remains as the floor.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -17,15 +19,21 @@ use super::load::MatmulLoad;
 use super::periodic::{run_periodic, PeriodicConfig, SyntheticTick, TickBody};
 use super::{geomean, write_outputs, BenchError, BenchOpts, Outputs};
 use crate::control::{Executor, ScriptedChunkSource, ScriptedConfig};
+use crate::controller::{ControlLoop, Shared};
 use crate::report::{fmt_us, LatencyRow, LatencyTable, Series};
-use chunkrt_ipc::{JointCommand, JointState};
+use chunkrt_ipc::services;
+use chunkrt_ipc::JointState;
 
-/// Makes a fresh tick body for each scenario.
-pub type TickFactory = Box<dyn Fn() -> Box<dyn TickBody>>;
+/// Makes a fresh tick body for each scenario, on the ticking thread.
+pub type TickFactory = Arc<dyn Fn() -> Result<Box<dyn TickBody>, BenchError> + Send + Sync>;
 
 impl TickBody for Box<dyn TickBody> {
     fn tick(&mut self, index: u64, deadline_ns: u64) {
         (**self).tick(index, deadline_ns)
+    }
+
+    fn report(&self) -> String {
+        (**self).report()
     }
 }
 
@@ -69,45 +77,98 @@ impl Options {
             load_size: 256,
             fifo_priority: Some(80),
             cyclictest: true,
-            tick: Box::new(|| Box::new(ExecutorTick::new())),
+            tick: Arc::new(|| Ok(Box::new(ControllerTick::new()?) as Box<dyn TickBody>)),
         }
     }
 
     /// The same with the synthetic tick body (the floor of the harness itself).
     pub fn synthetic(mut self) -> Self {
-        self.tick = Box::new(|| Box::new(SyntheticTick::default()));
+        self.tick = Arc::new(|| Ok(Box::new(SyntheticTick::default())));
         self
     }
 }
 
-/// The controller's control tick without the IPC edge: [`Executor::tick`] on the embedded demo
-/// robot (rtc, 50 Hz chunks of 50 actions, s = 25), the robot following the command exactly.
-/// Chunks come from a [`ScriptedChunkSource`] (test double of the policy, 5 ms latency) served
-/// by a thread of its own through the executor's real inference hand-off.
-pub struct ExecutorTick {
+/// The controller's control tick as its control thread runs it: [`ControlLoop::step`] (joint
+/// state received and validated over a real iceoryx2 service, the executor with chunk timeline,
+/// rtc transitions, ruckig and safety state machine, the command published, the status every
+/// status period) on the embedded demo robot (rtc, 50 Hz chunks of 50 actions, s = 25). A
+/// thread of its own plays both other sides over the same services and hand-off: a robot that
+/// follows every command exactly (publishing joint states every 250 µs) and a
+/// [`ScriptedChunkSource`] (test double of the policy, 5 ms latency).
+pub struct ControllerTick {
+    _node: iceoryx2::prelude::Node<chunkrt_ipc::services::Ipc>,
+    lp: ControlLoop,
+    shared: Shared,
     exec: Executor,
-    js: JointState,
-    cmd: JointCommand,
+    was_running: bool,
     stop: Arc<AtomicBool>,
     server: Option<std::thread::JoinHandle<()>>,
 }
 
-impl ExecutorTick {
-    /// Builds the executor and starts the chunk server thread.
-    pub fn new() -> Self {
+impl ControllerTick {
+    /// Creates the ports on a namespace of its own and starts the robot/chunk thread. Call on
+    /// the thread that will tick.
+    pub fn new() -> Result<Self, BenchError> {
+        static INSTANCE: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let err = |e: &dyn std::fmt::Display| BenchError::Thread(format!("controller tick: {e}"));
         let mut cfg = chunkrt_ipc::config::Config::embedded_default();
+        cfg.robot.namespace = format!(
+            "chunkrt/bench-{}-{}",
+            std::process::id(),
+            INSTANCE.fetch_add(1, Ordering::Relaxed)
+        );
         cfg.policy.action_rate_hz = 50.0;
         cfg.execution.execute_horizon = 25;
         cfg.execution.initial_delay_steps = 1;
-        let exec = Executor::new(&cfg).expect("the embedded configuration is valid");
+        let node = services::node("chunkrt-bench-control").map_err(|e| err(&e))?;
+        let lp = ControlLoop::new(&node, &cfg).map_err(|e| err(&e))?;
+        let exec = Executor::new(&cfg).map_err(|e| err(&e))?;
         let link = exec.connect();
         let stop = Arc::new(AtomicBool::new(false));
         let stop2 = stop.clone();
+        let (ready_tx, ready_rx) = crossbeam::channel::bounded(1);
         let server = std::thread::Builder::new()
-            .name("scripted-chunks".into())
+            .name("bench-robot-chunks".into())
             .spawn(move || {
+                let ns = cfg.namespace();
+                let ports = services::node("chunkrt-bench-robot").and_then(|node| {
+                    let js = services::publisher(
+                        &services::joint_state_service(&node, &ns.joint_state())?,
+                        "js",
+                    )?;
+                    let cmd = services::subscriber(
+                        &services::joint_command_service(&node, &ns.joint_command())?,
+                        "cmd",
+                    )?;
+                    Ok((node, js, cmd))
+                });
+                let (_node, js_pub, cmd_sub) = match ports {
+                    Ok(p) => {
+                        let _ = ready_tx.send(Ok(()));
+                        p
+                    }
+                    Err(e) => {
+                        let _ = ready_tx.send(Err(e.to_string()));
+                        return;
+                    }
+                };
+                let mut js = JointState {
+                    n_dof: cfg.n_dof() as u32,
+                    ..Default::default()
+                };
+                for (i, j) in cfg.robot.joints.iter().enumerate() {
+                    js.position[i] = j.initial_position;
+                }
                 let mut src = ScriptedChunkSource::new(ScriptedConfig::demo(5_000_000, 0.02));
                 while !stop2.load(Ordering::Relaxed) {
+                    // the robot: follows the newest command exactly
+                    while let Ok(Some(c)) = cmd_sub.receive() {
+                        js.position = c.payload().position;
+                    }
+                    js.seq += 1;
+                    js.measurement_time_ns = chunkrt_ipc::monotonic_ns();
+                    let _ = js_pub.send_copy(js);
+                    // the policy: scripted chunks through the real hand-off
                     if let Some(req) = link.requests.try_recv() {
                         src.start(&req);
                         link.requests.done(req);
@@ -116,34 +177,28 @@ impl ExecutorTick {
                         drop(link.chunks.send(c));
                     }
                     while link.chunks.take_recycled().is_some() {}
-                    std::thread::sleep(Duration::from_micros(500));
+                    std::thread::sleep(Duration::from_micros(250));
                 }
             })
-            .ok();
-        let mut js = JointState {
-            n_dof: cfg.n_dof() as u32,
-            ..Default::default()
-        };
-        for (i, j) in cfg.robot.joints.iter().enumerate() {
-            js.position[i] = j.initial_position;
+            .map_err(|e| err(&e))?;
+        match ready_rx.recv_timeout(Duration::from_secs(10)) {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return Err(err(&e)),
+            Err(e) => return Err(err(&e)),
         }
-        Self {
+        Ok(Self {
+            _node: node,
+            lp,
+            shared: Shared::new(),
             exec,
-            js,
-            cmd: JointCommand::default(),
+            was_running: false,
             stop,
-            server,
-        }
+            server: Some(server),
+        })
     }
 }
 
-impl Default for ExecutorTick {
-    fn default() -> Self {
-        Self::new()
-    }
-}
-
-impl Drop for ExecutorTick {
+impl Drop for ControllerTick {
     fn drop(&mut self) {
         self.stop.store(true, Ordering::Relaxed);
         if let Some(h) = self.server.take() {
@@ -152,14 +207,21 @@ impl Drop for ExecutorTick {
     }
 }
 
-impl TickBody for ExecutorTick {
+impl TickBody for ControllerTick {
     fn tick(&mut self, _index: u64, deadline_ns: u64) {
-        self.js.seq += 1;
-        self.js.measurement_time_ns = deadline_ns;
-        let r = self.exec.tick(deadline_ns, Some(&self.js), &mut self.cmd);
-        if r.publish {
-            self.js.position = self.cmd.position;
-        }
+        let wake = chunkrt_ipc::monotonic_ns();
+        self.lp
+            .step(deadline_ns, wake, &self.shared, &mut self.exec);
+        self.was_running |= self.exec.state() == crate::control::State::Running;
+    }
+
+    fn report(&self) -> String {
+        format!(
+            "{} commands published, executor reached RUNNING: {}, ended {:?}",
+            self.shared.commands.load(Ordering::Relaxed),
+            if self.was_running { "yes" } else { "no" },
+            self.exec.state()
+        )
     }
 }
 
@@ -186,6 +248,8 @@ pub struct Scenario {
     pub cyclictest: Option<LatencyRow>,
     /// Load throughput (GFLOP/s) when loaded.
     pub load_gflops: Option<f64>,
+    /// What the tick body said at the end (e.g. the executor's state and commands published).
+    pub body: String,
 }
 
 /// What `control_loop` measured.
@@ -249,7 +313,8 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
                 core: Some(opts.control_core),
                 fifo_priority: opts.fifo_priority,
             };
-            let (st, _) = run_periodic(&cfg, (opts.tick)(), Arc::new(AtomicBool::new(false)))?;
+            let make = opts.tick.clone();
+            let st = run_periodic(&cfg, move || make(), Arc::new(AtomicBool::new(false)))?;
             policy = st.policy.clone();
             pinned = st.pinned;
             let ct = if have_cyclictest {
@@ -296,6 +361,7 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
                     .as_ref()
                     .map(|c| LatencyRow::from_hist(&format!("{name}_cyclictest"), &c.latency)),
                 load_gflops,
+                body: st.body.clone(),
             });
         }
     }

@@ -13,13 +13,19 @@ use super::BenchError;
 use crate::report::latency_histogram;
 use crate::rt;
 
-/// The work done every tick. Must not allocate, lock or do I/O other than IPC (rule 2).
-pub trait TickBody: Send {
+/// The work done every tick. Must not allocate, lock or do I/O other than IPC (rule 2). Built
+/// on the ticking thread (iceoryx2 ports stay on the thread that made them), so not `Send`.
+pub trait TickBody {
     /// Runs tick `index`, whose deadline (wake-up time) was `deadline_ns` (monotonic).
     fn tick(&mut self, index: u64, deadline_ns: u64);
+
+    /// A line on what the body did, read after the last tick (default: nothing).
+    fn report(&self) -> String {
+        String::new()
+    }
 }
 
-impl<F: FnMut(u64, u64) + Send> TickBody for F {
+impl<F: FnMut(u64, u64)> TickBody for F {
     fn tick(&mut self, index: u64, deadline_ns: u64) {
         self(index, deadline_ns)
     }
@@ -55,17 +61,20 @@ pub struct PeriodicStats {
     pub pinned: bool,
     /// `SCHED_FIFO(prio)` or `SCHED_OTHER`.
     pub policy: String,
+    /// The body's [`TickBody::report`] after the last tick.
+    pub body: String,
 }
 
-/// Runs `body` every `period_ns` on absolute deadlines for `duration_ns` in a new thread (pinned,
-/// SCHED_FIFO if allowed) and returns the measurements and the body. `stop` ends it early. The
+/// Builds a body with `make` in a new thread (pinned, SCHED_FIFO if allowed), runs it every
+/// `period_ns` on absolute deadlines for `duration_ns` and returns the measurements. `stop`
+/// ends it early. The
 /// schedule is the controller's own ([`crate::rt::run_periodic`]), and so are the pinning and
 /// the SCHED_FIFO request ([`crate::rt`]); this harness adds only the histograms.
-pub fn run_periodic<T: TickBody + 'static>(
+pub fn run_periodic<T: TickBody>(
     cfg: &PeriodicConfig,
-    mut body: T,
+    make: impl FnOnce() -> Result<T, BenchError> + Send + 'static,
     stop: Arc<AtomicBool>,
-) -> Result<(PeriodicStats, T), BenchError> {
+) -> Result<PeriodicStats, BenchError> {
     if cfg.period_ns == 0 {
         return Err(BenchError::Option("period must be > 0".into()));
     }
@@ -80,6 +89,7 @@ pub fn run_periodic<T: TickBody + 'static>(
                 None => "SCHED_OTHER".to_string(),
             };
             // Everything the loop touches is allocated here, before the first deadline.
+            let mut body = make()?;
             let mut lateness = latency_histogram();
             let mut compute = latency_histogram();
             let mut index = 0u64;
@@ -98,23 +108,21 @@ pub fn run_periodic<T: TickBody + 'static>(
                     done
                 },
             );
-            (
-                PeriodicStats {
-                    lateness,
-                    compute,
-                    ticks: counts.ticks,
-                    overruns: counts.overruns,
-                    skipped: counts.skipped,
-                    pinned,
-                    policy,
-                },
-                body,
-            )
+            Ok(PeriodicStats {
+                lateness,
+                compute,
+                ticks: counts.ticks,
+                overruns: counts.overruns,
+                skipped: counts.skipped,
+                pinned,
+                policy,
+                body: body.report(),
+            })
         })
         .map_err(|e| BenchError::Thread(e.to_string()))?;
     handle
         .join()
-        .map_err(|_| BenchError::Thread("periodic thread panicked".into()))
+        .map_err(|_| BenchError::Thread("periodic thread panicked".into()))?
 }
 
 /// A scripted test double of a control tick (until the real one lands): evaluates a cubic
@@ -167,8 +175,20 @@ mod tests {
             core: None,
             fifo_priority: None,
         };
-        let (st, body) =
-            run_periodic(&cfg, SyntheticTick::default(), stop.clone()).expect("thread runs");
+        let out = Arc::new(std::sync::Mutex::new(0.0f64));
+        let out2 = out.clone();
+        let st = run_periodic(
+            &cfg,
+            move || {
+                let mut t = SyntheticTick::default();
+                Ok(move |i: u64, d: u64| {
+                    t.tick(i, d);
+                    *out2.lock().unwrap() = t.out[3];
+                })
+            },
+            stop.clone(),
+        )
+        .expect("thread runs");
         // every one of the 100 deadlines is run or skipped (a loaded 2-core machine may miss
         // wake-ups), none twice, and the loop really ran
         assert!(
@@ -176,14 +196,14 @@ mod tests {
             "{st:?}"
         );
         assert_eq!(st.lateness.len(), st.ticks);
-        assert!(body.out.iter().any(|v| *v != 0.0));
+        assert!(*out.lock().unwrap() != 0.0, "the body ran");
         // A body slower than the period overruns every tick and skips deadlines.
         let slow = |_: u64, _: u64| std::thread::sleep(std::time::Duration::from_millis(5));
         let cfg = PeriodicConfig {
             duration_ns: 100_000_000,
             ..cfg
         };
-        let (st, _) = run_periodic(&cfg, slow, stop).expect("thread runs");
+        let st = run_periodic(&cfg, move || Ok(slow), stop).expect("thread runs");
         assert_eq!(st.overruns, st.ticks);
         assert!(st.skipped >= st.ticks, "{st:?}");
     }
