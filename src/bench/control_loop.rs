@@ -77,7 +77,8 @@ impl Options {
             load_size: 256,
             fifo_priority: Some(80),
             cyclictest: true,
-            tick: Arc::new(|| Ok(Box::new(ControllerTick::new()?) as Box<dyn TickBody>)),
+            // the robot/chunk thread on the load core, off the control core
+            tick: Arc::new(|| Ok(Box::new(ControllerTick::new(Some(0))?) as Box<dyn TickBody>)),
         }
     }
 
@@ -106,9 +107,10 @@ pub struct ControllerTick {
 }
 
 impl ControllerTick {
-    /// Creates the ports on a namespace of its own and starts the robot/chunk thread. Call on
-    /// the thread that will tick.
-    pub fn new() -> Result<Self, BenchError> {
+    /// Creates the ports on a namespace of its own and starts the robot/chunk thread, pinned to
+    /// `helper_core` if given (the robot is another process on another core in a deployment;
+    /// here it should not share the control thread's core). Call on the thread that will tick.
+    pub fn new(helper_core: Option<usize>) -> Result<Self, BenchError> {
         static INSTANCE: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let err = |e: &dyn std::fmt::Display| BenchError::Thread(format!("controller tick: {e}"));
         let mut cfg = chunkrt_ipc::config::Config::embedded_default();
@@ -130,6 +132,9 @@ impl ControllerTick {
         let server = std::thread::Builder::new()
             .name("bench-robot-chunks".into())
             .spawn(move || {
+                if let Some(c) = helper_core {
+                    let _ = crate::rt::pin_current_thread(c);
+                }
                 let ns = cfg.namespace();
                 let ports = services::node("chunkrt-bench-robot").and_then(|node| {
                     let js = services::publisher(
