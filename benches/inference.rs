@@ -10,8 +10,11 @@
 //!
 //! Random weights built in-process from `benches/data/*_bench.json`, 2 CPU threads (override with
 //! `RAYON_NUM_THREADS`), p50 / p99 of the vision pass, the prefix pass, one denoising step cached
-//! and uncached, and the full sample, with achieved GFLOP/s; compared with openpi's PyTorch
-//! figures in `benches/data/openpi_cpu_reference.json`.
+//! and uncached, and the full sample, with achieved GFLOP/s and CPU time; compared with openpi's
+//! PyTorch `sample_actions` measured in the same run, interleaved with chunkrt's own calls, when
+//! `--openpi DIR` (or `CHUNKRT_OPENPI`) names an openpi checkout and `CHUNKRT_OPENPI_PYTHON` a
+//! Python with its pinned torch (`bash scripts/openpi-env.sh DIR` makes one); otherwise with the
+//! stored figures in `benches/data/openpi_cpu_reference.json`, and it says so.
 
 fn main() {
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
@@ -32,14 +35,21 @@ fn main() {
         .iter()
         .position(|a| a == "--config")
         .and_then(|i| args.get(i + 1).cloned());
+    // `--openpi DIR` (or CHUNKRT_OPENPI): openpi's PyTorch model, run by the worker in
+    // scripts/openpi_worker.py with CHUNKRT_OPENPI_PYTHON, interleaved with chunkrt's calls
+    let openpi = chunkrt::policy::openpi::OpenpiSetup::from_args_or_env(
+        value("--openpi").map(std::path::PathBuf::from),
+        candle_core::utils::get_num_threads(),
+    );
     let res = match only {
-        Some(name) => chunkrt::policy::bench::run_named(&name, quick).map(|c| {
+        Some(name) => chunkrt::policy::bench::run_named(&name, quick, openpi.as_ref()).map(|c| {
             chunkrt::policy::bench::BenchReport {
                 configs: c,
                 threads: candle_core::utils::get_num_threads(),
+                cpu: chunkrt::policy::bench::cpu_model(),
             }
         }),
-        None => chunkrt::policy::bench::run(quick),
+        None => chunkrt::policy::bench::run(quick, openpi.as_ref()),
     };
     match res {
         Ok(r) => {

@@ -7,8 +7,14 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
         std::env::set_var("RAYON_NUM_THREADS", "2");
     }
-    let r = chunkrt::policy::bench::run(true).expect("bench runs");
-    println!("{r}");
+    let r = chunkrt::policy::bench::run(true, None).expect("bench runs");
+    let text = r.to_string();
+    println!("{text}");
+    // without a same-run openpi the summary says where its figures come from, and this CPU
+    assert!(
+        text.contains("fell back to stored figures") && text.contains(&r.cpu),
+        "{text}"
+    );
     // π0 and π0.5, each in f32, in bf16 where the CPU has AMX or AVX512-BF16, and on candle's
     // kernels (the in-run baseline) where the packed f32 kernel runs
     let per_model = 1
@@ -74,5 +80,54 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
             c.name,
             c.kernels
         );
+    }
+}
+
+/// The same-run openpi baseline fails with a clear error when the checkout is not there (the
+/// worker runs with the system Python; it exits before importing torch).
+#[test]
+fn openpi_baseline_without_a_checkout_is_a_clear_error() {
+    let setup = chunkrt::policy::openpi::OpenpiSetup {
+        dir: std::path::PathBuf::from("/nonexistent/openpi"),
+        python: std::path::PathBuf::from("python3"),
+        threads: 1,
+    };
+    let json = chunkrt::policy::bench::CONFIGS[0].1;
+    match chunkrt::policy::openpi::OpenpiWorker::spawn(&setup, "pi0_bench", json) {
+        Ok(_) => panic!("a worker started without an openpi checkout"),
+        Err(e) => {
+            let msg = e.to_string();
+            assert!(
+                msg.contains("openpi baseline") && msg.contains("exited"),
+                "{msg}"
+            );
+        }
+    }
+}
+
+/// openpi's PyTorch model through the worker, one sample, when a setup is given
+/// (`CHUNKRT_OPENPI`, `CHUNKRT_OPENPI_PYTHON`; see scripts/openpi-env.sh). Not in the default run:
+/// it needs torch (a ~3 GB install).
+#[test]
+#[ignore = "needs openpi and torch: CHUNKRT_OPENPI=DIR CHUNKRT_OPENPI_PYTHON=PY cargo test --test policy_bench -- --ignored"]
+fn openpi_worker_samples() {
+    let Some(setup) = chunkrt::policy::openpi::OpenpiSetup::from_args_or_env(None, 2) else {
+        panic!("CHUNKRT_OPENPI is not set");
+    };
+    for (name, json) in chunkrt::policy::bench::CONFIGS {
+        let mut w = chunkrt::policy::openpi::OpenpiWorker::spawn(&setup, name, json)
+            .expect("worker starts");
+        // the sizes of the bench configuration (not openpi's full model): ~33-35 M parameters
+        assert!(
+            (20_000_000..60_000_000).contains(&w.info.params),
+            "{name}: {:?}",
+            w.info
+        );
+        let (wall, cpu) = w.sample().expect("one sample");
+        println!(
+            "{name}: openpi sample {wall} us wall, {cpu} us cpu, {:?}",
+            w.info
+        );
+        assert!(wall > 0 && cpu > 0);
     }
 }

@@ -9,6 +9,7 @@ use hdrhistogram::Histogram;
 
 use super::config::{GemmaDims, ModelConfig};
 use super::model::{ModelInputs, PiModel};
+use super::openpi::{OpenpiInfo, OpenpiSetup, OpenpiWorker};
 use super::PolicyError;
 
 /// The bench configurations (same schema as the fixtures' `config.json`).
@@ -75,6 +76,10 @@ pub struct ConfigReport {
     pub bf16_rel_action_diff: Option<f64>,
     /// Denoising steps of a sample.
     pub steps: usize,
+    /// openpi's `sample_actions` timed in this run, interleaved with the variants' full samples
+    /// (phase `sample`), and what its worker reported; `None`: the stored figure
+    /// [`ConfigReport::openpi_s`] is the reference.
+    pub openpi_same_run: Option<(Phase, OpenpiInfo)>,
 }
 
 impl ConfigReport {
@@ -102,10 +107,18 @@ impl ConfigReport {
         self.phases.iter().find(|p| p.name == name)
     }
 
-    /// openpi median / our full cached sample median.
+    /// openpi's median for the full sample (s): this run's when measured, else the stored one.
+    pub fn openpi_reference_s(&self) -> f64 {
+        match &self.openpi_same_run {
+            Some((p, _)) => p.p50_ms * 1e-3,
+            None => self.openpi_s,
+        }
+    }
+
+    /// openpi median / our full cached sample median (same run when measured).
     pub fn speedup_vs_openpi(&self) -> f64 {
         self.phase("sample_cached")
-            .map(|p| self.openpi_s / (p.p50_ms * 1e-3))
+            .map(|p| self.openpi_reference_s() / (p.p50_ms * 1e-3))
             .unwrap_or(0.0)
     }
 
@@ -125,6 +138,25 @@ pub struct BenchReport {
     pub configs: Vec<ConfigReport>,
     /// candle's CPU thread count.
     pub threads: usize,
+    /// This machine's CPU ([`cpu_model`]).
+    pub cpu: String,
+}
+
+/// The CPU model (`/proc/cpuinfo`'s first `model name`) and the core count.
+pub fn cpu_model() -> String {
+    let model = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|m| m.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let cores = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1);
+    format!("{model}, {cores} cores")
 }
 
 impl BenchReport {
@@ -138,7 +170,13 @@ impl BenchReport {
 
 impl std::fmt::Display for BenchReport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        writeln!(f, "threads: {}", self.threads)?;
+        writeln!(
+            f,
+            "cpu: {}; f32 kernel: {}; threads: {}",
+            self.cpu,
+            super::packed::support().f32_kernel(),
+            self.threads
+        )?;
         for c in &self.configs {
             writeln!(f, "== {} ({}, {}) ==", c.name, c.precision, c.kernels)?;
             writeln!(
@@ -167,10 +205,26 @@ impl std::fmt::Display for BenchReport {
                     total - sum
                 )?;
             }
+            if let Some((p, info)) = &c.openpi_same_run {
+                writeln!(
+                    f,
+                    "{:<16} {:>5} {:>10.2} {:>10.2} {:>9} {:>10.2}   (openpi PyTorch, this run: torch {}, {} threads, {:.1} M parameters)",
+                    "openpi sample",
+                    p.n,
+                    p.p50_ms,
+                    p.p99_ms,
+                    "",
+                    p.cpu_ms,
+                    info.torch,
+                    info.threads,
+                    info.params as f64 / 1e6
+                )?;
+            }
             writeln!(
                 f,
-                "full sample (cached) vs openpi PyTorch {:.3} s: {:.2}x faster; uncached/cached step: {:.1}x",
-                c.openpi_s,
+                "full sample (cached) vs openpi PyTorch {:.3} s ({}): {:.2}x faster; uncached/cached step: {:.1}x",
+                c.openpi_reference_s(),
+                if c.openpi_same_run.is_some() { "this run" } else { "stored" },
                 c.speedup_vs_openpi(),
                 c.step_ratio()
             )?;
@@ -182,10 +236,21 @@ impl std::fmt::Display for BenchReport {
             }
         }
         writeln!(f, "== full cached sample, p50 (interleaved rounds) ==")?;
-        writeln!(
-            f,
-            "openpi figures: {OPENPI_SAMPLE_CPU}; on another CPU compare with the in-run candle baseline"
-        )?;
+        if self.configs.iter().all(|c| c.openpi_same_run.is_some()) {
+            writeln!(
+                f,
+                "openpi: measured in this run, interleaved with chunkrt's calls on {}",
+                self.cpu
+            )?;
+        } else {
+            writeln!(
+                f,
+                "openpi: fell back to stored figures ({OPENPI_SAMPLE_CPU}), not this CPU ({}); \
+                 for a same-run baseline pass --openpi DIR (scripts/openpi-env.sh); on another CPU \
+                 compare with the in-run candle baseline",
+                self.cpu
+            )?;
+        }
         for c in &self.configs {
             let base = self.baseline(&c.name);
             let vs_base = match (base, c.phase("sample_cached")) {
@@ -197,13 +262,18 @@ impl std::fmt::Display for BenchReport {
             };
             writeln!(
                 f,
-                "{:<11} {:<5} {:<30} {:>8.1} ms: {:.2}x openpi's {:.3} s{vs_base}",
+                "{:<11} {:<5} {:<30} {:>8.1} ms: {:.2}x openpi's {:.3} s ({}){vs_base}",
                 c.name,
                 c.precision,
                 c.kernels,
                 c.phase("sample_cached").map_or(0.0, |p| p.p50_ms),
                 c.speedup_vs_openpi(),
-                c.openpi_s
+                c.openpi_reference_s(),
+                if c.openpi_same_run.is_some() {
+                    "same run"
+                } else {
+                    "stored"
+                }
             )?;
         }
         Ok(())
@@ -370,8 +440,14 @@ impl Variant<'_> {
 /// difference of its actions from f32's), and f32 on candle's own kernels (the in-run baseline
 /// of the speed ratios). The phases of each variant are timed one after the other; the full
 /// sample, the headline figure, is timed in interleaved rounds (one run of each variant per
-/// round), so that a slow period of this shared VM slows every variant alike.
-pub fn run_configs(name: &str, json: &str, quick: bool) -> Result<Vec<ConfigReport>, PolicyError> {
+/// round, and one of openpi's `sample_actions` when `openpi` is given), so that a slow period of
+/// this shared VM slows every program alike.
+pub fn run_configs(
+    name: &str,
+    json: &str,
+    quick: bool,
+    openpi: Option<&OpenpiSetup>,
+) -> Result<Vec<ConfigReport>, PolicyError> {
     let (cfg, valid) = config_and_valid_tokens(json)?;
     let steps = cfg.num_denoise_steps;
     let m32 = random_inference_model(&cfg)?;
@@ -481,8 +557,15 @@ pub fn run_configs(name: &str, json: &str, quick: bool) -> Result<Vec<ConfigRepo
                 None
             },
             steps,
+            openpi_same_run: None,
         });
     }
+    // openpi's worker builds and warms up its model before the first round
+    let mut worker = match openpi {
+        Some(setup) => Some(OpenpiWorker::spawn(setup, name, json)?),
+        None => None,
+    };
+    let (mut op_wall, mut op_cpu) = (Vec::new(), Vec::new());
     // the headline: the full cached sample, interleaved rounds over the variants
     let mut full: Vec<Vec<u64>> = vec![Vec::new(); variants.len()];
     let mut cpu: Vec<Vec<u64>> = vec![Vec::new(); variants.len()];
@@ -496,6 +579,19 @@ pub fn run_configs(name: &str, json: &str, quick: bool) -> Result<Vec<ConfigRepo
                 full[i].push(t0.elapsed().as_micros().max(1) as u64);
                 cpu[i].push(cpu_us().saturating_sub(c0).max(1));
             }
+        }
+        if let Some(w) = worker.as_mut() {
+            let (wall, cpu) = w.sample()?;
+            if round > 0 {
+                op_wall.push(wall);
+                op_cpu.push(cpu);
+            }
+        }
+    }
+    if let Some(w) = worker.take() {
+        let phase = phase_from("sample", total, &op_wall, &op_cpu)?;
+        for r in reports.iter_mut() {
+            r.openpi_same_run = Some((phase.clone(), w.info.clone()));
         }
     }
     for (r, (wall, cpu)) in reports.iter_mut().zip(full.iter().zip(&cpu)) {
@@ -531,24 +627,29 @@ fn phase_from(name: &str, flops: f64, wall: &[u64], cpu: &[u64]) -> Result<Phase
 
 /// Runs one configuration by name (`pi0_bench` / `pi05_bench`): every variant of
 /// [`run_configs`].
-pub fn run_named(name: &str, quick: bool) -> Result<Vec<ConfigReport>, PolicyError> {
+pub fn run_named(
+    name: &str,
+    quick: bool,
+    openpi: Option<&OpenpiSetup>,
+) -> Result<Vec<ConfigReport>, PolicyError> {
     let (n, json) = CONFIGS
         .iter()
         .find(|(n, _)| *n == name)
         .ok_or_else(|| PolicyError::Config(format!("unknown bench config {name}")))?;
-    run_configs(n, json, quick)
+    run_configs(n, json, quick, openpi)
 }
 
 /// Runs both bench configurations (`quick`: few iterations, no uncached full sample), each in f32
 /// and, where a bf16 kernel runs, in bf16.
-pub fn run(quick: bool) -> Result<BenchReport, PolicyError> {
+pub fn run(quick: bool, openpi: Option<&OpenpiSetup>) -> Result<BenchReport, PolicyError> {
     let mut configs = Vec::new();
     for (name, _) in CONFIGS {
-        configs.extend(run_named(name, quick)?);
+        configs.extend(run_named(name, quick, openpi)?);
     }
     Ok(BenchReport {
         configs,
         threads: candle_core::utils::get_num_threads(),
+        cpu: cpu_model(),
     })
 }
 

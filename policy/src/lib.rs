@@ -17,6 +17,7 @@ pub mod gpu;
 pub mod graph;
 pub mod kernels;
 pub mod model;
+pub mod openpi;
 pub mod packed;
 pub mod preprocess;
 pub mod rtc;

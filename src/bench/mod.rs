@@ -187,19 +187,7 @@ pub fn write_outputs(
 
 /// One line describing this machine: CPU model and core count (from `/proc/cpuinfo`).
 pub fn machine_line() -> String {
-    let model = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split(':').nth(1))
-                .map(|m| m.trim().to_string())
-        })
-        .unwrap_or_else(|| "unknown CPU".into());
-    let cores = std::thread::available_parallelism()
-        .map(|n| n.get())
-        .unwrap_or(1);
-    format!("{model}, {cores} cores")
+    crate::policy::bench::cpu_model()
 }
 
 /// Geometric mean of positive ratios (1.0 for none).
