@@ -30,7 +30,7 @@ use crate::chunk::ActionChunk;
 use crate::control::{EventReader, Executor, InferenceLink, InferenceRequest};
 use crate::edge::{
     event_ring, CameraInput, CommandOutput, Counters, EdgeEvent, EventRing, JointStateInput,
-    Observation, Source, StatusOutput,
+    Observation, RearmInput, Source, StatusOutput,
 };
 use crate::rt;
 
@@ -144,7 +144,12 @@ pub struct TickOutcome {
     pub publish: bool,
     /// `CONTROLLER_STATE_*` after the tick.
     pub state: u32,
+    /// `STATE_REASON_*`: why the controller is in that state.
+    pub reason: u32,
 }
+
+/// The answer to a re-arm request: (`REARM_*` code, `STATE_REASON_*` of the bad input or 0).
+pub type RearmAnswer = (u32, u32);
 
 /// The work of one control tick, separated from the thread and the IPC ports so that it can
 /// be tested alone. Must not allocate, block or do I/O.
@@ -156,6 +161,12 @@ pub trait ControlTick: Send {
         joint_state: Option<&JointState>,
         cmd: &mut JointCommand,
     ) -> TickOutcome;
+
+    /// An operator asks to leave FAULT (`chunkrt rearm`). The default refuses: nothing to
+    /// re-arm. Must not allocate, block or do I/O.
+    fn rearm(&mut self, _now_ns: u64) -> RearmAnswer {
+        (chunkrt_ipc::REARM_REFUSED_NOT_IN_FAULT, 0)
+    }
 }
 
 impl ControlTick for Executor {
@@ -169,6 +180,16 @@ impl ControlTick for Executor {
         TickOutcome {
             publish: r.publish,
             state: r.state.code(),
+            reason: self.state_reason().map_or(0, |r| r.code()),
+        }
+    }
+
+    fn rearm(&mut self, now_ns: u64) -> RearmAnswer {
+        use crate::control::Rearm;
+        match Executor::rearm(self, now_ns) {
+            Rearm::Accepted => (chunkrt_ipc::REARM_ACCEPTED, 0),
+            Rearm::NotInFault(_) => (chunkrt_ipc::REARM_REFUSED_NOT_IN_FAULT, 0),
+            Rearm::InputsBad(r) => (chunkrt_ipc::REARM_REFUSED_INPUTS, r.code()),
         }
     }
 }
@@ -366,6 +387,7 @@ impl Controller {
         let now = std::time::Instant::now();
         let source = |s: Source| match s {
             Source::JointState => "joint_state".to_string(),
+            Source::Rearm => "rearm".to_string(),
             Source::Camera(i) => format!(
                 "camera {}",
                 cfg.cameras.get(i).map(|c| c.name.as_str()).unwrap_or("?")
@@ -382,6 +404,25 @@ impl Controller {
                         now,
                     ) {
                         tracing::warn!("{}", line());
+                    }
+                }
+                EdgeEvent::RearmAnswered {
+                    seq,
+                    result,
+                    reason,
+                } => {
+                    if result == chunkrt_ipc::REARM_ACCEPTED {
+                        tracing::info!("re-arm request {seq}: accepted");
+                    } else {
+                        tracing::warn!(
+                            "re-arm request {seq}: {}{}",
+                            chunkrt_ipc::rearm_result_name(result),
+                            if reason != 0 {
+                                format!(" ({})", chunkrt_ipc::state_reason_name(reason))
+                            } else {
+                                String::new()
+                            }
+                        );
                     }
                 }
                 EdgeEvent::PortError { source: s, publish } => {
@@ -559,6 +600,7 @@ fn observation_thread(
 /// the status). Public so that tests can drive real ticks over real IPC without the thread.
 pub struct ControlLoop {
     js: JointStateInput,
+    rearm_in: RearmInput,
     cmd_out: CommandOutput,
     status_out: StatusOutput,
     /// Latency histograms (lateness, tick compute time).
@@ -588,6 +630,7 @@ impl ControlLoop {
         status.set_command_publisher(cmd_out.id());
         Ok(Self {
             js: JointStateInput::new(node, &ns, cfg)?,
+            rearm_in: RearmInput::new(node, &ns, cfg)?,
             cmd_out,
             status_out: StatusOutput::new(node, &ns)?,
             hist: TickHistograms::new(),
@@ -622,7 +665,21 @@ impl ControlLoop {
             // session is bound when that command arrives
             self.publish_status(wake_ns, shared);
         }
+        let mut answered = false;
+        if let Some(seq) = self.rearm_in.poll(&shared.counters, &shared.events) {
+            let (result, reason) = tick.rearm(wake_ns);
+            self.status.rearm_seq = seq;
+            self.status.rearm_result = result;
+            self.status.rearm_reason = reason;
+            let _ = shared.events.push(crate::edge::EdgeEvent::RearmAnswered {
+                seq,
+                result,
+                reason,
+            });
+            answered = true;
+        }
         let out = tick.tick(wake_ns, self.js.trusted(wake_ns), &mut self.cmd);
+        self.status.state_reason = out.reason;
         if out.publish {
             self.cmd.seq += 1;
             self.cmd.deadline_ns = wake_ns + self.deadline_ns;
@@ -644,7 +701,8 @@ impl ControlLoop {
         }
         self.ticks += 1;
         shared.ticks.store(self.ticks, Ordering::Relaxed);
-        if self.ticks.is_multiple_of(self.status_every) {
+        if answered || self.ticks.is_multiple_of(self.status_every) {
+            // a re-arm is answered at once (the operator's tool waits for it)
             self.publish_status(wake_ns, shared);
         }
         let end = monotonic_ns();

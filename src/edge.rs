@@ -14,9 +14,9 @@ use iceoryx2::prelude::*;
 
 use chunkrt_ipc::services::{self, Ipc, IpcError};
 use chunkrt_ipc::{
-    monotonic_ns, validate_frame, validate_joint_state, CameraFrameHeader, Config,
-    ControllerStatus, Freshness, JointCommand, JointState, Namespace, RejectReason, StreamGuard,
-    ValidationError, REJECT_REASON_COUNT,
+    monotonic_ns, validate_frame, validate_joint_state, validate_rearm, CameraFrameHeader, Config,
+    ControllerStatus, Freshness, JointCommand, JointState, Namespace, RearmRequest, RejectReason,
+    StreamGuard, ValidationError, REJECT_REASON_COUNT,
 };
 
 /// Cameras with a counter of their own in [`Counters::frames_per_camera`].
@@ -64,6 +64,8 @@ pub enum Source {
     JointState,
     /// The camera with this index in the configuration.
     Camera(usize),
+    /// The re-arm request service.
+    Rearm,
 }
 
 /// Something worth a log line, produced where logging is not allowed.
@@ -76,6 +78,8 @@ pub enum EdgeEvent {
     },
     /// iceoryx2 reported an error on a port.
     PortError { source: Source, publish: bool },
+    /// A re-arm request was answered (`REARM_*` result, `STATE_REASON_*` of a bad input).
+    RearmAnswered { seq: u64, result: u32, reason: u32 },
 }
 
 /// Lock-free, fixed-capacity ring of events (a full ring drops the newest; the counters still
@@ -382,6 +386,63 @@ impl Observation {
     /// Capture time of the observation: the joint state's measurement time.
     pub fn t_obs_ns(&self) -> u64 {
         self.joint_state.measurement_time_ns
+    }
+}
+
+/// Re-arm requests (`<ns>/rearm`): the newest valid request not answered yet.
+pub struct RearmInput {
+    sub: Subscriber<Ipc, RearmRequest, ()>,
+    max_future_ns: u64,
+    last_seq: u64,
+}
+
+impl RearmInput {
+    /// Subscribes to `<ns>/rearm`. Creates the port: call in the thread that uses it.
+    pub fn new(node: &Node<Ipc>, ns: &Namespace, cfg: &Config) -> Result<Self, IpcError> {
+        let name = ns.rearm();
+        let factory = services::rearm_service(node, &name)?;
+        Ok(Self {
+            sub: services::subscriber(&factory, &name)?,
+            max_future_ns: (cfg.control.max_future_ms * 1e6) as u64,
+            last_seq: 0,
+        })
+    }
+
+    /// Drains the subscriber; returns the seq of the newest valid request with a seq not seen
+    /// before (a client repeats its request until answered). Invalid ones are counted and
+    /// reported. No allocation.
+    pub fn poll(&mut self, counters: &Counters, events: &EventRing) -> Option<u64> {
+        let mut newest = None;
+        loop {
+            let sample = match self.sub.receive() {
+                Ok(Some(s)) => s,
+                Ok(None) => break,
+                Err(_) => {
+                    counters.receive_errors.fetch_add(1, Ordering::Relaxed);
+                    let _ = events.push(EdgeEvent::PortError {
+                        source: Source::Rearm,
+                        publish: false,
+                    });
+                    break;
+                }
+            };
+            let msg: &RearmRequest = sample.payload();
+            match validate_rearm(msg, monotonic_ns(), self.max_future_ns) {
+                Ok(()) if msg.seq != self.last_seq => {
+                    self.last_seq = msg.seq;
+                    newest = Some(msg.seq);
+                }
+                Ok(()) => {}
+                Err(error) => {
+                    counters.reject(error.reason());
+                    let _ = events.push(EdgeEvent::Rejected {
+                        source: Source::Rearm,
+                        error,
+                    });
+                }
+            }
+        }
+        newest
     }
 }
 

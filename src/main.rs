@@ -25,6 +25,9 @@ enum Command {
     FakeRobot(chunkrt_tools::fake_robot::Args),
     /// List chunkrt services with live rate, latency and last values (same as `monitor`).
     Monitor(chunkrt_tools::monitor::Args),
+    /// Ask the controller to leave FAULT without a restart; prints its answer (refused, with
+    /// the reason, while an input is still bad).
+    Rearm(chunkrt_tools::rearm::Args),
     /// Compute an action chunk from a safetensors file of inputs.
     Sample(chunkrt::policy_cli::SampleArgs),
     /// Describe a checkpoint: architecture, parameter counts, dtype, what is missing.
@@ -52,6 +55,7 @@ fn main() {
         Command::FakeCamera(a) => chunkrt_tools::fake_camera::run(a),
         Command::FakeRobot(a) => chunkrt_tools::fake_robot::run(a),
         Command::Monitor(a) => chunkrt_tools::monitor::run(a),
+        Command::Rearm(a) => chunkrt_tools::rearm::run(a),
         Command::Sample(a) => chunkrt::policy_cli::sample(a),
         Command::Inspect(a) => chunkrt::policy_cli::inspect(a),
         Command::BenchInference(a) => chunkrt::policy_cli::bench(a),

@@ -4,7 +4,7 @@
 //! re-arm clears. Uses the scripted chunk source (a test double).
 
 use chunkrt::config::Config;
-use chunkrt::control::{Event, Reason, ScriptedConfig, ScriptedSim, State};
+use chunkrt::control::{Event, Rearm, Reason, ScriptedConfig, ScriptedSim, State};
 use chunkrt::ipc::{JointCommand, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD};
 
 const START_NS: u64 = 10_000_000_000;
@@ -180,12 +180,45 @@ fn missing_chunks_hold_then_fault_and_only_rearm_recovers() {
         .iter()
         .all(|r| !r.requested));
     // Re-arm: STARTING, then RUNNING once a new chunk arrives.
-    assert!(s.exec.rearm(s.now_ns));
+    assert_eq!(s.exec.rearm(s.now_ns), Rearm::Accepted);
+    assert_eq!(s.exec.state_reason(), Some(Reason::Rearm));
     s.run(300);
     assert_eq!(s.exec.state(), State::Running);
     let ev = events(&s);
     assert_eq!(ev[0].reason, Reason::Rearm);
     assert_eq!((ev[1].from, ev[1].to), (State::Starting, State::Running));
+    // nothing to re-arm while running
+    assert_eq!(s.exec.rearm(s.now_ns), Rearm::NotInFault(State::Running));
+}
+
+/// A re-arm is refused while the input that is still bad says so (here the joint state), and
+/// accepted once it is good again; the refusal changes nothing.
+#[test]
+fn rearm_is_refused_while_the_joint_state_is_stale() {
+    let (_cfg, mut s) = sim(300.0);
+    s.run(1500);
+    assert_eq!(s.exec.state(), State::Running);
+    s.robot_reports = false;
+    s.run(1500);
+    assert_eq!(s.exec.state(), State::Fault);
+    assert_eq!(s.exec.state_reason(), Some(Reason::HoldTimeout));
+    events(&s);
+    assert_eq!(
+        s.exec.rearm(s.now_ns),
+        Rearm::InputsBad(Reason::StaleJointState)
+    );
+    s.run(10);
+    assert_eq!(
+        s.exec.state(),
+        State::Fault,
+        "a refused re-arm changes nothing"
+    );
+    assert!(events(&s).is_empty());
+    s.robot_reports = true;
+    s.run(2);
+    assert_eq!(s.exec.rearm(s.now_ns), Rearm::Accepted);
+    s.run(500);
+    assert_eq!(s.exec.state(), State::Running);
 }
 
 #[test]

@@ -721,6 +721,124 @@ fn controller_runs_the_real_policy_within_limits_and_holds_for_a_dead_camera() {
     drop(camera);
 }
 
+/// `chunkrt rearm` with its exit status and output.
+fn rearm(ns: &str) -> (Option<i32>, String) {
+    let out = std::process::Command::new(EXE)
+        .args(["rearm", "--namespace", ns, "--timeout", "10"])
+        .output()
+        .expect("run chunkrt rearm");
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.code(), text)
+}
+
+/// FAULT is cleared without a restart, over IPC: `chunkrt rearm` is refused while running and
+/// while the input that caused the fault is still bad (a dead camera, named in the answer),
+/// accepted once the camera is back, and the controller runs the policy again. Malformed and
+/// stale re-arm requests are rejected and counted.
+#[test]
+fn rearm_clears_a_fault_only_when_the_inputs_are_good() {
+    let _serial = serial();
+    let ns = unique_namespace("rearm");
+    let root = env!("CARGO_MANIFEST_DIR");
+    let text = std::fs::read_to_string(format!("{root}/config/pi05_tiny.toml"))
+        .unwrap()
+        .replace("hold_to_fault_ms = 10000.0", "hold_to_fault_ms = 300.0")
+        .replace(
+            "checkpoint = \"../tests/data/pi05_tiny\"",
+            &format!("checkpoint = \"{root}/tests/data/pi05_tiny\""),
+        );
+    assert!(text.contains("hold_to_fault_ms = 300.0"));
+    let dir = std::env::temp_dir().join(format!("chunkrt-rearm-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cfg_file = dir.join("fault_fast.toml");
+    std::fs::write(&cfg_file, text).unwrap();
+    let cfg_path = cfg_file.to_str().unwrap();
+    let robot = start("fake-robot", &ns, &["--config", cfg_path]);
+    let camera = start("fake-camera", &ns, &["--config", cfg_path]);
+    let ctl = start("run", &ns, &["--config", cfg_path, "--log-every", "0"]);
+    let mut w = Watch::new(&ns);
+    w.wait_for(Duration::from_secs(60), "RUNNING on the policy", |w| {
+        w.last_status.chunks >= 2 && w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING
+    });
+    let (code, out) = rearm(&ns);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("not in fault"), "{out}");
+
+    // the camera dies: HOLD, then FAULT after hold_to_fault_ms
+    kill9(camera);
+    w.wait_for(Duration::from_secs(20), "FAULT", |w| {
+        w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_FAULT
+    });
+    assert_eq!(
+        w.last_status.state_reason,
+        chunkrt_ipc::STATE_REASON_HOLD_TIMEOUT
+    );
+    let (code, out) = rearm(&ns);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("camera frames missing or stale"), "{out}");
+    w.pump(Duration::from_millis(300));
+    assert_eq!(
+        w.last_status.state,
+        chunkrt_ipc::CONTROLLER_STATE_FAULT,
+        "a refused re-arm changes nothing"
+    );
+
+    // hostile or stale requests: rejected and counted, nothing answered
+    let before = w.last_status.rejected;
+    let nsp = Namespace::new(&ns).unwrap();
+    let node = services::node("test-rearm").unwrap();
+    let rogue = services::publisher(
+        &services::rearm_service(&node, &nsp.rearm()).unwrap(),
+        "rogue-rearm",
+    )
+    .unwrap();
+    let now = monotonic_ns();
+    for req in [
+        chunkrt_ipc::RearmRequest {
+            seq: 0,
+            publish_time_ns: now,
+            reserved: 0,
+        },
+        chunkrt_ipc::RearmRequest {
+            seq: 99,
+            publish_time_ns: now.saturating_sub(5_000_000_000),
+            reserved: 0,
+        },
+    ] {
+        rogue.send_copy(req).unwrap();
+        w.pump(Duration::from_millis(50));
+    }
+    w.wait_for(Duration::from_secs(10), "the rejections counted", |w| {
+        w.last_status.rejected[RejectReason::Other.code()] > before[RejectReason::Other.code()]
+            && w.last_status.rejected[RejectReason::Stale.code()]
+                > before[RejectReason::Stale.code()]
+    });
+    assert_eq!(w.last_status.state, chunkrt_ipc::CONTROLLER_STATE_FAULT);
+    assert_ne!(w.last_status.rearm_seq, 99);
+
+    // the camera is back: the re-arm is accepted and the policy drives again
+    let camera = start("fake-camera", &ns, &["--config", cfg_path]);
+    w.wait_for(Duration::from_secs(20), "fresh frames", |w| {
+        w.last_status.stale_cameras == 0
+    });
+    let chunks = w.last_status.chunks;
+    let (code, out) = rearm(&ns);
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("re-armed"), "{out}");
+    w.wait_for(Duration::from_secs(60), "RUNNING after the re-arm", |w| {
+        w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING
+            && w.last_status.chunks > chunks
+    });
+    let out = ctl.terminate(Duration::from_secs(15));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    drop((robot, camera));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Every rejection counter but `stale` is unchanged between two status messages: a stale state
 /// (read more than the configured age after it was measured, as after a stall of the machine) is
 /// rightly rejected; anything else in a clean run is a defect.

@@ -84,6 +84,48 @@ fn rust_constants() -> BTreeMap<String, u64> {
         ("CONTROLLER_STATE_FAULT", CONTROLLER_STATE_FAULT as u64),
         ("CONTROLLER_STATE_STOPPED", CONTROLLER_STATE_STOPPED as u64),
         ("REJECT_REASON_COUNT", REJECT_REASON_COUNT as u64),
+        ("STATE_REASON_NONE", STATE_REASON_NONE as u64),
+        ("STATE_REASON_INPUTS_GOOD", STATE_REASON_INPUTS_GOOD as u64),
+        (
+            "STATE_REASON_STALE_JOINT_STATE",
+            STATE_REASON_STALE_JOINT_STATE as u64,
+        ),
+        ("STATE_REASON_NO_CHUNK", STATE_REASON_NO_CHUNK as u64),
+        (
+            "STATE_REASON_STALE_CAMERA",
+            STATE_REASON_STALE_CAMERA as u64,
+        ),
+        (
+            "STATE_REASON_CHUNK_EXPIRED",
+            STATE_REASON_CHUNK_EXPIRED as u64,
+        ),
+        (
+            "STATE_REASON_NON_FINITE_ACTION",
+            STATE_REASON_NON_FINITE_ACTION as u64,
+        ),
+        ("STATE_REASON_BAD_CHUNK", STATE_REASON_BAD_CHUNK as u64),
+        ("STATE_REASON_OVERRUNS", STATE_REASON_OVERRUNS as u64),
+        (
+            "STATE_REASON_HOLD_TIMEOUT",
+            STATE_REASON_HOLD_TIMEOUT as u64,
+        ),
+        (
+            "STATE_REASON_BAD_JOINT_STATE",
+            STATE_REASON_BAD_JOINT_STATE as u64,
+        ),
+        (
+            "STATE_REASON_GENERATOR_ERROR",
+            STATE_REASON_GENERATOR_ERROR as u64,
+        ),
+        ("STATE_REASON_REARM", STATE_REASON_REARM as u64),
+        ("REARM_NONE", REARM_NONE as u64),
+        ("REARM_ACCEPTED", REARM_ACCEPTED as u64),
+        (
+            "REARM_REFUSED_NOT_IN_FAULT",
+            REARM_REFUSED_NOT_IN_FAULT as u64,
+        ),
+        ("REARM_REFUSED_INPUTS", REARM_REFUSED_INPUTS as u64),
+        ("REARM_MAX_AGE_NS", REARM_MAX_AGE_NS),
     ]
     .into_iter()
     .map(|(k, v)| (k.to_string(), v))
@@ -105,6 +147,7 @@ fn rust_type_names() -> BTreeMap<String, String> {
     let js = services::joint_state_service(&node, &format!("{ns}/joint_state")).unwrap();
     let jc = services::joint_command_service(&node, &format!("{ns}/joint_command")).unwrap();
     let st = services::status_service(&node, &format!("{ns}/status")).unwrap();
+    let ra = services::rearm_service(&node, &format!("{ns}/rearm")).unwrap();
     let cam = services::camera_service(&node, &format!("{ns}/camera/c")).unwrap();
     for (k, d) in [
         (
@@ -118,6 +161,10 @@ fn rust_type_names() -> BTreeMap<String, String> {
         (
             "ControllerStatus",
             st.static_config().message_type_details().payload,
+        ),
+        (
+            "RearmRequest",
+            ra.static_config().message_type_details().payload,
         ),
         (
             "CameraFrameHeader",
@@ -223,6 +270,7 @@ fn c_program(layouts: &BTreeMap<String, Layout>, constants: &BTreeMap<String, u6
         ("JointState", "JOINT_STATE"),
         ("JointCommand", "JOINT_COMMAND"),
         ("ControllerStatus", "CONTROLLER_STATUS"),
+        ("RearmRequest", "REARM_REQUEST"),
     ] {
         s += &format!("  printf(\"type_name {k} %s\\n\", CHUNKRT_TYPE_NAME_{macro_});\n");
     }

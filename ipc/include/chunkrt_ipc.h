@@ -15,6 +15,7 @@
  *   NS/joint_state    payload JointState,       user header none
  *   NS/joint_command  payload JointCommand,     user header none
  *   NS/status         payload ControllerStatus, user header none
+ *   NS/rearm          payload RearmRequest,     user header none
  *   NS/camera/NAME    payload uint8_t[] (slice, "u8"), user header CameraFrameHeader
  */
 #ifndef CHUNKRT_IPC_H
@@ -37,7 +38,8 @@ extern "C" {
 #define CHUNKRT_TYPE_NAME_CAMERA_FRAME_HEADER "chunkrt.CameraFrameHeader.v1"
 #define CHUNKRT_TYPE_NAME_JOINT_STATE "chunkrt.JointState.v1"
 #define CHUNKRT_TYPE_NAME_JOINT_COMMAND "chunkrt.JointCommand.v1"
-#define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v3"
+#define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v4"
+#define CHUNKRT_TYPE_NAME_REARM_REQUEST "chunkrt.RearmRequest.v1"
 /** Element type name of the camera pixel slice. */
 #define CHUNKRT_TYPE_NAME_PIXEL "u8"
 
@@ -150,6 +152,29 @@ typedef struct JointCommand {
 #define CHUNKRT_REJECT_OTHER 7u
 #define CHUNKRT_REJECT_FOREIGN_PUBLISHER 8u /* a second writer while the bound one is alive */
 
+/* Why the controller is in its state (ControllerStatus.state_reason, .rearm_reason). */
+#define CHUNKRT_STATE_REASON_NONE 0u
+#define CHUNKRT_STATE_REASON_INPUTS_GOOD 1u
+#define CHUNKRT_STATE_REASON_STALE_JOINT_STATE 2u
+#define CHUNKRT_STATE_REASON_NO_CHUNK 3u
+#define CHUNKRT_STATE_REASON_STALE_CAMERA 4u
+#define CHUNKRT_STATE_REASON_CHUNK_EXPIRED 5u
+#define CHUNKRT_STATE_REASON_NON_FINITE_ACTION 6u
+#define CHUNKRT_STATE_REASON_BAD_CHUNK 7u
+#define CHUNKRT_STATE_REASON_OVERRUNS 8u
+#define CHUNKRT_STATE_REASON_HOLD_TIMEOUT 9u
+#define CHUNKRT_STATE_REASON_BAD_JOINT_STATE 10u
+#define CHUNKRT_STATE_REASON_GENERATOR_ERROR 11u
+#define CHUNKRT_STATE_REASON_REARM 12u
+
+/* The answer to re-arm request ControllerStatus.rearm_seq. */
+#define CHUNKRT_REARM_NONE 0u
+#define CHUNKRT_REARM_ACCEPTED 1u            /* FAULT -> STARTING */
+#define CHUNKRT_REARM_REFUSED_NOT_IN_FAULT 2u
+#define CHUNKRT_REARM_REFUSED_INPUTS 3u      /* rearm_reason: the input still bad */
+/** Oldest re-arm request the controller acts on (ns). */
+#define CHUNKRT_REARM_MAX_AGE_NS 1000000000ull
+
 /** Status published by the controller. */
 typedef struct ControllerStatus {
     uint64_t seq;
@@ -180,7 +205,22 @@ typedef struct ControllerStatus {
        first status, and while a second status publisher speaks, it obeys none (README
        "Isolation"; the Rust reference is chunkrt_ipc::SessionGate). */
     uint64_t command_publisher_id[2];
+    uint64_t rearm_seq;     /**< seq of the last re-arm request answered (0: none) */
+    uint32_t state_reason;  /**< CHUNKRT_STATE_REASON_*: why in this state */
+    uint32_t rearm_result;  /**< CHUNKRT_REARM_* answer to rearm_seq */
+    uint32_t rearm_reason;  /**< with CHUNKRT_REARM_REFUSED_INPUTS: CHUNKRT_STATE_REASON_* */
+    uint32_t reserved;      /**< zero */
 } ControllerStatus;
+
+/* ---- re-arm request (operator -> controller, `chunkrt rearm`) ---------------------------- */
+
+/** Asks the controller to leave FAULT; answered in its next status. Rejected and counted:
+    seq 0, reserved != 0, older than CHUNKRT_REARM_MAX_AGE_NS, from the future. */
+typedef struct RearmRequest {
+    uint64_t seq;             /**< non-zero id, echoed in ControllerStatus.rearm_seq */
+    uint64_t publish_time_ns; /**< CLOCK_MONOTONIC */
+    uint64_t reserved;        /**< zero */
+} RearmRequest;
 
 /* ---- compile-time layout checks (the full per-field check is in tests/ipc_layout.rs) ---- */
 
@@ -192,8 +232,9 @@ typedef struct ControllerStatus {
 CHUNKRT_STATIC_ASSERT(sizeof(CameraFrameHeader) == 48, "CameraFrameHeader size");
 CHUNKRT_STATIC_ASSERT(sizeof(JointState) == 24 + 3 * 8 * CHUNKRT_MAX_DOF, "JointState size");
 CHUNKRT_STATIC_ASSERT(sizeof(JointCommand) == 48 + 3 * 8 * CHUNKRT_MAX_DOF, "JointCommand size");
-CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 12 * 8,
+CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 15 * 8,
                       "ControllerStatus size");
+CHUNKRT_STATIC_ASSERT(sizeof(RearmRequest) == 24, "RearmRequest size");
 
 #ifdef __cplusplus
 }

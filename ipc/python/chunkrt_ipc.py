@@ -73,7 +73,31 @@ CONTROLLER_STATE_HOLD = 1
 CONTROLLER_STATE_RUNNING = 2
 CONTROLLER_STATE_FAULT = 3
 CONTROLLER_STATE_STOPPED = 4  # last status of a clean stop: the session is released
-CONTROLLER_STATE_NAMES = {0: "starting", 1: "hold", 2: "running", 3: "fault"}
+CONTROLLER_STATE_NAMES = {0: "starting", 1: "hold", 2: "running", 3: "fault", 4: "stopped"}
+
+# ---- why the controller is in its state (ControllerStatus.state_reason, .rearm_reason) --------
+
+STATE_REASON_NONE = 0
+STATE_REASON_INPUTS_GOOD = 1
+STATE_REASON_STALE_JOINT_STATE = 2
+STATE_REASON_NO_CHUNK = 3
+STATE_REASON_STALE_CAMERA = 4
+STATE_REASON_CHUNK_EXPIRED = 5
+STATE_REASON_NON_FINITE_ACTION = 6
+STATE_REASON_BAD_CHUNK = 7
+STATE_REASON_OVERRUNS = 8
+STATE_REASON_HOLD_TIMEOUT = 9
+STATE_REASON_BAD_JOINT_STATE = 10
+STATE_REASON_GENERATOR_ERROR = 11
+STATE_REASON_REARM = 12
+
+# ---- re-arm answers (ControllerStatus.rearm_result for request rearm_seq) ---------------------
+
+REARM_NONE = 0
+REARM_ACCEPTED = 1  # FAULT -> STARTING
+REARM_REFUSED_NOT_IN_FAULT = 2
+REARM_REFUSED_INPUTS = 3  # rearm_reason: the input still bad
+REARM_MAX_AGE_NS = 1_000_000_000  # oldest request the controller acts on
 
 # ---- rejection reasons (indices into ControllerStatus.rejected) -----------------------------
 
@@ -104,7 +128,8 @@ REJECT_REASON_NAMES = [
 TYPE_NAME_CAMERA_FRAME_HEADER = "chunkrt.CameraFrameHeader.v1"
 TYPE_NAME_JOINT_STATE = "chunkrt.JointState.v1"
 TYPE_NAME_JOINT_COMMAND = "chunkrt.JointCommand.v1"
-TYPE_NAME_CONTROLLER_STATUS = "chunkrt.ControllerStatus.v3"
+TYPE_NAME_CONTROLLER_STATUS = "chunkrt.ControllerStatus.v4"
+TYPE_NAME_REARM_REQUEST = "chunkrt.RearmRequest.v1"
 
 _F64xDOF = ctypes.c_double * MAX_DOF
 
@@ -202,6 +227,11 @@ class ControllerStatus(ctypes.Structure):
         # status, nothing while a second status publisher speaks, and a status with state
         # CONTROLLER_STATE_STOPPED ends the session at once.
         ("command_publisher_id", ctypes.c_uint64 * 2),
+        ("rearm_seq", ctypes.c_uint64),  # seq of the last re-arm request answered (0: none)
+        ("state_reason", ctypes.c_uint32),  # STATE_REASON_*: why in this state
+        ("rearm_result", ctypes.c_uint32),  # REARM_* answer to rearm_seq
+        ("rearm_reason", ctypes.c_uint32),  # with REARM_REFUSED_INPUTS: STATE_REASON_*
+        ("reserved", ctypes.c_uint32),
     ]
 
     def command_publisher(self) -> int:
@@ -214,7 +244,23 @@ class ControllerStatus(ctypes.Structure):
         return TYPE_NAME_CONTROLLER_STATUS
 
 
-MESSAGE_TYPES = [CameraFrameHeader, JointState, JointCommand, ControllerStatus]
+class RearmRequest(ctypes.Structure):
+    """Asks the controller to leave FAULT (``NS/rearm``); answered in its next status. Rejected
+    and counted: seq 0, reserved != 0, older than REARM_MAX_AGE_NS, from the future."""
+
+    _fields_ = [
+        ("seq", ctypes.c_uint64),  # non-zero id, echoed in ControllerStatus.rearm_seq
+        ("publish_time_ns", ctypes.c_uint64),
+        ("reserved", ctypes.c_uint64),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return TYPE_NAME_REARM_REQUEST
+
+
+MESSAGE_TYPES = [CameraFrameHeader, JointState, JointCommand, ControllerStatus, RearmRequest]
 
 
 def layouts():
@@ -253,6 +299,8 @@ def constants():
         "COMMAND_MODE_",
         "CONTROLLER_STATE_",
         "REJECT_",
+        "STATE_REASON_",
+        "REARM_",
     )
     return {
         k: int(v)
@@ -304,6 +352,10 @@ def joint_command_name(ns: str) -> str:
 
 def status_name(ns: str) -> str:
     return ns + "/status"
+
+
+def rearm_name(ns: str) -> str:
+    return ns + "/rearm"
 
 
 def camera_name(ns: str, camera: str) -> str:

@@ -18,6 +18,6 @@ pub use config::{Config, ConfigError};
 pub use messages::*;
 pub use services::{IpcError, Namespace};
 pub use validate::{
-    validate_frame, validate_joint_command, validate_joint_state, Freshness, RejectReason,
-    SessionGate, SessionState, StreamGuard, ValidationError, STRIDE_ALIGN_SLACK,
+    validate_frame, validate_joint_command, validate_joint_state, validate_rearm, Freshness,
+    RejectReason, SessionGate, SessionState, StreamGuard, ValidationError, STRIDE_ALIGN_SLACK,
 };

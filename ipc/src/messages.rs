@@ -27,6 +27,14 @@ pub const ENCODING_BGR8: u32 = 2;
 /// 8-bit grey, 1 byte per pixel.
 pub const ENCODING_MONO8: u32 = 3;
 
+/// The iceoryx2 type name of a message type (its `#[type_name]`, e.g.
+/// `chunkrt.ControllerStatus.v4`): what a service compares when a port connects.
+pub fn type_name_of<T: ZeroCopySend>() -> &'static str {
+    // SAFETY: reading the name is safe; `type_name` is unsafe to *implement* (the implementor
+    // guarantees the layout the name stands for), which the derive does for our types.
+    unsafe { <T as ZeroCopySend>::type_name() }
+}
+
 /// Bytes per pixel of a known encoding, `None` for an unknown code.
 pub const fn bytes_per_pixel(encoding: u32) -> Option<u32> {
     match encoding {
@@ -203,13 +211,104 @@ pub const fn controller_state_name(state: u32) -> &'static str {
     }
 }
 
+/// Why the controller is in its state (`ControllerStatus::state_reason`, `rearm_reason`).
+/// Nothing recorded yet.
+pub const STATE_REASON_NONE: u32 = 0;
+/// A fresh joint state and a valid chunk: executing.
+pub const STATE_REASON_INPUTS_GOOD: u32 = 1;
+/// No joint state, or the newest is too old (or two publishers send it).
+pub const STATE_REASON_STALE_JOINT_STATE: u32 = 2;
+/// No chunk has arrived yet.
+pub const STATE_REASON_NO_CHUNK: u32 = 3;
+/// A camera the policy uses has no fresh frame (which: `stale_cameras`).
+pub const STATE_REASON_STALE_CAMERA: u32 = 4;
+/// Every chunk's last action is in the past.
+pub const STATE_REASON_CHUNK_EXPIRED: u32 = 5;
+/// A chunk or the sampled target had a non-finite value.
+pub const STATE_REASON_NON_FINITE_ACTION: u32 = 6;
+/// A chunk had the wrong shape.
+pub const STATE_REASON_BAD_CHUNK: u32 = 7;
+/// A streak of overrunning ticks.
+pub const STATE_REASON_OVERRUNS: u32 = 8;
+/// HOLD lasted `hold_to_fault_ms`.
+pub const STATE_REASON_HOLD_TIMEOUT: u32 = 9;
+/// The joint state does not match the configured robot.
+pub const STATE_REASON_BAD_JOINT_STATE: u32 = 10;
+/// The trajectory generator rejected its input.
+pub const STATE_REASON_GENERATOR_ERROR: u32 = 11;
+/// An operator re-armed the controller.
+pub const STATE_REASON_REARM: u32 = 12;
+
+/// Text of a `STATE_REASON_*` code.
+pub const fn state_reason_name(code: u32) -> &'static str {
+    match code {
+        STATE_REASON_NONE => "none",
+        STATE_REASON_INPUTS_GOOD => "inputs good",
+        STATE_REASON_STALE_JOINT_STATE => "joint state missing or stale",
+        STATE_REASON_NO_CHUNK => "no chunk yet",
+        STATE_REASON_STALE_CAMERA => "camera frames missing or stale",
+        STATE_REASON_CHUNK_EXPIRED => "chunk expired",
+        STATE_REASON_NON_FINITE_ACTION => "non-finite action",
+        STATE_REASON_BAD_CHUNK => "malformed chunk",
+        STATE_REASON_OVERRUNS => "streak of overruns",
+        STATE_REASON_HOLD_TIMEOUT => "too long in hold",
+        STATE_REASON_BAD_JOINT_STATE => "joint state does not match the robot",
+        STATE_REASON_GENERATOR_ERROR => "trajectory generator error",
+        STATE_REASON_REARM => "re-armed",
+        _ => "unknown",
+    }
+}
+
+/// `ControllerStatus::rearm_result`: no request answered yet.
+pub const REARM_NONE: u32 = 0;
+/// Re-armed: FAULT → STARTING (RUNNING follows once the inputs are good and a chunk arrives).
+pub const REARM_ACCEPTED: u32 = 1;
+/// Refused: the controller is not in FAULT (nothing to re-arm).
+pub const REARM_REFUSED_NOT_IN_FAULT: u32 = 2;
+/// Refused: an input is still bad (`rearm_reason` says which).
+pub const REARM_REFUSED_INPUTS: u32 = 3;
+
+/// Text of a `REARM_*` code.
+pub const fn rearm_result_name(code: u32) -> &'static str {
+    match code {
+        REARM_NONE => "none",
+        REARM_ACCEPTED => "accepted",
+        REARM_REFUSED_NOT_IN_FAULT => "refused: not in fault",
+        REARM_REFUSED_INPUTS => "refused: an input is still bad",
+        _ => "unknown",
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Re-arm request (operator → controller)
+// ---------------------------------------------------------------------------------------------
+
+/// A request to leave FAULT without a restart, on `NS/rearm` (`chunkrt rearm`). The controller
+/// answers in its next status (`rearm_seq`, `rearm_result`, `rearm_reason`). Requests older than
+/// [`REARM_MAX_AGE_NS`], from the future, with `seq` 0 or a non-zero `reserved` are rejected and
+/// counted; a repeated `seq` is answered once.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
+#[type_name("chunkrt.RearmRequest.v1")]
+#[repr(C)]
+pub struct RearmRequest {
+    /// Non-zero request id, echoed in `ControllerStatus::rearm_seq`.
+    pub seq: u64,
+    /// When the request was published (monotonic ns).
+    pub publish_time_ns: u64,
+    /// Zero.
+    pub reserved: u64,
+}
+
+/// Oldest re-arm request the controller acts on (ns).
+pub const REARM_MAX_AGE_NS: u64 = 1_000_000_000;
+
 /// Number of rejection counters in [`ControllerStatus::rejected`], indexed by
 /// [`crate::RejectReason`] codes.
 pub const REJECT_REASON_COUNT: usize = 9;
 
 /// Status published by the controller (a few times per second).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("chunkrt.ControllerStatus.v3")]
+#[type_name("chunkrt.ControllerStatus.v4")]
 #[repr(C)]
 pub struct ControllerStatus {
     /// Message counter.
@@ -258,6 +357,16 @@ pub struct ControllerStatus {
     /// (low 64 bits, high 64 bits; 0: not known yet). A robot obeys commands from this
     /// publisher only (`SessionGate`): the session binding of README section "Isolation".
     pub command_publisher_id: [u64; 2],
+    /// `seq` of the last re-arm request the controller answered (0: none yet).
+    pub rearm_seq: u64,
+    /// Why the controller is in its current state: a `STATE_REASON_*` code.
+    pub state_reason: u32,
+    /// The answer to request `rearm_seq`: a `REARM_*` code.
+    pub rearm_result: u32,
+    /// With `REARM_REFUSED_INPUTS`: the input still bad, a `STATE_REASON_*` code (else 0).
+    pub rearm_reason: u32,
+    /// Zero.
+    pub reserved: u32,
 }
 
 impl ControllerStatus {
@@ -296,6 +405,11 @@ impl Default for ControllerStatus {
             hold_entries: 0,
             stale_cameras: 0,
             command_publisher_id: [0; 2],
+            rearm_seq: 0,
+            state_reason: STATE_REASON_NONE,
+            rearm_result: REARM_NONE,
+            rearm_reason: STATE_REASON_NONE,
+            reserved: 0,
         }
     }
 }
@@ -312,7 +426,8 @@ const _: () = {
     assert!(align_of::<JointState>() == 8);
     assert!(size_of::<JointCommand>() == 48 + 3 * 8 * MAX_DOF);
     assert!(align_of::<JointCommand>() == 8);
-    assert!(size_of::<ControllerStatus>() == 24 + 5 * 8 + 8 * REJECT_REASON_COUNT + 12 * 8);
+    assert!(size_of::<ControllerStatus>() == 24 + 5 * 8 + 8 * REJECT_REASON_COUNT + 15 * 8);
+    assert!(size_of::<RearmRequest>() == 24);
     assert!(align_of::<ControllerStatus>() == 8);
     assert!(MAX_DOF >= 16);
 };
@@ -353,7 +468,12 @@ pub fn layouts() -> Vec<(&'static str, (usize, Vec<FieldOffset>))> {
                 chunks, joint_states, frames, rejected, last_inference_latency_ns,
                 lateness_p50_ns, lateness_p99_ns, lateness_max_ns, compute_p50_ns,
                 compute_p99_ns, compute_max_ns, joint_state_age_ns, hold_entries, stale_cameras,
-                command_publisher_id),
+                command_publisher_id, rearm_seq, state_reason, rearm_result, rearm_reason,
+                reserved),
+        ),
+        (
+            "RearmRequest",
+            layout_of!(RearmRequest; seq, publish_time_ns, reserved),
         ),
     ]
 }

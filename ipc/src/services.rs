@@ -94,6 +94,11 @@ impl Namespace {
     pub fn status(&self) -> String {
         format!("{}/status", self.0)
     }
+
+    /// `<ns>/rearm`
+    pub fn rearm(&self) -> String {
+        format!("{}/rearm", self.0)
+    }
     /// `<ns>/camera/<name>`
     pub fn camera(&self, camera: &str) -> String {
         format!("{}/camera/{}", self.0, camera)
@@ -171,6 +176,11 @@ typed_service!(
     status_service,
     ControllerStatus,
     "Opens (or creates) a controller status service."
+);
+typed_service!(
+    rearm_service,
+    RearmRequest,
+    "Opens (or creates) the re-arm request service."
 );
 
 /// Port factory of a camera service: `[u8]` pixels with a [`CameraFrameHeader`] user header.

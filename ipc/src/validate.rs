@@ -117,6 +117,8 @@ pub enum ValidationError {
     },
     #[error("frame has zero width or height")]
     EmptyFrame,
+    #[error("re-arm request with seq 0 or a non-zero reserved field")]
+    MalformedRearm,
     #[error("camera id {got}, expected {expected}")]
     WrongCamera { got: u32, expected: u32 },
     #[error("seq {got} does not follow {previous}")]
@@ -178,7 +180,9 @@ impl ValidationError {
             | ValidationError::StrideTooLarge { .. }
             | ValidationError::PayloadLength { .. }
             | ValidationError::EmptyFrame => RejectReason::FrameGeometry,
-            ValidationError::WrongCamera { .. } => RejectReason::Other,
+            ValidationError::WrongCamera { .. } | ValidationError::MalformedRearm => {
+                RejectReason::Other
+            }
             ValidationError::SeqNotIncreasing { .. }
             | ValidationError::TimeWentBackwards { .. } => RejectReason::OutOfOrder,
             ValidationError::FromFuture { .. } => RejectReason::FromFuture,
@@ -238,6 +242,31 @@ pub fn validate_joint_command(
     check_finite("position", &msg.position[..n])?;
     check_finite("velocity", &msg.velocity[..n])?;
     check_finite("acceleration", &msg.acceleration[..n])
+}
+
+/// Check of a re-arm request at `now_ns`: a non-zero `seq`, zero `reserved`, published at most
+/// [`REARM_MAX_AGE_NS`] ago and at most `max_future_ns` ahead of `now_ns`.
+pub fn validate_rearm(
+    msg: &RearmRequest,
+    now_ns: u64,
+    max_future_ns: u64,
+) -> Result<(), ValidationError> {
+    if msg.seq == 0 || msg.reserved != 0 {
+        return Err(ValidationError::MalformedRearm);
+    }
+    if msg.publish_time_ns > now_ns.saturating_add(max_future_ns) {
+        return Err(ValidationError::FromFuture {
+            ahead_ns: msg.publish_time_ns - now_ns,
+        });
+    }
+    let age_ns = now_ns.saturating_sub(msg.publish_time_ns);
+    if age_ns > REARM_MAX_AGE_NS {
+        return Err(ValidationError::Stale {
+            age_ns,
+            max_age_ns: REARM_MAX_AGE_NS,
+        });
+    }
+    Ok(())
 }
 
 /// Structural check of a camera frame header against its payload length and the configured
@@ -577,6 +606,37 @@ mod tests {
             n_dof: n,
             ..Default::default()
         }
+    }
+
+    #[test]
+    fn rearm_checks() {
+        let now = 10_000_000_000;
+        let ok = RearmRequest {
+            seq: 7,
+            publish_time_ns: now - 1_000,
+            reserved: 0,
+        };
+        assert_eq!(validate_rearm(&ok, now, 1_000_000), Ok(()));
+        let bad = |r: RearmRequest| validate_rearm(&r, now, 1_000_000).map_err(|e| e.reason());
+        assert_eq!(bad(RearmRequest { seq: 0, ..ok }), Err(RejectReason::Other));
+        assert_eq!(
+            bad(RearmRequest { reserved: 1, ..ok }),
+            Err(RejectReason::Other)
+        );
+        assert_eq!(
+            bad(RearmRequest {
+                publish_time_ns: now + 2_000_000,
+                ..ok
+            }),
+            Err(RejectReason::FromFuture)
+        );
+        assert_eq!(
+            bad(RearmRequest {
+                publish_time_ns: now - REARM_MAX_AGE_NS - 1,
+                ..ok
+            }),
+            Err(RejectReason::Stale)
+        );
     }
 
     #[test]

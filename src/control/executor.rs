@@ -90,6 +90,17 @@ pub struct TickReport {
     pub generator: OtgResult,
 }
 
+/// The answer to [`Executor::rearm`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Rearm {
+    /// FAULT → STARTING.
+    Accepted,
+    /// Not in FAULT (the state it is in).
+    NotInFault(State),
+    /// An input is still bad.
+    InputsBad(Reason),
+}
+
 /// Both ends the inference thread needs: where to send chunks, where to read requests, and
 /// where to say which cameras are stale.
 #[derive(Clone)]
@@ -160,6 +171,10 @@ pub struct Executor {
     state: State,
     initialized: bool,
     hold_since_ns: u64,
+    /// Reason of the last transition.
+    state_reason: Option<Reason>,
+    /// The problem the last tick saw (None: inputs good).
+    last_problem: Option<Reason>,
     chunks: VecDeque<Slot>,
     graveyard: Vec<ActionChunk>,
     had_chunk: bool,
@@ -298,6 +313,8 @@ impl Executor {
             state: State::Starting,
             initialized: false,
             hold_since_ns: 0,
+            state_reason: None,
+            last_problem: None,
             chunks: VecDeque::with_capacity(CHUNK_SLOTS),
             graveyard: Vec::with_capacity(GRAVEYARD),
             had_chunk: false,
@@ -363,16 +380,28 @@ impl Executor {
     }
 
     /// Leaves FAULT for STARTING (the generator is re-initialised from the next fresh joint
-    /// state). Does nothing in other states. Returns whether it re-armed.
-    pub fn rearm(&mut self, now_ns: u64) -> bool {
+    /// state; RUNNING follows once a chunk arrives and the inputs are good). Refused in any other
+    /// state, and while an input from outside is still bad at the last tick (joint state missing,
+    /// stale or not matching the robot, a stale camera): the reason says which. No allocation.
+    pub fn rearm(&mut self, now_ns: u64) -> Rearm {
         if self.state != State::Fault {
-            return false;
+            return Rearm::NotInFault(self.state);
+        }
+        if let Some(r @ (Reason::BadJointState | Reason::StaleJointState | Reason::StaleCamera)) =
+            self.last_problem
+        {
+            return Rearm::InputsBad(r);
         }
         self.transition(now_ns, State::Starting, Reason::Rearm);
         self.initialized = false;
         self.bad_input = None;
         self.outstanding_since = None;
-        true
+        Rearm::Accepted
+    }
+
+    /// Why the executor is in its current state (the reason of the last transition).
+    pub fn state_reason(&self) -> Option<Reason> {
+        self.state_reason
     }
 
     /// Records the timing of the tick just finished: scheduled for `scheduled_ns`, woke at
@@ -489,6 +518,7 @@ impl Executor {
         } else {
             None
         };
+        self.last_problem = problem;
 
         // Safety state machine.
         match self.state {
@@ -715,6 +745,7 @@ impl Executor {
             reason,
         });
         self.state = to;
+        self.state_reason = Some(reason);
     }
 
     fn dispose(&mut self, c: ActionChunk) {

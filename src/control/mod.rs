@@ -40,7 +40,7 @@ pub mod safety;
 pub mod scripted;
 pub mod timing;
 
-pub use executor::{Executor, ExecutorError, InferenceLink, Strategy, TickReport, Trigger};
+pub use executor::{Executor, ExecutorError, InferenceLink, Rearm, Strategy, TickReport, Trigger};
 pub use handoff::{channel, request_channel, ChunkReceiver, ChunkSender, RequestReceiver};
 pub use interp::{Interpolation, Sample};
 pub use metrics::{Smoothness, Trace};

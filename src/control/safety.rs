@@ -4,6 +4,7 @@
 //! STARTING ──fresh joint state + valid chunk──▶ RUNNING ──bad input──▶ HOLD ──hold_to_fault──▶ FAULT
 //!                                                  ▲                     │                       │
 //!                                                  └──── inputs good ────┘          rearm() ─────┘─▶ STARTING
+//!                                                                      (refused while an input is bad)
 //! ```
 //! Transitions are recorded (never logged) inside the tick, into a bounded lock-free ring that
 //! another thread drains ([`EventReader::drain`]) and logs.
@@ -72,23 +73,30 @@ pub enum Reason {
     Rearm,
 }
 
+impl Reason {
+    /// The `STATE_REASON_*` code published in the status.
+    pub fn code(self) -> u32 {
+        use chunkrt_ipc::*;
+        match self {
+            Self::InputsGood => STATE_REASON_INPUTS_GOOD,
+            Self::StaleJointState => STATE_REASON_STALE_JOINT_STATE,
+            Self::NoChunk => STATE_REASON_NO_CHUNK,
+            Self::StaleCamera => STATE_REASON_STALE_CAMERA,
+            Self::ChunkExpired => STATE_REASON_CHUNK_EXPIRED,
+            Self::NonFiniteAction => STATE_REASON_NON_FINITE_ACTION,
+            Self::BadChunk => STATE_REASON_BAD_CHUNK,
+            Self::Overruns => STATE_REASON_OVERRUNS,
+            Self::HoldTimeout => STATE_REASON_HOLD_TIMEOUT,
+            Self::BadJointState => STATE_REASON_BAD_JOINT_STATE,
+            Self::GeneratorError => STATE_REASON_GENERATOR_ERROR,
+            Self::Rearm => STATE_REASON_REARM,
+        }
+    }
+}
+
 impl std::fmt::Display for Reason {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let s = match self {
-            Self::InputsGood => "inputs good",
-            Self::StaleJointState => "joint state missing or stale",
-            Self::NoChunk => "no chunk yet",
-            Self::StaleCamera => "camera frames missing or stale",
-            Self::ChunkExpired => "chunk expired",
-            Self::NonFiniteAction => "non-finite action",
-            Self::BadChunk => "malformed chunk",
-            Self::Overruns => "streak of overruns",
-            Self::HoldTimeout => "too long in hold",
-            Self::BadJointState => "joint state does not match the robot",
-            Self::GeneratorError => "trajectory generator error",
-            Self::Rearm => "re-armed",
-        };
-        f.write_str(s)
+        f.write_str(chunkrt_ipc::state_reason_name(self.code()))
     }
 }
 

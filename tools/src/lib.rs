@@ -7,6 +7,7 @@ pub mod common;
 pub mod fake_camera;
 pub mod fake_robot;
 pub mod monitor;
+pub mod rearm;
 pub mod scene;
 pub mod shutdown;
 pub mod testing;

@@ -72,12 +72,19 @@ pub enum Kind {
 impl Kind {
     /// Recognises a publish-subscribe service by payload and user-header type names.
     pub fn from_type_names(payload: &str, user_header: &str) -> Self {
-        match (payload, user_header) {
-            ("chunkrt.JointState.v1", "()") => Kind::JointState,
-            ("chunkrt.JointCommand.v1", "()") => Kind::JointCommand,
-            ("chunkrt.ControllerStatus.v3", "()") => Kind::Status,
-            ("u8", "chunkrt.CameraFrameHeader.v1") => Kind::Camera,
-            _ => Kind::Unknown,
+        use chunkrt_ipc::{type_name_of, CameraFrameHeader, ControllerStatus};
+        // the contract's own type names (a new message version is recognised without an edit)
+        let plain = user_header == "()";
+        if plain && payload == type_name_of::<JointState>() {
+            Kind::JointState
+        } else if plain && payload == type_name_of::<JointCommand>() {
+            Kind::JointCommand
+        } else if plain && payload == type_name_of::<ControllerStatus>() {
+            Kind::Status
+        } else if payload == "u8" && user_header == type_name_of::<CameraFrameHeader>() {
+            Kind::Camera
+        } else {
+            Kind::Unknown
         }
     }
 
@@ -321,9 +328,10 @@ impl Watched {
                     st.record(s.origin().value(), m.seq, m.publish_time_ns, now, since);
                     let rejected: u64 = m.rejected.iter().sum();
                     st.last_value = format!(
-                        "state={} ticks={} overruns={} chunks={} rejected={rejected} \
+                        "state={} ({}) ticks={} overruns={} chunks={} rejected={rejected} \
                          late_p99_us={:.1} compute_p99_us={:.1} inference_ms={:.1}",
                         controller_state_name(m.state),
+                        chunkrt_ipc::state_reason_name(m.state_reason),
                         m.ticks,
                         m.overruns,
                         m.chunks,
@@ -487,6 +495,15 @@ mod tests {
         assert_eq!(
             Kind::from_type_names("chunkrt.JointState.v1", "()"),
             Kind::JointState
+        );
+        assert_eq!(
+            Kind::from_type_names("chunkrt.ControllerStatus.v4", "()"),
+            Kind::Status
+        );
+        assert_eq!(
+            Kind::from_type_names("chunkrt.ControllerStatus.v3", "()"),
+            Kind::Unknown,
+            "an old status version is not read as the current one"
         );
         assert_eq!(
             Kind::from_type_names("u8", "chunkrt.CameraFrameHeader.v1"),
