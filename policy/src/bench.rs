@@ -581,7 +581,11 @@ pub fn run_configs(
             }
         }
         if let Some(w) = worker.as_mut() {
+            // each program starts on idle cores: the other's worker threads (rayon's, OpenMP's)
+            // may still spin for a moment after its call
+            std::thread::sleep(std::time::Duration::from_millis(20));
             let (wall, cpu) = w.sample()?;
+            std::thread::sleep(std::time::Duration::from_millis(20));
             if round > 0 {
                 op_wall.push(wall);
                 op_cpu.push(cpu);
