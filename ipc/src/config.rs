@@ -372,6 +372,11 @@ pub struct ExecutionConfig {
     /// `crossfade`: blend window from the old to the new chunk (ms).
     #[serde(default = "default_crossfade_ms")]
     pub crossfade_ms: f64,
+    /// Tracking (1/s): the jerk-limited generator follows the executed chunk's velocity and
+    /// acceleration (its preview) plus this gain times the position error, instead of chasing
+    /// the chunk's state at the tick as a fixed target. 0: the fixed-target chase.
+    #[serde(default = "default_tracking_gain")]
+    pub tracking_gain: f64,
     /// `temporal_ensemble`: ACT's weight decay m (the i-th oldest chunk covering a time gets
     /// weight exp(-m·i)).
     #[serde(default = "default_ensemble_decay")]
@@ -415,6 +420,9 @@ fn default_hold_to_fault_ms() -> f64 {
 fn default_crossfade_ms() -> f64 {
     200.0
 }
+fn default_tracking_gain() -> f64 {
+    10.0
+}
 fn default_ensemble_decay() -> f64 {
     0.01
 }
@@ -451,6 +459,7 @@ impl Default for ExecutionConfig {
             interpolation: default_interpolation(),
             hold_to_fault_ms: default_hold_to_fault_ms(),
             crossfade_ms: default_crossfade_ms(),
+            tracking_gain: default_tracking_gain(),
             ensemble_decay: default_ensemble_decay(),
             trigger: default_trigger(),
             execute_horizon: default_execute_horizon(),
@@ -700,6 +709,7 @@ impl Config {
             3_600_000.0,
         )?;
         c.range("execution.crossfade_ms", e.crossfade_ms, 0.0, 10_000.0)?;
+        c.range("execution.tracking_gain", e.tracking_gain, 0.0, 200.0)?;
         c.range("execution.ensemble_decay", e.ensemble_decay, 0.0, 10.0)?;
         c.one_of("execution.trigger", &e.trigger, &["after_s", "continuous"])?;
         c.range(

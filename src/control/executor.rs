@@ -138,6 +138,7 @@ struct Settings {
     control_period_ns: u64,
     action_period_ns: u64,
     crossfade_ns: i64,
+    tracking_gain: f64,
     ensemble_decay: f64,
     s: usize,
     beta: f64,
@@ -271,6 +272,7 @@ impl Executor {
             control_period_ns: config.control_period_ns().max(1),
             action_period_ns: ((1e9 / config.policy.action_rate_hz).round() as u64).max(1),
             crossfade_ns: ms_to_ns(e.crossfade_ms) as i64,
+            tracking_gain: e.tracking_gain,
             ensemble_decay: e.ensemble_decay,
             s: e.execute_horizon.max(1),
             beta: e.guidance_beta,
@@ -591,9 +593,21 @@ impl Executor {
         }
 
         // Trajectory generator: track the target while RUNNING, brake otherwise.
+        //
+        // Tracking (`tracking_gain` > 0): the generator follows a velocity, the executed chunk's
+        // own velocity and acceleration (its preview) plus the gain times the command's
+        // position error; it never targets a fixed state, so it never has to loop back to hit
+        // a moving target "on time" (what a fixed-target chase does whenever the command is a
+        // hair behind and a bit slow). Without a gain, the chunk's state at the tick is the
+        // generator's position target.
         let running = self.state == State::Running;
         if running {
-            self.otg_in.control_interface = CONTROL_POSITION;
+            let gain = self.cfg.tracking_gain;
+            self.otg_in.control_interface = if gain > 0.0 {
+                CONTROL_VELOCITY
+            } else {
+                CONTROL_POSITION
+            };
             for j in 0..n {
                 let margin = 1e-9 * (self.cfg.pmax[j] - self.cfg.pmin[j]);
                 let (lo, hi) = (self.cfg.pmin[j] + margin, self.cfg.pmax[j] - margin);
@@ -604,12 +618,28 @@ impl Executor {
                 } else {
                     (self.target.velocity[j], self.target.acceleration[j])
                 };
+                // where the limit rule below measures from: the target (position interface) or
+                // the command itself (tracking)
+                let mut from = p;
+                if gain > 0.0 {
+                    from = self.otg_in.current_position[j].clamp(lo, hi);
+                    // proportional near the chunk; further out, no faster than the joint can
+                    // still brake to the error's end at half its acceleration (a large error
+                    // after a switch closes without overshoot)
+                    // (at a = a_max / 2, after ramping the acceleration at the jerk limit:
+                    // |e| = v²/2a + v·a/2j solved for v)
+                    let e = p - from;
+                    let (ab, jm) = (0.5 * self.cfg.amax[j], self.cfg.jmax[j]);
+                    let lag = ab * ab / (2.0 * jm);
+                    let brake = (lag * lag + 2.0 * ab * e.abs()).sqrt() - lag;
+                    v += (gain * e).clamp(-brake, brake);
+                }
                 // Towards a limit the target may only move as fast as the generator can still
                 // stop before it (|v| <= sqrt(2 · a_stop · distance left)); at the limit, not at
                 // all. Otherwise tracking a target that runs into a limit overshoots it.
                 let a_stop = 0.5 * self.cfg.amax[j];
-                let up = (2.0 * a_stop * (hi - p)).max(0.0).sqrt();
-                let down = (2.0 * a_stop * (p - lo)).max(0.0).sqrt();
+                let up = (2.0 * a_stop * (hi - from)).max(0.0).sqrt();
+                let down = (2.0 * a_stop * (from - lo)).max(0.0).sqrt();
                 if v >= up {
                     v = up;
                     a = a.min(0.0);
@@ -869,19 +899,24 @@ impl Executor {
                             == Coverage::Inside
                         {
                             let x = since as f64 / self.cfg.crossfade_ns as f64;
-                            let w = x * x * (3.0 - 2.0 * x); // smoothstep
-                            let dw = 6.0 * x * (1.0 - x) / (self.cfg.crossfade_ns as f64 * 1e-9);
+                            let period = self.cfg.crossfade_ns as f64 * 1e-9;
+                            // smoothstep w and its time derivatives
+                            let w = x * x * (3.0 - 2.0 * x);
+                            let dw = 6.0 * x * (1.0 - x) / period;
+                            let ddw = 6.0 * (1.0 - 2.0 * x) / (period * period);
                             let (t, p) = (&mut self.target, &self.scratch);
                             for j in 0..n {
                                 if step[j] {
                                     continue; // step channels come from the new chunk
                                 }
+                                // p + w·d with d = new − old, differentiated twice
                                 let d = t.position[j] - p.position[j];
+                                let dv = t.velocity[j] - p.velocity[j];
+                                let da = t.acceleration[j] - p.acceleration[j];
                                 t.position[j] = p.position[j] + w * d;
-                                t.velocity[j] =
-                                    p.velocity[j] + w * (t.velocity[j] - p.velocity[j]) + dw * d;
+                                t.velocity[j] = p.velocity[j] + w * dv + dw * d;
                                 t.acceleration[j] =
-                                    p.acceleration[j] + w * (t.acceleration[j] - p.acceleration[j]);
+                                    p.acceleration[j] + w * da + 2.0 * dw * dv + ddw * d;
                             }
                         }
                     }

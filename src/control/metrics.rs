@@ -40,6 +40,12 @@ pub struct Smoothness {
     pub tracking_rms: f64,
     /// Largest |command − reference|.
     pub tracking_max: f64,
+    /// RMS of command − target: how closely the command follows the executed chunk (the
+    /// interpolated, blended target it was generated from).
+    pub follow_rms: f64,
+    /// Largest |command − target| within [`LAG_WINDOW_S`] after a switch: the lag a switch
+    /// leaves behind.
+    pub max_lag_after_switch: f64,
     /// Number of switches seen.
     pub switches: usize,
 }
@@ -81,6 +87,9 @@ impl Trace {
 fn second_diff(x: &[[f64; MAX_DOF]], k: usize, j: usize) -> f64 {
     x[k][j] - 2.0 * x[k - 1][j] + x[k - 2][j]
 }
+
+/// How long after a switch its lag is looked for (s).
+pub const LAG_WINDOW_S: f64 = 0.3;
 
 /// Computes [`Smoothness`] of a trace.
 pub fn smoothness(tr: &Trace) -> Smoothness {
@@ -129,6 +138,27 @@ pub fn smoothness(tr: &Trace) -> Smoothness {
     }
     if cnt > 0 {
         m.tracking_rms = (sum / cnt as f64).sqrt();
+    }
+    let (mut sum, mut cnt) = (0.0, 0usize);
+    for (c, t) in tr.command.iter().zip(&tr.target) {
+        for j in joints() {
+            let e = c[j] - t[j];
+            sum += e * e;
+            cnt += 1;
+        }
+    }
+    if cnt > 0 {
+        m.follow_rms = (sum / cnt as f64).sqrt();
+    }
+    let window = (LAG_WINDOW_S / tr.dt).round() as usize;
+    for &s in &tr.switches {
+        for k in s..(s + window).min(tr.command.len()) {
+            for j in joints() {
+                m.max_lag_after_switch = m
+                    .max_lag_after_switch
+                    .max((tr.command[k][j] - tr.target[k][j]).abs());
+            }
+        }
     }
     m
 }
