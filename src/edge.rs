@@ -107,6 +107,27 @@ pub fn frame_freshness(cfg: &Config) -> Freshness {
     }
 }
 
+/// The next sample of `sub`; None when it is drained, or on a port error (counted and
+/// reported). No allocation.
+fn next_sample<T: std::fmt::Debug + iceoryx2::prelude::ZeroCopySend>(
+    sub: &Subscriber<Ipc, T, ()>,
+    counters: &Counters,
+    events: &EventRing,
+    source: Source,
+) -> Option<iceoryx2::sample::Sample<Ipc, T, ()>> {
+    match sub.receive() {
+        Ok(sample) => sample,
+        Err(_) => {
+            counters.receive_errors.fetch_add(1, Ordering::Relaxed);
+            let _ = events.push(EdgeEvent::PortError {
+                source,
+                publish: false,
+            });
+            None
+        }
+    }
+}
+
 /// Joint-state input: keeps the newest valid joint state.
 pub struct JointStateInput {
     sub: Subscriber<Ipc, JointState, ()>,
@@ -142,19 +163,7 @@ impl JointStateInput {
     /// after its wake-up as coming "from the future".
     pub fn poll(&mut self, counters: &Counters, events: &EventRing) -> usize {
         let mut accepted = 0;
-        loop {
-            let sample = match self.sub.receive() {
-                Ok(Some(s)) => s,
-                Ok(None) => break,
-                Err(_) => {
-                    counters.receive_errors.fetch_add(1, Ordering::Relaxed);
-                    let _ = events.push(EdgeEvent::PortError {
-                        source: Source::JointState,
-                        publish: false,
-                    });
-                    break;
-                }
-            };
+        while let Some(sample) = next_sample(&self.sub, counters, events, Source::JointState) {
             let now_ns = monotonic_ns();
             let msg: &JointState = sample.payload();
             let publisher = sample.header().publisher_id().value();
@@ -413,19 +422,7 @@ impl RearmInput {
     /// reported. No allocation.
     pub fn poll(&mut self, counters: &Counters, events: &EventRing) -> Option<u64> {
         let mut newest = None;
-        loop {
-            let sample = match self.sub.receive() {
-                Ok(Some(s)) => s,
-                Ok(None) => break,
-                Err(_) => {
-                    counters.receive_errors.fetch_add(1, Ordering::Relaxed);
-                    let _ = events.push(EdgeEvent::PortError {
-                        source: Source::Rearm,
-                        publish: false,
-                    });
-                    break;
-                }
-            };
+        while let Some(sample) = next_sample(&self.sub, counters, events, Source::Rearm) {
             let msg: &RearmRequest = sample.payload();
             match validate_rearm(msg, monotonic_ns(), self.max_future_ns) {
                 Ok(()) if msg.seq != self.last_seq => {

@@ -88,6 +88,28 @@ fn second_diff(x: &[[f64; MAX_DOF]], k: usize, j: usize) -> f64 {
     x[k][j] - 2.0 * x[k - 1][j] + x[k - 2][j]
 }
 
+/// RMS and largest |a − b| over the rows both have and the given joints ((0, 0) for none).
+fn rms_and_max<I: Iterator<Item = usize>>(
+    a: &[[f64; MAX_DOF]],
+    b: &[[f64; MAX_DOF]],
+    joints: impl Fn() -> I,
+) -> (f64, f64) {
+    let (mut sum, mut cnt, mut max) = (0.0, 0usize, 0.0f64);
+    for (x, y) in a.iter().zip(b) {
+        for j in joints() {
+            let e = x[j] - y[j];
+            sum += e * e;
+            cnt += 1;
+            max = max.max(e.abs());
+        }
+    }
+    if cnt == 0 {
+        (0.0, 0.0)
+    } else {
+        ((sum / cnt as f64).sqrt(), max)
+    }
+}
+
 /// How long after a switch its lag is looked for (s).
 pub const LAG_WINDOW_S: f64 = 0.3;
 
@@ -127,29 +149,8 @@ pub fn smoothness(tr: &Trace) -> Smoothness {
     if cnt > 0 {
         m.rms_jerk = (sum / cnt as f64).sqrt();
     }
-    let (mut sum, mut cnt) = (0.0, 0usize);
-    for (c, r) in tr.command.iter().zip(&tr.reference) {
-        for j in joints() {
-            let e = c[j] - r[j];
-            sum += e * e;
-            cnt += 1;
-            m.tracking_max = m.tracking_max.max(e.abs());
-        }
-    }
-    if cnt > 0 {
-        m.tracking_rms = (sum / cnt as f64).sqrt();
-    }
-    let (mut sum, mut cnt) = (0.0, 0usize);
-    for (c, t) in tr.command.iter().zip(&tr.target) {
-        for j in joints() {
-            let e = c[j] - t[j];
-            sum += e * e;
-            cnt += 1;
-        }
-    }
-    if cnt > 0 {
-        m.follow_rms = (sum / cnt as f64).sqrt();
-    }
+    (m.tracking_rms, m.tracking_max) = rms_and_max(&tr.command, &tr.reference, joints);
+    (m.follow_rms, _) = rms_and_max(&tr.command, &tr.target, joints);
     let window = (LAG_WINDOW_S / tr.dt).round() as usize;
     for &s in &tr.switches {
         for k in s..(s + window).min(tr.command.len()) {
