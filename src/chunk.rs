@@ -27,6 +27,10 @@ pub struct ActionChunk {
     pub actions: Vec<f64>,
     /// When the chunk became ready (monotonic ns).
     pub ready_ns: u64,
+    /// Future-state inference: the chunk continues from the state the robot was predicted to
+    /// reach this long after the observation, so its action 0 is for
+    /// `t_obs_ns + offset + start_shift_ns` (0: from the observation itself).
+    pub start_shift_ns: u64,
 }
 
 impl ActionChunk {
@@ -42,7 +46,11 @@ impl ActionChunk {
 
     /// Time action `k` is meant for.
     pub fn time_of(&self, k: usize, offset_ns: i64) -> u64 {
-        (self.t_obs_ns as i64 + offset_ns + k as i64 * self.period_ns as i64).max(0) as u64
+        (self.t_obs_ns as i64
+            + self.start_shift_ns as i64
+            + offset_ns
+            + k as i64 * self.period_ns as i64)
+            .max(0) as u64
     }
 
     /// Checks the chunk's shape and numbers before it reaches the control loop.
@@ -95,6 +103,7 @@ mod tests {
             n_dof,
             actions,
             ready_ns: 2_000,
+            start_shift_ns: 0,
         }
     }
 

@@ -159,10 +159,29 @@ impl PolicySource {
         request: &InferenceRequest,
     ) -> anyhow::Result<ActionChunk> {
         let n = self.n_dof.min(joint_state.n_dof as usize);
+        // Future-state inference (VLASH): the policy observes where the current chunk will have
+        // taken the robot when the new chunk lands (`prefix[d]`, d the estimated delay) and the
+        // new chunk starts there, so it continues the motion instead of restarting it from the
+        // stale measured state.
+        let shift = if request.future_state && request.horizon > 0 && request.n_dof >= n {
+            request.delay_steps.min(request.horizon - 1)
+        } else {
+            0
+        };
+        let measured = if request.future_state && request.horizon > 0 && request.n_dof >= n {
+            &request.prefix[shift][..n]
+        } else {
+            &joint_state.position[..n]
+        };
+        let start_shift_ns = if request.future_state && request.horizon > 0 {
+            (request.t_ref_ns + shift as u64 * request.period_ns).saturating_sub(t_obs_ns)
+        } else {
+            0
+        };
         // A step channel (a gripper) is open or closed: the policy sees it as one of its two
         // ends, as in its training data, not the in-between values a real gripper passes through.
         self.state.clear();
-        for (i, &v) in joint_state.position[..n].iter().enumerate() {
+        for (i, &v) in measured.iter().enumerate() {
             self.state
                 .push(match self.step_ends.get(i).copied().flatten() {
                     Some((lo, hi)) => {
@@ -186,11 +205,13 @@ impl PolicySource {
             let full_h = self.policy.horizon();
             self.prefix.clear();
             self.weights.clear();
+            // (with a future state the new chunk's action i is the old one's i + shift)
             for i in 0..full_h {
-                let row = &request.prefix[i.min(h - 1)];
+                let k = i + shift;
+                let row = &request.prefix[k.min(h - 1)];
                 self.prefix.extend_from_slice(&row[..n]);
-                self.weights.push(if i < h {
-                    request.weights[i] as f32
+                self.weights.push(if k < h {
+                    request.weights[k] as f32
                 } else {
                     0.0
                 });
@@ -214,6 +235,7 @@ impl PolicySource {
             n_dof: n,
             actions,
             ready_ns: monotonic_ns(),
+            start_shift_ns,
         };
         chunk.validate()?;
         Ok(chunk)

@@ -377,6 +377,11 @@ pub struct ExecutionConfig {
     /// the chunk's state at the tick as a fixed target. 0: the fixed-target chase.
     #[serde(default = "default_tracking_gain")]
     pub tracking_gain: f64,
+    /// Future-state inference (VLASH): the policy observes the joint state the current chunk
+    /// will have reached when the new chunk lands (rolled forward by the estimated delay), not
+    /// the measured one, and the new chunk continues from there.
+    #[serde(default)]
+    pub future_state: bool,
     /// `temporal_ensemble`: ACT's weight decay m (the i-th oldest chunk covering a time gets
     /// weight exp(-m·i)).
     #[serde(default = "default_ensemble_decay")]
@@ -460,6 +465,7 @@ impl Default for ExecutionConfig {
             hold_to_fault_ms: default_hold_to_fault_ms(),
             crossfade_ms: default_crossfade_ms(),
             tracking_gain: default_tracking_gain(),
+            future_state: false,
             ensemble_decay: default_ensemble_decay(),
             trigger: default_trigger(),
             execute_horizon: default_execute_horizon(),

@@ -139,6 +139,7 @@ struct Settings {
     action_period_ns: u64,
     crossfade_ns: i64,
     tracking_gain: f64,
+    future_state: bool,
     ensemble_decay: f64,
     s: usize,
     beta: f64,
@@ -273,6 +274,7 @@ impl Executor {
             action_period_ns: ((1e9 / config.policy.action_rate_hz).round() as u64).max(1),
             crossfade_ns: ms_to_ns(e.crossfade_ms) as i64,
             tracking_gain: e.tracking_gain,
+            future_state: e.future_state,
             ensemble_decay: e.ensemble_decay,
             s: e.execute_horizon.max(1),
             beta: e.guidance_beta,
@@ -822,10 +824,13 @@ impl Executor {
         self.outstanding_since = None;
         let now = now_ns as i64;
         let t0 = interp::start_ns(&chunk, self.cfg.offset_ns);
-        let age = (now - t0).max(0) as u64;
+        // the delay is counted from the observation, not from a future-state chunk's start
+        let age = (now - (chunk.t_obs_ns as i64 + self.cfg.offset_ns)).max(0) as u64;
         self.delay.observe(age.div_ceil(chunk.period_ns) as usize);
         self.last_inference_latency_ns = chunk.ready_ns.saturating_sub(chunk.t_obs_ns);
         let active_from = match self.cfg.strategy {
+            // a future-state chunk was made to start where the robot is when it lands: at once
+            _ if chunk.start_shift_ns > 0 => now.max(t0),
             Strategy::Replace | Strategy::Crossfade => {
                 let k = interp::first_due_at_or_after(&chunk, now, self.cfg.offset_ns);
                 t0 + k as i64 * chunk.period_ns as i64
@@ -979,9 +984,11 @@ impl Executor {
         let newest = self.chunks.back().map(|s| &s.chunk);
         let due = match (self.cfg.trigger, newest) {
             (Trigger::Continuous, _) | (_, None) => true,
+            // s actions after the newest chunk's observation (not after its start: a
+            // future-state chunk starts a delay later, and the next one would land too late)
             (Trigger::AfterS, Some(c)) => {
                 now_ns as i64
-                    >= interp::start_ns(c, self.cfg.offset_ns)
+                    >= interp::start_ns(c, self.cfg.offset_ns) - c.start_shift_ns as i64
                         + (self.cfg.s as i64) * c.period_ns as i64
             }
         };
@@ -1004,6 +1011,7 @@ impl Executor {
                     r.horizon = h;
                     r.period_ns = c.period_ns;
                     r.guided = cfg.strategy == Strategy::Rtc;
+                    r.future_state = cfg.future_state;
                     let mut s = Sample::default();
                     for i in 0..h {
                         let t = now_ns as i64 + i as i64 * c.period_ns as i64;
@@ -1016,6 +1024,7 @@ impl Executor {
                     r.horizon = 0;
                     r.period_ns = cfg.action_period_ns;
                     r.guided = false;
+                    r.future_state = false;
                 }
             }
         });

@@ -150,6 +150,7 @@ mod tests {
             n_dof: 1,
             actions: vec![0.0; 4],
             ready_ns: 0,
+            start_shift_ns: 0,
         }
     }
 

@@ -63,7 +63,7 @@ pub enum Coverage {
 /// Time of action 0 of `chunk` with execution offset `offset_ns`, as signed ns.
 #[inline]
 pub fn start_ns(chunk: &ActionChunk, offset_ns: i64) -> i64 {
-    chunk.t_obs_ns as i64 + offset_ns
+    chunk.t_obs_ns as i64 + chunk.start_shift_ns as i64 + offset_ns
 }
 
 /// Time of the last action of `chunk`, as signed ns.
@@ -194,6 +194,7 @@ mod tests {
             n_dof,
             actions,
             ready_ns: 1_000_000_000,
+            start_shift_ns: 0,
         }
     }
 

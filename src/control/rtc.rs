@@ -141,6 +141,10 @@ pub struct InferenceRequest {
     pub beta: f64,
     /// Whether the sampler should be guided (strategy `rtc` and a previous chunk exists).
     pub guided: bool,
+    /// Future-state inference (`execution.future_state`, VLASH): the policy should observe the
+    /// state `prefix[delay_steps]` (where the current chunk will have taken the robot when the
+    /// new chunk lands) instead of the measured one, and its chunk starts there.
+    pub future_state: bool,
     /// Y, row-major `[MAX_HORIZON][MAX_DOF]`; rows `..horizon`, columns `..n_dof` are used.
     pub prefix: [[f64; MAX_DOF]; MAX_HORIZON],
     /// W, `..horizon` used.
@@ -159,6 +163,7 @@ impl Default for InferenceRequest {
             delay_steps: 0,
             beta: 0.0,
             guided: false,
+            future_state: false,
             prefix: [[0.0; MAX_DOF]; MAX_HORIZON],
             weights: [0.0; MAX_HORIZON],
         }

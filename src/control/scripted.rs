@@ -150,6 +150,7 @@ impl ScriptedChunkSource {
             n_dof: n,
             actions,
             ready_ns: t_obs + self.cfg.latency_ns,
+            start_shift_ns: 0,
         });
     }
 

@@ -163,6 +163,7 @@ pub fn run_episode(
             out.chunks += 1;
             c.t_obs_ns = now;
             c.ready_ns = now + delay_ns;
+            // (a future-state chunk keeps its start shift: it was observed at `now` too)
             pending.push(c);
             link.requests.done(req);
         }
