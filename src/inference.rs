@@ -163,25 +163,22 @@ impl PolicySource {
         // taken the robot when the new chunk lands (`prefix[d]`, d the estimated delay) and the
         // new chunk starts there, so it continues the motion instead of restarting it from the
         // stale measured state.
-        let shift = if request.future_state && request.horizon > 0 && request.n_dof >= n {
-            request.delay_steps.min(request.horizon - 1)
+        let future = request.future_state && request.horizon > 0 && request.n_dof >= n;
+        let (shift, observed, start_shift_ns) = if future {
+            let shift = request.delay_steps.min(request.horizon - 1);
+            let start = request.t_ref_ns + shift as u64 * request.period_ns;
+            (
+                shift,
+                &request.prefix[shift][..n],
+                start.saturating_sub(t_obs_ns),
+            )
         } else {
-            0
-        };
-        let measured = if request.future_state && request.horizon > 0 && request.n_dof >= n {
-            &request.prefix[shift][..n]
-        } else {
-            &joint_state.position[..n]
-        };
-        let start_shift_ns = if request.future_state && request.horizon > 0 {
-            (request.t_ref_ns + shift as u64 * request.period_ns).saturating_sub(t_obs_ns)
-        } else {
-            0
+            (0, &joint_state.position[..n], 0)
         };
         // A step channel (a gripper) is open or closed: the policy sees it as one of its two
         // ends, as in its training data, not the in-between values a real gripper passes through.
         self.state.clear();
-        for (i, &v) in measured.iter().enumerate() {
+        for (i, &v) in observed.iter().enumerate() {
             self.state
                 .push(match self.step_ends.get(i).copied().flatten() {
                     Some((lo, hi)) => {

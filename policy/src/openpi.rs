@@ -5,7 +5,7 @@
 //! its own calls.
 
 use std::io::{BufRead, BufReader, Write};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 
 use super::PolicyError;
@@ -58,20 +58,16 @@ pub struct OpenpiWorker {
     stdout: BufReader<ChildStdout>,
     /// What the worker reported at start.
     pub info: OpenpiInfo,
-    _files: tempdir::TempFiles,
+    _files: TempFiles,
 }
 
-mod tempdir {
-    use std::path::PathBuf;
+/// Files removed on drop (the worker's script and configuration).
+struct TempFiles(Vec<PathBuf>);
 
-    /// Files removed on drop.
-    pub struct TempFiles(pub Vec<PathBuf>);
-
-    impl Drop for TempFiles {
-        fn drop(&mut self) {
-            for p in &self.0 {
-                let _ = std::fs::remove_file(p);
-            }
+impl Drop for TempFiles {
+    fn drop(&mut self) {
+        for p in &self.0 {
+            let _ = std::fs::remove_file(p);
         }
     }
 }
@@ -88,7 +84,7 @@ impl OpenpiWorker {
         let tag = format!("chunkrt-openpi-{}-{name}", std::process::id());
         let script = tmp.join(format!("{tag}.py"));
         let config = tmp.join(format!("{tag}.json"));
-        let files = tempdir::TempFiles(vec![script.clone(), config.clone()]);
+        let files = TempFiles(vec![script.clone(), config.clone()]);
         std::fs::write(&script, WORKER_PY)
             .map_err(|e| err(format!("{}: {e}", script.display())))?;
         std::fs::write(&config, json).map_err(|e| err(format!("{}: {e}", config.display())))?;
@@ -154,11 +150,6 @@ impl OpenpiWorker {
             (Some(w), Some(c)) => Ok((w.max(1), c.max(1))),
             _ => Err(err(format!("unexpected answer {v}"))),
         }
-    }
-
-    /// The worker script's path relative to the repository (for messages).
-    pub fn script_path() -> &'static Path {
-        Path::new("scripts/openpi_worker.py")
     }
 }
 
