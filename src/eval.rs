@@ -221,7 +221,7 @@ pub fn sweep(
             let mut c = cfg.clone();
             let sync = s == "sync";
             if !sync {
-                c.execution.strategy = s.clone();
+                c.execution.strategy = s.parse().map_err(anyhow::Error::msg)?;
             }
             // the executor's delay estimate starts at the injected delay
             c.execution.initial_delay_steps = d as usize;

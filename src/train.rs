@@ -633,7 +633,7 @@ pub fn validate(
     let mut c = cfg.clone();
     c.policy.checkpoint = Some(std::fs::canonicalize(dir)?);
     c.policy.kind = chunkrt_ipc::config::PolicyKind::Pi05;
-    c.execution.strategy = "replace".into();
+    c.execution.strategy = crate::config::Strategy::Replace;
     let mut policy = PolicySource::load(&c)?;
     let settings = SimSettings {
         delay_steps: 0,

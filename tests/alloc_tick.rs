@@ -18,7 +18,7 @@ const START_NS: u64 = 10_000_000_000;
 /// measured window (executor calls only) after `warmup` ticks.
 fn measure(strategy: &str, ticks: usize, warmup: usize) -> (u64, u64, [bool; 4]) {
     let mut cfg = Config::embedded_default();
-    cfg.execution.strategy = strategy.to_string();
+    cfg.execution.strategy = strategy.parse().expect("a strategy name");
     let mut exec = Executor::new(&cfg).expect("executor builds");
     let link = exec.connect();
     let mut src = ScriptedChunkSource::new(ScriptedConfig::demo(100_000_000, 0.05));

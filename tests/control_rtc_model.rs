@@ -26,7 +26,7 @@ fn run_with(
 ) -> (chunkrt::control::Smoothness, usize) {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/pi05_tiny.toml");
     let mut cfg = Config::load(std::path::Path::new(path)).unwrap();
-    cfg.execution.strategy = strategy.to_string();
+    cfg.execution.strategy = strategy.parse().expect("a strategy name");
     cfg.execution.future_state = future_state;
     let mut exec = Executor::new(&cfg).unwrap();
     let link = exec.connect();

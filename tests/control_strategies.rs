@@ -11,7 +11,7 @@ const START_NS: u64 = 10_000_000_000;
 
 fn config(strategy: &str) -> Config {
     let mut c = Config::embedded_default();
-    c.execution.strategy = strategy.to_string();
+    c.execution.strategy = strategy.parse().expect("a strategy name");
     c.validate("test").expect("valid test config");
     c
 }
@@ -36,8 +36,7 @@ fn run(strategy: &str, latency_ms: u64, jump: f64, seconds: f64) -> Outcome {
 }
 
 fn run_with(cfg: Config, latency_ms: u64, jump: f64, seconds: f64) -> Outcome {
-    let strategy = cfg.execution.strategy.clone();
-    let strategy = strategy.as_str();
+    let strategy = cfg.execution.strategy.name();
     let src = ScriptedConfig::demo(latency_ms * 1_000_000, jump);
     let mut sim = ScriptedSim::new(&cfg, src, START_NS).expect("executor builds");
     let ticks = (seconds * 1000.0) as usize;
@@ -200,8 +199,8 @@ fn tracking_with_the_preview_follows_the_chunk_closer_than_a_fixed_target_chase(
 #[test]
 fn linear_interpolation_and_continuous_trigger_also_hold_limits() {
     let mut cfg = config("crossfade");
-    cfg.execution.interpolation = "linear".into();
-    cfg.execution.trigger = "continuous".into();
+    cfg.execution.interpolation = chunkrt::config::Interpolation::Linear;
+    cfg.execution.trigger = chunkrt::config::Trigger::Continuous;
     let mut sim = ScriptedSim::new(&cfg, ScriptedConfig::demo(60_000_000, 0.02), START_NS)
         .expect("executor builds");
     sim.run(3000);

@@ -11,7 +11,7 @@ const START_NS: u64 = 10_000_000_000;
 
 fn sim(hold_to_fault_ms: f64) -> (Config, ScriptedSim) {
     let mut c = Config::embedded_default();
-    c.execution.strategy = "rtc".into();
+    c.execution.strategy = chunkrt::config::Strategy::Rtc;
     c.execution.hold_to_fault_ms = hold_to_fault_ms;
     c.validate("test").expect("valid test config");
     let s = ScriptedSim::new(&c, ScriptedConfig::demo(80_000_000, 0.02), START_NS)

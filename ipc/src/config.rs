@@ -171,57 +171,131 @@ impl CameraConfig {
     }
 }
 
-/// `policy.kind`: which chunk source feeds the control loop.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum PolicyKind {
-    /// No policy: the controller holds the robot where it is.
-    #[default]
-    Hold,
-    /// π0.
-    Pi0,
-    /// π0.5.
-    Pi05,
-}
-
-impl PolicyKind {
-    /// The name in the configuration.
-    pub fn name(&self) -> &'static str {
-        match self {
-            PolicyKind::Hold => "hold",
-            PolicyKind::Pi0 => "pi0",
-            PolicyKind::Pi05 => "pi05",
+/// An enum of the configuration: serde by its TOML names (an unknown value is a load error that
+/// lists the allowed set), `name()`, `Display`, and `FromStr` with the allowed set in the error.
+macro_rules! config_enum {
+    (
+        $(#[$m:meta])*
+        pub enum $name:ident ($what:literal) {
+            $( $(#[$vm:meta])* $var:ident = $s:literal, )+
         }
-    }
-}
-
-impl std::fmt::Display for PolicyKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl std::str::FromStr for PolicyKind {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "hold" => Ok(PolicyKind::Hold),
-            "pi0" => Ok(PolicyKind::Pi0),
-            "pi05" => Ok(PolicyKind::Pi05),
-            _ => Err(format!("policy kind {s:?}: must be one of hold, pi0, pi05")),
+    ) => {
+        $(#[$m])*
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+        pub enum $name {
+            $( $(#[$vm])* #[serde(rename = $s)] $var, )+
         }
+
+        impl $name {
+            /// Every value, in the order the documentation lists them.
+            pub const ALL: &'static [$name] = &[$($name::$var),+];
+
+            /// The name in the configuration.
+            pub fn name(&self) -> &'static str {
+                match self {
+                    $( $name::$var => $s, )+
+                }
+            }
+
+            /// The allowed names, comma-separated (for errors and help).
+            pub fn allowed() -> String {
+                [$($s),+].join(", ")
+            }
+        }
+
+        impl std::fmt::Display for $name {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str(self.name())
+            }
+        }
+
+        impl std::str::FromStr for $name {
+            type Err = String;
+            fn from_str(s: &str) -> Result<Self, String> {
+                match s {
+                    $( $s => Ok($name::$var), )+
+                    _ => Err(format!("{} {s:?}: must be one of {}", $what, Self::allowed())),
+                }
+            }
+        }
+    };
+}
+
+config_enum! {
+    /// `policy.kind`: which chunk source feeds the control loop.
+    pub enum PolicyKind ("policy kind") {
+        /// No policy: the controller holds the robot where it is.
+        #[default]
+        Hold = "hold",
+        /// π0.
+        Pi0 = "pi0",
+        /// π0.5.
+        Pi05 = "pi05",
     }
 }
 
-/// `policy.precision`: the arithmetic of the model's matrix products.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum PolicyPrecision {
-    /// f32 (the reference the parity tests hold to openpi).
-    #[default]
-    F32,
-    /// bf16 inputs with f32 accumulation (CPU: AMX / AVX512-BF16 kernels; GPU: bf16 tensors).
-    Bf16,
+config_enum! {
+    /// `policy.precision`: the arithmetic of the model's matrix products.
+    pub enum PolicyPrecision ("precision") {
+        /// f32 (the reference the parity tests hold to openpi).
+        #[default]
+        F32 = "f32",
+        /// bf16 inputs with f32 accumulation (CPU: AMX / AVX512-BF16 kernels; GPU: bf16 tensors).
+        Bf16 = "bf16",
+    }
+}
+
+config_enum! {
+    /// `execution.strategy`: how consecutive chunks take over from each other.
+    pub enum Strategy ("strategy") {
+        /// Switch at the first action of the new chunk that is not yet due.
+        Replace = "replace",
+        /// Blend old → new over `crossfade_ms`, starting where `Replace` would switch.
+        Crossfade = "crossfade",
+        /// ACT's temporal ensemble: exponentially weighted average of every chunk covering now.
+        TemporalEnsemble = "temporal_ensemble",
+        /// Real-time chunking: switch at once, at the index real time has reached; the sampler
+        /// is guided towards the actions still to be executed.
+        #[default]
+        Rtc = "rtc",
+    }
+}
+
+config_enum! {
+    /// `execution.interpolation` between a chunk's actions.
+    pub enum Interpolation ("interpolation") {
+        /// Velocity-continuous cubic Hermite.
+        #[default]
+        Cubic = "cubic",
+        /// Piecewise linear.
+        Linear = "linear",
+    }
+}
+
+config_enum! {
+    /// `execution.trigger`: when the next inference is requested.
+    pub enum Trigger ("trigger") {
+        /// Once `execute_horizon` actions of the newest chunk are due.
+        #[default]
+        AfterS = "after_s",
+        /// As soon as the previous inference landed.
+        Continuous = "continuous",
+    }
+}
+
+config_enum! {
+    /// `execution.rtc_schedule`: RTC's soft-mask schedule between d and H − s.
+    pub enum Schedule ("rtc schedule") {
+        /// The paper's exponential decay `c (e^c − 1)/(e − 1)`.
+        #[default]
+        Exp = "exp",
+        /// Linear decay `c`.
+        Linear = "linear",
+        /// 1 everywhere before H − s (hard prefix over the whole overlap).
+        Ones = "ones",
+        /// 0 from d on (hard prefix of d actions only).
+        Zeros = "zeros",
+    }
 }
 
 /// `policy.device`: `"cpu"`, `"cuda"` (GPU 0) or `"cuda:N"`.
@@ -358,14 +432,14 @@ impl Default for PolicyConfig {
 #[serde(deny_unknown_fields)]
 pub struct ExecutionConfig {
     /// `replace`, `crossfade`, `temporal_ensemble` or `rtc`.
-    #[serde(default = "default_strategy")]
-    pub strategy: String,
+    #[serde(default)]
+    pub strategy: Strategy,
     /// Execution offset added to every action time (ms; see `chunk`).
     #[serde(default)]
     pub offset_ms: f64,
     /// `cubic` (velocity-continuous Hermite) or `linear`.
-    #[serde(default = "default_interpolation")]
-    pub interpolation: String,
+    #[serde(default)]
+    pub interpolation: Interpolation,
     /// Time in HOLD before FAULT (ms).
     #[serde(default = "default_hold_to_fault_ms")]
     pub hold_to_fault_ms: f64,
@@ -388,8 +462,8 @@ pub struct ExecutionConfig {
     pub ensemble_decay: f64,
     /// Inference trigger: `after_s` (start the next inference once `execute_horizon` actions of
     /// the newest chunk are due) or `continuous` (start it as soon as the previous one landed).
-    #[serde(default = "default_trigger")]
-    pub trigger: String,
+    #[serde(default)]
+    pub trigger: Trigger,
     /// s: actions of a chunk executed before the next inference starts.
     #[serde(default = "default_execute_horizon")]
     pub execute_horizon: usize,
@@ -403,8 +477,8 @@ pub struct ExecutionConfig {
     #[serde(default = "default_guidance_beta")]
     pub guidance_beta: f64,
     /// `rtc`: soft-mask schedule between d and H − s: `exp` (the paper's), `linear`, `ones`, `zeros`.
-    #[serde(default = "default_rtc_schedule")]
-    pub rtc_schedule: String,
+    #[serde(default)]
+    pub rtc_schedule: Schedule,
     /// Consecutive overrunning ticks that put the controller in HOLD.
     #[serde(default = "default_overrun_streak")]
     pub overrun_streak: u32,
@@ -413,12 +487,6 @@ pub struct ExecutionConfig {
     pub inference_timeout_ms: f64,
 }
 
-fn default_strategy() -> String {
-    "rtc".to_string()
-}
-fn default_interpolation() -> String {
-    "cubic".to_string()
-}
 fn default_hold_to_fault_ms() -> f64 {
     10_000.0
 }
@@ -430,9 +498,6 @@ fn default_tracking_gain() -> f64 {
 }
 fn default_ensemble_decay() -> f64 {
     0.01
-}
-fn default_trigger() -> String {
-    "after_s".to_string()
 }
 fn default_execute_horizon() -> usize {
     25
@@ -446,9 +511,6 @@ fn default_initial_delay_steps() -> usize {
 fn default_guidance_beta() -> f64 {
     5.0
 }
-fn default_rtc_schedule() -> String {
-    "exp".to_string()
-}
 fn default_overrun_streak() -> u32 {
     10
 }
@@ -459,20 +521,20 @@ fn default_inference_timeout_ms() -> f64 {
 impl Default for ExecutionConfig {
     fn default() -> Self {
         Self {
-            strategy: default_strategy(),
+            strategy: Default::default(),
             offset_ms: 0.0,
-            interpolation: default_interpolation(),
+            interpolation: Default::default(),
             hold_to_fault_ms: default_hold_to_fault_ms(),
             crossfade_ms: default_crossfade_ms(),
             tracking_gain: default_tracking_gain(),
             future_state: false,
             ensemble_decay: default_ensemble_decay(),
-            trigger: default_trigger(),
+            trigger: Default::default(),
             execute_horizon: default_execute_horizon(),
             delay_buffer: default_delay_buffer(),
             initial_delay_steps: default_initial_delay_steps(),
             guidance_beta: default_guidance_beta(),
-            rtc_schedule: default_rtc_schedule(),
+            rtc_schedule: Default::default(),
             overrun_streak: default_overrun_streak(),
             inference_timeout_ms: default_inference_timeout_ms(),
         }
@@ -697,17 +759,7 @@ impl Config {
             )?;
         }
         let e = &self.execution;
-        c.one_of(
-            "execution.strategy",
-            &e.strategy,
-            &["replace", "crossfade", "temporal_ensemble", "rtc"],
-        )?;
         c.range("execution.offset_ms", e.offset_ms, -1000.0, 1000.0)?;
-        c.one_of(
-            "execution.interpolation",
-            &e.interpolation,
-            &["cubic", "linear"],
-        )?;
         c.range(
             "execution.hold_to_fault_ms",
             e.hold_to_fault_ms,
@@ -717,7 +769,6 @@ impl Config {
         c.range("execution.crossfade_ms", e.crossfade_ms, 0.0, 10_000.0)?;
         c.range("execution.tracking_gain", e.tracking_gain, 0.0, 200.0)?;
         c.range("execution.ensemble_decay", e.ensemble_decay, 0.0, 10.0)?;
-        c.one_of("execution.trigger", &e.trigger, &["after_s", "continuous"])?;
         c.range(
             "execution.execute_horizon",
             e.execute_horizon as f64,
@@ -732,11 +783,6 @@ impl Config {
             1000.0,
         )?;
         c.range("execution.guidance_beta", e.guidance_beta, 0.0, 1000.0)?;
-        c.one_of(
-            "execution.rtc_schedule",
-            &e.rtc_schedule,
-            &["exp", "linear", "ones", "zeros"],
-        )?;
         c.range(
             "execution.overrun_streak",
             e.overrun_streak as f64,
@@ -824,8 +870,9 @@ mod tests {
         })
         .unwrap_err()
         .to_string();
+        // serde names the line, the key and the allowed set
         assert!(
-            e.contains("execution.strategy") && e.contains("crossfade"),
+            e.contains("strategy") && e.contains("magic") && e.contains("temporal_ensemble"),
             "{e}"
         );
     }

@@ -11,25 +11,7 @@ use chunkrt_ipc::MAX_DOF;
 
 use crate::chunk::ActionChunk;
 
-/// Interpolation between the actions of a chunk.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Interpolation {
-    /// Velocity-continuous cubic Hermite.
-    Cubic,
-    /// Piecewise linear.
-    Linear,
-}
-
-impl Interpolation {
-    /// Parses a config name (`cubic`, `linear`).
-    pub fn parse(name: &str) -> Option<Self> {
-        match name {
-            "cubic" => Some(Self::Cubic),
-            "linear" => Some(Self::Linear),
-            _ => None,
-        }
-    }
-}
+pub use chunkrt_ipc::config::Interpolation;
 
 /// Position, velocity and acceleration of every joint at one instant.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -35,9 +35,13 @@ pub mod handoff;
 pub mod interp;
 pub mod metrics;
 pub mod otg;
+mod request;
 pub mod rtc;
 pub mod safety;
 pub mod scripted;
+mod shaping;
+mod strategy;
+mod timeline;
 pub mod timing;
 
 pub use executor::{Executor, ExecutorError, InferenceLink, Rearm, Strategy, TickReport, Trigger};

@@ -16,31 +16,7 @@ use chunkrt_ipc::MAX_DOF;
 /// Largest chunk horizon a request can carry.
 pub const MAX_HORIZON: usize = 128;
 
-/// Shape of the soft mask between d and H − s.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Schedule {
-    /// The paper's exponential decay `c (e^c − 1)/(e − 1)`.
-    Exp,
-    /// Linear decay `c`.
-    Linear,
-    /// 1 everywhere before H − s (hard prefix over the whole overlap).
-    Ones,
-    /// 0 from d on (hard prefix of d actions only).
-    Zeros,
-}
-
-impl Schedule {
-    /// Parses a config name (`exp`, `linear`, `ones`, `zeros`).
-    pub fn parse(name: &str) -> Option<Self> {
-        match name {
-            "exp" => Some(Self::Exp),
-            "linear" => Some(Self::Linear),
-            "ones" => Some(Self::Ones),
-            "zeros" => Some(Self::Zeros),
-            _ => None,
-        }
-    }
-}
+pub use chunkrt_ipc::config::Schedule;
 
 /// Writes the guidance weights W_0..W_{H−1} into `out[..h]` (pure; no allocation).
 /// `d` and `s` are clamped so that `d ≤ H − s` holds.
@@ -223,8 +199,8 @@ mod tests {
         assert_eq!(&w[..3], &[1.0, 1.0, 0.0]);
         guidance_weights(10, 2, 2, Schedule::Linear, &mut w);
         assert!((w[2] - 6.0 / 7.0).abs() < 1e-12);
-        assert_eq!(Schedule::parse("exp"), Some(Schedule::Exp));
-        assert_eq!(Schedule::parse("nope"), None);
+        assert_eq!("exp".parse(), Ok(Schedule::Exp));
+        assert!("nope".parse::<Schedule>().is_err());
     }
 
     #[test]

@@ -1,4 +1,5 @@
-//! The safety state machine's vocabulary and its preallocated event ring.
+//! The safety state machine ([`Safety`]: the state, its transitions and why), its vocabulary,
+//! and its preallocated event ring.
 //!
 //! ```text
 //! STARTING ──fresh joint state + valid chunk──▶ RUNNING ──bad input──▶ HOLD ──hold_to_fault──▶ FAULT
@@ -6,6 +7,9 @@
 //!                                                  └──── inputs good ────┘          rearm() ─────┘─▶ STARTING
 //!                                                                      (refused while an input is bad)
 //! ```
+//! Owns: the state and every transition. Must not depend on: chunks, ruckig, IPC (the executor
+//! tells it the tick's worst input problem and whether the generator is ready).
+//!
 //! Transitions are recorded (never logged) inside the tick, into a bounded lock-free ring that
 //! another thread drains ([`EventReader::drain`]) and logs.
 
@@ -126,6 +130,129 @@ impl std::fmt::Display for Event {
     }
 }
 
+/// The answer to a re-arm request ([`crate::control::Executor::rearm`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Rearm {
+    /// FAULT → STARTING.
+    Accepted,
+    /// Not in FAULT (the state it is in).
+    NotInFault(State),
+    /// An input is still bad.
+    InputsBad(Reason),
+}
+
+/// The safety state machine (see the module documentation). No allocation after `new`.
+pub(crate) struct Safety {
+    state: State,
+    /// Reason of the last transition.
+    reason: Option<Reason>,
+    hold_since_ns: u64,
+    hold_to_fault_ns: u64,
+    hold_entries: u64,
+    events: EventWriter,
+    reader: EventReader,
+}
+
+impl Safety {
+    /// STARTING; HOLD turns into FAULT after `hold_to_fault_ns`.
+    pub fn new(hold_to_fault_ns: u64) -> Self {
+        let (events, reader) = event_ring(1024);
+        Self {
+            state: State::Starting,
+            reason: None,
+            hold_since_ns: 0,
+            hold_to_fault_ns,
+            hold_entries: 0,
+            events,
+            reader,
+        }
+    }
+
+    pub fn state(&self) -> State {
+        self.state
+    }
+
+    /// Why the machine is in its state (the reason of the last transition).
+    pub fn reason(&self) -> Option<Reason> {
+        self.reason
+    }
+
+    /// Times HOLD was entered.
+    pub fn hold_entries(&self) -> u64 {
+        self.hold_entries
+    }
+
+    /// Reader of the transition events.
+    pub fn events(&self) -> EventReader {
+        self.reader.clone()
+    }
+
+    /// One tick's transition. `problem`: the worst input problem this tick (None: inputs good;
+    /// [`Reason::BadJointState`] is unrecoverable); `ready`: the generator has a state to move
+    /// from. Returns the state left, if the state changed.
+    pub fn step(&mut self, now_ns: u64, problem: Option<Reason>, ready: bool) -> Option<State> {
+        let from = self.state;
+        match (self.state, problem) {
+            (State::Fault, _) => {}
+            (_, Some(Reason::BadJointState)) => {
+                self.transition(now_ns, State::Fault, Reason::BadJointState)
+            }
+            (State::Starting, None) if ready => {
+                self.transition(now_ns, State::Running, Reason::InputsGood)
+            }
+            (State::Starting, _) => {}
+            (State::Running, Some(r)) => self.transition(now_ns, State::Hold, r),
+            (State::Running, None) => {}
+            (State::Hold, _)
+                if now_ns.saturating_sub(self.hold_since_ns) >= self.hold_to_fault_ns =>
+            {
+                self.transition(now_ns, State::Fault, Reason::HoldTimeout)
+            }
+            (State::Hold, None) => self.transition(now_ns, State::Running, Reason::InputsGood),
+            (State::Hold, Some(_)) => {}
+        }
+        (self.state != from).then_some(from)
+    }
+
+    /// An unrecoverable problem outside the inputs (the generator failed): FAULT.
+    pub fn fault(&mut self, now_ns: u64, reason: Reason) {
+        self.transition(now_ns, State::Fault, reason);
+    }
+
+    /// FAULT → STARTING, unless not in FAULT or `last_problem` (the last tick's input problem)
+    /// is one the robot's side must fix first.
+    pub fn rearm(&mut self, now_ns: u64, last_problem: Option<Reason>) -> Rearm {
+        if self.state != State::Fault {
+            return Rearm::NotInFault(self.state);
+        }
+        if let Some(r @ (Reason::BadJointState | Reason::StaleJointState | Reason::StaleCamera)) =
+            last_problem
+        {
+            return Rearm::InputsBad(r);
+        }
+        self.transition(now_ns, State::Starting, Reason::Rearm);
+        Rearm::Accepted
+    }
+
+    fn transition(&mut self, now_ns: u64, to: State, reason: Reason) {
+        if to == self.state {
+            return;
+        }
+        if to == State::Hold {
+            self.hold_entries += 1;
+            self.hold_since_ns = now_ns;
+        }
+        self.events.record(Event {
+            t_ns: now_ns,
+            from: self.state,
+            to,
+            reason,
+        });
+        self.state = to;
+        self.reason = Some(reason);
+    }
+}
+
 struct Ring {
     q: ArrayQueue<Event>,
     dropped: AtomicU64,
@@ -178,6 +305,56 @@ impl EventReader {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn machine_moves_only_on_the_documented_edges() {
+        let mut m = Safety::new(1_000);
+        // STARTING waits for the generator and good inputs
+        assert_eq!(m.step(0, None, false), None);
+        assert_eq!(m.step(1, Some(Reason::NoChunk), true), None);
+        assert_eq!(m.step(2, None, true), Some(State::Starting));
+        assert_eq!(m.state(), State::Running);
+        // RUNNING → HOLD on any recoverable problem, counted, with the reason
+        assert_eq!(
+            m.step(3, Some(Reason::StaleCamera), true),
+            Some(State::Running)
+        );
+        assert_eq!(
+            (m.state(), m.reason()),
+            (State::Hold, Some(Reason::StaleCamera))
+        );
+        assert_eq!(m.hold_entries(), 1);
+        // HOLD → RUNNING when the inputs are good again, → FAULT after hold_to_fault
+        assert_eq!(m.step(4, None, true), Some(State::Hold));
+        m.step(10, Some(Reason::ChunkExpired), true);
+        assert_eq!(m.step(500, Some(Reason::ChunkExpired), true), None);
+        assert_eq!(
+            m.step(1_010, Some(Reason::ChunkExpired), true),
+            Some(State::Hold)
+        );
+        assert_eq!(
+            (m.state(), m.reason()),
+            (State::Fault, Some(Reason::HoldTimeout))
+        );
+        // FAULT stays FAULT whatever the inputs; re-arm is refused while an input is bad
+        assert_eq!(m.step(1_011, None, true), None);
+        assert_eq!(
+            m.rearm(1_012, Some(Reason::StaleJointState)),
+            Rearm::InputsBad(Reason::StaleJointState)
+        );
+        assert_eq!(m.rearm(1_013, Some(Reason::ChunkExpired)), Rearm::Accepted);
+        assert_eq!(m.state(), State::Starting);
+        assert_eq!(m.rearm(1_014, None), Rearm::NotInFault(State::Starting));
+        // a joint state of the wrong robot is unrecoverable from any state but FAULT
+        assert_eq!(
+            m.step(1_015, Some(Reason::BadJointState), false),
+            Some(State::Starting)
+        );
+        assert_eq!(m.state(), State::Fault);
+        let mut events = Vec::new();
+        m.events().drain(|e| events.push((e.from, e.to)));
+        assert_eq!(events.len(), 7, "{events:?}");
+    }
 
     #[test]
     fn ring_keeps_order_and_counts_drops() {

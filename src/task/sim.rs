@@ -86,7 +86,7 @@ pub fn run_episode(
     let other = spec.color.other();
     let mut cfg = cfg.clone();
     if settings.synchronous {
-        cfg.execution.strategy = "replace".into();
+        cfg.execution.strategy = crate::config::Strategy::Replace;
     }
     let mut exec = Executor::new(&cfg)?;
     let link = exec.connect();

@@ -1,0 +1,120 @@
+//! The inference trigger: decides at each tick whether the next inference starts, and fills the
+//! request (for `rtc`: the actions still to be executed and the guidance weights).
+//!
+//! Owns: the request hand-off's sending end and the outstanding request. Must not depend on:
+//! the safety state machine, ruckig, IPC.
+
+use chunkrt_ipc::config::{Config, Schedule, Trigger};
+
+use super::handoff::RequestSender;
+use super::interp::Sample;
+use super::rtc::{guidance_weights, MAX_HORIZON};
+use super::strategy::Sampling;
+use crate::chunk::ActionChunk;
+
+pub(crate) struct Requests {
+    tx: RequestSender,
+    trigger: Trigger,
+    schedule: Schedule,
+    /// s: actions of a chunk executed before the next inference starts.
+    s: usize,
+    beta: f64,
+    future_state: bool,
+    action_period_ns: u64,
+    timeout_ns: u64,
+    /// When the request in flight was published (None: none in flight).
+    outstanding_since: Option<u64>,
+    next_id: u64,
+}
+
+impl Requests {
+    /// The trigger of `config.execution`, publishing into `tx`.
+    pub fn new(config: &Config, tx: RequestSender) -> Self {
+        let e = &config.execution;
+        Self {
+            tx,
+            trigger: e.trigger,
+            schedule: e.rtc_schedule,
+            s: e.execute_horizon.max(1),
+            beta: e.guidance_beta,
+            future_state: e.future_state,
+            action_period_ns: ((1e9 / config.policy.action_rate_hz).round() as u64).max(1),
+            timeout_ns: (e.inference_timeout_ms * 1e6).max(0.0).round() as u64,
+            outstanding_since: None,
+            next_id: 1,
+        }
+    }
+
+    /// The request in flight was answered (a chunk arrived) or is void (re-arm).
+    pub fn landed(&mut self) {
+        self.outstanding_since = None;
+    }
+
+    /// Publishes the next request if it is due at `now_ns`: none in flight (or the one in
+    /// flight timed out) and the trigger says so. `newest`: the newest chunk received; `d`: the
+    /// delay estimate; `guided`: the strategy wants RTC guidance. True if published.
+    pub fn maybe_request(
+        &mut self,
+        now_ns: u64,
+        newest: Option<&ActionChunk>,
+        d: usize,
+        guided: bool,
+        sampling: &Sampling,
+    ) -> bool {
+        if let Some(t) = self.outstanding_since {
+            if now_ns.saturating_sub(t) < self.timeout_ns {
+                return false;
+            }
+            self.outstanding_since = None;
+        }
+        let due = match (self.trigger, newest) {
+            (Trigger::Continuous, _) | (_, None) => true,
+            // s actions after the newest chunk's observation (not after its start: a
+            // future-state chunk starts a delay later, and the next one would land too late)
+            (Trigger::AfterS, Some(c)) => {
+                now_ns as i64
+                    >= super::interp::start_ns(c, sampling.offset_ns) - c.start_shift_ns as i64
+                        + (self.s as i64) * c.period_ns as i64
+            }
+        };
+        if !due {
+            return false;
+        }
+        let id = self.next_id;
+        let published = self.tx.publish(|r| {
+            r.id = id;
+            r.t_ref_ns = now_ns;
+            r.n_dof = sampling.n;
+            r.execute_horizon = self.s;
+            r.delay_steps = d;
+            r.beta = self.beta;
+            match newest {
+                Some(c) => {
+                    let h = c.horizon().min(MAX_HORIZON);
+                    r.horizon = h;
+                    r.period_ns = c.period_ns;
+                    r.guided = guided;
+                    r.future_state = self.future_state;
+                    let mut s = Sample::default();
+                    for i in 0..h {
+                        let t = now_ns as i64 + i as i64 * c.period_ns as i64;
+                        sampling.sample(c, t, &mut s);
+                        r.prefix[i][..sampling.n].copy_from_slice(&s.position[..sampling.n]);
+                    }
+                    guidance_weights(h, self.s, d, self.schedule, &mut r.weights);
+                }
+                None => {
+                    r.horizon = 0;
+                    r.period_ns = self.action_period_ns;
+                    r.guided = false;
+                    r.future_state = false;
+                }
+            }
+        });
+        if published {
+            self.next_id += 1;
+            self.outstanding_since = Some(now_ns);
+        }
+        published
+    }
+}
