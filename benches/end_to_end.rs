@@ -1,8 +1,8 @@
 //! `cargo bench --bench end_to_end [-- --quick] [--small]`: fake camera + simulated robot +
 //! controller with the real model (the π0.5 bench configuration, random weights; `--small`: the
-//! committed reach policy) as processes over iceoryx2. See `chunkrt::bench::end_to_end`.
+//! committed reach policy) as processes over iceoryx2. See `chunkrt_bench::end_to_end`.
 
-use chunkrt::bench::end_to_end::{self, Options};
+use chunkrt_bench::end_to_end::{self, Options};
 
 fn main() {
     let small = std::env::args().any(|a| a == "--small");
@@ -10,7 +10,7 @@ fn main() {
         .skip(1)
         .filter(|a| a != "--small")
         .collect::<Vec<_>>();
-    let result = chunkrt::bench::BenchOpts::from_args("end_to_end", args).and_then(|b| {
+    let result = chunkrt_bench::BenchOpts::from_args("end_to_end", args).and_then(|b| {
         let mut o = Options::new(b, env!("CARGO_BIN_EXE_chunkrt").into());
         o.small = small;
         end_to_end::run(&o).map(|_| ())

@@ -72,8 +72,8 @@ fn main() {
                 &series,
             );
             let names: Vec<String> = series.iter().map(|s| s.name.clone()).collect();
-            match chunkrt::bench::write_outputs(
-                &chunkrt::bench::output_root().join("inference"),
+            match chunkrt_bench::write_outputs(
+                &chunkrt_bench::output_root().join("inference"),
                 "inference",
                 &table,
                 &series,

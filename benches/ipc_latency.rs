@@ -1,12 +1,12 @@
 //! `cargo bench --bench ipc_latency [-- --quick]`: iceoryx2 publish → receive latency between
-//! processes vs openpi's websocket + msgpack-numpy. See `chunkrt::bench::ipc_latency`.
+//! processes vs openpi's websocket + msgpack-numpy. See `chunkrt_bench::ipc_latency`.
 //!
 //! The receiving process is this binary again, started with `--peer`.
 
 mod common;
 
-use chunkrt::bench::ipc_latency::{self, Options, PeerCommand};
-use chunkrt::bench::BenchError;
+use chunkrt_bench::ipc_latency::{self, Options, PeerCommand};
+use chunkrt_bench::BenchError;
 
 fn main() {
     iceoryx2::prelude::set_log_level(iceoryx2::prelude::LogLevel::Error);

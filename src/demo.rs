@@ -375,12 +375,12 @@ fn quantiles_line(name: &str, values: &[u64]) -> String {
 /// Runs the demo.
 pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let stop_flag = chunkrt_tools::shutdown::flag();
-    let cfg = crate::controller::load_config(args.config.as_ref(), None)?;
+    let cfg = crate::run::load_config(args.config.as_ref(), None)?;
     let ns = args
         .namespace
         .clone()
         .unwrap_or_else(|| format!("{}-{}", cfg.robot.namespace, std::process::id()));
-    let cfg = crate::controller::load_config(args.config.as_ref(), Some(&ns))?;
+    let cfg = crate::run::load_config(args.config.as_ref(), Some(&ns))?;
     let exe = std::env::current_exe().context("cannot find the chunkrt executable")?;
     let log_dir = args.log_dir.clone().unwrap_or_else(|| {
         std::env::temp_dir().join(format!("chunkrt-demo-{}", std::process::id()))

@@ -13,7 +13,7 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Run the controller on a configuration file.
-    Run(chunkrt::controller::RunArgs),
+    Run(chunkrt::run::RunArgs),
     /// Start fake camera, simulated robot and controller as processes and show them working.
     Demo(chunkrt::demo::DemoArgs),
     /// Run the demo stack for a long time (default 10 min): commands/s, overruns, lateness
@@ -49,7 +49,7 @@ fn main() {
     let cli = Cli::parse();
     chunkrt::rt::init_logging();
     let result = match cli.command {
-        Command::Run(a) => chunkrt::controller::run(a),
+        Command::Run(a) => chunkrt::run::run(a),
         Command::Demo(a) => chunkrt::demo::run(a),
         Command::Soak(a) => chunkrt::soak::run(a),
         Command::FakeCamera(a) => chunkrt_tools::fake_camera::run(a),

@@ -203,12 +203,12 @@ pub fn run(args: SoakArgs) -> anyhow::Result<()> {
         "--duration must be > 0 and --warmup >= 0 seconds"
     );
     let stop_flag = chunkrt_tools::shutdown::flag();
-    let base = crate::controller::load_config(args.config.as_ref(), None)?;
+    let base = crate::run::load_config(args.config.as_ref(), None)?;
     let ns = args
         .namespace
         .clone()
         .unwrap_or_else(|| format!("{}-soak-{}", base.robot.namespace, std::process::id()));
-    let cfg = crate::controller::load_config(args.config.as_ref(), Some(&ns))?;
+    let cfg = crate::run::load_config(args.config.as_ref(), Some(&ns))?;
     let exe = match &args.exe {
         Some(p) => p.clone(),
         None => std::env::current_exe().context("cannot find the chunkrt executable")?,

@@ -2,8 +2,8 @@
 
 use std::time::Duration;
 
-use chunkrt::bench::control_loop::{self, Options};
-use chunkrt::bench::{cyclictest, output_root, BenchOpts};
+use chunkrt_bench::control_loop::{self, Options};
+use chunkrt_bench::{cyclictest, output_root, BenchOpts};
 
 #[test]
 fn control_loop_quick() {

@@ -3,8 +3,8 @@
 
 use std::time::Duration;
 
-use chunkrt::bench::end_to_end::{self, Options};
-use chunkrt::bench::{output_root, BenchOpts};
+use chunkrt_bench::end_to_end::{self, Options};
+use chunkrt_bench::{output_root, BenchOpts};
 
 #[test]
 fn end_to_end_quick() {

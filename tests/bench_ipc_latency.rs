@@ -6,9 +6,9 @@
 
 use std::time::Duration;
 
-use chunkrt::bench::ipc_latency::{self, Options, PeerCommand};
-use chunkrt::bench::ws_baseline;
-use chunkrt::bench::{output_root, BenchOpts};
+use chunkrt_bench::ipc_latency::{self, Options, PeerCommand};
+use chunkrt_bench::ws_baseline;
+use chunkrt_bench::{output_root, BenchOpts};
 
 const NAME: &str = "ipc_latency_quick";
 

@@ -1,7 +1,7 @@
 //! Shared `main` plumbing of the chunkrt benches (harness off): options, the single-thread
 //! candle setting, exit codes.
 
-use chunkrt::bench::{BenchError, BenchOpts};
+use chunkrt_bench::{BenchError, BenchOpts};
 
 /// Keeps candle's matmuls in the calling thread (one core per load generator / inference
 /// thread) unless the user chose otherwise. Call first thing in `main`, before any thread exists.

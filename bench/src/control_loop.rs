@@ -2,7 +2,7 @@
 //! 1 kHz, idle and with a candle matmul load saturating the other core, next to `cyclictest` on
 //! the same core under the same load (the platform's floor).
 //!
-//! The schedule is the controller's own ([`crate::rt::run_periodic`]). The tick body is
+//! The schedule is the controller's own ([`chunkrt::rt::run_periodic`]). The tick body is
 //! pluggable ([`TickFactory`]). By default it is the controller's real tick, [`ControllerTick`]:
 //! [`ControlLoop::step`] with its iceoryx2 ports and the executor (chunk timeline, rtc
 //! transitions, ruckig, safety state machine) of the embedded demo robot, a robot that follows
@@ -18,9 +18,9 @@ use super::cyclictest::{self, CyclictestConfig};
 use super::load::MatmulLoad;
 use super::periodic::{run_periodic, PeriodicConfig, SyntheticTick, TickBody};
 use super::{geomean, write_outputs, BenchError, BenchOpts, Outputs};
-use crate::control::{Executor, ScriptedChunkSource, ScriptedConfig};
-use crate::controller::{ControlLoop, Shared};
-use crate::report::{fmt_us, LatencyRow, LatencyTable, Series};
+use chunkrt::control::{Executor, ScriptedChunkSource, ScriptedConfig};
+use chunkrt::controller::{ControlLoop, Shared};
+use chunkrt::report::{fmt_us, LatencyRow, LatencyTable, Series};
 use chunkrt_ipc::services;
 use chunkrt_ipc::JointState;
 
@@ -133,7 +133,7 @@ impl ControllerTick {
             .name("bench-robot-chunks".into())
             .spawn(move || {
                 if let Some(c) = helper_core {
-                    let _ = crate::rt::pin_current_thread(c);
+                    let _ = chunkrt::rt::pin_current_thread(c);
                 }
                 let ns = cfg.namespace();
                 let ports = services::node("chunkrt-bench-robot").and_then(|node| {
@@ -217,7 +217,7 @@ impl TickBody for ControllerTick {
         let wake = chunkrt_ipc::monotonic_ns();
         self.lp
             .step(deadline_ns, wake, &self.shared, &mut self.exec);
-        self.was_running |= self.exec.state() == crate::control::State::Running;
+        self.was_running |= self.exec.state() == chunkrt::control::State::Running;
     }
 
     fn report(&self) -> String {

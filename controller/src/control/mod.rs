@@ -4,10 +4,10 @@
 //! How the controller uses it:
 //!
 //! ```no_run
-//! use chunkrt::control::Executor;
-//! use chunkrt::ipc::{JointCommand, ControllerStatus};
+//! use chunkrt_controller::control::Executor;
+//! use chunkrt_controller::ipc::{JointCommand, ControllerStatus};
 //! # fn main() -> anyhow::Result<()> {
-//! let config = chunkrt::config::Config::embedded_default();
+//! let config = chunkrt_controller::config::Config::embedded_default();
 //! // Built once, off the real-time path: allocates everything it will ever need.
 //! let mut exec = Executor::new(&config)?;
 //! // Inference thread: takes requests, sends chunks (lock-free, newest wins).

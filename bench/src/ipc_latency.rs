@@ -34,7 +34,7 @@ use hdrhistogram::Histogram;
 
 use super::ws_baseline::{self, Case};
 use super::{geomean, write_outputs, BenchError, BenchOpts, Outputs};
-use crate::report::{fmt_us, latency_histogram, LatencyRow, LatencyTable, Series};
+use chunkrt::report::{fmt_us, latency_histogram, LatencyRow, LatencyTable, Series};
 
 /// Sequence number that tells the peer to exit.
 const STOP_SEQ: u64 = u64::MAX;

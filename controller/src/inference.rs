@@ -10,8 +10,8 @@ use chunkrt_ipc::config::{PolicyConfig, PolicyDevice, PolicyKind, PolicyPrecisio
 use chunkrt_ipc::{monotonic_ns, Config, ENCODING_BGR8, ENCODING_MONO8, ENCODING_RGB8};
 
 use crate::chunk::ActionChunk;
+use crate::contract::ChunkSource;
 use crate::control::InferenceRequest;
-use crate::controller::ChunkSource;
 use crate::edge::Observation;
 use crate::policy::config::ConfigOverrides;
 use crate::policy::rtc::Guidance;

@@ -8,14 +8,14 @@
 //! driver: `auto` (default), `python` (no fallback) or `rust` (force the fallback).
 
 use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use hdrhistogram::Histogram;
 
 use super::BenchError;
-use crate::report::latency_histogram;
+use chunkrt::report::latency_histogram;
 
 /// One observation shape: `cameras == 0` is a joint-state observation.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -54,7 +54,7 @@ pub struct Baseline {
 
 /// Folder of the Python scripts.
 pub fn script_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/python/openpi_baseline")
+    crate::workspace_root().join("tools/python/openpi_baseline")
 }
 
 /// The Python interpreter: `$CHUNKRT_PYTHON`, else `python3`.

@@ -1,5 +1,5 @@
 //! Jerk-limited online trajectory generation: a safe Rust face of the allocation-free C shim
-//! over the official ruckig C++ library (`ffi/chunkrt_ruckig.{h,cpp}`, built by `build.rs`).
+//! over the official ruckig C++ library (`controller/ffi/chunkrt_ruckig.{h,cpp}`, built by `controller/build.rs`).
 //!
 //! [`Otg::new`] allocates the generator once; [`Otg::update`], [`Otg::calculate`] and
 //! [`Otg::at_time`] never allocate (the generator is a fixed-size `Ruckig<16>`; joints beyond

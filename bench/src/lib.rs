@@ -1,3 +1,5 @@
+//! # chunkrt-bench
+//!
 //! Library code behind the `benches/` targets, so that the test suite can run each bench's quick
 //! mode in the dev profile and the benches themselves stay thin `main`s.
 //!
@@ -10,7 +12,7 @@
 //!
 //! Every bench writes its histograms under [`output_root`] (`target/chunkrt-bench/<bench>/`):
 //! an HdrHistogram interval log (`.hlog`), a PNG plot and a Markdown table, through
-//! [`crate::report`].
+//! [`chunkrt::report`].
 
 pub mod control_loop;
 pub mod cyclictest;
@@ -24,7 +26,7 @@ pub mod ws_rust;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::report::{self, LatencyTable, Series};
+use chunkrt::report::{self, LatencyTable, Series};
 
 /// Errors of the benchmark harness.
 #[derive(Debug, thiserror::Error)]
@@ -73,13 +75,17 @@ pub enum BenchError {
     },
 }
 
+/// The workspace's root folder (this crate sits in `bench/`).
+pub fn workspace_root() -> PathBuf {
+    let here = Path::new(env!("CARGO_MANIFEST_DIR"));
+    here.parent().unwrap_or(here).to_path_buf()
+}
+
 /// `target/chunkrt-bench/` of this workspace (or of `$CARGO_TARGET_DIR` when set at run time).
 pub fn output_root() -> PathBuf {
     match std::env::var_os("CARGO_TARGET_DIR") {
         Some(t) => PathBuf::from(t).join("chunkrt-bench"),
-        None => Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("target")
-            .join("chunkrt-bench"),
+        None => workspace_root().join("target").join("chunkrt-bench"),
     }
 }
 
@@ -187,7 +193,7 @@ pub fn write_outputs(
 
 /// One line describing this machine: CPU model and core count (from `/proc/cpuinfo`).
 pub fn machine_line() -> String {
-    crate::policy::bench::cpu_model()
+    chunkrt::policy::bench::cpu_model()
 }
 
 /// Geometric mean of positive ratios (1.0 for none).

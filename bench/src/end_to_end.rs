@@ -27,7 +27,7 @@ use chunkrt_ipc::{
 };
 
 use super::{write_outputs, BenchError, BenchOpts, Outputs};
-use crate::report::{latency_histogram, LatencyTable, Series};
+use chunkrt::report::{latency_histogram, LatencyTable, Series};
 
 /// Options of one run.
 #[derive(Debug, Clone)]
@@ -63,8 +63,8 @@ pub struct Summary {
     pub live_share: f64,
     pub hold_share: f64,
     pub chunks: u64,
-    pub observation_age: crate::report::LatencyRow,
-    pub chunk_latency: crate::report::LatencyRow,
+    pub observation_age: chunkrt::report::LatencyRow,
+    pub chunk_latency: chunkrt::report::LatencyRow,
     pub outputs: Outputs,
 }
 
@@ -104,20 +104,20 @@ fn prepare(opts: &Options) -> Result<(PathBuf, String), BenchError> {
     let mut t: toml::Table =
         toml::from_str(chunkrt_ipc::config::DEFAULT_TOML).map_err(|e| perr("default config", e))?;
     let model = if opts.small {
-        let ck = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/reach_pi05");
+        let ck = crate::workspace_root().join("models/reach_pi05");
         t["policy"]["checkpoint"] = toml::Value::String(ck.display().to_string());
         "reach_pi05 (committed, 1.4 M parameters)".to_string()
     } else {
-        let (_, json) = crate::policy::bench::CONFIGS
+        let (_, json) = chunkrt::policy::bench::CONFIGS
             .iter()
             .find(|(n, _)| *n == "pi05_bench")
             .ok_or_else(|| perr("bench config", "pi05_bench missing"))?;
-        let cfg = crate::policy::config::ModelConfig::from_json_str(json)
+        let cfg = chunkrt::policy::config::ModelConfig::from_json_str(json)
             .map_err(|e| perr("pi05_bench.json", e))?;
         let ck = dir.join("ckpt_pi05_bench");
         std::fs::create_dir_all(&ck).map_err(|e| perr("checkpoint dir", e))?;
         let (_, vm): (_, VarMap) =
-            crate::policy::bench::random_model(&cfg).map_err(|e| perr("random model", e))?;
+            chunkrt::policy::bench::random_model(&cfg).map_err(|e| perr("random model", e))?;
         vm.save(ck.join("model.safetensors"))
             .map_err(|e| perr("model.safetensors", e))?;
         std::fs::write(ck.join("config.json"), json).map_err(|e| perr("config.json", e))?;
@@ -283,8 +283,8 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
         live_share: live as f64 / received.max(1) as f64,
         hold_share: hold_samples as f64 / status_samples.max(1) as f64,
         chunks: chunks_seen,
-        observation_age: crate::report::LatencyRow::from_hist("observation_age", &age),
-        chunk_latency: crate::report::LatencyRow::from_hist("chunk_latency", &latency),
+        observation_age: chunkrt::report::LatencyRow::from_hist("observation_age", &age),
+        chunk_latency: chunkrt::report::LatencyRow::from_hist("chunk_latency", &latency),
         outputs,
     };
     println!("{}", summary.outputs);

@@ -1,0 +1,48 @@
+//! The thread contract between the controller's threads: what the control thread asks for
+//! ([`InferenceRequest`]), what the observation/inference thread answers with ([`ActionChunk`]),
+//! and what produces chunks ([`ChunkSource`]: the policy, a scripted test double, or
+//! [`HoldSource`]).
+//!
+//! Owns: the trait and the message types' home. Must not depend on: the policy crate, IPC
+//! services, threads.
+
+pub use crate::chunk::ActionChunk;
+pub use crate::control::InferenceRequest;
+pub use crate::edge::Observation;
+
+/// Produces action chunks from observations; runs in the observation/inference thread when
+/// the control side asks for one (an [`InferenceRequest`]: when to start, and for real-time
+/// chunking the previous chunk's remaining actions and their weights). The policy implements
+/// it; tests use scripted sources.
+pub trait ChunkSource: Send {
+    /// Name for logs.
+    fn name(&self) -> &str;
+    /// Computes the next chunk for `obs`; `Ok(None)` when the source has nothing to execute.
+    fn compute(
+        &mut self,
+        obs: &Observation,
+        request: &InferenceRequest,
+    ) -> anyhow::Result<Option<ActionChunk>>;
+    /// Whether the chunks depend on the camera frames: then a missing or stale frame stops
+    /// the source (and the controller holds) until every camera is fresh again.
+    fn uses_cameras(&self) -> bool {
+        false
+    }
+}
+
+/// The source used when no policy is configured: it never produces a chunk, so the
+/// controller holds the robot where it is.
+pub struct HoldSource;
+
+impl ChunkSource for HoldSource {
+    fn name(&self) -> &str {
+        "hold"
+    }
+    fn compute(
+        &mut self,
+        _obs: &Observation,
+        _request: &InferenceRequest,
+    ) -> anyhow::Result<Option<ActionChunk>> {
+        Ok(None)
+    }
+}

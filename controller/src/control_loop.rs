@@ -1,0 +1,333 @@
+//! The control thread: its ports, one control tick over IPC ([`ControlLoop::step`]), and the
+//! periodic loop around it ([`control_thread`], absolute deadlines through
+//! [`crate::rt::run_periodic`]).
+//!
+//! Owns: the command and status publishing, tick timing. Must not depend on: the policy, the
+//! observation thread.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use hdrhistogram::Histogram;
+
+use chunkrt_ipc::services;
+use chunkrt_ipc::{
+    monotonic_ns, Config, ControllerStatus, JointCommand, JointState, CONTROLLER_STATE_HOLD,
+    CONTROLLER_STATE_STARTING, CONTROLLER_STATE_STOPPED,
+};
+
+use crate::control::Executor;
+use crate::edge::{CommandOutput, JointStateInput, RearmInput, StatusOutput};
+use crate::rt;
+use crate::shared::Shared;
+
+/// What one control tick decided.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TickOutcome {
+    /// Publish the command written into `cmd`.
+    pub publish: bool,
+    /// `CONTROLLER_STATE_*` after the tick.
+    pub state: u32,
+    /// `STATE_REASON_*`: why the controller is in that state.
+    pub reason: u32,
+}
+
+/// The answer to a re-arm request: (`REARM_*` code, `STATE_REASON_*` of the bad input or 0).
+pub type RearmAnswer = (u32, u32);
+
+/// The work of one control tick, separated from the thread and the IPC ports so that it can
+/// be tested alone. Must not allocate, block or do I/O.
+pub trait ControlTick: Send {
+    /// Computes the command for `now_ns` from the newest valid joint state (if any).
+    fn tick(
+        &mut self,
+        now_ns: u64,
+        joint_state: Option<&JointState>,
+        cmd: &mut JointCommand,
+    ) -> TickOutcome;
+
+    /// An operator asks to leave FAULT (`chunkrt rearm`). The default refuses: nothing to
+    /// re-arm. Must not allocate, block or do I/O.
+    fn rearm(&mut self, _now_ns: u64) -> RearmAnswer {
+        (chunkrt_ipc::REARM_REFUSED_NOT_IN_FAULT, 0)
+    }
+}
+
+impl ControlTick for Executor {
+    fn tick(
+        &mut self,
+        now_ns: u64,
+        joint_state: Option<&JointState>,
+        cmd: &mut JointCommand,
+    ) -> TickOutcome {
+        let r = Executor::tick(self, now_ns, joint_state, cmd);
+        TickOutcome {
+            publish: r.publish,
+            state: r.state.code(),
+            reason: self.state_reason().map_or(0, |r| r.code()),
+        }
+    }
+
+    fn rearm(&mut self, now_ns: u64) -> RearmAnswer {
+        use crate::control::Rearm;
+        match Executor::rearm(self, now_ns) {
+            Rearm::Accepted => (chunkrt_ipc::REARM_ACCEPTED, 0),
+            Rearm::NotInFault(_) => (chunkrt_ipc::REARM_REFUSED_NOT_IN_FAULT, 0),
+            Rearm::InputsBad(r) => (chunkrt_ipc::REARM_REFUSED_INPUTS, r.code()),
+        }
+    }
+}
+
+/// Latency histograms of the control thread (fixed bounds: recording never allocates).
+pub struct TickHistograms {
+    /// Wake-up lateness (ns).
+    pub lateness: Histogram<u64>,
+    /// Tick compute time (ns).
+    pub compute: Histogram<u64>,
+}
+
+impl TickHistograms {
+    /// Histograms from 1 ns to 10 s at 3 significant digits.
+    pub fn new() -> Self {
+        let h = || {
+            Histogram::new_with_bounds(1, 10_000_000_000, 3)
+                .expect("constant histogram bounds are valid")
+        };
+        Self {
+            lateness: h(),
+            compute: h(),
+        }
+    }
+}
+
+impl Default for TickHistograms {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// What the controller did, printed on exit.
+pub struct Summary {
+    /// Seconds the control thread ran.
+    pub seconds: f64,
+    /// Control histograms.
+    pub histograms: TickHistograms,
+    /// How the control thread's real-time set-up went.
+    pub rt: String,
+}
+
+/// The control thread's ports and per-tick state: one [`ControlLoop::step`] is one control
+/// tick (receive joint states, run the tick, publish the command and, every status period,
+/// the status). Public so that tests can drive real ticks over real IPC without the thread.
+pub struct ControlLoop {
+    js: JointStateInput,
+    rearm_in: RearmInput,
+    cmd_out: CommandOutput,
+    status_out: StatusOutput,
+    /// Latency histograms (lateness, tick compute time).
+    pub hist: TickHistograms,
+    cmd: JointCommand,
+    status: ControllerStatus,
+    state: u32,
+    ticks: u64,
+    overruns: u64,
+    deadline_ns: u64,
+    period_ns: u64,
+    status_every: u64,
+}
+
+impl ControlLoop {
+    /// Creates the ports (call in the thread that will tick).
+    pub fn new(
+        node: &iceoryx2::prelude::Node<services::Ipc>,
+        cfg: &Config,
+    ) -> anyhow::Result<Self> {
+        let ns = cfg.namespace();
+        let cmd_out = CommandOutput::new(node, &ns)?;
+        let mut status = ControllerStatus {
+            n_dof: cfg.n_dof() as u32,
+            ..Default::default()
+        };
+        status.set_command_publisher(cmd_out.id());
+        Ok(Self {
+            js: JointStateInput::new(node, &ns, cfg)?,
+            rearm_in: RearmInput::new(node, &ns, cfg)?,
+            cmd_out,
+            status_out: StatusOutput::new(node, &ns)?,
+            hist: TickHistograms::new(),
+            cmd: JointCommand::default(),
+            status,
+            state: CONTROLLER_STATE_STARTING,
+            ticks: 0,
+            overruns: 0,
+            deadline_ns: (cfg.control.command_deadline_ms * 1e6) as u64,
+            period_ns: cfg.control_period_ns(),
+            status_every: ((cfg.control.rate_hz / cfg.control.status_rate_hz).round() as u64)
+                .max(1),
+        })
+    }
+
+    /// One control tick that was due at `scheduled_ns` and woke at `wake_ns`. Returns the
+    /// time the tick's work ended, and counts the tick as an overrun when that is after the
+    /// next deadline. No allocation but the one iceoryx2 makes per loan.
+    pub fn step(
+        &mut self,
+        scheduled_ns: u64,
+        wake_ns: u64,
+        shared: &Shared,
+        tick: &mut dyn ControlTick,
+    ) -> u64 {
+        self.hist
+            .lateness
+            .saturating_record(wake_ns.saturating_sub(scheduled_ns).max(1));
+        self.js.poll(&shared.counters, &shared.events);
+        if self.ticks == 0 {
+            // announce the command publisher before the first command, so the robot's
+            // session is bound when that command arrives
+            self.publish_status(wake_ns, shared);
+        }
+        let mut answered = false;
+        if let Some(seq) = self.rearm_in.poll(&shared.counters, &shared.events) {
+            let (result, reason) = tick.rearm(wake_ns);
+            self.status.rearm_seq = seq;
+            self.status.rearm_result = result;
+            self.status.rearm_reason = reason;
+            let _ = shared.events.push(crate::edge::EdgeEvent::RearmAnswered {
+                seq,
+                result,
+                reason,
+            });
+            answered = true;
+        }
+        let out = tick.tick(wake_ns, self.js.trusted(wake_ns), &mut self.cmd);
+        self.status.state_reason = out.reason;
+        if out.publish {
+            self.cmd.seq += 1;
+            self.cmd.deadline_ns = wake_ns + self.deadline_ns;
+            if self.cmd_out.publish(&self.cmd, monotonic_ns()) {
+                shared.commands.fetch_add(1, Ordering::Relaxed);
+            } else {
+                shared
+                    .counters
+                    .publish_errors
+                    .fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        if out.state != self.state {
+            if out.state == CONTROLLER_STATE_HOLD {
+                shared.hold_entries.fetch_add(1, Ordering::Relaxed);
+            }
+            self.state = out.state;
+            shared.state.store(self.state, Ordering::Relaxed);
+        }
+        self.ticks += 1;
+        shared.ticks.store(self.ticks, Ordering::Relaxed);
+        if answered || self.ticks.is_multiple_of(self.status_every) {
+            // a re-arm is answered at once (the operator's tool waits for it)
+            self.publish_status(wake_ns, shared);
+        }
+        let end = monotonic_ns();
+        self.hist
+            .compute
+            .saturating_record(end.saturating_sub(wake_ns).max(1));
+        if end > scheduled_ns + self.period_ns {
+            // finished after the next deadline
+            self.overruns += 1;
+            shared.overruns.store(self.overruns, Ordering::Relaxed);
+        }
+        end
+    }
+
+    /// The last status of a clean stop (`CONTROLLER_STATE_STOPPED`): the robot's session with
+    /// this controller ends at once, so the next controller is obeyed without a pause.
+    pub fn publish_stopped(&mut self, shared: &Shared) {
+        self.state = CONTROLLER_STATE_STOPPED;
+        self.publish_status(monotonic_ns(), shared);
+    }
+
+    fn publish_status(&mut self, wake_ns: u64, shared: &Shared) {
+        let h = &self.hist;
+        let st = &mut self.status;
+        st.seq += 1;
+        st.state = self.state;
+        st.ticks = self.ticks;
+        st.overruns = self.overruns;
+        st.chunks = shared.chunks.load(Ordering::Relaxed);
+        st.joint_states = shared.counters.joint_states.load(Ordering::Relaxed);
+        st.frames = shared.counters.frames.load(Ordering::Relaxed);
+        st.rejected = shared.counters.rejected_snapshot();
+        st.last_inference_latency_ns = shared.last_inference_latency_ns.load(Ordering::Relaxed);
+        st.lateness_p50_ns = h.lateness.value_at_quantile(0.5);
+        st.lateness_p99_ns = h.lateness.value_at_quantile(0.99);
+        st.lateness_max_ns = h.lateness.max();
+        st.compute_p50_ns = h.compute.value_at_quantile(0.5);
+        st.compute_p99_ns = h.compute.value_at_quantile(0.99);
+        st.compute_max_ns = h.compute.max();
+        st.joint_state_age_ns = self
+            .js
+            .latest()
+            .map(|s| wake_ns.saturating_sub(s.measurement_time_ns))
+            .unwrap_or(u64::MAX);
+        st.hold_entries = shared.hold_entries.load(Ordering::Relaxed);
+        st.stale_cameras = shared.stale_cameras.load(Ordering::Relaxed);
+        st.publish_time_ns = monotonic_ns();
+        self.status_out.publish(st);
+        let store = |a: &AtomicU64, v: u64| a.store(v, Ordering::Relaxed);
+        store(&shared.lateness_p50_ns, st.lateness_p50_ns);
+        store(&shared.lateness_p99_ns, st.lateness_p99_ns);
+        store(&shared.lateness_max_ns, st.lateness_max_ns);
+        store(&shared.compute_p50_ns, st.compute_p50_ns);
+        store(&shared.compute_p99_ns, st.compute_p99_ns);
+        store(&shared.compute_max_ns, st.compute_max_ns);
+    }
+}
+
+pub(crate) fn control_thread(
+    cfg: &Config,
+    shared: &Shared,
+    tick: &mut dyn ControlTick,
+    ready: crossbeam::channel::Sender<anyhow::Result<()>>,
+) -> anyhow::Result<Summary> {
+    let outcome = rt::make_current_thread_realtime(
+        cfg.control.cpu,
+        cfg.control.realtime_priority,
+        cfg.control.lock_memory,
+    );
+    if outcome.fully_realtime() {
+        tracing::info!("control thread: {outcome}");
+    } else {
+        tracing::warn!("control thread not fully real-time: {outcome}");
+    }
+    let setup = || -> anyhow::Result<_> {
+        let node = services::node("chunkrt-control")?;
+        let lp = ControlLoop::new(&node, cfg)?;
+        Ok((node, lp))
+    };
+    let (_node, mut lp) = match setup() {
+        Ok(v) => {
+            let _ = ready.send(Ok(()));
+            v
+        }
+        Err(e) => {
+            let msg = format!("control thread: {e:#}");
+            let _ = ready.send(Err(anyhow::anyhow!(msg.clone())));
+            anyhow::bail!(msg);
+        }
+    };
+    let period = cfg.control_period_ns();
+    let start = monotonic_ns();
+    // absolute deadlines; a tick that ends after the next deadline is counted by `step` and
+    // the deadlines it passed are skipped, not burst (the same loop the control_loop bench times)
+    rt::run_periodic(
+        period,
+        start + period,
+        u64::MAX,
+        || !shared.stop.load(Ordering::Relaxed),
+        |deadline, wake| lp.step(deadline, wake, shared, tick),
+    );
+    lp.publish_stopped(shared);
+    Ok(Summary {
+        seconds: (monotonic_ns() - start) as f64 / 1e9,
+        histograms: lp.hist,
+        rt: outcome.to_string(),
+    })
+}

@@ -1,0 +1,42 @@
+//! # chunkrt-controller
+//!
+//! The real-time controller: it runs a chunk source (the π0 / π0.5 policy of `chunkrt-policy`,
+//! or a test double) next to a robot and turns its action chunks into a joint command every
+//! control period.
+//!
+//! ```text
+//!  cameras, robot driver ──iceoryx2──▶ edge ─▶ observation ─▶ inference thread (ChunkSource)
+//!  joint commands ◀────────────────── edge ◀── control thread (chunk executor, ruckig, watchdog)
+//! ```
+//!
+//! Modules, one concern each:
+//! - [`contract`]: the thread contract — [`contract::ChunkSource`], the inference request, the
+//!   action chunk.
+//! - [`edge`]: the IPC edge — subscribers, validation, observation assembly, command publishing.
+//! - [`chunk`]: the action chunk handed from inference to control.
+//! - [`control`]: the control tick — chunk timeline and strategies, interpolation, target
+//!   shaping, ruckig, the safety state machine, measurement.
+//! - [`control_loop`]: the control thread — one tick over IPC, the periodic loop.
+//! - [`controller`]: the process's threads, start/stop, status; [`shared`]: what they share.
+//! - [`inference`]: the policy as a chunk source (`PolicySource`).
+//! - [`rt`]: real-time set-up (pinning, SCHED_FIFO, memory locking, the periodic loop).
+//! - [`histlog`]: latency histograms, tables and interval logs (no plots).
+//!
+//! Must not depend on: the reach task, training, evaluation, benches, plotting, the fake
+//! devices (the binary's composition root in the `chunkrt` crate wires those up).
+
+pub mod chunk;
+pub mod contract;
+pub mod control;
+pub mod control_loop;
+pub mod controller;
+pub mod edge;
+pub mod histlog;
+pub mod inference;
+pub mod log_limit;
+pub mod rt;
+pub mod shared;
+
+pub use chunkrt_ipc as ipc;
+pub use chunkrt_ipc::config;
+pub use chunkrt_policy as policy;

@@ -1,0 +1,136 @@
+//! `chunkrt run`: the composition root. Loads the configuration, builds the executor and the
+//! chunk source it names (the policy, or [`HoldSource`]), and hands both to the controller.
+
+use std::path::PathBuf;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use anyhow::Context;
+
+use crate::config::{Config, PolicyDevice, PolicyKind};
+use crate::control::Executor;
+use crate::controller::{
+    frames_per_camera, print_summary, status_line, ChunkSource, Controller, HoldSource, Shared,
+};
+
+/// `chunkrt run`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RunArgs {
+    /// Configuration file (TOML). Default: the embedded demo robot (`config/default.toml`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Override `robot.namespace` (service names become `<NS>/joint_state`, ...).
+    #[arg(long)]
+    pub namespace: Option<String>,
+    /// Stop after this many seconds (default: run until SIGINT / SIGTERM).
+    #[arg(long)]
+    pub duration: Option<f64>,
+    /// Seconds between status log lines (0: none).
+    #[arg(long, default_value_t = 1.0)]
+    pub log_every: f64,
+    /// On exit, write the lateness and tick-time histograms to this HdrHistogram interval log
+    /// (render with `chunkrt report DIR`).
+    #[arg(long, value_name = "FILE")]
+    pub histogram_log: Option<PathBuf>,
+    /// Override `policy.prompt` (the task the policy is asked to do).
+    #[arg(long)]
+    pub prompt: Option<String>,
+    /// Override `policy.kind`: hold, pi0 or pi05 (`hold` runs without a model: the robot is
+    /// held where it is).
+    #[arg(long)]
+    pub policy: Option<PolicyKind>,
+    /// Override `policy.device`: cpu, cuda or cuda:N (a GPU needs a build with `--features cuda`).
+    #[arg(long)]
+    pub device: Option<PolicyDevice>,
+}
+
+/// Loads the configuration named by `--config` (or the embedded default) and applies
+/// `--namespace`.
+pub fn load_config(config: Option<&PathBuf>, namespace: Option<&str>) -> anyhow::Result<Config> {
+    let mut cfg = match config {
+        Some(p) => Config::load(p)?,
+        None => Config::embedded_default(),
+    };
+    if let Some(ns) = namespace {
+        cfg.robot.namespace = ns.to_string();
+        let file = cfg.source.display().to_string();
+        cfg.validate(&format!("{file} (with --namespace)"))?;
+    }
+    Ok(cfg)
+}
+
+/// `chunkrt run`: the controller until SIGINT / SIGTERM or `--duration`.
+pub fn run(args: RunArgs) -> anyhow::Result<()> {
+    let mut cfg = load_config(args.config.as_ref(), args.namespace.as_deref())?;
+    if let Some(p) = &args.prompt {
+        cfg.policy.prompt = p.clone();
+    }
+    if let Some(k) = args.policy {
+        cfg.policy.kind = k;
+    }
+    if let Some(d) = args.device {
+        cfg.policy.device = d;
+    }
+    let stop_flag = chunkrt_tools::shutdown::flag();
+    tracing::info!(
+        "chunkrt run: robot '{}' ({} joints) on '{}', {} camera(s), control at {} Hz, policy '{}'",
+        cfg.robot.name,
+        cfg.n_dof(),
+        cfg.robot.namespace,
+        cfg.cameras.len(),
+        cfg.control.rate_hz,
+        cfg.policy.kind
+    );
+    let executor = Executor::new(&cfg).context("invalid execution settings")?;
+    let source: Box<dyn ChunkSource> = match cfg.policy.kind {
+        PolicyKind::Hold => Box::new(HoldSource),
+        PolicyKind::Pi0 | PolicyKind::Pi05 => Box::new(crate::inference::PolicySource::load(&cfg)?),
+    };
+    tracing::info!("chunk source: {}", source.name());
+    let mut controller = Controller::start(cfg.clone(), executor, source)?;
+    let started = std::time::Instant::now();
+    let mut last_log = std::time::Instant::now();
+    while !stop_flag.load(Ordering::Relaxed) && controller.is_running() {
+        std::thread::sleep(Duration::from_millis(20));
+        controller.log_events(&cfg);
+        if args.log_every > 0.0 && last_log.elapsed().as_secs_f64() >= args.log_every {
+            tracing::info!("{}", status_line(controller.shared()));
+            last_log = std::time::Instant::now();
+        }
+        if args
+            .duration
+            .is_some_and(|d| started.elapsed().as_secs_f64() >= d)
+        {
+            break;
+        }
+    }
+    let shared = controller.shared().clone();
+    let summary = controller.stop()?;
+    controller_log_final(&cfg, &shared);
+    print_summary(&shared, &summary);
+    println!("  frames per camera: {}", frames_per_camera(&cfg, &shared));
+    if let Some(path) = &args.histogram_log {
+        let series = [
+            crate::report::Series::new("control_lateness", summary.histograms.lateness.clone()),
+            crate::report::Series::new("control_tick", summary.histograms.compute.clone()),
+        ];
+        crate::report::write_interval_log(
+            path,
+            &series,
+            Duration::from_secs_f64(summary.seconds),
+            &format!("chunkrt run on '{}': {}", cfg.robot.namespace, summary.rt),
+        )?;
+        println!("  histograms written to {}", path.display());
+    }
+    Ok(())
+}
+
+fn controller_log_final(cfg: &Config, shared: &Shared) {
+    let total = shared.counters.rejected_total();
+    if total > 0 {
+        tracing::warn!(
+            "{total} message(s) rejected on '{}' during the run",
+            cfg.robot.namespace
+        );
+    }
+}
