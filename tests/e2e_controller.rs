@@ -3,129 +3,16 @@
 
 use std::time::{Duration, Instant};
 
-use chunkrt_ipc::services::{self, Ipc};
+use chunkrt_ipc::services;
 use chunkrt_ipc::{
-    monotonic_ns, CameraFrameHeader, Config, ControllerStatus, JointCommand, JointState, Namespace,
-    RejectReason, ENCODING_RGB8, JOINT_STATUS_LIMIT_CLAMPED,
+    monotonic_ns, CameraFrameHeader, Config, JointState, Namespace, RejectReason, ENCODING_RGB8,
+    JOINT_STATUS_LIMIT_CLAMPED,
 };
-use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};
-use iceoryx2::prelude::*;
+use chunkrt_tools::testing::{summary_value, unique_namespace};
 
-const EXE: &str = env!("CARGO_BIN_EXE_chunkrt");
-
-/// The process tests share two cores: one at a time, so rate assertions measure chunkrt and
-/// not the other tests.
-static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-fn start(sub: &str, ns: &str, extra: &[&str]) -> ChildGuard {
-    let mut args = vec![sub, "--namespace", ns];
-    args.extend_from_slice(extra);
-    ChildGuard::spawn(EXE, &args).expect("spawn chunkrt")
-}
-
-/// Holding without a policy: STARTING (generator initialised, no chunk yet) or HOLD.
-fn holding(s: &ControllerStatus) -> bool {
-    s.seq > 0
-        && (s.state == chunkrt_ipc::CONTROLLER_STATE_STARTING
-            || s.state == chunkrt_ipc::CONTROLLER_STATE_HOLD)
-}
-
-/// SIGKILL: the process gets no chance to clean up its iceoryx2 resources.
-fn kill9(g: ChildGuard) {
-    // SAFETY: kill(2) on our own child.
-    unsafe { libc::kill(g.id() as libc::pid_t, libc::SIGKILL) };
-    drop(g);
-}
-
-/// A valid-looking command from a rogue publisher: shoulder to 2.5 rad, live for 50 ms.
-fn rogue_command(seq: u64, n_dof: u32) -> JointCommand {
-    let now = monotonic_ns();
-    let mut c = JointCommand {
-        seq,
-        publish_time_ns: now,
-        deadline_ns: now + 50_000_000,
-        n_dof,
-        mode: chunkrt_ipc::COMMAND_MODE_POSITION,
-        ..Default::default()
-    };
-    c.position[0] = 2.5;
-    c
-}
-
-/// Receives everything the test needs to watch, from the test process itself.
-struct Watch {
-    _node: Node<Ipc>,
-    status: iceoryx2::port::subscriber::Subscriber<Ipc, ControllerStatus, ()>,
-    js: iceoryx2::port::subscriber::Subscriber<Ipc, JointState, ()>,
-    cmd: iceoryx2::port::subscriber::Subscriber<Ipc, JointCommand, ()>,
-    last_status: ControllerStatus,
-    /// The robot's newest joint-state seq seen when `last_status` arrived (aligns windows).
-    js_seq_at_status: u64,
-    last_js: JointState,
-    commands: Vec<JointCommand>,
-}
-
-impl Watch {
-    fn new(ns: &str) -> Self {
-        let ns = Namespace::new(ns).unwrap();
-        let node = services::node(&format!("test-watch-{}", std::process::id())).unwrap();
-        let status = services::subscriber(
-            &services::status_service(&node, &ns.status()).unwrap(),
-            "status",
-        )
-        .unwrap();
-        let js = services::subscriber(
-            &services::joint_state_service(&node, &ns.joint_state()).unwrap(),
-            "js",
-        )
-        .unwrap();
-        let cmd = services::subscriber(
-            &services::joint_command_service(&node, &ns.joint_command()).unwrap(),
-            "cmd",
-        )
-        .unwrap();
-        Self {
-            _node: node,
-            status,
-            js,
-            cmd,
-            last_status: ControllerStatus::default(),
-            js_seq_at_status: 0,
-            last_js: JointState::default(),
-            commands: Vec::new(),
-        }
-    }
-
-    /// Polls every ~0.5 ms for `d`.
-    fn pump(&mut self, d: Duration) {
-        let t0 = Instant::now();
-        while t0.elapsed() < d {
-            while let Ok(Some(s)) = self.js.receive() {
-                self.last_js = *s.payload();
-            }
-            while let Ok(Some(s)) = self.status.receive() {
-                self.last_status = *s.payload();
-                self.js_seq_at_status = self.last_js.seq;
-            }
-            while let Ok(Some(s)) = self.cmd.receive() {
-                self.commands.push(*s.payload());
-            }
-            std::thread::sleep(Duration::from_micros(500));
-        }
-    }
-
-    fn wait_for(&mut self, timeout: Duration, what: &str, mut f: impl FnMut(&Self) -> bool) {
-        let t0 = Instant::now();
-        while !f(self) {
-            assert!(t0.elapsed() < timeout, "timed out waiting for {what}");
-            self.pump(Duration::from_millis(20));
-        }
-    }
-}
+#[path = "common/stack.rs"]
+mod stack;
+use stack::*;
 
 #[test]
 fn controller_holds_the_robot_and_sees_every_camera() {

@@ -61,15 +61,18 @@ pub(crate) trait Transition {
     }
 
     /// Samples the target at `now` from the timeline (oldest first) into `target`; returns the
-    /// primary chunk's (id, observation_seq), or `None` when nothing covers `now`.
+    /// primary chunk's (id, observation_seq), or `None` when nothing covers `now`. Default: the
+    /// chunk in effect alone.
     fn evaluate(
         &self,
         slots: &VecDeque<Slot>,
         now: i64,
         s: &Sampling,
         target: &mut Sample,
-        scratch: &mut Sample,
-    ) -> Option<(u64, u64)>;
+        _scratch: &mut Sample,
+    ) -> Option<(u64, u64)> {
+        sample_current(slots, now, s, target).map(|(_, primary)| primary)
+    }
 
     /// Inference requests ask the policy for guided (RTC) sampling.
     fn guided(&self) -> bool {

@@ -1,10 +1,8 @@
 //! `replace`: a new chunk takes over at its first action that is not yet due.
 
-use std::collections::VecDeque;
-
-use super::{sample_current, Sampling, Slot, Transition};
+use super::{Sampling, Transition};
 use crate::chunk::ActionChunk;
-use crate::control::interp::{self, Sample};
+use crate::control::interp;
 
 pub(crate) struct Replace;
 
@@ -17,16 +15,5 @@ pub(super) fn first_due(chunk: &ActionChunk, now: i64, s: &Sampling) -> i64 {
 impl Transition for Replace {
     fn active_from(&self, chunk: &ActionChunk, now: i64, s: &Sampling) -> i64 {
         first_due(chunk, now, s)
-    }
-
-    fn evaluate(
-        &self,
-        slots: &VecDeque<Slot>,
-        now: i64,
-        s: &Sampling,
-        target: &mut Sample,
-        _scratch: &mut Sample,
-    ) -> Option<(u64, u64)> {
-        sample_current(slots, now, s, target).map(|(_, primary)| primary)
     }
 }

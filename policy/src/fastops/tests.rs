@@ -1,0 +1,135 @@
+//! Unit tests of `fastops` (kept apart so the module reads on its own).
+use super::*;
+use candle_core::D;
+
+fn maxdiff(a: &Tensor, b: &Tensor) -> f32 {
+    (a - b)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+}
+
+#[test]
+fn exp_matches_libm() {
+    let mut worst = 0f32;
+    let mut x = -87.0f32;
+    while x < 88.0 {
+        let (a, b) = (exp_f32(x), x.exp());
+        worst = worst.max(((a - b) / b).abs());
+        x += 0.013;
+    }
+    assert!(worst < 4e-7, "relative error {worst}");
+    assert_eq!(exp_f32(-1e30), 0.0);
+    assert_eq!(exp_f32(f32::NEG_INFINITY), 0.0);
+}
+
+#[test]
+fn add_matches_candle_with_and_without_broadcast() {
+    let dev = Device::Cpu;
+    let a = Tensor::randn(0f32, 1f32, (3, 300, 257), &dev).unwrap();
+    let b = Tensor::randn(0f32, 1f32, (3, 300, 257), &dev).unwrap();
+    let p = Tensor::randn(0f32, 1f32, (300, 257), &dev).unwrap();
+    let got = add(&a, &b).unwrap().unwrap();
+    assert_eq!(maxdiff(&(&a + &b).unwrap(), &got), 0.0);
+    let got = add(&a, &p).unwrap().unwrap();
+    assert_eq!(maxdiff(&a.broadcast_add(&p).unwrap(), &got), 0.0);
+    // shapes that do not broadcast this way fall back
+    let q = Tensor::randn(0f32, 1f32, (3, 1, 257), &dev).unwrap();
+    assert!(add(&a, &q).unwrap().is_none());
+}
+
+#[test]
+fn gelu_mul_matches_candle() {
+    let dev = Device::Cpu;
+    let g = (Tensor::randn(0f32, 3f32, (3, 70_001), &dev).unwrap() * 1.0).unwrap();
+    let u = Tensor::randn(0f32, 1f32, (3, 70_001), &dev).unwrap();
+    let want = (g.gelu().unwrap() * &u).unwrap();
+    let got = gelu_mul(&g, &u).unwrap().unwrap();
+    assert!(maxdiff(&want, &got) < 1e-5);
+}
+
+#[test]
+fn fused_gelu_and_heads_match_candle() {
+    let dev = Device::Cpu;
+    let y = Tensor::randn(0f32, 2f32, (2, 7, 2 * 24), &dev).unwrap();
+    let g = y.narrow(2, 0, 24).unwrap();
+    let u = y.narrow(2, 24, 24).unwrap();
+    let want = (g.gelu().unwrap() * &u).unwrap();
+    let got = gelu_mul_fused(&y, 24).unwrap().unwrap();
+    assert!(maxdiff(&want, &got) < 1e-5);
+    // heads with and without rope from a strided (narrowed) input
+    let x = Tensor::randn(0f32, 1f32, (2, 7, 3 * 16 + 8), &dev).unwrap();
+    let cos = Tensor::rand(-1f32, 1f32, (2, 7, 4), &dev).unwrap();
+    let sin = Tensor::rand(-1f32, 1f32, (2, 7, 4), &dev).unwrap();
+    let part = x.narrow(2, 8, 16).unwrap();
+    let heads = part
+        .reshape((2, 7, 2, 8))
+        .unwrap()
+        .transpose(1, 2)
+        .unwrap()
+        .contiguous()
+        .unwrap();
+    let got = split_heads(&x, 8, 2, 8, None).unwrap().unwrap();
+    assert_eq!(maxdiff(&heads, &got), 0.0);
+    let want = candle_nn::rotary_emb::rope(&heads, &cos, &sin).unwrap();
+    let got = split_heads(&x, 8, 2, 8, Some((&cos, &sin)))
+        .unwrap()
+        .unwrap();
+    assert_eq!(maxdiff(&want, &got), 0.0);
+}
+
+#[test]
+fn attention_matches_candle() {
+    let dev = Device::Cpu;
+    for &(b, nh, nkv, l, t, bl) in &[(2, 8, 2, 5, 37, 5), (1, 4, 1, 50, 70, 1)] {
+        let q = Tensor::randn(0f32, 1f32, (b, nh, l, 16), &dev).unwrap();
+        let kf = Tensor::randn(0f32, 1f32, (b, nkv, t + 3, 16), &dev).unwrap();
+        let vf = Tensor::randn(0f32, 1f32, (b, nkv, t + 3, 16), &dev).unwrap();
+        // a narrow over T, as with the cache buffers
+        let k = kf.narrow(2, 0, t).unwrap();
+        let v = vf.narrow(2, 0, t).unwrap();
+        let mask = Tensor::rand(0f32, 1f32, (b, 1, bl, t), &dev).unwrap();
+        let bias = mask
+            .ge(0.3)
+            .unwrap()
+            .where_cond(
+                &Tensor::zeros((b, 1, bl, t), candle_core::DType::F32, &dev).unwrap(),
+                &Tensor::full(-2.381_976_3e38f32, (b, 1, bl, t), &dev).unwrap(),
+            )
+            .unwrap();
+        let scale = 0.25f32;
+        let g = nh / nkv;
+        let qs = (&q * scale as f64)
+            .unwrap()
+            .reshape((b, nkv, g * l, 16))
+            .unwrap();
+        let s = qs.matmul(&k.t().unwrap()).unwrap();
+        let s = s
+            .reshape((b, nkv, g, l, t))
+            .unwrap()
+            .broadcast_add(&bias.reshape((b, 1, 1, bl, t)).unwrap())
+            .unwrap();
+        let p = candle_nn::ops::softmax(&s, D::Minus1).unwrap();
+        let o = p
+            .reshape((b, nkv, g * l, t))
+            .unwrap()
+            .matmul(&v.contiguous().unwrap())
+            .unwrap();
+        let want = o
+            .reshape((b, nh, l, 16))
+            .unwrap()
+            .transpose(1, 2)
+            .unwrap()
+            .reshape((b, l, nh * 16))
+            .unwrap();
+        let got = attention(&q, &k, &v, &bias, scale).unwrap().unwrap();
+        let d = maxdiff(&want, &got);
+        assert!(d < 1e-5, "attention {d}");
+    }
+}
