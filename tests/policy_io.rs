@@ -220,36 +220,9 @@ fn runtime_prepares_fixture_inputs_and_infers() {
     let pc = chunkrt::config::PolicyConfig::default();
     let mut policy = chunkrt::inference::load_policy(&dir, &pc).unwrap();
     let inp = inputs("pi05_tiny");
-    let frames: Vec<(String, Vec<u8>, usize, usize)> = ["base_0_rgb", "left_wrist_0_rgb"]
-        .iter()
-        .map(|c| {
-            let t = &inp[&format!("image_raw_uint8.{c}")];
-            let (_, h, w, _) = t.dims4().unwrap();
-            (
-                c.to_string(),
-                t.flatten_all().unwrap().to_vec1::<u8>().unwrap(),
-                h,
-                w,
-            )
-        })
-        .collect();
-    let raw: Vec<RawFrame> = frames
-        .iter()
-        .map(|(c, d, h, w)| RawFrame {
-            camera: c,
-            width: *w as u32,
-            height: *h as u32,
-            stride: (*w * 3) as u32,
-            encoding: chunkrt::policy::Encoding::Rgb8,
-            data: d,
-        })
-        .collect();
-    let state: Vec<f64> = inp["state_unpadded.0"]
-        .to_vec1::<f32>()
-        .unwrap()
-        .iter()
-        .map(|&x| x as f64)
-        .collect();
+    let (frames, state) =
+        fixture::raw_observation("pi05_tiny", &["base_0_rgb", "left_wrist_0_rgb"]);
+    let raw = fixture::raw_frames(&frames);
     let obs = RawObservation {
         frames: &raw,
         joint_positions: &state,

@@ -2,64 +2,21 @@
 //! β = 0 / W = 0 equal the unguided sampler, guidance pulls the frozen steps onto the previous
 //! chunk, the VJP matches finite differences, and the guided step's cost relative to a plain one.
 
-use std::collections::HashMap;
-use std::path::PathBuf;
 use std::time::Instant;
 
 use candle_core::{Device, Tensor};
 use chunkrt::policy::rtc::{
     clean_estimate_vjp, guidance_scale, guided_velocity, weight_mask, Guidance, GuidanceTarget,
 };
-use chunkrt::policy::{Policy, RawFrame, RawObservation};
+use chunkrt::policy::{Policy, RawObservation};
 
-fn data(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(name)
-}
+#[path = "common/fixture.rs"]
+mod fixture;
+use fixture::{absmax, data, maxdiff, raw_frames, Frame};
 
-/// One fixture camera frame: (name, pixels, height, width).
-type Frame = (String, Vec<u8>, usize, usize);
-
-/// Camera frames (name, pixels, height, width) and the unpadded state of the pi05_tiny fixture.
+/// Camera frames and the unpadded state of the pi05_tiny fixture.
 fn fixture() -> (Vec<Frame>, Vec<f64>) {
-    let inp: HashMap<String, Tensor> =
-        candle_core::safetensors::load(data("pi05_tiny").join("inputs.safetensors"), &Device::Cpu)
-            .unwrap();
-    let frames = ["base_0_rgb", "left_wrist_0_rgb"]
-        .iter()
-        .map(|c| {
-            let t = &inp[&format!("image_raw_uint8.{c}")];
-            let (_, h, w, _) = t.dims4().unwrap();
-            (
-                c.to_string(),
-                t.flatten_all().unwrap().to_vec1::<u8>().unwrap(),
-                h,
-                w,
-            )
-        })
-        .collect();
-    let state = inp["state_unpadded.0"]
-        .to_vec1::<f32>()
-        .unwrap()
-        .iter()
-        .map(|&x| x as f64)
-        .collect();
-    (frames, state)
-}
-
-fn raw_frames(frames: &[Frame]) -> Vec<RawFrame<'_>> {
-    frames
-        .iter()
-        .map(|(c, d, h, w)| RawFrame {
-            camera: c,
-            width: *w as u32,
-            height: *h as u32,
-            stride: (*w * 3) as u32,
-            encoding: chunkrt::policy::Encoding::Rgb8,
-            data: d,
-        })
-        .collect()
+    fixture::raw_observation("pi05_tiny", &["base_0_rgb", "left_wrist_0_rgb"])
 }
 
 fn policy() -> Policy {
@@ -157,27 +114,9 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
         beta: 5.0,
     };
     let gv = guided_velocity(model, c, &noise(hh, aa, 1), 0.5, &target).unwrap();
-    let gmax: f32 =
-        gv.g.abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar()
-            .unwrap();
-    assert_eq!(gmax, 0.0);
-    let dv: f32 = (&gv.v_guided - &gv.v)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar()
-        .unwrap();
-    assert_eq!(dv, 0.0);
+    // exact zeros: β = 0 / W = 0 must give the unguided velocity bit for bit
+    assert_eq!(absmax(&gv.g), 0.0);
+    assert_eq!(maxdiff(&gv.v_guided, &gv.v), 0.0);
 }
 
 #[test]

@@ -6,6 +6,9 @@
 //! The same layouts exist as a C header (`ipc/include/chunkrt_ipc.h`) and a Python ctypes
 //! mirror (`ipc/python/chunkrt_ipc.py`); the test suite compiles and runs both and compares
 //! every size and field offset with [`messages::layouts`].
+//!
+//! Owns: the messages, services and QoS, validation, the clock, the TOML configuration. Must not
+//! depend on: any other chunkrt crate, the policy, candle.
 
 pub mod clock;
 pub mod config;

@@ -5,6 +5,11 @@
 //! [`gemma`] (the dual-expert transformer), [`model`] (embeddings, masks, cache, sampler, loss),
 //! [`checkpoint`] (safetensors loading and checks), [`preprocess`] (images, normalisation,
 //! prompts, tokenizer), [`runtime`] (`Policy::load` / `Policy::infer`), [`bench`].
+//!
+//! Owns: the model, its sampler (written once, [`model::euler`]) and RTC guidance ([`rtc`]), the
+//! CPU kernels ([`packed`], [`amx`], [`fastops`]) and the CUDA ones ([`kernels`], [`graph`]).
+//! Must not depend on: the controller, `chunkrt-ipc`, iceoryx2 (`cargo tree -p chunkrt-policy`
+//! shows neither); thread pools are the caller's (`runtime::LoadOptions`).
 
 pub mod amx;
 pub mod bench;

@@ -22,6 +22,48 @@ pub fn data(name: &str) -> PathBuf {
     root.join(name)
 }
 
+/// One raw camera frame of a fixture: (camera name, RGB8 pixels, height, width).
+pub type Frame = (String, Vec<u8>, usize, usize);
+
+/// The raw camera frames (`image_raw_uint8.<camera>`) and the unpadded state of fixture `name`,
+/// as a robot would send them.
+pub fn raw_observation(name: &str, cameras: &[&str]) -> (Vec<Frame>, Vec<f64>) {
+    let inp: HashMap<String, Tensor> =
+        candle_core::safetensors::load(data(name).join("inputs.safetensors"), &Device::Cpu)
+            .expect("fixture inputs load");
+    let frames = cameras
+        .iter()
+        .map(|c| {
+            let t = &inp[&format!("image_raw_uint8.{c}")];
+            let (_, h, w, _) = t.dims4().expect("a [1, H, W, 3] frame");
+            let px = t.flatten_all().and_then(|t| t.to_vec1::<u8>());
+            (c.to_string(), px.expect("u8 pixels"), h, w)
+        })
+        .collect();
+    let state = inp["state_unpadded.0"]
+        .to_vec1::<f32>()
+        .expect("f32 state")
+        .iter()
+        .map(|&x| x as f64)
+        .collect();
+    (frames, state)
+}
+
+/// [`Frame`]s as the policy's raw RGB8 frames.
+pub fn raw_frames(frames: &[Frame]) -> Vec<chunkrt::policy::RawFrame<'_>> {
+    frames
+        .iter()
+        .map(|(c, d, h, w)| chunkrt::policy::RawFrame {
+            camera: c,
+            width: *w as u32,
+            height: *h as u32,
+            stride: (*w * 3) as u32,
+            encoding: chunkrt::policy::Encoding::Rgb8,
+            data: d,
+        })
+        .collect()
+}
+
 pub struct Fixture {
     pub model: PiModel,
     pub inputs: ModelInputs,

@@ -117,3 +117,45 @@ impl PiModel {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use candle_core::Device;
+
+    use super::*;
+
+    #[test]
+    fn euler_runs_openpis_grid_from_noise_to_data() {
+        let noise = Tensor::new(&[[[1.0f32, -2.0]]], &Device::Cpu).expect("tensor");
+        // the flow of a straight path ε → a has the constant velocity u = ε − a: ten Euler steps
+        // of dt = −1/10 land exactly on a
+        let data = Tensor::new(&[[[0.25f32, 0.5]]], &Device::Cpu).expect("tensor");
+        let u = (&noise - &data).expect("u");
+        let out = euler(&noise, 10, |_, _| Ok(u.clone())).expect("euler");
+        let got = out
+            .actions
+            .flatten_all()
+            .and_then(|t| t.to_vec1::<f32>())
+            .expect("vec");
+        assert!(
+            (got[0] - 0.25).abs() < 1e-6 && (got[1] - 0.5).abs() < 1e-6,
+            "{got:?}"
+        );
+        // t = 1 (noise) first, steps of 1/10 accumulated in f32, t = 0 never evaluated
+        assert_eq!(out.times.len(), 10);
+        assert_eq!(out.times[0], 1.0);
+        assert!((out.times[9] - 0.1).abs() < 1e-6, "{:?}", out.times);
+        // the velocity at the first step is kept, and the state is updated x ← x + dt·v(x, t)
+        let seen = std::cell::RefCell::new(Vec::new());
+        let out = euler(&noise, 2, |x, t| {
+            seen.borrow_mut()
+                .push((x.flatten_all()?.to_vec1::<f32>()?[0], t));
+            Ok((x * 2.0)?)
+        })
+        .expect("euler");
+        assert_eq!(*seen.borrow(), vec![(1.0, 1.0), (0.0, 0.5)]);
+        let v0 = out.v_t_step0.flatten_all().and_then(|t| t.to_vec1::<f32>());
+        assert_eq!(v0.expect("v0"), vec![2.0, -4.0]);
+        assert!(euler(&noise, 0, |x, _| Ok(x.clone())).is_err());
+    }
+}
