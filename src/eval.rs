@@ -112,6 +112,9 @@ pub struct Cell {
     pub time_to_target: f64,
     /// Largest target jump at a chunk switch over the cell's episodes (rad).
     pub max_jump: f64,
+    /// 90th percentile over the cell's episodes of each episode's largest switch jump (rad): the
+    /// maximum over 30 episodes is one episode's outlier; this is the typical bad case.
+    pub p90_jump: f64,
     /// Mean over episodes of the command's RMS jerk (rad/s³).
     pub rms_jerk: f64,
     /// Mean share of ticks in HOLD.
@@ -123,6 +126,16 @@ impl Cell {
     pub fn rate(&self) -> f64 {
         self.successes as f64 / self.episodes.max(1) as f64
     }
+}
+
+/// The 90th percentile (nearest rank) of `v`; 0 when empty.
+pub fn p90(v: impl Iterator<Item = f64>) -> f64 {
+    let mut v: Vec<f64> = v.collect();
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((0.9 * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1]
 }
 
 /// 95 % Wilson score interval of `k` successes in `n` trials.
@@ -156,6 +169,7 @@ fn summarise(strategy: &str, delay: u64, outs: &[EpisodeOutcome]) -> Cell {
             .iter()
             .map(|o| o.smoothness.max_switch_jump_target)
             .fold(0.0, f64::max),
+        p90_jump: p90(outs.iter().map(|o| o.smoothness.max_switch_jump_target)),
         rms_jerk: outs.iter().map(|o| o.smoothness.rms_jerk).sum::<f64>() / n.max(1) as f64,
         hold_ticks: outs.iter().map(|o| o.hold_ticks as f64).sum::<f64>() / n.max(1) as f64,
     }
@@ -173,12 +187,12 @@ pub struct EpisodeRow {
 /// The Markdown table of a sweep.
 pub fn markdown(cells: &[Cell]) -> String {
     let mut s = String::from(
-        "| strategy | delay (steps) | success | 95 % CI | time to target (s) | max switch jump (rad) | RMS jerk (rad/s³) |\n\
-         |---|---:|---:|---|---:|---:|---:|\n",
+        "| strategy | delay (steps) | success | 95 % CI | time to target (s) | max switch jump (rad) | p90 switch jump (rad) | RMS jerk (rad/s³) |\n\
+         |---|---:|---:|---|---:|---:|---:|---:|\n",
     );
     for c in cells {
         s.push_str(&format!(
-            "| {} | {} | {}/{} ({:.0} %) | {:.0}–{:.0} % | {:.2} | {:.4} | {:.0} |\n",
+            "| {} | {} | {}/{} ({:.0} %) | {:.0}–{:.0} % | {:.2} | {:.4} | {:.4} | {:.0} |\n",
             c.strategy,
             c.delay,
             c.successes,
@@ -188,6 +202,7 @@ pub fn markdown(cells: &[Cell]) -> String {
             100.0 * c.ci.1,
             c.time_to_target,
             c.max_jump,
+            c.p90_jump,
             c.rms_jerk
         ));
     }
@@ -447,12 +462,12 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let mut csv = std::fs::File::create(args.out.join("eval.csv"))?;
     writeln!(
         csv,
-        "strategy,delay_steps,episodes,successes,ci_low,ci_high,time_to_target_s,max_switch_jump_rad,rms_jerk,hold_ticks"
+        "strategy,delay_steps,episodes,successes,ci_low,ci_high,time_to_target_s,max_switch_jump_rad,p90_switch_jump_rad,rms_jerk,hold_ticks"
     )?;
     for c in &cells {
         writeln!(
             csv,
-            "{},{},{},{},{:.4},{:.4},{:.4},{:.6},{:.2},{:.1}",
+            "{},{},{},{},{:.4},{:.4},{:.4},{:.6},{:.6},{:.2},{:.1}",
             c.strategy,
             c.delay,
             c.episodes,
@@ -461,6 +476,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             c.ci.1,
             c.time_to_target,
             c.max_jump,
+            c.p90_jump,
             c.rms_jerk,
             c.hold_ticks
         )?;
@@ -468,7 +484,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let mut csv = std::fs::File::create(args.out.join("episodes.csv"))?;
     writeln!(
         csv,
-        "strategy,delay_steps,scene_seed,color,success,wrong_target,min_distance_m,time_to_target_s,expert_time_s,chunks"
+        "strategy,delay_steps,scene_seed,color,success,wrong_target,min_distance_m,time_to_target_s,expert_time_s,chunks,max_switch_jump_rad"
     )?;
     for r in &rows {
         let o = &r.outcome;
@@ -482,7 +498,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         .map_or(f64::NAN, |p| p.duration);
         writeln!(
             csv,
-            "{},{},{},{},{},{},{:.4},{},{:.3},{}",
+            "{},{},{},{},{},{},{:.4},{},{:.3},{},{:.4}",
             r.strategy,
             r.delay,
             r.spec.scene_seed,
@@ -493,7 +509,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             o.time_to_target
                 .map_or(String::new(), |t| format!("{t:.3}")),
             expert,
-            o.chunks
+            o.chunks,
+            o.smoothness.max_switch_jump_target
         )?;
     }
     let png = args.out.join("eval.png");
@@ -524,6 +541,14 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn p90_is_the_nearest_rank() {
+        assert_eq!(p90((1..=30).map(f64::from)), 27.0);
+        assert_eq!(p90((1..=10).map(f64::from)), 9.0);
+        assert_eq!(p90([0.5].into_iter()), 0.5);
+        assert_eq!(p90(std::iter::empty()), 0.0);
+    }
 
     #[test]
     fn wilson_interval_matches_known_values() {

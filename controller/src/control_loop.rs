@@ -1,5 +1,5 @@
 //! The control thread: its ports, one control tick over IPC ([`ControlLoop::step`]), and the
-//! periodic loop around it ([`control_thread`], absolute deadlines through
+//! periodic loop around it (`control_thread`, absolute deadlines through
 //! [`crate::rt::run_periodic`]).
 //!
 //! Owns: the command and status publishing, tick timing. Must not depend on: the policy, the

@@ -143,6 +143,11 @@ impl PolicySource {
         self.policy.horizon()
     }
 
+    /// Restarts the policy's noise sequence from `seed` ([`Policy::reseed`]).
+    pub fn reseed(&mut self, seed: u64) {
+        self.policy.reseed(seed);
+    }
+
     /// Sets the prompt given to the policy from now on.
     pub fn set_prompt(&mut self, prompt: &str) {
         self.prompt = prompt.to_string();

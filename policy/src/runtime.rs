@@ -236,6 +236,12 @@ impl Policy {
         }
     }
 
+    /// Restarts the sampler's noise sequence from `seed` (the same seed, observations and
+    /// requests give the same chunks: an evaluation compares strategies on common noise).
+    pub fn reseed(&mut self, seed: u64) {
+        self.rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    }
+
     /// Action horizon H.
     pub fn horizon(&self) -> usize {
         self.model.cfg.action_horizon

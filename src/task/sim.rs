@@ -91,6 +91,9 @@ pub fn run_episode(
     let mut exec = Executor::new(&cfg)?;
     let link = exec.connect();
     policy.set_prompt(spec.color.prompt());
+    // the episode's own noise: its chunks do not depend on which episodes ran before it, and
+    // every strategy and delay of a sweep sees the same noise (common random numbers)
+    policy.reseed(spec.scene_seed ^ ((spec.color as u64) << 32));
     let period_ns = (1e9 / cfg.policy.action_rate_hz).round() as u64;
     let control_ns = cfg.control_period_ns();
     let s = cfg.execution.execute_horizon.max(1);

@@ -2,14 +2,14 @@
 //! joint command. A short pipeline of stages, each owning its state (allocated in
 //! [`Executor::new`]):
 //!
-//! 1. [`Timeline`](super::timeline): receive, validate and place chunks (the strategy, one file
-//!    each under [`strategy`](super::strategy)), prune them, sample the target at the tick;
+//! 1. the chunk timeline (`timeline.rs`): receive, validate and place chunks (the strategy, one
+//!    file each under `strategy/`), prune them, sample the target at the tick;
 //! 2. input checks: joint state (shape, age, re-sync after a gap), cameras, the chunk's verdict;
-//! 3. [`Safety`]: the state machine takes the tick's worst problem and moves;
-//! 4. [`shaping`](super::shaping): the target becomes ruckig's target within the limits (or a
+//! 3. the safety state machine (`safety::Safety`) takes the tick's worst problem and moves;
+//! 4. target shaping (`shaping.rs`): the target becomes ruckig's target within the limits (or a
 //!    brake);
 //! 5. ruckig, then the command (and a FAULT if ruckig cannot go on);
-//! 6. [`Requests`](super::request): the inference trigger.
+//! 6. the inference trigger (`request.rs`).
 //!
 //! [`Executor::tick`], [`Executor::record_timing`] and [`Executor::fill_status`] never allocate,
 //! lock or do I/O.

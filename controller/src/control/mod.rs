@@ -1,5 +1,11 @@
 //! The control tick: turns action chunks into a smooth, limit-respecting command stream.
-//! (Chunk executor, interpolation, transitions, ruckig, safety state machine, measurement.)
+//! [`executor`] runs the stages in order — `timeline` (with one file per transition strategy
+//! under `strategy`), input checks, [`safety`], `shaping`, ruckig ([`otg`]), `request` — and
+//! [`interp`], [`rtc`] (guidance weights, delay estimate), [`handoff`] (the lock-free channels to
+//! the inference thread), [`timing`] and [`metrics`] serve them.
+//!
+//! Owns: everything a tick does. Must not depend on: IPC services, threads, the policy (the
+//! inference thread reaches it only through [`InferenceLink`]).
 //!
 //! How the controller uses it:
 //!

@@ -1,4 +1,4 @@
-//! The safety state machine ([`Safety`]: the state, its transitions and why), its vocabulary,
+//! The safety state machine (`Safety`: the state, its transitions and why), its vocabulary,
 //! and its preallocated event ring.
 //!
 //! ```text

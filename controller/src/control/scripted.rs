@@ -164,9 +164,9 @@ impl ScriptedChunkSource {
     }
 }
 
-/// A closed-loop simulation around an [`Executor`] (test harness, allocates freely): the
+/// A closed-loop simulation around an [`Executor`](crate::control::Executor) (test harness, allocates freely): the
 /// [`ScriptedChunkSource`] plays the inference thread, a perfect robot reports the last command
-/// as its joint state, and every tick is recorded into a [`Trace`] and a command log.
+/// as its joint state, and every tick is recorded into a [`Trace`](crate::control::Trace) and a command log.
 pub struct ScriptedSim {
     /// The executor under test.
     pub exec: super::Executor,
