@@ -20,6 +20,8 @@ use crate::inference::PolicySource;
 use crate::task::sim::{run_episode, EpisodeOutcome, EpisodeSpec, SimSettings};
 use crate::train::held_out_episodes;
 
+mod switch;
+
 /// Every way of executing chunks the sweep knows.
 pub const STRATEGIES: [&str; 5] = ["sync", "replace", "crossfade", "temporal_ensemble", "rtc"];
 /// First scene seed of the evaluation episodes (validation uses 1000.., training ≥ 2³²).
@@ -56,6 +58,10 @@ pub struct EvalArgs {
     /// A smoke run: delays 0 and 2, 2 episodes per cell, 3 s limit.
     #[arg(long)]
     pub quick: bool,
+    /// Also draw the target and the command around a chunk switch, one panel per strategy, on
+    /// the first held-out episode at this delay (action steps): `switch.png` in --out.
+    #[arg(long, value_name = "DELAY")]
+    pub switch_plot: Option<u64>,
     /// Instead of the closed-loop sweep, the open-loop probe (`task::probe`) over `--episodes`
     /// held-out episodes: how well the chunks point at the prompted target, and how much they
     /// depend on the image and the prompt against the sampling noise. Writes probe.md.
@@ -512,6 +518,13 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             o.chunks,
             o.smoothness.max_switch_jump_target
         )?;
+    }
+    if let Some(d) = args.switch_plot {
+        let png = args.out.join("switch.png");
+        for line in switch::switch_plot(&cfg, d, &args.strategies, &png)? {
+            println!("{line}");
+        }
+        println!("switch plot: {}", png.display());
     }
     let png = args.out.join("eval.png");
     match plot(&png, &cells) {

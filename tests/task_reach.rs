@@ -78,7 +78,7 @@ fn train_quick_writes_a_checkpoint_the_runtime_loads() {
 fn eval_quick_sweeps_every_strategy_with_the_committed_policy() {
     let dir = tmp("eval");
     let res = Command::new(EXE)
-        .args(["eval", "--quick", "--out"])
+        .args(["eval", "--quick", "--switch-plot", "1", "--out"])
         .arg(&dir)
         .output()
         .unwrap();
@@ -96,6 +96,18 @@ fn eval_quick_sweeps_every_strategy_with_the_committed_policy() {
     }
     assert!(dir.join("eval.md").exists());
     assert!(out.contains("| rtc | 2 |"), "{out}");
+    // the switch plot: one line per asynchronous strategy, a small jump and a command that
+    // follows the target (measured 0.004-0.01 rad on this episode)
+    let lines: Vec<&str> = out.lines().filter(|l| l.contains(" switch at ")).collect();
+    assert_eq!(lines.len(), 4, "{out}");
+    for l in lines {
+        let rad: Vec<f64> = l
+            .split_whitespace()
+            .filter_map(|w| w.parse::<f64>().ok())
+            .collect();
+        assert!(rad.len() == 3 && rad[1] < 0.05 && rad[2] < 0.05, "{l}");
+    }
+    assert!(dir.join("switch.png").exists());
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -50,6 +50,8 @@ pub struct Recording {
     pub samples: Vec<(f64, [f64; TASK_DOF])>,
     /// Times (s) a new chunk took effect.
     pub switches: Vec<f64>,
+    /// Every RUNNING tick: time (s), the executor's target and the command.
+    pub ticks: Vec<(f64, [f64; TASK_DOF], [f64; TASK_DOF])>,
 }
 
 /// What happened.
@@ -193,6 +195,12 @@ pub fn run_episode(
             }
             if r.switched {
                 rec.switches.push(t);
+            }
+            if r.state == State::Running {
+                let (mut target, mut command) = ([0.0; TASK_DOF], [0.0; TASK_DOF]);
+                target.copy_from_slice(&r.target[..TASK_DOF]);
+                command.copy_from_slice(&cmd.position[..TASK_DOF]);
+                rec.ticks.push((t, target, command));
             }
         }
         let q = &js.position[..TASK_DOF];
