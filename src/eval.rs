@@ -62,6 +62,11 @@ pub struct EvalArgs {
     /// the first held-out episode at this delay (action steps): `switch.png` in --out.
     #[arg(long, value_name = "DELAY")]
     pub switch_plot: Option<u64>,
+    /// The dynamic variant: at this time (s) the prompt switches to the other target, which is
+    /// then the one to reach; the table adds the reaction time (until the end effector turned
+    /// 1 cm away from the first target).
+    #[arg(long, value_name = "SECONDS")]
+    pub retarget_at: Option<f64>,
     /// Instead of the closed-loop sweep, the open-loop probe (`task::probe`) over `--episodes`
     /// held-out episodes: how well the chunks point at the prompted target, and how much they
     /// depend on the image and the prompt against the sampling noise. Writes probe.md.
@@ -125,12 +130,28 @@ pub struct Cell {
     pub rms_jerk: f64,
     /// Mean share of ticks in HOLD.
     pub hold_ticks: f64,
+    /// Dynamic variant: mean reaction time of the episodes that reacted (s; NaN: static task or
+    /// none reacted), and how many reacted.
+    pub reaction_time: f64,
+    pub reacted: usize,
+    /// The cell ran the dynamic variant.
+    pub dynamic: bool,
 }
 
 impl Cell {
     /// Success rate.
     pub fn rate(&self) -> f64 {
         self.successes as f64 / self.episodes.max(1) as f64
+    }
+}
+
+/// The mean of `v`; NaN when empty.
+fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    if n == 0 {
+        f64::NAN
+    } else {
+        sum / n as f64
     }
 }
 
@@ -156,7 +177,7 @@ pub fn wilson(k: usize, n: usize) -> (f64, f64) {
     ((centre - half).max(0.0), (centre + half).min(1.0))
 }
 
-fn summarise(strategy: &str, delay: u64, outs: &[EpisodeOutcome]) -> Cell {
+fn summarise(strategy: &str, delay: u64, outs: &[EpisodeOutcome], dynamic: bool) -> Cell {
     let n = outs.len();
     let k = outs.iter().filter(|o| o.success).count();
     let t: Vec<f64> = outs.iter().filter_map(|o| o.time_to_target).collect();
@@ -178,6 +199,9 @@ fn summarise(strategy: &str, delay: u64, outs: &[EpisodeOutcome]) -> Cell {
         p90_jump: p90(outs.iter().map(|o| o.smoothness.max_switch_jump_target)),
         rms_jerk: outs.iter().map(|o| o.smoothness.rms_jerk).sum::<f64>() / n.max(1) as f64,
         hold_ticks: outs.iter().map(|o| o.hold_ticks as f64).sum::<f64>() / n.max(1) as f64,
+        reaction_time: mean(outs.iter().filter_map(|o| o.reaction_time)),
+        reacted: outs.iter().filter(|o| o.reaction_time.is_some()).count(),
+        dynamic,
     }
 }
 
@@ -192,13 +216,19 @@ pub struct EpisodeRow {
 
 /// The Markdown table of a sweep.
 pub fn markdown(cells: &[Cell]) -> String {
+    // the dynamic variant adds the reaction to the retarget
+    let dynamic = cells.iter().any(|c| c.dynamic);
     let mut s = String::from(
-        "| strategy | delay (steps) | success | 95 % CI | time to target (s) | max switch jump (rad) | p90 switch jump (rad) | RMS jerk (rad/s³) |\n\
-         |---|---:|---:|---|---:|---:|---:|---:|\n",
+        "| strategy | delay (steps) | success | 95 % CI | time to target (s) | max switch jump (rad) | p90 switch jump (rad) | RMS jerk (rad/s³) |",
     );
+    s.push_str(if dynamic {
+        " reaction (s) |\n|---|---:|---:|---|---:|---:|---:|---:|---:|\n"
+    } else {
+        "\n|---|---:|---:|---|---:|---:|---:|---:|\n"
+    });
     for c in cells {
         s.push_str(&format!(
-            "| {} | {} | {}/{} ({:.0} %) | {:.0}–{:.0} % | {:.2} | {:.4} | {:.4} | {:.0} |\n",
+            "| {} | {} | {}/{} ({:.0} %) | {:.0}–{:.0} % | {:.2} | {:.4} | {:.4} | {:.0} |",
             c.strategy,
             c.delay,
             c.successes,
@@ -211,6 +241,13 @@ pub fn markdown(cells: &[Cell]) -> String {
             c.p90_jump,
             c.rms_jerk
         ));
+        if dynamic {
+            s.push_str(&format!(
+                " {:.3} ({}/{}) |",
+                c.reaction_time, c.reacted, c.episodes
+            ));
+        }
+        s.push('\n');
     }
     s
 }
@@ -222,6 +259,7 @@ pub fn sweep(
     delays: &[u64],
     episodes: usize,
     max_seconds: f64,
+    retarget_at: Option<f64>,
     mut progress: impl FnMut(usize, usize, &str, u64),
 ) -> anyhow::Result<(Vec<Cell>, Vec<EpisodeRow>)> {
     for s in strategies {
@@ -251,6 +289,7 @@ pub fn sweep(
                 max_seconds,
                 synchronous: sync,
                 record: false,
+                retarget_at,
             };
             let mut outs = Vec::with_capacity(episodes);
             for e in &specs {
@@ -258,7 +297,7 @@ pub fn sweep(
                 done += 1;
                 progress(done, total, s, d);
             }
-            cells.push(summarise(s, d, &outs));
+            cells.push(summarise(s, d, &outs, retarget_at.is_some()));
             rows.extend(specs.iter().zip(outs).map(|(e, o)| EpisodeRow {
                 strategy: s.clone(),
                 delay: d,
@@ -432,6 +471,12 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         )
     };
     anyhow::ensure!(episodes > 0, "--episodes must be > 0");
+    if let Some(t) = args.retarget_at {
+        anyhow::ensure!(
+            t.is_finite() && t > 0.0 && t < max_seconds,
+            "--retarget-at {t}: must be after the start and before the episode's limit ({max_seconds} s)"
+        );
+    }
     let tty = std::io::stderr().is_terminal();
     let t0 = Instant::now();
     let mut last = 0.0;
@@ -441,6 +486,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         &delays,
         episodes,
         max_seconds,
+        args.retarget_at,
         |done, total, s, d| {
             let now = t0.elapsed().as_secs_f64();
             if done == total || now - last >= if tty { 0.5 } else { 20.0 } {
@@ -468,12 +514,12 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let mut csv = std::fs::File::create(args.out.join("eval.csv"))?;
     writeln!(
         csv,
-        "strategy,delay_steps,episodes,successes,ci_low,ci_high,time_to_target_s,max_switch_jump_rad,p90_switch_jump_rad,rms_jerk,hold_ticks"
+        "strategy,delay_steps,episodes,successes,ci_low,ci_high,time_to_target_s,max_switch_jump_rad,p90_switch_jump_rad,rms_jerk,hold_ticks,reaction_time_s,reacted"
     )?;
     for c in &cells {
         writeln!(
             csv,
-            "{},{},{},{},{:.4},{:.4},{:.4},{:.6},{:.6},{:.2},{:.1}",
+            "{},{},{},{},{:.4},{:.4},{:.4},{:.6},{:.6},{:.2},{:.1},{:.4},{}",
             c.strategy,
             c.delay,
             c.episodes,
@@ -484,13 +530,15 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             c.max_jump,
             c.p90_jump,
             c.rms_jerk,
-            c.hold_ticks
+            c.hold_ticks,
+            c.reaction_time,
+            c.reacted
         )?;
     }
     let mut csv = std::fs::File::create(args.out.join("episodes.csv"))?;
     writeln!(
         csv,
-        "strategy,delay_steps,scene_seed,color,success,wrong_target,min_distance_m,time_to_target_s,expert_time_s,chunks,max_switch_jump_rad"
+        "strategy,delay_steps,scene_seed,color,success,wrong_target,min_distance_m,time_to_target_s,expert_time_s,chunks,max_switch_jump_rad,reaction_time_s"
     )?;
     for r in &rows {
         let o = &r.outcome;
@@ -504,7 +552,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         .map_or(f64::NAN, |p| p.duration);
         writeln!(
             csv,
-            "{},{},{},{},{},{},{:.4},{},{:.3},{},{:.4}",
+            "{},{},{},{},{},{},{:.4},{},{:.3},{},{:.4},{}",
             r.strategy,
             r.delay,
             r.spec.scene_seed,
@@ -516,7 +564,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 .map_or(String::new(), |t| format!("{t:.3}")),
             expert,
             o.chunks,
-            o.smoothness.max_switch_jump_target
+            o.smoothness.max_switch_jump_target,
+            o.reaction_time.map_or(String::new(), |t| format!("{t:.3}"))
         )?;
     }
     if let Some(d) = args.switch_plot {

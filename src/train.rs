@@ -283,6 +283,7 @@ pub fn validate(
         max_seconds,
         synchronous: false,
         record: false,
+        retarget_at: None,
     };
     let mut ok = 0;
     let mut t = 0.0;

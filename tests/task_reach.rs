@@ -66,6 +66,7 @@ fn train_quick_writes_a_checkpoint_the_runtime_loads() {
             max_seconds: 0.5,
             synchronous: false,
             record: true,
+            retarget_at: None,
         },
     )
     .unwrap();
@@ -111,6 +112,66 @@ fn eval_quick_sweeps_every_strategy_with_the_committed_policy() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// The dynamic variant: the prompt switches to the other target mid-episode; the sweep reports
+/// how long the robot took to turn away from the first target, and rejects a retarget outside
+/// the episode.
+#[test]
+fn eval_dynamic_variant_reports_reaction_times() {
+    let dir = tmp("eval-dynamic");
+    let res = Command::new(EXE)
+        .args([
+            "eval",
+            "--max-delay",
+            "0",
+            "--episodes",
+            "6",
+            "--max-seconds",
+            "3",
+        ])
+        .args(["--strategies", "sync,rtc", "--retarget-at", "0.5"])
+        .arg("--out")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&res.stdout);
+    assert!(
+        res.status.success(),
+        "{out}\n{}",
+        String::from_utf8_lossy(&res.stderr)
+    );
+    assert!(out.contains("reaction (s)"), "{out}");
+    let csv = std::fs::read_to_string(dir.join("eval.csv")).unwrap();
+    assert!(
+        csv.lines()
+            .next()
+            .unwrap()
+            .ends_with("reaction_time_s,reacted"),
+        "{csv}"
+    );
+    // some episode turned away from the first target, within the 3 s of a quick episode
+    let reacted: Vec<f64> = csv
+        .lines()
+        .skip(1)
+        .filter_map(|l| l.rsplit(',').nth(1)?.parse::<f64>().ok())
+        .filter(|t| t.is_finite())
+        .collect();
+    assert!(
+        !reacted.is_empty() && reacted.iter().all(|&t| t > 0.0 && t < 3.0),
+        "{csv}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+
+    let res = Command::new(EXE)
+        .args(["eval", "--quick", "--retarget-at", "100"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(
+        !res.status.success() && err.contains("--retarget-at 100"),
+        "{err}"
+    );
+}
+
 /// The committed weights, closed loop on held-out scenes with the default execution (rtc),
 /// an inference delay of one action step.
 #[test]
@@ -129,6 +190,7 @@ fn committed_policy_reaches_held_out_targets() {
         max_seconds: 8.0,
         synchronous: false,
         record: false,
+        retarget_at: None,
     };
     let mut ok = 0;
     let mut wrong = 0;

@@ -102,6 +102,7 @@ pub fn switch_plot(
             max_seconds: 8.0,
             synchronous: false,
             record: true,
+            retarget_at: None,
         };
         let out = run_episode(&c, &mut policy, &spec, &settings)?;
         let rec = out.recording.context("the episode was recorded")?;

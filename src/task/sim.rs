@@ -41,7 +41,14 @@ pub struct SimSettings {
     pub synchronous: bool,
     /// Keep the joint trajectory and chunk switch times.
     pub record: bool,
+    /// The dynamic variant: at this time (s) the prompt switches to the other target, which then
+    /// is the one to reach (the prompted target jumps); `None`: the static task.
+    pub retarget_at: Option<f64>,
 }
+
+/// The robot has reacted to a retarget once its end effector is this much further from the
+/// first target than at the retarget (m): it turned away.
+pub const REACTION_DISTANCE: f64 = 0.01;
 
 /// The joint trajectory of an episode (every `stride` ticks) and when chunks took effect.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -71,6 +78,9 @@ pub struct EpisodeOutcome {
     pub chunks: usize,
     /// Ticks spent in HOLD.
     pub hold_ticks: u64,
+    /// Dynamic variant: time from the retarget until the end effector turned away from the first
+    /// target by [`REACTION_DISTANCE`] (s; None: it never did, or no retarget).
+    pub reaction_time: Option<f64>,
     /// Trajectory, when recorded.
     pub recording: Option<Recording>,
 }
@@ -85,7 +95,10 @@ pub fn run_episode(
     let cam = task_camera(cfg)?.clone();
     let (w, h) = (cam.width as usize, cam.height as usize);
     let scene = ReachScene::from_seed(spec.scene_seed);
-    let other = spec.color.other();
+    // the target to reach (the prompted one; after a retarget the other) and the other one
+    let (mut goal, mut other) = (spec.color, spec.color.other());
+    // the retarget's time and the end effector's distance to the first target then
+    let mut retargeted: Option<(f64, f64)> = None;
     let mut cfg = cfg.clone();
     if settings.synchronous {
         cfg.execution.strategy = crate::config::Strategy::Replace;
@@ -120,6 +133,7 @@ pub fn run_episode(
         smoothness: Smoothness::default(),
         chunks: 0,
         hold_ticks: 0,
+        reaction_time: None,
         recording: settings.record.then(Recording::default),
     };
     let ticks = (settings.max_seconds * 1e9 / control_ns as f64).ceil() as u64;
@@ -128,6 +142,14 @@ pub fn run_episode(
         let t = (now - START_NS) as f64 * 1e-9;
         js.seq += 1;
         js.measurement_time_ns = now;
+        if let (Some(at), None) = (settings.retarget_at, retargeted) {
+            if t >= at {
+                (goal, other) = (other, goal);
+                policy.set_prompt(goal.prompt());
+                let d = scene.distance(&js.position[..TASK_DOF], other);
+                retargeted = Some((t, d));
+            }
+        }
         let mut observe =
             |js: &JointState, req: &InferenceRequest| -> anyhow::Result<ActionChunk> {
                 scene.render_rgb(&js.position[..TASK_DOF], w, h, 3 * w, &mut image);
@@ -184,8 +206,12 @@ pub fn run_episode(
         }
         if r.state == State::Running {
             trace.push(&r.target, &cmd.position, None, r.switched);
-        } else if r.state == State::Hold {
-            out.hold_ticks += 1;
+        } else {
+            // not recorded: the metrics must not difference across it
+            trace.gap();
+            if r.state == State::Hold {
+                out.hold_ticks += 1;
+            }
         }
         if let Some(rec) = out.recording.as_mut() {
             if k % 10 == 0 {
@@ -204,9 +230,15 @@ pub fn run_episode(
             }
         }
         let q = &js.position[..TASK_DOF];
-        let d = scene.distance(q, spec.color);
+        if let (Some((at, d0)), None) = (retargeted, out.reaction_time) {
+            if scene.distance(q, other) >= d0 + REACTION_DISTANCE {
+                out.reaction_time = Some(t - at);
+            }
+        }
+        let d = scene.distance(q, goal);
         out.min_distance = out.min_distance.min(d);
-        if d <= super::REACH_TOLERANCE {
+        // (dynamic variant: only the target prompted after the retarget counts)
+        if d <= super::REACH_TOLERANCE && (settings.retarget_at.is_none() || retargeted.is_some()) {
             out.success = true;
             out.time_to_target = Some(t);
             break;

@@ -20,6 +20,9 @@ pub struct Trace {
     pub reference: Vec<[f64; MAX_DOF]>,
     /// Ticks at which a new chunk took effect.
     pub switches: Vec<usize>,
+    /// Ticks that start a new stretch after a gap (e.g. RUNNING again after a HOLD that was not
+    /// recorded): differences are never taken across them.
+    pub breaks: Vec<usize>,
 }
 
 /// Smoothness of one trace. Jumps are the deviation of a position from its linear
@@ -78,6 +81,19 @@ impl Trace {
         }
     }
 
+    /// Marks a gap: the next tick pushed starts a new stretch (idempotent).
+    pub fn gap(&mut self) {
+        let k = self.command.len();
+        if k > 0 && self.breaks.last() != Some(&k) {
+            self.breaks.push(k);
+        }
+    }
+
+    /// Ticks `k − span ..= k` lie in one stretch (no break after `k − span`).
+    fn contiguous(&self, k: usize, span: usize) -> bool {
+        k >= span && !self.breaks.iter().any(|&b| b > k - span && b <= k)
+    }
+
     /// Computes the metrics.
     pub fn smoothness(&self) -> Smoothness {
         smoothness(self)
@@ -123,7 +139,7 @@ pub fn smoothness(tr: &Trace) -> Smoothness {
     };
     for &s in &tr.switches {
         for k in [s, s + 1] {
-            if k >= 2 && k < tr.command.len() {
+            if k < tr.command.len() && tr.contiguous(k, 2) {
                 for j in joints() {
                     m.max_switch_jump_target = m
                         .max_switch_jump_target
@@ -137,7 +153,7 @@ pub fn smoothness(tr: &Trace) -> Smoothness {
     }
     let dt3 = tr.dt * tr.dt * tr.dt;
     let (mut sum, mut cnt) = (0.0, 0usize);
-    for k in 3..tr.command.len() {
+    for k in (3..tr.command.len()).filter(|&k| tr.contiguous(k, 3)) {
         for j in joints() {
             let c = &tr.command;
             let jerk = (c[k][j] - 3.0 * c[k - 1][j] + 3.0 * c[k - 2][j] - c[k - 3][j]) / dt3;
@@ -167,6 +183,39 @@ pub fn smoothness(tr: &Trace) -> Smoothness {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn no_difference_is_taken_across_a_gap() {
+        let mut tr = Trace::new(0.001, 1);
+        let at = |x: f64| {
+            let mut v = [0.0; MAX_DOF];
+            v[0] = x;
+            v
+        };
+        for k in 0..10 {
+            tr.push(&at(k as f64 * 1e-3), &at(k as f64 * 1e-3), None, false);
+        }
+        tr.gap();
+        tr.gap();
+        // a stretch 0.5 rad further on (the robot braked and moved meanwhile)
+        for k in 0..10 {
+            tr.push(
+                &at(0.5 + k as f64 * 1e-3),
+                &at(0.5 + k as f64 * 1e-3),
+                None,
+                k == 0,
+            );
+        }
+        assert_eq!(tr.breaks, vec![10]);
+        let m = tr.smoothness();
+        assert!(
+            m.rms_jerk < 1e-6 && m.max_switch_jump_target < 1e-9,
+            "{m:?}"
+        );
+        // without the gap the same samples are a 0.5 rad step
+        tr.breaks.clear();
+        assert!(tr.smoothness().max_switch_jump_target > 0.45);
+    }
 
     #[test]
     fn a_step_is_a_jump_and_a_line_is_not() {
