@@ -39,7 +39,8 @@ pub struct EvalArgs {
     /// Largest injected delay (action steps); the sweep runs 0..=N.
     #[arg(long, default_value_t = 4)]
     pub max_delay: u64,
-    /// Strategies, comma separated (sync, replace, crossfade, temporal_ensemble, rtc).
+    /// Strategies, comma separated (sync, replace, crossfade, temporal_ensemble, rtc); any but
+    /// sync with `/measured` appended runs without future-state inference (e.g. `rtc/measured`).
     #[arg(
         long,
         value_delimiter = ',',
@@ -252,6 +253,17 @@ pub fn markdown(cells: &[Cell]) -> String {
     s
 }
 
+/// Suffix of a strategy name that runs it without future-state inference (`rtc/measured`).
+pub const MEASURED: &str = "/measured";
+
+/// A strategy name and whether it is the measured-state variant.
+fn split_variant(s: &str) -> (&str, bool) {
+    match s.strip_suffix(MEASURED) {
+        Some(base) => (base, true),
+        None => (s, false),
+    }
+}
+
 /// Runs the sweep; `progress(done, total, cell so far)` after each episode.
 pub fn sweep(
     cfg: &Config,
@@ -263,9 +275,11 @@ pub fn sweep(
     mut progress: impl FnMut(usize, usize, &str, u64),
 ) -> anyhow::Result<(Vec<Cell>, Vec<EpisodeRow>)> {
     for s in strategies {
+        let (base, measured) = split_variant(s);
         anyhow::ensure!(
-            STRATEGIES.contains(&s.as_str()),
-            "unknown strategy {s:?}: one of {}",
+            STRATEGIES.contains(&base) && !(measured && base == "sync"),
+            "unknown strategy {s:?}: one of {}, and any but sync with {MEASURED:?} appended (the \
+             policy observes the measured state instead of the future one)",
             STRATEGIES.join(", ")
         );
     }
@@ -278,9 +292,13 @@ pub fn sweep(
     for &d in delays {
         for s in strategies {
             let mut c = cfg.clone();
-            let sync = s == "sync";
+            let (base, measured) = split_variant(s);
+            let sync = base == "sync";
             if !sync {
-                c.execution.strategy = s.parse().map_err(anyhow::Error::msg)?;
+                c.execution.strategy = base.parse().map_err(anyhow::Error::msg)?;
+            }
+            if measured {
+                c.execution.future_state = false;
             }
             // the executor's delay estimate starts at the injected delay
             c.execution.initial_delay_steps = d as usize;
@@ -603,6 +621,27 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn measured_state_variants_are_named_by_a_suffix() {
+        assert_eq!(split_variant("rtc/measured"), ("rtc", true));
+        assert_eq!(split_variant("rtc"), ("rtc", false));
+        let cfg = Config::embedded_default();
+        for bad in ["sync/measured", "rtc/future", "magic"] {
+            let e = sweep(
+                &cfg,
+                &[bad.to_string()],
+                &[0],
+                1,
+                1.0,
+                None,
+                |_, _, _, _| {},
+            )
+            .expect_err(bad)
+            .to_string();
+            assert!(e.contains(bad) && e.contains("/measured"), "{e}");
+        }
+    }
 
     #[test]
     fn p90_is_the_nearest_rank() {

@@ -95,7 +95,11 @@ pub fn switch_plot(
     let mut panels = Vec::new();
     for s in strategies.iter().filter(|s| s.as_str() != "sync") {
         let mut c = cfg.clone();
-        c.execution.strategy = s.parse().map_err(anyhow::Error::msg)?;
+        let (base, measured) = super::split_variant(s);
+        c.execution.strategy = base.parse().map_err(anyhow::Error::msg)?;
+        if measured {
+            c.execution.future_state = false;
+        }
         c.execution.initial_delay_steps = delay as usize;
         let settings = SimSettings {
             delay_steps: delay,
