@@ -20,6 +20,19 @@ fn tmp(name: &str) -> std::path::PathBuf {
     d
 }
 
+/// Runs `cmd` to completion and returns its stdout, after checking that it succeeded (stdout
+/// and stderr in the message otherwise).
+fn run_ok(cmd: &mut Command) -> String {
+    let res = cmd.output().expect("the chunkrt binary runs");
+    let out = String::from_utf8_lossy(&res.stdout).into_owned();
+    assert!(
+        res.status.success(),
+        "{out}\n{}",
+        String::from_utf8_lossy(&res.stderr)
+    );
+    out
+}
+
 #[test]
 fn train_quick_writes_a_checkpoint_the_runtime_loads() {
     let dir = tmp("train");
@@ -78,17 +91,10 @@ fn train_quick_writes_a_checkpoint_the_runtime_loads() {
 #[test]
 fn eval_quick_sweeps_every_strategy_with_the_committed_policy() {
     let dir = tmp("eval");
-    let res = Command::new(EXE)
-        .args(["eval", "--quick", "--switch-plot", "1", "--out"])
-        .arg(&dir)
-        .output()
-        .unwrap();
-    let out = String::from_utf8_lossy(&res.stdout);
-    assert!(
-        res.status.success(),
-        "{out}\n{}",
-        String::from_utf8_lossy(&res.stderr)
-    );
+    let mut cmd = Command::new(EXE);
+    cmd.args(["eval", "--quick", "--switch-plot", "1", "--out"])
+        .arg(&dir);
+    let out = run_ok(&mut cmd);
     let csv = std::fs::read_to_string(dir.join("eval.csv")).unwrap();
     // header + 2 delays x 5 ways of executing
     assert_eq!(csv.lines().count(), 11, "{csv}");
@@ -118,27 +124,20 @@ fn eval_quick_sweeps_every_strategy_with_the_committed_policy() {
 #[test]
 fn eval_dynamic_variant_reports_reaction_times() {
     let dir = tmp("eval-dynamic");
-    let res = Command::new(EXE)
-        .args([
-            "eval",
-            "--max-delay",
-            "0",
-            "--episodes",
-            "6",
-            "--max-seconds",
-            "3",
-        ])
-        .args(["--strategies", "sync,rtc", "--retarget-at", "0.5"])
-        .arg("--out")
-        .arg(&dir)
-        .output()
-        .unwrap();
-    let out = String::from_utf8_lossy(&res.stdout);
-    assert!(
-        res.status.success(),
-        "{out}\n{}",
-        String::from_utf8_lossy(&res.stderr)
-    );
+    let mut cmd = Command::new(EXE);
+    cmd.args([
+        "eval",
+        "--max-delay",
+        "0",
+        "--episodes",
+        "6",
+        "--max-seconds",
+        "3",
+    ])
+    .args(["--strategies", "sync,rtc", "--retarget-at", "0.5"])
+    .arg("--out")
+    .arg(&dir);
+    let out = run_ok(&mut cmd);
     assert!(out.contains("reaction (s)"), "{out}");
     let csv = std::fs::read_to_string(dir.join("eval.csv")).unwrap();
     assert!(
@@ -215,24 +214,17 @@ const MIN_SUCCESS: usize = 9;
 #[test]
 fn demo_runs_an_episode_over_ipc_and_writes_its_report() {
     let dir = tmp("demo");
-    let res = Command::new(EXE)
-        .args([
-            "demo",
-            "--prompts",
-            "reach the blue target",
-            "--episode-seconds",
-            "6",
-            "--out",
-        ])
-        .arg(&dir)
-        .output()
-        .unwrap();
-    let out = String::from_utf8_lossy(&res.stdout);
-    assert!(
-        res.status.success(),
-        "{out}\n{}",
-        String::from_utf8_lossy(&res.stderr)
-    );
+    let mut cmd = Command::new(EXE);
+    cmd.args([
+        "demo",
+        "--prompts",
+        "reach the blue target",
+        "--episode-seconds",
+        "6",
+        "--out",
+    ])
+    .arg(&dir);
+    let out = run_ok(&mut cmd);
     assert!(out.contains("episode 1/1"), "{out}");
     assert!(out.contains("success: "), "{out}");
     assert!(out.contains("fake-robot: exited cleanly"), "{out}");

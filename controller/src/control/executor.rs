@@ -24,6 +24,7 @@ use chunkrt_ipc::{
 
 use super::handoff::{self, ChunkSender, RequestReceiver};
 use super::interp::Sample;
+use super::ms_to_ns;
 use super::otg::{Otg, OtgError, OtgInput, OtgOutput, OtgResult};
 use super::request::Requests;
 use super::safety::{EventReader, Reason, Safety, State};
@@ -132,10 +133,6 @@ pub struct Executor {
     limit_warnings: u64,
 }
 
-fn ms_to_ns(ms: f64) -> u64 {
-    (ms * 1e6).max(0.0).round() as u64
-}
-
 impl Executor {
     /// Builds the executor for a validated configuration; allocates everything it will need.
     pub fn new(config: &Config) -> Result<Self, ExecutorError> {
@@ -159,8 +156,8 @@ impl Executor {
         let (chunk_tx, chunk_rx) = handoff::channel(1, 64);
         let (req_tx, req_rx) = handoff::request_channel();
         Ok(Self {
+            timeline: Timeline::new(config, n, limits.step, chunk_rx),
             limits,
-            timeline: Timeline::new(config, n, chunk_rx),
             safety: Safety::new(ms_to_ns(e.hold_to_fault_ms)),
             requests: Requests::new(config, req_tx),
             otg,

@@ -36,6 +36,11 @@
 //! # Ok(()) }
 //! ```
 
+/// Milliseconds from the configuration as non-negative nanoseconds.
+pub(crate) fn ms_to_ns(ms: f64) -> u64 {
+    (ms * 1e6).max(0.0).round() as u64
+}
+
 pub mod executor;
 pub mod handoff;
 pub mod interp;

@@ -39,7 +39,7 @@ impl Requests {
             beta: e.guidance_beta,
             future_state: e.future_state,
             action_period_ns: ((1e9 / config.policy.action_rate_hz).round() as u64).max(1),
-            timeout_ns: (e.inference_timeout_ms * 1e6).max(0.0).round() as u64,
+            timeout_ns: super::ms_to_ns(e.inference_timeout_ms),
             outstanding_since: None,
             next_id: 1,
         }

@@ -41,13 +41,10 @@ pub(crate) struct Timeline {
 }
 
 impl Timeline {
-    /// An empty timeline for `config`, receiving from `rx`; allocates everything it will need.
-    pub fn new(config: &Config, n: usize, rx: ChunkReceiver) -> Self {
+    /// An empty timeline for `config`'s first `n` joints (`step`: their step channels),
+    /// receiving from `rx`; allocates everything it will need.
+    pub fn new(config: &Config, n: usize, step: [bool; MAX_DOF], rx: ChunkReceiver) -> Self {
         let e = &config.execution;
-        let mut step = [false; MAX_DOF];
-        for (i, j) in config.robot.joints.iter().take(n).enumerate() {
-            step[i] = j.step;
-        }
         Self {
             slots: VecDeque::with_capacity(CHUNK_SLOTS),
             graveyard: Vec::with_capacity(GRAVEYARD),

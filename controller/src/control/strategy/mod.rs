@@ -95,7 +95,7 @@ impl Transitions {
         match e.strategy {
             Strategy::Replace => Self::Replace(Replace),
             Strategy::Crossfade => Self::Crossfade(Crossfade {
-                window_ns: (e.crossfade_ms * 1e6).max(0.0).round() as i64,
+                window_ns: super::ms_to_ns(e.crossfade_ms) as i64,
             }),
             Strategy::TemporalEnsemble => Self::TemporalEnsemble(TemporalEnsemble {
                 decay: e.ensemble_decay,
