@@ -23,7 +23,14 @@ use crate::train::held_out_episodes;
 mod switch;
 
 /// Every way of executing chunks the sweep knows.
-pub const STRATEGIES: [&str; 5] = ["sync", "replace", "crossfade", "temporal_ensemble", "rtc"];
+pub const STRATEGIES: [&str; 6] = [
+    "sync",
+    "replace",
+    "crossfade",
+    "temporal_ensemble",
+    "rtc",
+    "rtc_trained",
+];
 /// First scene seed of the evaluation episodes (validation uses 1000.., training ≥ 2³²).
 pub const EVAL_SCENE_BASE: u64 = 2_000;
 
@@ -39,8 +46,10 @@ pub struct EvalArgs {
     /// Largest injected delay (action steps); the sweep runs 0..=N.
     #[arg(long, default_value_t = 4)]
     pub max_delay: u64,
-    /// Strategies, comma separated (sync, replace, crossfade, temporal_ensemble, rtc); any but
-    /// sync with `/measured` appended runs without future-state inference (e.g. `rtc/measured`).
+    /// Strategies, comma separated (sync, replace, crossfade, temporal_ensemble, rtc, and
+    /// rtc_trained with a checkpoint trained for it, e.g. `models/reach_pi05_rtc`); any but sync
+    /// with `/measured` appended runs without future-state inference (e.g. `rtc/measured`;
+    /// rtc_trained always observes the measured state).
     #[arg(
         long,
         value_delimiter = ',',
@@ -285,6 +294,21 @@ pub fn sweep(
     }
     let specs = held_out_episodes(cfg, EVAL_SCENE_BASE, episodes, 0xe7a1);
     let mut policy = PolicySource::load(cfg)?;
+    if strategies
+        .iter()
+        .any(|s| split_variant(s).0 == "rtc_trained")
+    {
+        anyhow::ensure!(
+            policy.committed_max() > 0,
+            "strategy rtc_trained needs a checkpoint trained with a committed prefix (`chunkrt \
+             train --rtc-prefix N`), and {} is not: pass --checkpoint models/reach_pi05_rtc",
+            cfg.policy
+                .checkpoint
+                .as_ref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_default()
+        );
+    }
     let total = strategies.len() * delays.len() * episodes;
     let mut done = 0;
     let mut cells = Vec::new();

@@ -135,6 +135,17 @@ pub struct TrainArgs {
     /// 22/24 for 1 (more optimiser steps in the same time won).
     #[arg(long, default_value_t = 1)]
     pub samples_per_obs: usize,
+    /// Training-time real-time chunking (Black et al. 2025, arXiv 2512.05964): each sample's
+    /// first d actions, d uniform in 0..=N, are given to the model clean (flow time 0) and left
+    /// out of the loss, so at run time the actions the robot executes while the model computes
+    /// can be given and the chunk continues them (`strategy = "rtc_trained"`). The checkpoint's
+    /// `config.json` records N as `rtc_prefix_max`. 0 (the default) trains without.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub rtc_prefix: usize,
+    /// Start from this checkpoint's weights instead of a fresh initialisation (fine-tuning;
+    /// its dimensions must be the model configuration's), keeping its `norm_stats.json`.
+    #[arg(long, value_name = "DIR")]
+    pub init: Option<PathBuf>,
     /// A smoke run: 3 scenes, 6 steps, 1 validation episode (for the tests).
     #[arg(long)]
     pub quick: bool,
@@ -297,6 +308,26 @@ pub fn validate(
     Ok((ok, if ok > 0 { t / ok as f64 } else { f64::NAN }))
 }
 
+/// The model configuration `json` with `rtc_prefix_max` set to `n` (left out when 0).
+pub fn with_rtc_prefix(json: &str, n: usize) -> anyhow::Result<String> {
+    if n == 0 {
+        return Ok(json.to_string());
+    }
+    let mut v: serde_json::Value =
+        serde_json::from_str(json).context("the model configuration is not JSON")?;
+    let obj = v
+        .as_object_mut()
+        .context("the model configuration is not a JSON object")?;
+    obj.insert("rtc_prefix_max".into(), n.into());
+    if let Some(serde_json::Value::String(about)) = obj.get_mut("about") {
+        about.push_str(&format!(
+            " Trained with a committed action prefix of up to {n} actions (training-time RTC, \
+             `chunkrt train --rtc-prefix {n}`): runs strategy rtc_trained."
+        ));
+    }
+    Ok(serde_json::to_string_pretty(&v)? + "\n")
+}
+
 fn fmt_min(s: f64) -> String {
     format!("{}:{:02}", (s / 60.0) as u64, (s % 60.0) as u64)
 }
@@ -319,6 +350,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         }
         None => MODEL_CONFIG.to_string(),
     };
+    let model_json = with_rtc_prefix(&model_json, args.rtc_prefix)?;
     let mcfg = ModelConfig::from_json_str(&model_json)?;
     anyhow::ensure!(
         mcfg.vocab_size >= vocab::vocab_len(),
@@ -395,9 +427,21 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
 
     // 2. normalisation, tokenizer, model
     let actions = model_space_actions(&ds, &mcfg.delta_action_mask);
-    let norm = NormStats {
-        state: column_stats(&ds.state, ds.n_dof),
-        actions: column_stats(&actions, ds.n_dof),
+    // fine-tuning keeps the normalisation its weights were trained with
+    let init_norm = args
+        .init
+        .as_ref()
+        .map(|d| d.join("norm_stats.json"))
+        .filter(|p| p.exists());
+    let norm = match &init_norm {
+        Some(p) => {
+            eprintln!("[train] norm stats of {}", p.display());
+            NormStats::from_file(p)?
+        }
+        None => NormStats {
+            state: column_stats(&ds.state, ds.n_dof),
+            actions: column_stats(&actions, ds.n_dof),
+        },
     };
     let tok_dir = std::env::temp_dir().join(format!("chunkrt-tok-{}", std::process::id()));
     std::fs::create_dir_all(&tok_dir)?;
@@ -410,8 +454,16 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     let dev = Device::Cpu;
     let vm = VarMap::new();
     let model = PiModel::new(&mcfg, VarBuilder::from_varmap(&vm, DType::F32, &dev))?;
-    if args.state_embedding == BinInit::Fourier {
-        init_state_bin_embeddings(&vm)?;
+    match &args.init {
+        Some(dir) => {
+            let file = dir.join("model.safetensors");
+            let mut vm = vm.clone();
+            vm.load(&file)
+                .with_context(|| format!("cannot start from {}", file.display()))?;
+            eprintln!("[train] starting from {}", file.display());
+        }
+        None if args.state_embedding == BinInit::Fourier => init_state_bin_embeddings(&vm)?,
+        None => {}
     }
     let n_params: usize = vm.all_vars().iter().map(|v| v.elem_count()).sum();
     eprintln!(
@@ -555,6 +607,16 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
                 (u.powf(1.0 / 1.5) * 0.999 + 0.001) as f32
             })
             .collect();
+        // training-time RTC: the committed prefix length of each sample
+        let committed: Vec<usize> = (0..batch * kspo)
+            .map(|_| {
+                if args.rtc_prefix > 0 {
+                    rng.gen_range(0..=args.rtc_prefix)
+                } else {
+                    0
+                }
+            })
+            .collect();
         // data parallel: each worker runs forward + backward on its share of the batch
         let share = batch.div_ceil(workers);
         let results: Vec<anyhow::Result<WorkerResult>> = std::thread::scope(|sc| {
@@ -564,9 +626,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
                     let hi = (lo + share).min(batch);
                     let (model, batcher, idx, aug) = (&model, &batcher, &idx, &aug);
                     let (heads, args) = (&heads, &args);
-                    let (noise, time) = (
+                    let (noise, time, committed) = (
                         &noise[lo * kspo * h * a..hi * kspo * h * a],
                         &time[lo * kspo..hi * kspo],
+                        &committed[lo * kspo..hi * kspo],
                     );
                     sc.spawn(move || -> anyhow::Result<_> {
                         let n = hi - lo;
@@ -581,6 +644,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
                             &actions,
                             &noise,
                             &time,
+                            Some(committed),
                             kspo,
                             true,
                             heads.tap(),

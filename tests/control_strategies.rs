@@ -122,7 +122,13 @@ fn every_strategy_respects_limits_and_rtc_crossfade_switch_smoothly() {
     let latency_ms = 120; // 6 action steps at 50 Hz
     let jump = 0.05; // consecutive chunks disagree by 0.1 rad
     let mut rows = Vec::new();
-    for s in ["replace", "crossfade", "temporal_ensemble", "rtc"] {
+    for s in [
+        "replace",
+        "crossfade",
+        "temporal_ensemble",
+        "rtc",
+        "rtc_trained",
+    ] {
         let o = run(s, latency_ms, jump, 6.0);
         let m = o.metrics;
         eprintln!(
@@ -159,6 +165,13 @@ fn every_strategy_respects_limits_and_rtc_crossfade_switch_smoothly() {
     assert!(
         rtc.max_switch_jump_target < 0.25 * rep.max_switch_jump_target,
         "rtc {rtc:?} vs replace {rep:?}"
+    );
+    // rtc_trained: the source starts each chunk with the committed actions it is given (as a
+    // policy trained for it does) and continues them (emulated like guidance)
+    let trained = get("rtc_trained");
+    assert!(
+        trained.max_switch_jump_target < 0.25 * rep.max_switch_jump_target,
+        "rtc_trained {trained:?} vs replace {rep:?}"
     );
     // The command itself never jumps: ruckig turns every switch into a jerk-limited move.
     for (s, m) in &rows {

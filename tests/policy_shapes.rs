@@ -259,7 +259,7 @@ fn multi_sample_loss_equals_the_joint_loss_on_repeated_inputs() {
         for diff in [false, true] {
             let embs = model.embed_prefix_with(&inp, diff).unwrap();
             let (multi, _) = model
-                .loss_multi(&inp, &embs, &actions, &noise, &time, k, diff, None)
+                .loss_multi(&inp, &embs, &actions, &noise, &time, None, k, diff, None)
                 .unwrap();
             let rembs = model.embed_prefix_with(&rep, diff).unwrap();
             let (joint, _) = model
@@ -278,7 +278,7 @@ fn multi_sample_loss_equals_the_joint_loss_on_repeated_inputs() {
         // gradients reach the vision tower through the shared prefix
         let embs = model.embed_prefix_with(&inp, true).unwrap();
         let (multi, _) = model
-            .loss_multi(&inp, &embs, &actions, &noise, &time, k, true, None)
+            .loss_multi(&inp, &embs, &actions, &noise, &time, None, k, true, None)
             .unwrap();
         let grads = multi.mean.backward().unwrap();
         let g = _vm

@@ -88,6 +88,54 @@ fn train_quick_writes_a_checkpoint_the_runtime_loads() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Training-time RTC end to end: `train --rtc-prefix` fine-tuning the committed policy writes a
+/// checkpoint that declares its committed prefix and keeps its norm stats, `eval` runs it with
+/// `rtc_trained`, and a checkpoint not trained for it is refused with the reason.
+#[test]
+fn train_rtc_prefix_gives_a_checkpoint_that_runs_rtc_trained() {
+    let dir = tmp("train-rtc");
+    let out = dir.join("ckpt");
+    let init = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/reach_pi05");
+    let mut cmd = Command::new(EXE);
+    cmd.args(["train", "--quick", "--rtc-prefix", "3", "--init"])
+        .arg(&init)
+        .arg("--out")
+        .arg(&out)
+        .arg("--dataset")
+        .arg(dir.join("ds.safetensors"));
+    run_ok(&mut cmd);
+    let cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("config.json")).unwrap()).unwrap();
+    assert_eq!(cfg["rtc_prefix_max"], 3, "{cfg}");
+    let stats = |d: &Path| std::fs::read_to_string(d.join("norm_stats.json")).unwrap();
+    assert_eq!(stats(&out), stats(&init));
+
+    let mut cmd = Command::new(EXE);
+    cmd.args(["eval", "--quick", "--strategies", "replace,rtc_trained"])
+        .arg("--checkpoint")
+        .arg(&out)
+        .arg("--out")
+        .arg(dir.join("eval"));
+    run_ok(&mut cmd);
+    let csv = std::fs::read_to_string(dir.join("eval/eval.csv")).unwrap();
+    for cell in ["\nrtc_trained,0,", "\nrtc_trained,2,"] {
+        assert!(csv.contains(cell), "{cell} missing: {csv}");
+    }
+    // the committed default policy was trained without a committed prefix
+    let res = Command::new(EXE)
+        .args(["eval", "--quick", "--strategies", "rtc_trained", "--out"])
+        .arg(dir.join("refused"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(!res.status.success());
+    assert!(
+        err.contains("rtc_trained needs a checkpoint trained"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn eval_quick_sweeps_every_strategy_with_the_committed_policy() {
     let dir = tmp("eval");

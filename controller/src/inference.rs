@@ -11,7 +11,7 @@ use chunkrt_ipc::{monotonic_ns, Config, ENCODING_BGR8, ENCODING_MONO8, ENCODING_
 
 use crate::chunk::ActionChunk;
 use crate::contract::ChunkSource;
-use crate::control::InferenceRequest;
+use crate::control::{Continuation, InferenceRequest};
 use crate::edge::Observation;
 use crate::policy::config::ConfigOverrides;
 use crate::policy::rtc::Guidance;
@@ -114,6 +114,14 @@ impl PolicySource {
             .check_dof(cfg.n_dof())
             .with_context(|| format!("{}: norm_stats.json", dir.display()))?;
         anyhow::ensure!(
+            cfg.execution.strategy != chunkrt_ipc::config::Strategy::RtcTrained
+                || policy.committed_max() > 0,
+            "execution.strategy = \"rtc_trained\" needs a policy trained with a committed \
+             action prefix, and {} was not (no rtc_prefix_max in its config.json): train one \
+             with `chunkrt train --rtc-prefix N`, or use strategy \"rtc\"",
+            dir.display()
+        );
+        anyhow::ensure!(
             cfg.execution.execute_horizon <= policy.horizon(),
             "execution.execute_horizon = {} exceeds the policy's action horizon {} (a chunk \
              would run out before the next one is asked for: stop-and-go HOLDs)",
@@ -143,6 +151,12 @@ impl PolicySource {
         self.policy.horizon()
     }
 
+    /// The largest committed prefix the policy was trained with (0: none; `rtc_trained` needs
+    /// one).
+    pub fn committed_max(&self) -> usize {
+        self.policy.committed_max()
+    }
+
     /// Restarts the policy's noise sequence from `seed` ([`Policy::reseed`]).
     pub fn reseed(&mut self, seed: u64) {
         self.policy.reseed(seed);
@@ -164,21 +178,28 @@ impl PolicySource {
         request: &InferenceRequest,
     ) -> anyhow::Result<ActionChunk> {
         let n = self.n_dof.min(joint_state.n_dof as usize);
+        let usable = request.horizon > 0 && request.n_dof >= n;
+        // Training-time RTC: the chunk starts with the actions the robot executes until it
+        // lands (`c` prefix rows from row `shift`, [`InferenceRequest::committed_rows`]).
+        let committed = request.continuation == Continuation::Committed && usable;
         // Future-state inference (VLASH): the policy observes where the current chunk will have
         // taken the robot when the new chunk lands (`prefix[d]`, d the estimated delay) and the
         // new chunk starts there, so it continues the motion instead of restarting it from the
-        // stale measured state.
-        let future = request.future_state && request.horizon > 0 && request.n_dof >= n;
-        let (shift, observed, start_shift_ns) = if future {
-            let shift = request.delay_steps.min(request.horizon - 1);
-            let start = request.t_ref_ns + shift as u64 * request.period_ns;
-            (
-                shift,
-                &request.prefix[shift][..n],
-                start.saturating_sub(t_obs_ns),
-            )
+        // stale measured state. (With a committed prefix: where the committed rows start.)
+        let (shift, c) = if committed {
+            request.committed_rows()
+        } else if request.future_state && usable {
+            (request.delay_steps.min(request.horizon - 1), 0)
         } else {
-            (0, &joint_state.position[..n], 0)
+            (0, 0)
+        };
+        // (a committed prefix that starts at the request goes with the measured state there)
+        let from_prefix = usable && request.future_state && (!committed || shift > 0);
+        let (observed, start_shift_ns) = if from_prefix {
+            let start = request.t_ref_ns + shift as u64 * request.period_ns;
+            (&request.prefix[shift][..n], start.saturating_sub(t_obs_ns))
+        } else {
+            (&joint_state.position[..n], 0)
         };
         // A step channel (a gripper) is open or closed: the policy sees it as one of its two
         // ends, as in its training data, not the in-between values a real gripper passes through.
@@ -201,7 +222,14 @@ impl PolicySource {
             joint_positions: &self.state,
             prompt: &self.prompt,
         };
-        let actions = if request.guided && request.beta > 0.0 {
+        let actions = if committed {
+            self.prefix.clear();
+            for row in &request.prefix[shift..(shift + c).min(request.horizon)] {
+                self.prefix.extend_from_slice(&row[..n]);
+            }
+            let (policy, prefix) = (&mut self.policy, &self.prefix);
+            self.pool.install(|| policy.infer_committed(&raw, prefix))?
+        } else if request.continuation == Continuation::Guided && request.beta > 0.0 {
             // real-time chunking: guide towards what the robot will execute meanwhile
             let h = self.policy.horizon().min(request.horizon.max(1));
             let full_h = self.policy.horizon();

@@ -114,6 +114,11 @@ pub struct ModelConfig {
     /// `"tokenizer": "byte_stand_in"`, or the fixtures' "STAND-IN ..." description), so no
     /// `tokenizer.json` is needed. Without it a missing `tokenizer.json` is a load error.
     pub byte_tokenizer: bool,
+    /// Training-time real-time chunking (`config.json` `"rtc_prefix_max"`): the model was trained
+    /// with a clean prefix of up to this many committed actions at flow time 0, so it can be
+    /// given the actions the robot will execute while it computes and continue them
+    /// (`PiModel::denoise_committed`). 0 (the default): trained without, and it cannot.
+    pub rtc_prefix_max: usize,
 }
 
 /// The fixtures' `config.json` (only the fields we read; everything else is ignored).
@@ -145,6 +150,8 @@ struct FileConfig {
     delta_action_mask: Option<Vec<bool>>,
     #[serde(default)]
     tokenizer: Option<serde_json::Value>,
+    #[serde(default)]
+    rtc_prefix_max: usize,
 }
 
 #[derive(Debug, Deserialize)]
@@ -209,6 +216,7 @@ impl ModelConfig {
                 .as_ref()
                 .and_then(|t| t.as_str())
                 .is_some_and(|t| t == "byte_stand_in" || t.starts_with("STAND-IN")),
+            rtc_prefix_max: f.rtc_prefix_max,
         };
         cfg.validate()?;
         Ok(cfg)
@@ -272,6 +280,7 @@ impl ModelConfig {
             time_max_period: 4.0,
             delta_action_mask: Vec::new(),
             byte_tokenizer: false,
+            rtc_prefix_max: 0,
         })
     }
 
@@ -361,6 +370,13 @@ impl ModelConfig {
                 "delta_action_mask has {} entries, more than action_dim {}",
                 self.delta_action_mask.len(),
                 self.action_dim
+            ));
+        }
+        if self.rtc_prefix_max >= self.action_horizon {
+            errs.push(format!(
+                "rtc_prefix_max = {} must be below action_horizon {} (a committed prefix leaves \
+                 at least one action to generate)",
+                self.rtc_prefix_max, self.action_horizon
             ));
         }
         if errs.is_empty() {

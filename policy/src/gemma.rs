@@ -206,7 +206,7 @@ pub struct Stream<'a> {
     pub x: Tensor,
     /// The expert that owns these tokens.
     pub expert: &'a Expert,
-    /// adaRMS condition [B, Wc] (π0.5 action expert only).
+    /// adaRMS condition [B, Wc], or per token [B, L, Wc] (π0.5 action expert only).
     pub cond: Option<&'a Tensor>,
     /// RoPE tables for this stream's positions.
     pub rope: &'a Rope,

@@ -100,8 +100,46 @@ pub struct PiModel {
     fixed_step_shapes: bool,
 }
 
-/// Per-time suffix tensors: (time bits, batch) -> (time embedding, adaRMS condition).
-type TimeTable = std::sync::Arc<std::sync::Mutex<HashMap<(u32, usize), (Tensor, Option<Tensor>)>>>;
+/// Per-time suffix tensors: (time bits, batch, committed prefix length) -> (time embedding,
+/// adaRMS condition).
+type TimeTable =
+    std::sync::Arc<std::sync::Mutex<HashMap<(u32, usize, usize), (Tensor, Option<Tensor>)>>>;
+
+/// The flow times of the action tokens: `t[b]` for every token of batch row b, except (with
+/// `committed`, training-time real-time chunking) the first `committed[b]` tokens of the row,
+/// which are clean actions at flow time 0.
+#[derive(Debug, Clone, Copy)]
+pub struct FlowTimes<'a> {
+    /// Time per batch row [B].
+    pub t: &'a [f32],
+    /// Committed (clean) action tokens per batch row [B], or none.
+    pub committed: Option<&'a [usize]>,
+}
+
+impl<'a> FlowTimes<'a> {
+    /// One time per batch row, no committed prefix.
+    pub fn new(t: &'a [f32]) -> Self {
+        Self { t, committed: None }
+    }
+}
+
+impl<'a> From<&'a [f32]> for FlowTimes<'a> {
+    fn from(t: &'a [f32]) -> Self {
+        Self::new(t)
+    }
+}
+
+impl<'a> From<&'a Vec<f32>> for FlowTimes<'a> {
+    fn from(t: &'a Vec<f32>) -> Self {
+        Self::new(t)
+    }
+}
+
+impl<'a, const N: usize> From<&'a [f32; N]> for FlowTimes<'a> {
+    fn from(t: &'a [f32; N]) -> Self {
+        Self::new(t)
+    }
+}
 
 /// Sinusoidal time embedding [B, W] (sin half then cos half), computed in f64 like openpi's
 /// PyTorch reference, then cast to f32.
@@ -465,16 +503,18 @@ impl PiModel {
     }
 
     /// Suffix tokens and the adaRMS condition at time `t` [B]: tokens [B, S or H, We].
-    /// `with_state`: prepend π0's state token.
+    /// `with_state`: prepend π0's state token. `committed` (training-time RTC, [`FlowTimes`]):
+    /// the first `committed[b]` action tokens of row b are at flow time 0, and the condition
+    /// is per token [B, H, We].
     fn embed_suffix(
         &self,
         state: &Tensor,
         x_t: &Tensor,
-        t: &[f32],
+        times: FlowTimes<'_>,
         with_state: bool,
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
         let we = self.cfg.action_expert.width;
-        let (te, cond) = self.time_features(t)?;
+        let (te, cond) = self.time_features(times)?;
         // [B, H, We], in f32 like the heads; the tokens enter the expert in the model's dtype
         let a = self.action_in_proj.forward(&x_t.to_dtype(DType::F32)?)?;
         match &self.heads {
@@ -484,7 +524,12 @@ impl PiModel {
                 mlp_out,
             } => {
                 let (b, h, _) = a.dims3()?;
-                let te = te.unsqueeze(1)?.broadcast_as((b, h, we))?;
+                // per batch row [B, We] or already per token [B, H, We]
+                let te = if te.rank() == 2 {
+                    te.unsqueeze(1)?.broadcast_as((b, h, we))?
+                } else {
+                    te
+                };
                 let at = Tensor::cat(&[&a, &te], 2)?;
                 let at = mlp_out.forward(&mlp_in.forward(&at)?.silu()?)?;
                 if with_state {
@@ -501,19 +546,36 @@ impl PiModel {
         }
     }
 
-    /// What the suffix needs of the time `t` [B]: the sinusoidal embedding [B, We] and, for
-    /// π0.5, the adaRMS condition [B, We] (the time MLP of it; f32, the norms' dense layers are
-    /// f32). Neither depends on the observation, so for a batch at one time they are made once
-    /// per model and time and kept on the device: a denoising step uploads nothing and runs no
-    /// time MLP. (Not for a model whose time MLP is being trained: its weights change.)
-    fn time_features(&self, t: &[f32]) -> candle_core::Result<(Tensor, Option<Tensor>)> {
+    /// What the suffix needs of the flow times: the sinusoidal embedding and, for π0.5, the
+    /// adaRMS condition (the time MLP of it; f32, the norms' dense layers are f32), [B, We] for
+    /// one time per row, [B, H, We] per token with a committed prefix. Neither depends on the
+    /// observation, so for a batch at one time (and one prefix length) they are made once per
+    /// model and time and kept on the device: a denoising step uploads nothing and runs no time
+    /// MLP. (Not for a model whose time MLP is being trained: its weights change.)
+    fn time_features(&self, times: FlowTimes<'_>) -> candle_core::Result<(Tensor, Option<Tensor>)> {
+        let t = times.t;
         let b = t.len();
+        let h = self.cfg.action_horizon;
+        let committed = match times.committed {
+            Some(c) if c.len() != b => {
+                candle_core::bail!("{} committed prefix lengths for batch {b}", c.len())
+            }
+            Some(c) if c.iter().any(|&n| n > 0) => Some(c),
+            _ => None,
+        };
         let trainable = match &self.heads {
             SuffixHeads::Pi0 { .. } => false,
             SuffixHeads::Pi05 { time_in, .. } => time_in.weight().is_variable(),
         };
+        let n0 = committed.and_then(|c| c.first().copied()).unwrap_or(0);
         let key = match t.first() {
-            Some(t0) if !trainable && t.iter().all(|x| x == t0) => Some((t0.to_bits(), b)),
+            Some(t0)
+                if !trainable
+                    && t.iter().all(|x| x == t0)
+                    && committed.is_none_or(|c| c.iter().all(|&n| n == n0)) =>
+            {
+                Some((t0.to_bits(), b, n0))
+            }
             _ => None,
         };
         if let Some(k) = key {
@@ -521,13 +583,25 @@ impl PiModel {
                 return Ok(v);
             }
         }
+        // one time per row, or per token with the committed ones at 0
+        let per_token: Vec<f32> = match committed {
+            None => t.to_vec(),
+            Some(c) => (0..b * h)
+                .map(|i| if i % h < c[i / h] { 0.0 } else { t[i / h] })
+                .collect(),
+        };
+        let width = self.cfg.action_expert.width;
         let te = time_embedding(
-            t,
-            self.cfg.action_expert.width,
+            &per_token,
+            width,
             self.cfg.time_min_period,
             self.cfg.time_max_period,
             &self.device,
         )?;
+        let te = match committed {
+            Some(_) => te.reshape((b, h, width))?,
+            None => te,
+        };
         let cond = match &self.heads {
             SuffixHeads::Pi0 { .. } => None,
             SuffixHeads::Pi05 { time_in, time_out } => {
@@ -535,7 +609,8 @@ impl PiModel {
             }
         };
         if let (Some(k), Ok(mut m)) = (key, self.time_table.lock()) {
-            // a handful of step counts in practice; bounded whatever a caller does
+            // a handful of step counts and prefix lengths in practice; bounded whatever a
+            // caller does
             if m.len() >= 4096 {
                 m.clear();
             }
@@ -546,7 +621,7 @@ impl PiModel {
 
     /// The adaRMS condition at time `t` (π0.5; `None` for π0) [B, We].
     pub fn adarms_cond(&self, t: &[f32]) -> candle_core::Result<Option<Tensor>> {
-        Ok(self.time_features(t)?.1)
+        Ok(self.time_features(FlowTimes::new(t))?.1)
     }
 
     /// `embed_suffix` output at time `t` (π0: state token first) [B, S, We].
@@ -556,7 +631,7 @@ impl PiModel {
         x_t: &Tensor,
         t: &[f32],
     ) -> Result<Tensor, PolicyError> {
-        Ok(self.embed_suffix(state, x_t, t, true)?.0)
+        Ok(self.embed_suffix(state, x_t, FlowTimes::new(t), true)?.0)
     }
 
     /// Runs the prefix through the VLM expert only, filling `cache` (reusing its buffers when the
@@ -604,13 +679,15 @@ impl PiModel {
     }
 
     /// [`Self::velocity`] with host time values.
-    pub fn velocity_at(
+    pub fn velocity_at<'t>(
         &self,
         cache: &PrefixCache,
         x_t: &Tensor,
-        t: &[f32],
+        times: impl Into<FlowTimes<'t>>,
         differentiable: bool,
     ) -> Result<Tensor, PolicyError> {
+        let times = times.into();
+        let t = times.t;
         let (b, h, a) = x_t.dims3()?;
         if b != cache.batch
             || h != self.cfg.action_horizon
@@ -627,7 +704,7 @@ impl PiModel {
             )));
         }
         // the state token (π0) is already in the cache; `state` is unused without it
-        let (tokens, cond) = self.embed_suffix(x_t, x_t, t, false)?;
+        let (tokens, cond) = self.embed_suffix(x_t, x_t, times, false)?;
         let mut st = [Stream {
             x: tokens,
             expert: &self.expert,
@@ -660,32 +737,32 @@ impl PiModel {
     /// The full joint forward (no cache; training and the uncached sampler): prefix tokens through
     /// the VLM expert and suffix tokens through the action expert with one attention per layer.
     /// Returns (prefix_out [B, P, W], suffix_out [B, S, We]).
-    pub fn joint_forward(
+    pub fn joint_forward<'t>(
         &self,
         inp: &ModelInputs,
         prefix_embs: &Tensor,
         x_t: &Tensor,
-        t: &[f32],
+        times: impl Into<FlowTimes<'t>>,
         diff: bool,
     ) -> Result<(Tensor, Tensor), PolicyError> {
-        let (po, so, _) = self.joint_forward_tap(inp, prefix_embs, x_t, t, diff, None)?;
+        let (po, so, _) = self.joint_forward_tap(inp, prefix_embs, x_t, times, diff, None)?;
         Ok((po, so))
     }
 
     /// [`Self::joint_forward`], also returning the prefix hidden states [B, P, W] at the input
     /// of layer `tap` (training's auxiliary losses read them).
-    pub fn joint_forward_tap(
+    pub fn joint_forward_tap<'t>(
         &self,
         inp: &ModelInputs,
         prefix_embs: &Tensor,
         x_t: &Tensor,
-        t: &[f32],
+        times: impl Into<FlowTimes<'t>>,
         diff: bool,
         tap: Option<usize>,
     ) -> Result<(Tensor, Tensor, Option<Tensor>), PolicyError> {
         let b = self.check_inputs(inp)?;
         let layout = self.prefix_layout(inp);
-        let (suffix, cond) = self.embed_suffix(&inp.state, x_t, t, true)?;
+        let (suffix, cond) = self.embed_suffix(&inp.state, x_t, times.into(), true)?;
         let s = suffix.dim(1)?;
         let p = self.cfg.prefix_len();
         let ar_s = self.suffix_ar();

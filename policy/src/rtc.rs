@@ -1,6 +1,9 @@
 //! Real-time chunking (Black, Galliker, Levine 2025): inference-time guidance of the flow-matching
 //! sampler towards the actions of the previous chunk that will still be executed while the new
-//! chunk is computed ("inpainting" with a soft mask), in our convention.
+//! chunk is computed ("inpainting" with a soft mask), in our convention. (Training-time RTC,
+//! where a model trained for it is given those actions directly, is
+//! [`PiModel::denoise_committed`]; both bring the previous chunk into the model's space with
+//! [`model_space_actions`].)
 //!
 //! Convention: t = 1 is noise, t = 0 data, Euler `x <- x + dt * v` with `dt = -1/N`; τ = 1 − t.
 //! Per denoising step, with the previous chunk Y [B, H, A] and the weights W [B or 1, H, A]
@@ -87,27 +90,54 @@ impl Guidance<'_> {
                 offsets.len()
             )));
         }
-        let mut y = Vec::with_capacity(h * a);
-        let mut row = Vec::with_capacity(a);
-        for r in self.prefix.chunks_exact(n_dof) {
-            row.clear();
-            row.extend(
-                r.iter()
-                    .enumerate()
-                    .map(|(d, &x)| (x - offsets.get(d).copied().unwrap_or(0.0)) as f32),
-            );
-            if let Some(s) = stats {
-                normalize(&mut row, s, mode)?;
-            }
-            row.resize(a, 0.0);
-            y.extend_from_slice(&row);
-        }
         Ok(GuidanceTarget {
-            y: Tensor::from_vec(y, (1, h, a), dev)?,
+            y: model_space_actions(self.prefix, n_dof, cfg, stats, mode, offsets, dev)?,
             w: weight_mask(self.weights, n_dof, a, dev)?,
             beta: self.beta,
         })
     }
+}
+
+/// Action rows in robot units (`[rows][n_dof]` row-major, at most H rows) as the model sees
+/// them: `offsets` (the observed state on the delta-action dims, or empty) subtracted,
+/// normalised with the action `stats` / `mode`, zero-padded to the action dim and to H rows.
+/// Returns [1, H, A].
+pub fn model_space_actions(
+    rows: &[f64],
+    n_dof: usize,
+    cfg: &ModelConfig,
+    stats: Option<&Stats>,
+    mode: NormMode,
+    offsets: &[f64],
+    dev: &Device,
+) -> Result<Tensor, PolicyError> {
+    let (h, a) = (cfg.action_horizon, cfg.action_dim);
+    if n_dof == 0 || n_dof > a || !rows.len().is_multiple_of(n_dof) || rows.len() > h * n_dof {
+        return Err(PolicyError::Input(format!(
+            "{} action values for {n_dof} DoF: at most {h} whole rows of 1..={a} DoF",
+            rows.len()
+        )));
+    }
+    if rows.iter().any(|x| !x.is_finite()) {
+        return Err(PolicyError::Input("non-finite action value".into()));
+    }
+    let mut y = Vec::with_capacity(h * a);
+    let mut row = Vec::with_capacity(a);
+    for r in rows.chunks_exact(n_dof) {
+        row.clear();
+        row.extend(
+            r.iter()
+                .enumerate()
+                .map(|(d, &x)| (x - offsets.get(d).copied().unwrap_or(0.0)) as f32),
+        );
+        if let Some(s) = stats {
+            normalize(&mut row, s, mode)?;
+        }
+        row.resize(a, 0.0);
+        y.extend_from_slice(&row);
+    }
+    y.resize(h * a, 0.0);
+    Ok(Tensor::from_vec(y, (1, h, a), dev)?)
 }
 
 /// Guidance target in the model's space: what [`sample_guided`] pulls the chunk towards.

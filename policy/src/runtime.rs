@@ -16,7 +16,7 @@ use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
     NormMode, NormStats, PromptTokenizer,
 };
-use super::rtc::{sample_guided, Guidance, GuidanceTarget};
+use super::rtc::{model_space_actions, sample_guided, Guidance, GuidanceTarget};
 use super::PolicyError;
 
 /// One camera frame as received over IPC (fields as in `CameraFrameHeader`).
@@ -46,6 +46,17 @@ pub struct RawObservation<'a> {
     pub joint_positions: &'a [f64],
     /// Task prompt.
     pub prompt: &'a str,
+}
+
+/// How a chunk continues the previous one.
+#[derive(Clone, Copy)]
+enum Continue<'a> {
+    /// Not at all: plain sampling.
+    Fresh,
+    /// Inference-time RTC: guided towards the target.
+    Guided(&'a GuidanceTarget),
+    /// Training-time RTC: the first d actions given ([1, H, A], model space).
+    Committed(&'a Tensor, usize),
 }
 
 /// A loaded policy with its reusable buffers.
@@ -266,7 +277,7 @@ impl Policy {
     /// the number of joint positions given.
     pub fn infer(&mut self, obs: &RawObservation<'_>) -> Result<Vec<f64>, PolicyError> {
         let inputs = self.prepare(obs)?;
-        self.run(&inputs, obs.joint_positions.len(), None)
+        self.run(&inputs, obs.joint_positions.len(), Continue::Fresh)
     }
 
     /// Like [`Self::infer`], guided towards `guidance` (real-time chunking, [`super::rtc`]) when
@@ -292,7 +303,65 @@ impl Policy {
             )?),
             None => None,
         };
-        self.run(&inputs, n_dof, target.as_ref())
+        let how = match &target {
+            Some(t) => Continue::Guided(t),
+            None => Continue::Fresh,
+        };
+        self.run(&inputs, n_dof, how)
+    }
+
+    /// Training-time real-time chunking: like [`Self::infer`], with the first actions of the
+    /// chunk given: `committed` holds the actions the robot will execute while the chunk is
+    /// computed (`[d][n_dof]` row-major, robot units, d ≥ 0 rows starting where the chunk
+    /// starts) and the chunk returned starts with exactly them (to f32 rounding) and continues
+    /// them. Only for a checkpoint trained with a committed prefix (`rtc_prefix_max` in its
+    /// `config.json`); d is clipped to that maximum (the chunk then starts with the first
+    /// `rtc_prefix_max` of them). Costs what `infer` costs.
+    pub fn infer_committed(
+        &mut self,
+        obs: &RawObservation<'_>,
+        committed: &[f64],
+    ) -> Result<Vec<f64>, PolicyError> {
+        let max = self.model.cfg.rtc_prefix_max;
+        if max == 0 {
+            return Err(PolicyError::Config(
+                "this checkpoint was not trained with a committed action prefix (no \
+                 rtc_prefix_max in its config.json): it cannot run training-time real-time \
+                 chunking (train one with `chunkrt train --rtc-prefix N`, or use strategy rtc)"
+                    .into(),
+            ));
+        }
+        let inputs = self.prepare(obs)?;
+        let n_dof = obs.joint_positions.len();
+        if !committed.len().is_multiple_of(n_dof) {
+            return Err(PolicyError::Input(format!(
+                "{} committed action values are not whole rows of {n_dof} joints",
+                committed.len()
+            )));
+        }
+        let d = (committed.len() / n_dof).min(max);
+        let stats = self.norm.as_ref().map(|n| &n.actions);
+        let y = model_space_actions(
+            &committed[..d * n_dof],
+            n_dof,
+            &self.model.cfg,
+            stats,
+            self.mode(),
+            &self.offsets,
+            self.model.device(),
+        )?;
+        let how = if d == 0 {
+            Continue::Fresh
+        } else {
+            Continue::Committed(&y, d)
+        };
+        self.run(&inputs, n_dof, how)
+    }
+
+    /// The largest committed prefix the checkpoint was trained with (0: it was not;
+    /// [`Self::infer_committed`]).
+    pub fn committed_max(&self) -> usize {
+        self.model.cfg.rtc_prefix_max
     }
 
     /// Pre-processing only: model-ready inputs (batch 1) for an observation.
@@ -364,7 +433,7 @@ impl Policy {
         &mut self,
         inputs: &ModelInputs,
         n_dof: usize,
-        guidance: Option<&GuidanceTarget>,
+        how: Continue<'_>,
     ) -> Result<Vec<f64>, PolicyError> {
         let cfg = self.model.cfg.clone();
         let mode = self.mode();
@@ -383,12 +452,24 @@ impl Policy {
         }
         self.noise.truncate(n);
         let noise = Tensor::from_slice(&self.noise, (1, cfg.action_horizon, cfg.action_dim), &dev)?;
-        let out = match guidance {
-            Some(g) => sample_guided(&self.model, inputs, &noise, self.steps, &mut self.cache, g)?,
-            None if self.graph_on => self.sample_graph(inputs, &noise)?,
-            None => self
-                .model
-                .sample(inputs, &noise, self.steps, Some(&mut self.cache))?,
+        let out = match how {
+            Continue::Guided(g) => {
+                sample_guided(&self.model, inputs, &noise, self.steps, &mut self.cache, g)?
+            }
+            Continue::Committed(y, d) => {
+                self.model.fill_cache(inputs, &mut self.cache, false)?;
+                let cache = self
+                    .cache
+                    .as_ref()
+                    .ok_or_else(|| PolicyError::Input("the prefix cache was not filled".into()))?;
+                self.model
+                    .denoise_committed(cache, &noise, self.steps, y, &[d])?
+            }
+            Continue::Fresh if self.graph_on => self.sample_graph(inputs, &noise)?,
+            Continue::Fresh => {
+                self.model
+                    .sample(inputs, &noise, self.steps, Some(&mut self.cache))?
+            }
         };
         // the one device -> host copy of the chunk
         let acts = out.actions.squeeze(0)?.to_vec2::<f32>()?;

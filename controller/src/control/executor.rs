@@ -524,7 +524,7 @@ impl Executor {
             now_ns,
             self.timeline.newest(),
             self.timeline.delay_estimate(),
-            self.timeline.guided(),
+            self.timeline.continuation(),
             &self.timeline.sampling,
         );
     }

@@ -29,7 +29,7 @@
 //! exec.fill_status(&mut status);
 //! // Inference thread:
 //! if let Some(req) = link.requests.try_recv() {
-//!     // ... run the policy (guided by req.prefix / req.weights when req.guided) ...
+//!     // ... run the policy (continuing req.prefix as req.continuation says) ...
 //!     link.requests.done(req);
 //! }
 //! events.drain(|e| tracing::info!("controller {e}"));
@@ -60,7 +60,9 @@ pub use handoff::{channel, request_channel, ChunkReceiver, ChunkSender, RequestR
 pub use interp::{Interpolation, Sample};
 pub use metrics::{Smoothness, Trace};
 pub use otg::{cxx_allocations, Otg, OtgInput, OtgOutput, OtgResult, OtgState};
-pub use rtc::{guidance_weights, DelayEstimator, InferenceRequest, Schedule, MAX_HORIZON};
+pub use rtc::{
+    guidance_weights, Continuation, DelayEstimator, InferenceRequest, Schedule, MAX_HORIZON,
+};
 pub use safety::{Event, EventReader, Reason, State};
 pub use scripted::{ScriptedChunkSource, ScriptedConfig, ScriptedSim};
 pub use timing::{Quantiles, TickTiming};

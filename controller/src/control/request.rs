@@ -8,7 +8,7 @@ use chunkrt_ipc::config::{Config, Schedule, Trigger};
 
 use super::handoff::RequestSender;
 use super::interp::Sample;
-use super::rtc::{guidance_weights, MAX_HORIZON};
+use super::rtc::{guidance_weights, Continuation, MAX_HORIZON};
 use super::strategy::Sampling;
 use crate::chunk::ActionChunk;
 
@@ -52,13 +52,14 @@ impl Requests {
 
     /// Publishes the next request if it is due at `now_ns`: none in flight (or the one in
     /// flight timed out) and the trigger says so. `newest`: the newest chunk received; `d`: the
-    /// delay estimate; `guided`: the strategy wants RTC guidance. True if published.
+    /// delay estimate; `continuation`: how the strategy wants the chunk to continue the
+    /// previous one. True if published.
     pub fn maybe_request(
         &mut self,
         now_ns: u64,
         newest: Option<&ActionChunk>,
         d: usize,
-        guided: bool,
+        continuation: Continuation,
         sampling: &Sampling,
     ) -> bool {
         if let Some(t) = self.outstanding_since {
@@ -93,7 +94,7 @@ impl Requests {
                     let h = c.horizon().min(MAX_HORIZON);
                     r.horizon = h;
                     r.period_ns = c.period_ns;
-                    r.guided = guided;
+                    r.continuation = continuation;
                     r.future_state = self.future_state;
                     let mut s = Sample::default();
                     for i in 0..h {
@@ -106,7 +107,7 @@ impl Requests {
                 None => {
                     r.horizon = 0;
                     r.period_ns = self.action_period_ns;
-                    r.guided = false;
+                    r.continuation = Continuation::Fresh;
                     r.future_state = false;
                 }
             }

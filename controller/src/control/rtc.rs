@@ -89,6 +89,20 @@ impl DelayEstimator {
     }
 }
 
+/// How the requested chunk should continue the one the robot is executing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Continuation {
+    /// Not at all: plain sampling (and the first request of a run, with no chunk yet).
+    #[default]
+    Fresh,
+    /// Inference-time RTC (`rtc`): the sampler is guided towards `prefix` with `weights`.
+    Guided,
+    /// Training-time RTC (`rtc_trained`): the chunk starts with the first `delay_steps` rows of
+    /// `prefix` (the actions executed meanwhile), given to a policy trained with a committed
+    /// prefix, and continues them.
+    Committed,
+}
+
 /// A request from the control thread to start the next inference (fixed size, no heap).
 ///
 /// For `rtc`, `prefix[i]` (row i, `n_dof` values) is the previous chunk sampled at
@@ -96,7 +110,8 @@ impl DelayEstimator {
 /// `weights[i]` the soft mask W_i. The policy should observe as close to `t_ref_ns` as it can;
 /// if its observation is captured at `t_obs`, it may shift the prefix by
 /// `round((t_obs − t_ref_ns) / period_ns)` rows. For the other strategies `guided` is false and
-/// only the trigger matters.
+/// only the trigger matters. For `rtc_trained` (`continuation` [`Continuation::Committed`]) the
+/// chunk starts with the prefix rows [`Self::committed_rows`] names.
 #[derive(Debug, Clone, PartialEq)]
 pub struct InferenceRequest {
     /// Increasing id (1, 2, ...).
@@ -115,11 +130,13 @@ pub struct InferenceRequest {
     pub delay_steps: usize,
     /// β, the guidance weight clip.
     pub beta: f64,
-    /// Whether the sampler should be guided (strategy `rtc` and a previous chunk exists).
-    pub guided: bool,
+    /// How the chunk continues the previous one (guided for `rtc`, committed for `rtc_trained`;
+    /// fresh for the other strategies and while no previous chunk exists).
+    pub continuation: Continuation,
     /// Future-state inference (`execution.future_state`, VLASH): the policy should observe the
     /// state `prefix[delay_steps]` (where the current chunk will have taken the robot when the
-    /// new chunk lands) instead of the measured one, and its chunk starts there.
+    /// new chunk lands) instead of the measured one, and its chunk starts there (for
+    /// `rtc_trained`: at the row [`Self::committed_rows`] names).
     pub future_state: bool,
     /// Y, row-major `[MAX_HORIZON][MAX_DOF]`; rows `..horizon`, columns `..n_dof` are used.
     pub prefix: [[f64; MAX_DOF]; MAX_HORIZON],
@@ -138,7 +155,7 @@ impl Default for InferenceRequest {
             execute_horizon: 0,
             delay_steps: 0,
             beta: 0.0,
-            guided: false,
+            continuation: Continuation::Fresh,
             future_state: false,
             prefix: [[0.0; MAX_DOF]; MAX_HORIZON],
             weights: [0.0; MAX_HORIZON],
@@ -147,6 +164,26 @@ impl Default for InferenceRequest {
 }
 
 impl InferenceRequest {
+    /// Training-time RTC's plan, `(shift, c)`: the chunk starts at prefix row `shift` (its
+    /// observed state is that row's) and its first `c` actions are prefix rows
+    /// `shift..shift + c`, the actions the robot executes from the chunk's start until it
+    /// lands. `c` is the delay d, but at most H − s (the rows the previous chunk vouches for:
+    /// RTC's hard mask) and at most H − 2 − d (the chunk's last row, H − 1 steps after its
+    /// start, must be due after the next chunk lands, d steps and a tick or so after this one:
+    /// one inference is in flight; one row of slack). With future-state inference the delay
+    /// beyond `c` moves the start (`shift = d − c`); without, the chunk starts at the request
+    /// (`shift = 0`) and the switch may land past its committed rows.
+    pub fn committed_rows(&self) -> (usize, usize) {
+        let (h, s, d) = (self.horizon, self.execute_horizon, self.delay_steps);
+        let c = d.min(h.saturating_sub(s)).min(h.saturating_sub(2 + d));
+        let shift = if self.future_state {
+            (d - c).min(h.saturating_sub(1))
+        } else {
+            0
+        };
+        (shift, c)
+    }
+
     /// Prefix row `i` (`n_dof` values).
     pub fn prefix_row(&self, i: usize) -> &[f64] {
         &self.prefix[i][..self.n_dof]
@@ -201,6 +238,28 @@ mod tests {
         assert!((w[2] - 6.0 / 7.0).abs() < 1e-12);
         assert_eq!("exp".parse(), Ok(Schedule::Exp));
         assert!("nope".parse::<Schedule>().is_err());
+    }
+
+    #[test]
+    fn committed_rows_fit_the_horizon_and_the_next_landing() {
+        let req = |d, future| InferenceRequest {
+            horizon: 10,
+            execute_horizon: 5,
+            delay_steps: d,
+            future_state: future,
+            ..Default::default()
+        };
+        // the whole delay while it fits: the chunk starts at the request
+        assert_eq!(req(0, true).committed_rows(), (0, 0));
+        assert_eq!(req(3, true).committed_rows(), (0, 3));
+        assert_eq!(req(4, true).committed_rows(), (0, 4));
+        // beyond H - s and H - 2 - d, fewer rows and (future state) a later start: the chunk
+        // still runs until the next one lands
+        assert_eq!(req(5, true).committed_rows(), (2, 3));
+        assert_eq!(req(6, true).committed_rows(), (4, 2));
+        assert_eq!(req(8, true).committed_rows(), (8, 0));
+        assert_eq!(req(7, false).committed_rows(), (0, 1));
+        assert_eq!(req(12, true).committed_rows(), (9, 0));
     }
 
     #[test]

@@ -7,7 +7,7 @@
 
 use chunkrt_ipc::MAX_DOF;
 
-use super::rtc::InferenceRequest;
+use super::rtc::{Continuation, InferenceRequest};
 use crate::chunk::ActionChunk;
 
 /// Settings of the scripted source.
@@ -31,7 +31,9 @@ pub struct ScriptedConfig {
     pub centre: [f64; MAX_DOF],
     pub amplitude: [f64; MAX_DOF],
     pub frequency: [f64; MAX_DOF],
-    /// Honour guided requests (RTC emulation).
+    /// Honour requests to continue the previous chunk (RTC emulation: guidance blends towards
+    /// the prefix by its weights; a committed prefix is copied and the rows after it blended
+    /// alike).
     pub emulate_guidance: bool,
 }
 
@@ -130,9 +132,20 @@ impl ScriptedChunkSource {
                 let mut v = self.reference(t, j);
                 if !self.cfg.step[j] {
                     v += bias;
-                    if self.cfg.emulate_guidance && req.guided && k < req.horizon {
-                        let w = req.weights[k].clamp(0.0, 1.0);
-                        v = w * req.prefix[k][j] + (1.0 - w) * v;
+                    if self.cfg.emulate_guidance && k < req.horizon {
+                        match req.continuation {
+                            // a policy trained with a committed prefix starts with it
+                            Continuation::Committed if k < req.delay_steps => {
+                                v = req.prefix[k][j];
+                            }
+                            // guidance, and a trained policy's continuation of its committed
+                            // prefix, emulated alike: a blend by the soft mask
+                            Continuation::Guided | Continuation::Committed => {
+                                let w = req.weights[k].clamp(0.0, 1.0);
+                                v = w * req.prefix[k][j] + (1.0 - w) * v;
+                            }
+                            Continuation::Fresh => {}
+                        }
                     }
                 }
                 actions[k * n + j] = v;

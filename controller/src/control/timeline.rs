@@ -96,9 +96,9 @@ impl Timeline {
         self.slots.back().map(|s| &s.chunk)
     }
 
-    /// Requests ask for guided sampling.
-    pub fn guided(&self) -> bool {
-        self.transitions.get().guided()
+    /// How requests ask the next chunk to continue the current one.
+    pub fn continuation(&self) -> super::rtc::Continuation {
+        self.transitions.get().continuation()
     }
 
     /// The current inference-delay estimate d (action steps).

@@ -90,6 +90,10 @@ config_enum! {
         /// is guided towards the actions still to be executed.
         #[default]
         Rtc = "rtc",
+        /// Training-time real-time chunking: switch at once like `Rtc`; a policy trained with a
+        /// committed prefix (`chunkrt train --rtc-prefix`) is given the actions still to be
+        /// executed and continues them (no guidance pass).
+        RtcTrained = "rtc_trained",
     }
 }
 

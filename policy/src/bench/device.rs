@@ -239,7 +239,7 @@ impl std::fmt::Display for DeviceReport {
         )?;
         writeln!(
             f,
-            "{:<14} {:>6} {:>34} {:>34}",
+            "{:<16} {:>6} {:>34} {:>34}",
             "phase",
             "calls",
             "wall ms p50 / p90 / p99 / max",
@@ -253,7 +253,7 @@ impl std::fmt::Display for DeviceReport {
             };
             writeln!(
                 f,
-                "{:<14} {:>6} {:>34} {:>34}",
+                "{:<16} {:>6} {:>34} {:>34}",
                 p.name,
                 p.wall_ms.len(),
                 DevicePhase::summary(&p.wall_ms),
@@ -275,6 +275,14 @@ impl std::fmt::Display for DeviceReport {
                 f,
                 "RTC guided step (forward + vector-Jacobian product) p50 {g50:.2} ms = {:.1}x an unguided step ({u50:.2} ms, both eager)",
                 g50 / u50.max(1e-9)
+            )?;
+        }
+        if let (Some(c), Some(u)) = (self.phase("sample_committed"), self.phase("sample")) {
+            let (c50, u50) = (quantile(&c.wall_ms, 0.5), quantile(&u.wall_ms, 0.5));
+            writeln!(
+                f,
+                "training-time RTC sample (a quarter of the chunk committed) p50 {c50:.2} ms = {:.2}x an unguided sample ({u50:.2} ms, both eager)",
+                c50 / u50.max(1e-9)
             )?;
         }
         if let Some(g) = &self.graph {
@@ -441,6 +449,18 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             .to_dtype(DType::F32)?
             .flatten_all()?
             .to_vec1::<f32>()?;
+        Ok(())
+    })?;
+    // training-time RTC: the same sample with a quarter of the chunk given as committed actions
+    // (per-token flow times; what `strategy = "rtc_trained"` runs)
+    let committed = (cfg.action_horizon / 4).max(1);
+    time("sample_committed", opts.calls, &mut || {
+        model.fill_cache(&inp, &mut scache, false)?;
+        let c = scache
+            .as_ref()
+            .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
+        let out = model.denoise_committed(c, &noise, steps, &noise, &[committed])?;
+        out.actions.flatten_all()?.to_vec1::<f32>()?;
         Ok(())
     })?;
     // the whole sample as one captured CUDA graph (GPU), a new observation every call: two

@@ -99,8 +99,9 @@ impl Norm {
         let m = dense.forward(&cond.to_dtype(DType::F32)?)?.contiguous()?;
         if cacheable {
             if let Ok(mut c) = mods.lock() {
-                // the sampler's handful of times in practice; bounded whatever a caller does
-                if c.len() >= 64 {
+                // the sampler's handful of times (and committed prefix lengths) in practice;
+                // bounded whatever a caller does
+                if c.len() >= 512 {
                     c.clear();
                 }
                 c.insert(cond.id(), m.clone());
@@ -126,13 +127,18 @@ impl Norm {
                 let cond = cond.ok_or_else(|| {
                     candle_core::Error::Msg("adaRMSNorm needs a condition".into())
                 })?;
+                // the fused kernel takes one modulation per batch row, not per token
+                // (training-time RTC's committed prefix): those take the composed ops
+                if cond.rank() != 2 {
+                    return Ok(None);
+                }
                 Ok(Some((None, self.modulation(cond)?, *eps)))
             }
         }
     }
 
-    /// `x` [B, L, W], `cond` [B, Wc] f32 (adaptive only). Returns the normed `x` and the gate
-    /// [B, 1, W] (adaptive only), both in `x`'s dtype; the statistics, the `(1 + w)` scaling and
+    /// `x` [B, L, W], `cond` [B, Wc] or per token [B, L, Wc] f32 (adaptive only). Returns the
+    /// normed `x` and the gate [B, 1, W] or [B, L, W] (adaptive only), both in `x`'s dtype; the statistics, the `(1 + w)` scaling and
     /// the adaptive modulation are computed in f32 (openpi's `GemmaRMSNorm`).
     pub fn forward(
         &self,
@@ -183,14 +189,14 @@ impl Norm {
                 let cond = cond.ok_or_else(|| {
                     candle_core::Error::Msg("adaRMSNorm needs a condition".into())
                 })?;
-                // [B, 3W] -> [B, 1, 3W]
+                // [B, 3W] -> [B, 1, 3W] (one per row), or per token [B, L, 3W] as it is
                 let m = if diff {
                     dense.forward(&cond.to_dtype(DType::F32)?)?
                 } else {
                     self.modulation(cond)?
                         .ok_or_else(|| candle_core::Error::Msg("no modulation".into()))?
-                }
-                .unsqueeze(1)?;
+                };
+                let m = if m.rank() == 2 { m.unsqueeze(1)? } else { m };
                 let w = m.dim(D::Minus1)? / 3;
                 let scale = m.narrow(D::Minus1, 0, w)?;
                 let shift = m.narrow(D::Minus1, w, w)?;

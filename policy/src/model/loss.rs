@@ -49,7 +49,7 @@ impl PiModel {
         diff: bool,
         tap: Option<usize>,
     ) -> Result<(LossOutput, Option<Tensor>), PolicyError> {
-        let (tv, x_t, u) = noisy_actions(actions, noise, time)?;
+        let (tv, x_t, u) = noisy_actions(actions, noise, time, None)?;
         let (_, so, tapped) = self.joint_forward_tap(inp, embs, &x_t, &tv, diff, tap)?;
         Ok((self.flow_loss(&so, &u)?, tapped))
     }
@@ -78,6 +78,11 @@ impl PiModel {
     /// and `time` [B·k] (sample j of observation b at row b·k + j). Equal to [`Self::loss_tap`]
     /// on the observations repeated k times. Also returns the prefix hidden states at the
     /// input of layer `tap`.
+    ///
+    /// Training-time real-time chunking: with `committed` [B·k], the first `committed[r]`
+    /// actions of sample r are given clean (flow time 0, `x = a`), as the sampler gives the
+    /// actions the robot executes meanwhile ([`Self::denoise_committed`]), and the loss is the
+    /// mean over the other actions only.
     #[allow(clippy::too_many_arguments)]
     pub fn loss_multi(
         &self,
@@ -86,6 +91,7 @@ impl PiModel {
         actions: &Tensor,
         noise: &Tensor,
         time: &Tensor,
+        committed: Option<&[usize]>,
         k: usize,
         diff: bool,
         tap: Option<usize>,
@@ -104,7 +110,27 @@ impl PiModel {
         let rep_idx: Vec<u32> = (0..bk).map(|r| (r / k) as u32).collect();
         let rep_idx = Tensor::new(rep_idx.as_slice(), &self.device)?;
         let rep = |x: &Tensor| x.index_select(&rep_idx, 0);
-        let (tv, x_t, u) = noisy_actions(&rep(actions)?, noise, time)?;
+        let h = self.cfg.action_horizon;
+        if let Some(c) = committed {
+            if c.len() != bk || c.iter().any(|&n| n >= h) {
+                return Err(PolicyError::Input(format!(
+                    "loss_multi: {} committed prefix lengths for {bk} samples, each below H = {h}",
+                    c.len()
+                )));
+            }
+        }
+        let committed = committed.filter(|c| c.iter().any(|&n| n > 0));
+        // 1 on the actions to generate, 0 on the committed ones [B·k, H, 1]
+        let free = match committed {
+            Some(c) => {
+                let f: Vec<f32> = (0..bk * h)
+                    .map(|i| if i % h < c[i / h] { 0.0 } else { 1.0 })
+                    .collect();
+                Some(Tensor::from_vec(f, (bk, h, 1), &self.device)?)
+            }
+            None => None,
+        };
+        let (tv, x_t, u) = noisy_actions(&rep(actions)?, noise, time, free.as_ref())?;
 
         // prefix: the VLM expert alone, keeping each layer's K/V
         let layout = self.prefix_layout(inp);
@@ -136,7 +162,8 @@ impl PiModel {
 
         // suffix: B·k rows against the repeated prefix K/V
         let state = rep(&inp.state)?;
-        let (suffix, cond) = self.embed_suffix(&state, &x_t, &tv, true)?;
+        let times = FlowTimes { t: &tv, committed };
+        let (suffix, cond) = self.embed_suffix(&state, &x_t, times, true)?;
         let s = suffix.dim(1)?;
         let ar_s = self.suffix_ar();
         let mut vis = Vec::with_capacity(bk * s * (p + s));
@@ -192,20 +219,33 @@ impl PiModel {
             )?;
         }
         let so = self.expert.norm.forward(&st[0].x, cond.as_ref(), diff)?.0;
-        Ok((self.flow_loss(&so, &u)?, tapped))
+        let mut out = self.flow_loss(&so, &u)?;
+        if let Some(free) = &free {
+            // the committed actions are inputs, not predictions: the mean over the others
+            out.per_element = out.per_element.broadcast_mul(free)?;
+            let n = free.sum_all()?.to_scalar::<f32>()? as f64 * self.cfg.action_dim as f64;
+            out.mean = (out.per_element.sum_all()? / n.max(1.0))?;
+        }
+        Ok((out, tapped))
     }
 }
 
 /// Flow matching's interpolation: the times `t` as a vector, `x_t = t·ε + (1 − t)·a` and the
-/// target velocity `u = ε − a`, for `actions` a and `noise` ε [B, H, A] and `time` [B].
+/// target velocity `u = ε − a`, for `actions` a and `noise` ε [B, H, A] and `time` [B]; with
+/// `free` [B, H, 1] the time is `t·free` per action (0, clean, where `free` is 0).
 fn noisy_actions(
     actions: &Tensor,
     noise: &Tensor,
     time: &Tensor,
+    free: Option<&Tensor>,
 ) -> Result<(Vec<f32>, Tensor, Tensor), PolicyError> {
     let time = time.to_dtype(DType::F32)?;
     let tv = time.to_vec1::<f32>()?;
     let t3 = time.reshape((tv.len(), 1, 1))?;
+    let t3 = match free {
+        Some(f) => t3.broadcast_mul(f)?,
+        None => t3,
+    };
     let x_t = (noise.broadcast_mul(&t3)? + actions.broadcast_mul(&(t3.neg()? + 1.0)?)?)?;
     let u = (noise - actions)?;
     Ok((tv, x_t, u))

@@ -53,15 +53,15 @@ pub fn euler(
 
 impl PiModel {
     /// Velocity from the joint forward (no cache) [B, H, A].
-    pub fn velocity_uncached(
+    pub fn velocity_uncached<'t>(
         &self,
         inp: &ModelInputs,
         prefix_embs: &Tensor,
         x_t: &Tensor,
-        t: &[f32],
+        times: impl Into<FlowTimes<'t>>,
         diff: bool,
     ) -> Result<Tensor, PolicyError> {
-        let (_, so) = self.joint_forward(inp, prefix_embs, x_t, t, diff)?;
+        let (_, so) = self.joint_forward(inp, prefix_embs, x_t, times, diff)?;
         let s = so.dim(1)?;
         let h = self.cfg.action_horizon;
         Ok(self
@@ -114,6 +114,59 @@ impl PiModel {
         let b = cache.batch;
         euler(noise, steps, |x, t| {
             self.velocity_at(cache, x, &vec![t; b], false)
+        })
+    }
+}
+
+impl PiModel {
+    /// Training-time real-time chunking's sampler (Black et al. 2025, arXiv 2512.05964): the
+    /// first `committed[b]` actions of row b are given, not generated. They enter as clean
+    /// tokens at flow time 0 (`y` [B, H, A], the model's normalised space; rows past the
+    /// committed prefix are ignored), keep that time at every step and are never moved, so the
+    /// chunk starts with exactly them and the model, trained this way
+    /// ([`ModelConfig::rtc_prefix_max`](crate::config::ModelConfig)), continues them. A step
+    /// costs what an unguided one does: no backward pass, no second forward. `noise` [B, H, A].
+    pub fn denoise_committed(
+        &self,
+        cache: &PrefixCache,
+        noise: &Tensor,
+        steps: usize,
+        y: &Tensor,
+        committed: &[usize],
+    ) -> Result<SampleOutput, PolicyError> {
+        let b = cache.batch;
+        let (h, a) = (self.cfg.action_horizon, self.cfg.action_dim);
+        if noise.dims() != [b, h, a] || y.dims() != [b, h, a] {
+            return Err(PolicyError::Input(format!(
+                "noise {:?} / committed actions {:?}, expected [{b}, {h}, {a}]",
+                noise.dims(),
+                y.dims()
+            )));
+        }
+        if committed.len() != b || committed.iter().any(|&n| n >= h) {
+            return Err(PolicyError::Input(format!(
+                "committed prefix lengths {committed:?}: one per batch row ({b}), each below H = {h}"
+            )));
+        }
+        // 1 on the tokens to generate, 0 on the committed ones [B, H, 1]
+        let free: Vec<f32> = (0..b * h)
+            .map(|i| if i % h < committed[i / h] { 0.0 } else { 1.0 })
+            .collect();
+        let free = Tensor::from_vec(free, (b, h, 1), self.device())?;
+        let kept = (free.neg()? + 1.0)?;
+        // x starts as noise on the free tokens and as the committed actions on the others
+        let x0 = (noise.to_dtype(DType::F32)?.broadcast_mul(&free)?
+            + y.to_dtype(DType::F32)?.broadcast_mul(&kept)?)?;
+        euler(&x0, steps, |x, t| {
+            let tv = vec![t; b];
+            let times = FlowTimes {
+                t: &tv,
+                committed: Some(committed),
+            };
+            // zero velocity on the committed tokens: x + dt·0 keeps them exactly
+            Ok(self
+                .velocity_at(cache, x, times, false)?
+                .broadcast_mul(&free)?)
         })
     }
 }

@@ -12,6 +12,7 @@ use chunkrt_ipc::config::{Config, Interpolation, Strategy};
 use chunkrt_ipc::MAX_DOF;
 
 use super::interp::{self, Coverage, Sample};
+use super::rtc::Continuation;
 use crate::chunk::ActionChunk;
 
 mod crossfade;
@@ -74,9 +75,9 @@ pub(crate) trait Transition {
         sample_current(slots, now, s, target).map(|(_, primary)| primary)
     }
 
-    /// Inference requests ask the policy for guided (RTC) sampling.
-    fn guided(&self) -> bool {
-        false
+    /// How inference requests ask the next chunk to continue the current one.
+    fn continuation(&self) -> Continuation {
+        Continuation::Fresh
     }
 }
 
@@ -100,7 +101,8 @@ impl Transitions {
             Strategy::TemporalEnsemble => Self::TemporalEnsemble(TemporalEnsemble {
                 decay: e.ensemble_decay,
             }),
-            Strategy::Rtc => Self::Rtc(Rtc),
+            Strategy::Rtc => Self::Rtc(Rtc { trained: false }),
+            Strategy::RtcTrained => Self::Rtc(Rtc { trained: true }),
         }
     }
 
@@ -176,10 +178,16 @@ mod tests {
         assert_eq!(Replace.active_from(&new, now, &s), 40 * MS);
         let fade = Crossfade { window_ns: 20 * MS };
         assert_eq!(fade.active_from(&new, now, &s), 40 * MS);
-        assert_eq!(Rtc.active_from(&new, now, &s), now);
+        let (rtc, trained) = (Rtc { trained: false }, Rtc { trained: true });
+        assert_eq!(rtc.active_from(&new, now, &s), now);
+        assert_eq!(trained.active_from(&new, now, &s), now);
         let ens = TemporalEnsemble { decay: 0.0 };
         assert_eq!(ens.active_from(&new, now, &s), now);
-        assert!(Rtc.guided() && !Replace.guided() && !fade.guided() && !ens.guided());
+        assert_eq!(rtc.continuation(), Continuation::Guided);
+        assert_eq!(trained.continuation(), Continuation::Committed);
+        for other in [&Replace as &dyn Transition, &fade, &ens] {
+            assert_eq!(other.continuation(), Continuation::Fresh);
+        }
 
         let slots: VecDeque<Slot> = [(old, 0), (new, 40 * MS)]
             .into_iter()
