@@ -46,6 +46,10 @@ pub struct EvalArgs {
     /// Largest injected delay (action steps); the sweep runs 0..=N.
     #[arg(long, default_value_t = 4)]
     pub max_delay: u64,
+    /// Only these delays (action steps, comma separated) instead of 0..=--max-delay: e.g.
+    /// `--delays 0,4,8 --episodes 100` for tighter intervals where they matter.
+    #[arg(long, value_delimiter = ',', value_name = "D,D,..")]
+    pub delays: Vec<u64>,
     /// Strategies, comma separated (sync, replace, crossfade, temporal_ensemble, rtc, and
     /// rtc_trained with a checkpoint trained for it, e.g. `models/reach_pi05_rtc`); any but sync
     /// with `/measured` appended runs without future-state inference (e.g. `rtc/measured`;
@@ -77,6 +81,18 @@ pub struct EvalArgs {
     /// 1 cm away from the first target).
     #[arg(long, value_name = "SECONDS")]
     pub retarget_at: Option<f64>,
+    /// The drifting variant: both targets swing about the robot's base at this many swings per
+    /// second (`--drift-amplitude` either side), and the prompted one must be touched where it
+    /// is. Combines with `--retarget-at`.
+    #[arg(long, value_name = "HZ")]
+    pub drift_hz: Option<f64>,
+    /// The drift's largest rotation either side of the start (rad).
+    #[arg(long, default_value_t = 0.3, value_name = "RAD")]
+    pub drift_amplitude: f64,
+    /// With a drift: how long the end effector must stay on the moving target for success
+    /// (s; 0: touching it once).
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    pub follow: f64,
     /// Instead of the closed-loop sweep, the open-loop probe (`task::probe`) over `--episodes`
     /// held-out episodes: how well the chunks point at the prompted target, and how much they
     /// depend on the image and the prompt against the sampling noise. Writes probe.md.
@@ -273,6 +289,15 @@ fn split_variant(s: &str) -> (&str, bool) {
     }
 }
 
+/// What moves during the sweep's episodes (the dynamic variants); the default: nothing.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct World {
+    /// The prompt switches to the other target at this time (s).
+    pub retarget_at: Option<f64>,
+    /// The targets swing about the base.
+    pub drift: Option<crate::task::sim::Drift>,
+}
+
 /// Runs the sweep; `progress(done, total, cell so far)` after each episode.
 pub fn sweep(
     cfg: &Config,
@@ -280,7 +305,7 @@ pub fn sweep(
     delays: &[u64],
     episodes: usize,
     max_seconds: f64,
-    retarget_at: Option<f64>,
+    world: World,
     mut progress: impl FnMut(usize, usize, &str, u64),
 ) -> anyhow::Result<(Vec<Cell>, Vec<EpisodeRow>)> {
     for s in strategies {
@@ -331,7 +356,8 @@ pub fn sweep(
                 max_seconds,
                 synchronous: sync,
                 record: false,
-                retarget_at,
+                retarget_at: world.retarget_at,
+                drift: world.drift,
             };
             let mut outs = Vec::with_capacity(episodes);
             for e in &specs {
@@ -339,7 +365,7 @@ pub fn sweep(
                 done += 1;
                 progress(done, total, s, d);
             }
-            cells.push(summarise(s, d, &outs, retarget_at.is_some()));
+            cells.push(summarise(s, d, &outs, world.retarget_at.is_some()));
             rows.extend(specs.iter().zip(outs).map(|(e, o)| EpisodeRow {
                 strategy: s.clone(),
                 delay: d,
@@ -507,12 +533,40 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         (vec![0, 2.min(args.max_delay)], 2, 3.0)
     } else {
         (
-            (0..=args.max_delay).collect(),
+            if args.delays.is_empty() {
+                (0..=args.max_delay).collect()
+            } else {
+                args.delays.clone()
+            },
             args.episodes,
             args.max_seconds,
         )
     };
     anyhow::ensure!(episodes > 0, "--episodes must be > 0");
+    let drift = match args.drift_hz {
+        Some(f) => {
+            anyhow::ensure!(
+                f.is_finite() && f > 0.0 && f <= 5.0,
+                "--drift-hz {f}: must be in (0, 5] swings per second"
+            );
+            let a = args.drift_amplitude;
+            anyhow::ensure!(
+                a.is_finite() && a > 0.0 && a <= 1.0,
+                "--drift-amplitude {a}: must be in (0, 1] rad"
+            );
+            anyhow::ensure!(
+                args.follow.is_finite() && args.follow >= 0.0 && args.follow < max_seconds,
+                "--follow {}: must be at least 0 and below the episode's limit ({max_seconds} s)",
+                args.follow
+            );
+            Some(crate::task::sim::Drift {
+                amplitude_rad: a,
+                frequency_hz: f,
+                follow_s: args.follow,
+            })
+        }
+        None => None,
+    };
     if let Some(t) = args.retarget_at {
         anyhow::ensure!(
             t.is_finite() && t > 0.0 && t < max_seconds,
@@ -528,7 +582,10 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         &delays,
         episodes,
         max_seconds,
-        args.retarget_at,
+        World {
+            retarget_at: args.retarget_at,
+            drift,
+        },
         |done, total, s, d| {
             let now = t0.elapsed().as_secs_f64();
             if done == total || now - last >= if tty { 0.5 } else { 20.0 } {
@@ -658,7 +715,7 @@ mod tests {
                 &[0],
                 1,
                 1.0,
-                None,
+                World::default(),
                 |_, _, _, _| {},
             )
             .expect_err(bad)

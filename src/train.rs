@@ -295,6 +295,7 @@ pub fn validate(
         synchronous: false,
         record: false,
         retarget_at: None,
+        drift: None,
     };
     let mut ok = 0;
     let mut t = 0.0;

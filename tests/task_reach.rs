@@ -80,6 +80,7 @@ fn train_quick_writes_a_checkpoint_the_runtime_loads() {
             synchronous: false,
             record: true,
             retarget_at: None,
+            drift: None,
         },
     )
     .unwrap();
@@ -208,6 +209,21 @@ fn eval_dynamic_variant_reports_reaction_times() {
     );
     std::fs::remove_dir_all(&dir).ok();
 
+    for bad in [
+        &["--drift-hz", "0"][..],
+        &["--drift-hz", "0.25", "--follow", "9"],
+    ] {
+        let res = Command::new(EXE)
+            .args(["eval", "--quick"])
+            .args(bad)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&res.stderr);
+        assert!(
+            !res.status.success() && err.contains(bad[bad.len() - 2]),
+            "{err}"
+        );
+    }
     let res = Command::new(EXE)
         .args(["eval", "--quick", "--retarget-at", "100"])
         .output()
@@ -238,6 +254,7 @@ fn committed_policy_reaches_held_out_targets() {
         synchronous: false,
         record: false,
         retarget_at: None,
+        drift: None,
     };
     let mut ok = 0;
     let mut wrong = 0;
@@ -274,6 +291,7 @@ fn committed_rtc_policy_runs_rtc_trained_in_closed_loop() {
         synchronous: false,
         record: false,
         retarget_at: None,
+        drift: None,
     };
     let mut ok = 0;
     for e in &eps {
@@ -284,6 +302,54 @@ fn committed_rtc_policy_runs_rtc_trained_in_closed_loop() {
     eprintln!("rtc_trained at 2 steps of delay: {ok}/6 reached");
     // measured 6/6 (simulated time, seeded noise); one episode of margin
     assert!(ok >= 5, "{ok}/6 held-out episodes reached with rtc_trained");
+}
+
+/// The drifting variant: the targets swing about the base while the arm reaches, and success
+/// asks the arm to stay on the prompted one. On the same episodes (same noise, same world, so
+/// each pair of runs is the same trajectory until the first touch) following for 1 s succeeds
+/// no more often than touching once, and never earlier.
+#[test]
+fn drifting_targets_must_be_reached_and_followed() {
+    use chunkrt::task::sim::Drift;
+    let d = Drift {
+        amplitude_rad: 0.3,
+        frequency_hz: 0.25,
+        follow_s: 0.0,
+    };
+    assert_eq!(d.angle(0.0), 0.0);
+    assert!(
+        (d.angle(1.0) - 0.3).abs() < 1e-12,
+        "a quarter swing at 0.25 Hz"
+    );
+    let cfg = Config::embedded_default();
+    let mut p = PolicySource::load(&cfg).unwrap();
+    let eps = held_out_episodes(&cfg, 3_000, 6, 42);
+    let mut run = |e, follow_s| {
+        let settings = SimSettings {
+            delay_steps: 1,
+            max_seconds: 6.0,
+            synchronous: false,
+            record: false,
+            retarget_at: None,
+            drift: Some(Drift { follow_s, ..d }),
+        };
+        run_episode(&cfg, &mut p, e, &settings).unwrap()
+    };
+    let (mut touched, mut followed) = (0, 0);
+    for e in &eps {
+        let touch = run(e, 0.0);
+        let follow = run(e, 1.0);
+        touched += touch.success as usize;
+        followed += follow.success as usize;
+        if follow.success {
+            assert!(touch.success && touch.time_to_target <= follow.time_to_target);
+        }
+    }
+    eprintln!("drifting targets: {touched}/6 touched, {followed}/6 followed for 1 s");
+    assert!(
+        followed >= 1 && followed <= touched,
+        "{followed} / {touched}"
+    );
 }
 
 /// Lower bound on the committed policy's held-out success (of 10): measured 10/10 for the session-4

@@ -107,6 +107,7 @@ pub fn switch_plot(
             synchronous: false,
             record: true,
             retarget_at: None,
+            drift: None,
         };
         let out = run_episode(&c, &mut policy, &spec, &settings)?;
         let rec = out.recording.context("the episode was recorded")?;

@@ -44,6 +44,29 @@ pub struct SimSettings {
     /// The dynamic variant: at this time (s) the prompt switches to the other target, which then
     /// is the one to reach (the prompted target jumps); `None`: the static task.
     pub retarget_at: Option<f64>,
+    /// The drifting variant: the targets move while the robot reaches (`None`: they stay).
+    pub drift: Option<Drift>,
+}
+
+/// The targets swing about the robot's base: both are rotated by `amplitude_rad ·
+/// sin(2π · frequency_hz · t)` (their distance to the base and to each other stays, so they
+/// stay as reachable as they were), and the prompted one must be reached where it is and
+/// followed: the episode succeeds once the end effector has stayed on it for `follow_s`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Drift {
+    /// Largest rotation either side of the start (rad).
+    pub amplitude_rad: f64,
+    /// Swings per second.
+    pub frequency_hz: f64,
+    /// How long the end effector must stay on the moving target (s; 0: touching it is enough).
+    pub follow_s: f64,
+}
+
+impl Drift {
+    /// The rotation at `t` (s).
+    pub fn angle(&self, t: f64) -> f64 {
+        self.amplitude_rad * (std::f64::consts::TAU * self.frequency_hz * t).sin()
+    }
 }
 
 /// The robot has reacted to a retarget once its end effector is this much further from the
@@ -94,7 +117,10 @@ pub fn run_episode(
 ) -> anyhow::Result<EpisodeOutcome> {
     let cam = task_camera(cfg)?.clone();
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let scene = ReachScene::from_seed(spec.scene_seed);
+    let mut scene = ReachScene::from_seed(spec.scene_seed);
+    let start_targets = scene.targets;
+    // since when the end effector has been on the prompted target
+    let mut on_since: Option<f64> = None;
     // the target to reach (the prompted one; after a retarget the other) and the other one
     let (mut goal, mut other) = (spec.color, spec.color.other());
     // the retarget's time and the end effector's distance to the first target then
@@ -142,6 +168,12 @@ pub fn run_episode(
         let t = (now - START_NS) as f64 * 1e-9;
         js.seq += 1;
         js.measurement_time_ns = now;
+        if let Some(drift) = &settings.drift {
+            let (sin, cos) = drift.angle(t).sin_cos();
+            for (p, p0) in scene.targets.iter_mut().zip(&start_targets) {
+                *p = [cos * p0[0] - sin * p0[1], sin * p0[0] + cos * p0[1]];
+            }
+        }
         if let (Some(at), None) = (settings.retarget_at, retargeted) {
             if t >= at {
                 (goal, other) = (other, goal);
@@ -238,9 +270,14 @@ pub fn run_episode(
         let d = scene.distance(q, goal);
         out.min_distance = out.min_distance.min(d);
         // (dynamic variant: only the target prompted after the retarget counts)
-        if d <= super::REACH_TOLERANCE && (settings.retarget_at.is_none() || retargeted.is_some()) {
+        let on =
+            d <= super::REACH_TOLERANCE && (settings.retarget_at.is_none() || retargeted.is_some());
+        on_since = if on { on_since.or(Some(t)) } else { None };
+        let follow = settings.drift.map_or(0.0, |f| f.follow_s);
+        if let Some(t0) = on_since.filter(|&t0| t - t0 >= follow) {
             out.success = true;
-            out.time_to_target = Some(t);
+            // (following a drifting target: when it was reached for good)
+            out.time_to_target = Some(t0);
             break;
         }
         if !out.wrong_target && scene.distance(q, other) <= super::REACH_TOLERANCE {
