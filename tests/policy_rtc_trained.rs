@@ -6,7 +6,7 @@
 //! leaves the committed actions out, and a checkpoint not trained for it is refused.
 
 use candle_core::{DType, Device, Tensor};
-use chunkrt::policy::model::FlowTimes;
+use chunkrt::policy::model::{FlowTimes, PrefixCache};
 use chunkrt::policy::RawObservation;
 
 #[path = "common/fixture.rs"]
@@ -25,17 +25,22 @@ fn rows(t: &Tensor, lo: usize, n: usize) -> Tensor {
     t.narrow(1, lo, n).unwrap()
 }
 
+/// Fixture `name` with its prefix cache filled.
+fn cached(name: &str) -> (fixture::Fixture, PrefixCache) {
+    let f = fixture::load(name);
+    let mut cache = None;
+    f.model.fill_cache(&f.inputs, &mut cache, false).unwrap();
+    (f, cache.expect("a filled cache"))
+}
+
 #[test]
 fn committed_actions_come_back_exactly_and_steer_the_rest() {
     for name in ["pi05_tiny", "pi0_tiny"] {
-        let f = fixture::load(name);
-        let m = &f.model;
+        let (f, cache) = cached(name);
+        let (m, c) = (&f.model, &cache);
         let (h, a) = (m.cfg.action_horizon, m.cfg.action_dim);
         let noise = values(h, a, 1);
         let y = values(h, a, 2);
-        let mut cache = None;
-        m.fill_cache(&f.inputs, &mut cache, false).unwrap();
-        let c = cache.as_ref().unwrap();
         let plain = m.denoise(c, &noise, 10).unwrap().actions;
         // no committed prefix: the plain sampler, bit for bit
         let zero = m
@@ -71,13 +76,10 @@ fn committed_actions_come_back_exactly_and_steer_the_rest() {
 #[test]
 fn per_token_times_agree_between_cached_step_and_joint_forward() {
     for name in ["pi05_tiny", "pi0_tiny"] {
-        let f = fixture::load(name);
-        let m = &f.model;
+        let (f, cache) = cached(name);
+        let (m, c) = (&f.model, &cache);
         let (h, a) = (m.cfg.action_horizon, m.cfg.action_dim);
         let x = values(h, a, 3);
-        let mut cache = None;
-        m.fill_cache(&f.inputs, &mut cache, false).unwrap();
-        let c = cache.as_ref().unwrap();
         let t = [0.6f32];
         // an all-zero prefix is the per-row time
         let none = m.velocity_at(c, &x, &t, false).unwrap();

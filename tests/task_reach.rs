@@ -20,6 +20,18 @@ fn tmp(name: &str) -> std::path::PathBuf {
     d
 }
 
+/// The static task's episode settings: `delay_steps` of inference delay, at most `max_seconds`.
+fn settings(delay_steps: u64, max_seconds: f64) -> SimSettings {
+    SimSettings {
+        delay_steps,
+        max_seconds,
+        synchronous: false,
+        record: false,
+        retarget_at: None,
+        drift: None,
+    }
+}
+
 /// Runs `cmd` to completion and returns its stdout, after checking that it succeeded (stdout
 /// and stderr in the message otherwise).
 fn run_ok(cmd: &mut Command) -> String {
@@ -75,12 +87,8 @@ fn train_quick_writes_a_checkpoint_the_runtime_loads() {
         &mut p,
         &ep[0],
         &SimSettings {
-            delay_steps: 1,
-            max_seconds: 0.5,
-            synchronous: false,
             record: true,
-            retarget_at: None,
-            drift: None,
+            ..settings(1, 0.5)
         },
     )
     .unwrap();
@@ -248,14 +256,7 @@ fn committed_policy_reaches_held_out_targets() {
     );
     let mut p = PolicySource::load(&cfg).unwrap();
     let eps = held_out_episodes(&cfg, 3_000, 10, 42);
-    let settings = SimSettings {
-        delay_steps: 1,
-        max_seconds: 8.0,
-        synchronous: false,
-        record: false,
-        retarget_at: None,
-        drift: None,
-    };
+    let settings = settings(1, 8.0);
     let mut ok = 0;
     let mut wrong = 0;
     for e in &eps {
@@ -285,14 +286,7 @@ fn committed_rtc_policy_runs_rtc_trained_in_closed_loop() {
     let mut p = PolicySource::load(&cfg).unwrap();
     assert_eq!(p.committed_max(), 8);
     let eps = held_out_episodes(&cfg, 3_000, 6, 42);
-    let settings = SimSettings {
-        delay_steps: 2,
-        max_seconds: 8.0,
-        synchronous: false,
-        record: false,
-        retarget_at: None,
-        drift: None,
-    };
+    let settings = settings(2, 8.0);
     let mut ok = 0;
     for e in &eps {
         let r = run_episode(&cfg, &mut p, e, &settings).unwrap();
@@ -326,12 +320,8 @@ fn drifting_targets_must_be_reached_and_followed() {
     let eps = held_out_episodes(&cfg, 3_000, 6, 42);
     let mut run = |e, follow_s| {
         let settings = SimSettings {
-            delay_steps: 1,
-            max_seconds: 6.0,
-            synchronous: false,
-            record: false,
-            retarget_at: None,
             drift: Some(Drift { follow_s, ..d }),
+            ..settings(1, 6.0)
         };
         run_episode(&cfg, &mut p, e, &settings).unwrap()
     };
