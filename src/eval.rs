@@ -53,7 +53,8 @@ pub struct EvalArgs {
     /// Strategies, comma separated (sync, replace, crossfade, temporal_ensemble, rtc, and
     /// rtc_trained with a checkpoint trained for it, e.g. `models/reach_pi05_rtc`); any but sync
     /// with `/measured` appended runs without future-state inference (e.g. `rtc/measured`;
-    /// rtc_trained always observes the measured state).
+    /// rtc_trained observes the measured state while its committed rows cover the delay, and a
+    /// future state beyond: `InferenceRequest::committed_rows`).
     #[arg(
         long,
         value_delimiter = ',',
