@@ -299,6 +299,23 @@ pub struct World {
     pub drift: Option<crate::task::sim::Drift>,
 }
 
+/// The configuration of a cell: strategy `s` (a sweep name, `sync` keeping the configured one
+/// for the broker, `/measured` turning future-state inference off) at `delay` steps, the
+/// executor's delay estimate starting at the injected delay. Returns it and whether `s` is sync.
+fn cell_config(cfg: &Config, s: &str, delay: u64) -> anyhow::Result<(Config, bool)> {
+    let mut c = cfg.clone();
+    let (base, measured) = split_variant(s);
+    let sync = base == "sync";
+    if !sync {
+        c.execution.strategy = base.parse().map_err(anyhow::Error::msg)?;
+    }
+    if measured {
+        c.execution.future_state = false;
+    }
+    c.execution.initial_delay_steps = delay as usize;
+    Ok((c, sync))
+}
+
 /// Runs the sweep; `progress(done, total, cell so far)` after each episode.
 pub fn sweep(
     cfg: &Config,
@@ -341,17 +358,7 @@ pub fn sweep(
     let mut rows = Vec::new();
     for &d in delays {
         for s in strategies {
-            let mut c = cfg.clone();
-            let (base, measured) = split_variant(s);
-            let sync = base == "sync";
-            if !sync {
-                c.execution.strategy = base.parse().map_err(anyhow::Error::msg)?;
-            }
-            if measured {
-                c.execution.future_state = false;
-            }
-            // the executor's delay estimate starts at the injected delay
-            c.execution.initial_delay_steps = d as usize;
+            let (c, sync) = cell_config(cfg, s, d)?;
             let settings = SimSettings {
                 delay_steps: d,
                 max_seconds,

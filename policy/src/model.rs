@@ -141,6 +141,16 @@ impl<'a, const N: usize> From<&'a [f32; N]> for FlowTimes<'a> {
     }
 }
 
+/// The tokens a committed prefix leaves to generate: [B, H, 1] f32, 0 on the first
+/// `committed[b]` action tokens of row b (given, at flow time 0), 1 on the others.
+fn free_mask(committed: &[usize], h: usize, dev: &Device) -> candle_core::Result<Tensor> {
+    let b = committed.len();
+    let f: Vec<f32> = (0..b * h)
+        .map(|i| if i % h < committed[i / h] { 0.0 } else { 1.0 })
+        .collect();
+    Tensor::from_vec(f, (b, h, 1), dev)
+}
+
 /// Sinusoidal time embedding [B, W] (sin half then cos half), computed in f64 like openpi's
 /// PyTorch reference, then cast to f32.
 pub fn time_embedding(

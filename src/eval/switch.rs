@@ -94,13 +94,7 @@ pub fn switch_plot(
     let mut policy = PolicySource::load(cfg)?;
     let mut panels = Vec::new();
     for s in strategies.iter().filter(|s| s.as_str() != "sync") {
-        let mut c = cfg.clone();
-        let (base, measured) = super::split_variant(s);
-        c.execution.strategy = base.parse().map_err(anyhow::Error::msg)?;
-        if measured {
-            c.execution.future_state = false;
-        }
-        c.execution.initial_delay_steps = delay as usize;
+        let (c, _) = super::cell_config(cfg, s, delay)?;
         let settings = SimSettings {
             delay_steps: delay,
             max_seconds: 8.0,

@@ -121,15 +121,9 @@ impl PiModel {
         }
         let committed = committed.filter(|c| c.iter().any(|&n| n > 0));
         // 1 on the actions to generate, 0 on the committed ones [B·k, H, 1]
-        let free = match committed {
-            Some(c) => {
-                let f: Vec<f32> = (0..bk * h)
-                    .map(|i| if i % h < c[i / h] { 0.0 } else { 1.0 })
-                    .collect();
-                Some(Tensor::from_vec(f, (bk, h, 1), &self.device)?)
-            }
-            None => None,
-        };
+        let free = committed
+            .map(|c| free_mask(c, h, &self.device))
+            .transpose()?;
         let (tv, x_t, u) = noisy_actions(&rep(actions)?, noise, time, free.as_ref())?;
 
         // prefix: the VLM expert alone, keeping each layer's K/V

@@ -149,10 +149,7 @@ impl PiModel {
             )));
         }
         // 1 on the tokens to generate, 0 on the committed ones [B, H, 1]
-        let free: Vec<f32> = (0..b * h)
-            .map(|i| if i % h < committed[i / h] { 0.0 } else { 1.0 })
-            .collect();
-        let free = Tensor::from_vec(free, (b, h, 1), self.device())?;
+        let free = free_mask(committed, h, self.device())?;
         let kept = (free.neg()? + 1.0)?;
         // x starts as noise on the free tokens and as the committed actions on the others
         let x0 = (noise.to_dtype(DType::F32)?.broadcast_mul(&free)?
