@@ -54,7 +54,9 @@ pub struct EvalArgs {
     /// rtc_trained with a checkpoint trained for it, e.g. `models/reach_pi05_rtc`); any but sync
     /// with `/measured` appended runs without future-state inference (e.g. `rtc/measured`;
     /// rtc_trained observes the measured state while its committed rows cover the delay, and a
-    /// future state beyond: `InferenceRequest::committed_rows`).
+    /// future state beyond: `InferenceRequest::committed_rows`); `rtc/identity` guides with the
+    /// identity Jacobian (`execution.rtc_jacobian = "identity"`: no backward pass; also
+    /// `rtc/identity/measured`).
     #[arg(
         long,
         value_delimiter = ',',
@@ -282,11 +284,35 @@ pub fn markdown(cells: &[Cell]) -> String {
 /// Suffix of a strategy name that runs it without future-state inference (`rtc/measured`).
 pub const MEASURED: &str = "/measured";
 
-/// A strategy name and whether it is the measured-state variant.
-fn split_variant(s: &str) -> (&str, bool) {
-    match s.strip_suffix(MEASURED) {
-        Some(base) => (base, true),
+/// Suffix of `rtc` that guides with the identity Jacobian (`rtc/identity`,
+/// `execution.rtc_jacobian = "identity"`); before `/measured` where both apply.
+pub const IDENTITY: &str = "/identity";
+
+/// A sweep's strategy name taken apart.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Variant<'a> {
+    /// The strategy (or `sync`).
+    base: &'a str,
+    /// Without future-state inference.
+    measured: bool,
+    /// `rtc` with the identity Jacobian.
+    identity: bool,
+}
+
+/// The strategy name and its variant suffixes.
+fn split_variant(s: &str) -> Variant<'_> {
+    let (s, measured) = match s.strip_suffix(MEASURED) {
+        Some(rest) => (rest, true),
         None => (s, false),
+    };
+    let (base, identity) = match s.strip_suffix(IDENTITY) {
+        Some(rest) => (rest, true),
+        None => (s, false),
+    };
+    Variant {
+        base,
+        measured,
+        identity,
     }
 }
 
@@ -300,17 +326,21 @@ pub struct World {
 }
 
 /// The configuration of a cell: strategy `s` (a sweep name, `sync` keeping the configured one
-/// for the broker, `/measured` turning future-state inference off) at `delay` steps, the
+/// for the broker, `/measured` turning future-state inference off, `/identity` the identity
+/// Jacobian) at `delay` steps, the
 /// executor's delay estimate starting at the injected delay. Returns it and whether `s` is sync.
 fn cell_config(cfg: &Config, s: &str, delay: u64) -> anyhow::Result<(Config, bool)> {
     let mut c = cfg.clone();
-    let (base, measured) = split_variant(s);
-    let sync = base == "sync";
+    let v = split_variant(s);
+    let sync = v.base == "sync";
     if !sync {
-        c.execution.strategy = base.parse().map_err(anyhow::Error::msg)?;
+        c.execution.strategy = v.base.parse().map_err(anyhow::Error::msg)?;
     }
-    if measured {
+    if v.measured {
         c.execution.future_state = false;
+    }
+    if v.identity {
+        c.execution.rtc_jacobian = chunkrt_ipc::config::RtcJacobian::Identity;
     }
     c.execution.initial_delay_steps = delay as usize;
     Ok((c, sync))
@@ -327,11 +357,14 @@ pub fn sweep(
     mut progress: impl FnMut(usize, usize, &str, u64),
 ) -> anyhow::Result<(Vec<Cell>, Vec<EpisodeRow>)> {
     for s in strategies {
-        let (base, measured) = split_variant(s);
+        let v = split_variant(s);
         anyhow::ensure!(
-            STRATEGIES.contains(&base) && !(measured && base == "sync"),
+            STRATEGIES.contains(&v.base)
+                && !(v.measured && v.base == "sync")
+                && !(v.identity && v.base != "rtc"),
             "unknown strategy {s:?}: one of {}, and any but sync with {MEASURED:?} appended (the \
-             policy observes the measured state instead of the future one)",
+             policy observes the measured state instead of the future one), rtc with \
+             {IDENTITY:?} (guidance with the identity Jacobian)",
             STRATEGIES.join(", ")
         );
     }
@@ -339,7 +372,7 @@ pub fn sweep(
     let mut policy = PolicySource::load(cfg)?;
     if strategies
         .iter()
-        .any(|s| split_variant(s).0 == "rtc_trained")
+        .any(|s| split_variant(s).base == "rtc_trained")
     {
         anyhow::ensure!(
             policy.committed_max() > 0,
@@ -713,10 +746,27 @@ mod tests {
 
     #[test]
     fn measured_state_variants_are_named_by_a_suffix() {
-        assert_eq!(split_variant("rtc/measured"), ("rtc", true));
-        assert_eq!(split_variant("rtc"), ("rtc", false));
+        let v = |base, measured, identity| Variant {
+            base,
+            measured,
+            identity,
+        };
+        assert_eq!(split_variant("rtc/measured"), v("rtc", true, false));
+        assert_eq!(split_variant("rtc"), v("rtc", false, false));
+        assert_eq!(split_variant("rtc/identity/measured"), v("rtc", true, true));
+        let (c, _) = cell_config(&Config::embedded_default(), "rtc/identity", 2).unwrap();
+        assert_eq!(
+            c.execution.rtc_jacobian,
+            chunkrt_ipc::config::RtcJacobian::Identity
+        );
         let cfg = Config::embedded_default();
-        for bad in ["sync/measured", "rtc/future", "magic"] {
+        for bad in [
+            "sync/measured",
+            "rtc/future",
+            "magic",
+            "replace/identity",
+            "rtc/measured/identity",
+        ] {
             let e = sweep(
                 &cfg,
                 &[bad.to_string()],

@@ -7,6 +7,7 @@ use std::time::Instant;
 use candle_core::{Device, Tensor};
 use chunkrt::policy::rtc::{
     clean_estimate_vjp, guidance_scale, guided_velocity, weight_mask, Guidance, GuidanceTarget,
+    Jacobian,
 };
 use chunkrt::policy::{Policy, RawObservation};
 
@@ -64,6 +65,7 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
                 prefix: &prefix,
                 weights: &ones,
                 beta: 0.0,
+                jacobian: Default::default(),
             }),
         ),
         (
@@ -72,6 +74,7 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
                 prefix: &prefix,
                 weights: &zeros,
                 beta: 5.0,
+                jacobian: Default::default(),
             }),
         ),
     ];
@@ -90,6 +93,7 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
                 prefix: &prefix,
                 weights: &ones,
                 beta: 5.0,
+                jacobian: Default::default(),
             }),
         )
         .unwrap();
@@ -112,26 +116,54 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
         y: noise(hh, aa, 9),
         w: weight_mask(&zeros, n, aa, &Device::Cpu).unwrap(),
         beta: 5.0,
+        jacobian: Default::default(),
+    };
+    for jacobian in [Jacobian::Vjp, Jacobian::Identity] {
+        let target = GuidanceTarget {
+            jacobian,
+            ..target.clone()
+        };
+        let gv = guided_velocity(model, c, &noise(hh, aa, 1), 0.5, &target).unwrap();
+        // exact zeros: β = 0 / W = 0 must give the unguided velocity bit for bit
+        assert_eq!(absmax(&gv.g), 0.0, "{jacobian:?}");
+        assert_eq!(maxdiff(&gv.v_guided, &gv.v), 0.0, "{jacobian:?}");
+    }
+    // the identity Jacobian's gradient is the weighted error itself
+    let target = GuidanceTarget {
+        w: weight_mask(&vec![1.0f32; hh], n, aa, &Device::Cpu).unwrap(),
+        jacobian: Jacobian::Identity,
+        ..target
     };
     let gv = guided_velocity(model, c, &noise(hh, aa, 1), 0.5, &target).unwrap();
-    // exact zeros: β = 0 / W = 0 must give the unguided velocity bit for bit
-    assert_eq!(absmax(&gv.g), 0.0);
-    assert_eq!(maxdiff(&gv.v_guided, &gv.v), 0.0);
+    let want = ((&target.y - &gv.a_hat).unwrap()
+        * &target.w.broadcast_as(gv.a_hat.shape()).unwrap())
+        .unwrap();
+    assert_eq!(maxdiff(&gv.g, &want), 0.0);
+    assert!(absmax(&gv.g) > 0.0);
 }
 
 #[test]
 fn guidance_pulls_the_frozen_steps_onto_the_previous_chunk() {
-    guidance_pulls(None);
+    guidance_pulls(None, Jacobian::Vjp);
+}
+
+/// The identity Jacobian (no backward pass) pulls too.
+#[test]
+fn identity_jacobian_guidance_pulls_the_frozen_steps_onto_the_previous_chunk() {
+    guidance_pulls(None, Jacobian::Identity);
 }
 
 /// With delta actions the previous chunk (robot units, absolute) is made relative to the new
 /// observation's state before it guides: the guided chunk still lands on it.
 #[test]
 fn guidance_with_delta_actions_pulls_onto_the_absolute_previous_chunk() {
-    guidance_pulls(Some(vec![true, true, false, true, false, true]));
+    guidance_pulls(
+        Some(vec![true, true, false, true, false, true]),
+        Jacobian::Vjp,
+    );
 }
 
-fn guidance_pulls(delta_action_mask: Option<Vec<bool>>) {
+fn guidance_pulls(delta_action_mask: Option<Vec<bool>>, jacobian: Jacobian) {
     let mut pc = chunkrt::config::PolicyConfig::default();
     pc.model.delta_action_mask = delta_action_mask;
     let policy = || chunkrt::inference::load_policy(&data("pi05_tiny"), &pc).unwrap();
@@ -169,6 +201,7 @@ fn guidance_pulls(delta_action_mask: Option<Vec<bool>>) {
         prefix: &prefix,
         weights: &weights,
         beta: 5.0,
+        jacobian,
     };
     let out = guided.infer_guided(&obs, Some(&g)).unwrap();
     assert!(out.iter().all(|x| x.is_finite()));
@@ -188,7 +221,7 @@ fn guidance_pulls(delta_action_mask: Option<Vec<bool>>) {
     let tail_un = err(&unguided, d + 3..h);
     let tail_g = err(&out, d + 3..h);
     println!(
-        "first {d} steps: RMS error to the previous chunk unguided {e_un:.4}, guided {e_g:.4} ({:.1}x); \
+        "{jacobian:?}: first {d} steps: RMS error to the previous chunk unguided {e_un:.4}, guided {e_g:.4} ({:.1}x); \
          unweighted tail: {tail_un:.4} -> {tail_g:.4}",
         e_un / e_g
     );
@@ -265,6 +298,7 @@ fn vjp_matches_finite_differences_and_guided_step_cost() {
         y: noise(h, a, 5),
         w: weight_mask(&[1.0; 10], state.len(), a, &dev).unwrap(),
         beta: 5.0,
+        jacobian: Default::default(),
     };
     let time = |f: &mut dyn FnMut()| {
         let t0 = Instant::now();
@@ -320,31 +354,37 @@ fn bad_guidance_is_an_error_not_a_panic() {
             prefix: &prefix[1..],
             weights: &w,
             beta: 1.0,
+            jacobian: Default::default(),
         },
         Guidance {
             prefix: &prefix,
             weights: &w[1..],
             beta: 1.0,
+            jacobian: Default::default(),
         },
         Guidance {
             prefix: &nan_prefix,
             weights: &w,
             beta: 1.0,
+            jacobian: Default::default(),
         },
         Guidance {
             prefix: &prefix,
             weights: &neg_w,
             beta: 1.0,
+            jacobian: Default::default(),
         },
         Guidance {
             prefix: &prefix,
             weights: &w,
             beta: f32::NAN,
+            jacobian: Default::default(),
         },
         Guidance {
             prefix: &prefix,
             weights: &w,
             beta: -1.0,
+            jacobian: Default::default(),
         },
     ];
     for g in &bad {
@@ -357,7 +397,8 @@ fn bad_guidance_is_an_error_not_a_panic() {
             Some(&Guidance {
                 prefix: &prefix,
                 weights: &w,
-                beta: 1.0
+                beta: 1.0,
+                jacobian: Default::default(),
             })
         )
         .unwrap()

@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use anyhow::Context;
 
-use chunkrt_ipc::config::{PolicyConfig, PolicyDevice, PolicyKind, PolicyPrecision};
+use chunkrt_ipc::config::{PolicyConfig, PolicyDevice, PolicyKind, PolicyPrecision, RtcJacobian};
 use chunkrt_ipc::{monotonic_ns, Config, ENCODING_BGR8, ENCODING_MONO8, ENCODING_RGB8};
 
 use crate::chunk::ActionChunk;
@@ -14,7 +14,7 @@ use crate::contract::ChunkSource;
 use crate::control::{Continuation, InferenceRequest};
 use crate::edge::Observation;
 use crate::policy::config::ConfigOverrides;
-use crate::policy::rtc::Guidance;
+use crate::policy::rtc::{Guidance, Jacobian};
 use crate::policy::runtime::{LoadOptions, Policy, RawFrame, RawObservation};
 use crate::policy::{DeviceSpec, Encoding, ModelKind, Precision};
 
@@ -250,6 +250,10 @@ impl PolicySource {
                 prefix: &self.prefix,
                 weights: &self.weights,
                 beta: request.beta as f32,
+                jacobian: match request.jacobian {
+                    RtcJacobian::Vjp => Jacobian::Vjp,
+                    RtcJacobian::Identity => Jacobian::Identity,
+                },
             };
             let policy = &mut self.policy;
             self.pool.install(|| policy.infer_guided(&raw, Some(&g)))?

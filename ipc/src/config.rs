@@ -304,6 +304,10 @@ pub struct ExecutionConfig {
     /// `rtc`: soft-mask schedule between d and H − s: `exp` (the paper's), `linear`, `ones`, `zeros`.
     #[serde(default)]
     pub rtc_schedule: Schedule,
+    /// `rtc`: the guidance's Jacobian: `vjp` (exact, a backward pass per step) or `identity`
+    /// (∂Â/∂x_t ≈ I, as cheap as an unguided step).
+    #[serde(default)]
+    pub rtc_jacobian: RtcJacobian,
     /// Consecutive overrunning ticks that put the controller in HOLD.
     #[serde(default = "default_overrun_streak")]
     pub overrun_streak: u32,
@@ -360,6 +364,7 @@ impl Default for ExecutionConfig {
             initial_delay_steps: default_initial_delay_steps(),
             guidance_beta: default_guidance_beta(),
             rtc_schedule: Default::default(),
+            rtc_jacobian: Default::default(),
             overrun_streak: default_overrun_streak(),
             inference_timeout_ms: default_inference_timeout_ms(),
         }

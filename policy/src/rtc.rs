@@ -20,6 +20,8 @@
 //!
 //! The VJP runs the action expert in its differentiable mode (compositions with a backward), so
 //! a guided step costs one differentiable forward and one backward instead of one fast forward.
+//! [`Jacobian::Identity`] takes ∂Â/∂x_t ≈ I instead (g = W ⊙ (Y − Â)): one fast forward per step,
+//! as unguided sampling, at the price of steering the estimate without the model's sensitivity.
 
 use candle_core::{DType, Device, Tensor, Var};
 
@@ -27,6 +29,20 @@ use super::config::ModelConfig;
 use super::model::{euler, ModelInputs, PiModel, PrefixCache, SampleOutput};
 use super::preprocess::{normalize, NormMode, Stats};
 use super::PolicyError;
+
+/// How the guidance gradient g = (∂Â/∂x_t)ᵀ (W ⊙ (Y − Â)) treats the Jacobian of the clean
+/// estimate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Jacobian {
+    /// The exact vector-Jacobian product (the paper's): a differentiable forward and a backward
+    /// through the action expert per step.
+    #[default]
+    Vjp,
+    /// ∂Â/∂x_t ≈ I, so g = W ⊙ (Y − Â): one fast forward per step, as an unguided step. Exact
+    /// where the velocity does not depend on x_t; otherwise the pull on Â is not shaped by the
+    /// model's sensitivity (stronger at high noise, where the true Jacobian is small).
+    Identity,
+}
 
 /// Guidance towards the previous chunk (robot units, [H][n_dof] row-major, right-padded by the
 /// caller) for [`super::Policy::infer_guided`].
@@ -39,6 +55,8 @@ pub struct Guidance<'a> {
     pub weights: &'a [f32],
     /// Guidance clip β (≥ 0; 0 disables guidance).
     pub beta: f32,
+    /// The exact VJP or the identity approximation.
+    pub jacobian: Jacobian,
 }
 
 impl Guidance<'_> {
@@ -94,6 +112,7 @@ impl Guidance<'_> {
             y: model_space_actions(self.prefix, n_dof, cfg, stats, mode, offsets, dev)?,
             w: weight_mask(self.weights, n_dof, a, dev)?,
             beta: self.beta,
+            jacobian: self.jacobian,
         })
     }
 }
@@ -150,6 +169,8 @@ pub struct GuidanceTarget {
     pub w: Tensor,
     /// Guidance clip β (≥ 0); 0 disables guidance.
     pub beta: f32,
+    /// The exact VJP or the identity approximation.
+    pub jacobian: Jacobian,
 }
 
 /// Result of one guided velocity evaluation ([`guided_velocity`]).
@@ -258,18 +279,29 @@ pub fn guided_velocity(
 ) -> Result<GuidedVelocity, PolicyError> {
     let b = x_t.dim(0)?;
     let tv = vec![t; b];
-    let (a_hat, v, x) = clean_estimate(model, cache, x_t, &tv)?;
-    // cotangent W ⊙ (Y − Â), a constant for the VJP
-    let err = (&target.y - a_hat.detach())?;
-    let cot = err.broadcast_mul(&target.w)?;
-    let g = vjp(&a_hat, &x, &cot)?;
+    let (a_hat, v, g) = match target.jacobian {
+        Jacobian::Vjp => {
+            let (a_hat, v, x) = clean_estimate(model, cache, x_t, &tv)?;
+            // cotangent W ⊙ (Y − Â), a constant for the VJP
+            let err = (&target.y - a_hat.detach())?;
+            let cot = err.broadcast_mul(&target.w)?;
+            let g = vjp(&a_hat, &x, &cot)?;
+            (a_hat.detach(), v.detach(), g)
+        }
+        Jacobian::Identity => {
+            let v = model.velocity_at(cache, x_t, &tv, false)?;
+            let t3 = Tensor::from_slice(&tv, (b, 1, 1), x_t.device())?;
+            let a_hat = (x_t - v.broadcast_mul(&t3)?)?;
+            let g = (&target.y - &a_hat)?.broadcast_mul(&target.w)?;
+            (a_hat, v, g)
+        }
+    };
     let scale = guidance_scale(t, target.beta);
-    let v = v.detach();
     let v_guided = (&v - (&g * scale as f64)?)?;
     Ok(GuidedVelocity {
         v_guided,
         v,
-        a_hat: a_hat.detach(),
+        a_hat,
         g,
         scale,
     })
@@ -349,6 +381,7 @@ pub fn sample_guided(
         y,
         w,
         beta: target.beta,
+        jacobian: target.jacobian,
     };
     model.fill_cache(inputs, cache, false)?;
     let c = cache.as_ref().expect("fill_cache stores the cache");

@@ -4,7 +4,7 @@
 //! Owns: the request hand-off's sending end and the outstanding request. Must not depend on:
 //! the safety state machine, ruckig, IPC.
 
-use chunkrt_ipc::config::{Config, Schedule, Trigger};
+use chunkrt_ipc::config::{Config, RtcJacobian, Schedule, Trigger};
 
 use super::handoff::RequestSender;
 use super::interp::Sample;
@@ -19,6 +19,7 @@ pub(crate) struct Requests {
     /// s: actions of a chunk executed before the next inference starts.
     s: usize,
     beta: f64,
+    jacobian: RtcJacobian,
     future_state: bool,
     action_period_ns: u64,
     timeout_ns: u64,
@@ -37,6 +38,7 @@ impl Requests {
             schedule: e.rtc_schedule,
             s: e.execute_horizon.max(1),
             beta: e.guidance_beta,
+            jacobian: e.rtc_jacobian,
             future_state: e.future_state,
             action_period_ns: ((1e9 / config.policy.action_rate_hz).round() as u64).max(1),
             timeout_ns: super::ms_to_ns(e.inference_timeout_ms),
@@ -89,6 +91,7 @@ impl Requests {
             r.execute_horizon = self.s;
             r.delay_steps = d;
             r.beta = self.beta;
+            r.jacobian = self.jacobian;
             match newest {
                 Some(c) => {
                     let h = c.horizon().min(MAX_HORIZON);

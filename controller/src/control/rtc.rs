@@ -130,6 +130,8 @@ pub struct InferenceRequest {
     pub delay_steps: usize,
     /// β, the guidance weight clip.
     pub beta: f64,
+    /// `rtc`: the guidance's Jacobian (exact VJP or identity).
+    pub jacobian: chunkrt_ipc::config::RtcJacobian,
     /// How the chunk continues the previous one (guided for `rtc`, committed for `rtc_trained`;
     /// fresh for the other strategies and while no previous chunk exists).
     pub continuation: Continuation,
@@ -155,6 +157,7 @@ impl Default for InferenceRequest {
             execute_horizon: 0,
             delay_steps: 0,
             beta: 0.0,
+            jacobian: Default::default(),
             continuation: Continuation::Fresh,
             future_state: false,
             prefix: [[0.0; MAX_DOF]; MAX_HORIZON],

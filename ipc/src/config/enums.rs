@@ -98,6 +98,19 @@ config_enum! {
 }
 
 config_enum! {
+    /// `execution.rtc_jacobian`: how `rtc`'s guidance treats the Jacobian of the clean estimate.
+    pub enum RtcJacobian ("rtc jacobian") {
+        /// The exact vector-Jacobian product (the paper's): a backward pass through the action
+        /// expert per denoising step.
+        #[default]
+        Vjp = "vjp",
+        /// ∂Â/∂x_t ≈ I: the guidance pulls the clean estimate straight towards the previous
+        /// chunk; a guided step costs what an unguided one does.
+        Identity = "identity",
+    }
+}
+
+config_enum! {
     /// `execution.interpolation` between a chunk's actions.
     pub enum Interpolation ("interpolation") {
         /// Velocity-continuous cubic Hermite.

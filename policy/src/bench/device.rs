@@ -239,7 +239,7 @@ impl std::fmt::Display for DeviceReport {
         )?;
         writeln!(
             f,
-            "{:<16} {:>6} {:>34} {:>34}",
+            "{:<20} {:>6} {:>34} {:>34}",
             "phase",
             "calls",
             "wall ms p50 / p90 / p99 / max",
@@ -253,7 +253,7 @@ impl std::fmt::Display for DeviceReport {
             };
             writeln!(
                 f,
-                "{:<16} {:>6} {:>34} {:>34}",
+                "{:<20} {:>6} {:>34} {:>34}",
                 p.name,
                 p.wall_ms.len(),
                 DevicePhase::summary(&p.wall_ms),
@@ -274,6 +274,17 @@ impl std::fmt::Display for DeviceReport {
             writeln!(
                 f,
                 "RTC guided step (forward + vector-Jacobian product) p50 {g50:.2} ms = {:.1}x an unguided step ({u50:.2} ms, both eager)",
+                g50 / u50.max(1e-9)
+            )?;
+        }
+        if let (Some(g), Some(u)) = (
+            self.phase("step_guided_identity"),
+            self.phase("step_cached"),
+        ) {
+            let (g50, u50) = (quantile(&g.wall_ms, 0.5), quantile(&u.wall_ms, 0.5));
+            writeln!(
+                f,
+                "RTC guided step with the identity Jacobian (rtc_jacobian = \"identity\") p50 {g50:.2} ms = {:.2}x an unguided step",
                 g50 / u50.max(1e-9)
             )?;
         }
@@ -434,8 +445,18 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             y: noise.zeros_like()?,
             w: Tensor::ones((1, cfg.action_horizon, cfg.action_dim), DType::F32, dev)?,
             beta: 5.0,
+            jacobian: crate::rtc::Jacobian::Vjp,
         };
         time("step_guided", opts.calls, &mut || {
+            crate::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
+            Ok(())
+        })?;
+        // the same with ∂Â/∂x_t ≈ I: one fast forward and a few element-wise ops
+        let target = crate::rtc::GuidanceTarget {
+            jacobian: crate::rtc::Jacobian::Identity,
+            ..target
+        };
+        time("step_guided_identity", opts.calls * 10, &mut || {
             crate::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
             Ok(())
         })?;
