@@ -603,6 +603,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             Some(crate::task::sim::Drift {
                 amplitude_rad: a,
                 frequency_hz: f,
+                phase_rad: 0.0,
                 follow_s: args.follow,
             })
         }

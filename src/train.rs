@@ -38,7 +38,9 @@ use crate::policy::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, NormMode, NormStats,
     PromptTokenizer, Stats,
 };
-use crate::task::dataset::{gaussian, random_start, Dataset, DatasetSpec, TRAIN_SEED_BASE};
+use crate::task::dataset::{
+    gaussian, random_start, Dataset, DatasetSpec, DriftMix, TRAIN_SEED_BASE,
+};
 use crate::task::sim::{run_episode, EpisodeSpec, SimSettings};
 use crate::task::{home_pose, task_camera, vocab, TargetColor, TASK_DOF};
 
@@ -142,6 +144,12 @@ pub struct TrainArgs {
     /// `config.json` records N as `rtc_prefix_max`. 0 (the default) trains without.
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub rtc_prefix: usize,
+    /// Share of the recorded episodes whose targets swing about the base (the drifting variant
+    /// of `chunkrt eval --drift-hz`; `task::dataset::DriftMix`): the tracking expert labels them
+    /// with chunks that catch up with the target and move with it. 0 (the default) records the
+    /// static task only. A dataset file recorded with another share is refused.
+    #[arg(long, default_value_t = 0.0, value_name = "F")]
+    pub drift_share: f64,
     /// Start from this checkpoint's weights instead of a fresh initialisation (fine-tuning;
     /// its dimensions must be the model configuration's), keeping its `norm_stats.json`.
     #[arg(long, value_name = "DIR")]
@@ -204,7 +212,8 @@ pub fn init_state_bin_embeddings(vm: &VarMap) -> anyhow::Result<()> {
 }
 
 /// What `chunkrt train` records: `scenes` scenes from seed `scene_base`, the expert moving with
-/// `expert`, `keep_share` of each episode's steps, frames of the task camera.
+/// `expert`, `keep_share` of each episode's steps, frames of the task camera, and `drift`'s
+/// share of moving-target episodes.
 #[allow(clippy::too_many_arguments)]
 pub fn dataset_spec(
     cfg: &Config,
@@ -214,6 +223,7 @@ pub fn dataset_spec(
     seed: u64,
     keep_share: f64,
     expert: crate::task::expert::Profile,
+    drift: Option<DriftMix>,
 ) -> anyhow::Result<DatasetSpec> {
     let cam = task_camera(cfg)?;
     Ok(DatasetSpec {
@@ -231,6 +241,7 @@ pub fn dataset_spec(
         home: home_pose(cfg),
         keep_share,
         profile: expert,
+        drift,
     })
 }
 
@@ -377,6 +388,12 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         )
     };
     anyhow::ensure!(batch > 0, "--batch must be > 0");
+    anyhow::ensure!(
+        (0.0..=1.0).contains(&args.drift_share),
+        "--drift-share {}: must be in [0, 1]",
+        args.drift_share
+    );
+    let drift = (args.drift_share > 0.0).then(|| DriftMix::with_share(args.drift_share));
 
     // 1. data
     let ds = if args.dataset.exists() && !args.quick {
@@ -391,6 +408,15 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             args.expert.name(),
             ds.expert.name()
         );
+        anyhow::ensure!(
+            ds.drift_share == args.drift_share,
+            "{} was recorded with --drift-share {}, training asks for {}: delete the file to \
+             record it anew, or pass --drift-share {}",
+            args.dataset.display(),
+            ds.drift_share,
+            args.drift_share,
+            ds.drift_share
+        );
         ds
     } else {
         let spec = dataset_spec(
@@ -401,6 +427,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             args.seed,
             args.keep_share,
             args.expert,
+            drift,
         )?;
         let t0 = Instant::now();
         let ds = Dataset::generate(&spec, |done, total| {

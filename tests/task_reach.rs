@@ -308,6 +308,7 @@ fn drifting_targets_must_be_reached_and_followed() {
     let d = Drift {
         amplitude_rad: 0.3,
         frequency_hz: 0.25,
+        phase_rad: 0.0,
         follow_s: 0.0,
     };
     assert_eq!(d.angle(0.0), 0.0);

@@ -60,6 +60,43 @@ pub struct DatasetSpec {
     pub keep_share: f64,
     /// The expert's speed profile.
     pub profile: super::expert::Profile,
+    /// Moving-target episodes (`None`: every target stays where the scene puts it).
+    pub drift: Option<DriftMix>,
+}
+
+/// A share of the episodes in which the targets swing about the robot's base (the drifting
+/// variant of [`super::sim`]), each with its own amplitude, frequency and phase. The tracking
+/// expert ([`super::expert::track`]) labels them: every chunk catches up with the prompted
+/// target and moves with it, while the recorded states come from a pursuit that trails the
+/// target by a random share of its lag (feed-forward drawn in [0, 1) per episode) — so the data
+/// shows states behind a moving target, which reveal where it is going, labelled with the
+/// motion that keeps up with it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DriftMix {
+    /// Share of the episodes whose targets swing.
+    pub share: f64,
+    /// Largest swing amplitude (rad; drawn uniformly from a third of it).
+    pub max_amplitude_rad: f64,
+    /// Highest swing frequency (Hz; drawn uniformly from a third of it).
+    pub max_frequency_hz: f64,
+    /// Recorded after the end effector first got within half the reach tolerance (s).
+    pub follow_s: f64,
+    /// Longest episode (s).
+    pub max_seconds: f64,
+}
+
+impl DriftMix {
+    /// What `chunkrt train --drift-share` records: swings up to 0.35 rad at up to 0.3 Hz (the
+    /// eval's default drift, 0.3 rad at 0.25 Hz, lies inside), 1 s of following, 8 s at most.
+    pub fn with_share(share: f64) -> Self {
+        DriftMix {
+            share,
+            max_amplitude_rad: 0.35,
+            max_frequency_hz: 0.3,
+            follow_s: 1.0,
+            max_seconds: 8.0,
+        }
+    }
 }
 
 /// Recorded samples (see the module documentation for the layout).
@@ -80,6 +117,8 @@ pub struct Dataset {
     /// The expert's speed profile the chunks follow (metadata `expert`; files without it were
     /// recorded with the minimum-jerk expert, the only one before session 4).
     pub expert: super::expert::Profile,
+    /// Share of the episodes recorded with drifting targets (metadata `drift_share`; 0 without).
+    pub drift_share: f64,
 }
 
 /// A standard normal sample (Box-Muller).
@@ -150,6 +189,7 @@ impl Dataset {
             action_rate_hz: spec.action_rate_hz,
             camera: spec.camera.clone(),
             expert: spec.profile,
+            drift_share: spec.drift.map_or(0.0, |m| m.share),
             ..Default::default()
         };
         let dt = 1.0 / spec.action_rate_hz;
@@ -160,6 +200,11 @@ impl Dataset {
             let scene = ReachScene::from_seed(seed);
             let q0 = random_start(&mut rng, &spec.home);
             for (ci, color) in TargetColor::ALL.iter().enumerate() {
+                // (no draw without a drift mix: the static datasets stay as they were)
+                if let Some(mix) = spec.drift.filter(|m| rng.gen_bool(m.share.clamp(0.0, 1.0))) {
+                    ds.record_tracking(spec, &mix, &scene, seed, *color, q0, &mut rng);
+                    continue;
+                }
                 let Some(mut reach) = Reach::plan_with(&q0, &scene, *color, 0.0, spec.profile)
                 else {
                     continue;
@@ -217,6 +262,106 @@ impl Dataset {
         ds
     }
 
+    /// Records one episode of [`DriftMix`] (nothing if the target leaves the arm's reach or its
+    /// inverse kinematics jumps on the way).
+    #[allow(clippy::too_many_arguments)]
+    fn record_tracking(
+        &mut self,
+        spec: &DatasetSpec,
+        mix: &DriftMix,
+        scene: &ReachScene,
+        seed: u64,
+        color: TargetColor,
+        q0: [f64; TASK_DOF],
+        rng: &mut impl Rng,
+    ) {
+        let drift = super::sim::Drift {
+            amplitude_rad: rng.gen_range(mix.max_amplitude_rad / 3.0..=mix.max_amplitude_rad),
+            frequency_hz: rng.gen_range(mix.max_frequency_hz / 3.0..=mix.max_frequency_hz),
+            phase_rad: rng.gen_range(0.0..std::f64::consts::TAU),
+            follow_s: mix.follow_s,
+        };
+        let feedforward = rng.gen_range(0.0..1.0);
+        let dt = 1.0 / spec.action_rate_hz;
+        let steps = (mix.max_seconds / dt).ceil() as usize;
+        let perturb_at =
+            (steps > 6 && rng.gen_bool(spec.perturb_share)).then(|| rng.gen_range(1..steps - 4));
+        let keep_draws: Vec<bool> = (0..steps)
+            .map(|_| rng.gen_bool(spec.keep_share.clamp(0.0, 1.0)))
+            .collect();
+        // the joint-space goal on a 10 ms grid (linear in between) over the episode and the
+        // last chunk's horizon; it must exist and move continuously
+        const GRID: f64 = 0.01;
+        let ci = color as usize;
+        let n = ((mix.max_seconds + (spec.horizon + 1) as f64 * dt) / GRID).ceil() as usize;
+        let mut table: Vec<[f64; ARM_JOINTS]> = Vec::with_capacity(n + 1);
+        for i in 0..=n {
+            let p = drift.targets_at(&scene.targets, i as f64 * GRID)[ci];
+            let Some(g) = super::inverse_kinematics(p) else {
+                return;
+            };
+            if let Some(prev) = table.last() {
+                if (0..ARM_JOINTS).any(|j| (g[j] - prev[j]).abs() > 0.05) {
+                    return;
+                }
+            }
+            table.push(g);
+        }
+        let goal_at = |t: f64| -> [f64; ARM_JOINTS] {
+            let x = (t / GRID).clamp(0.0, n as f64);
+            let i = (x.floor() as usize).min(n - 1);
+            let f = x - i as f64;
+            std::array::from_fn(|j| table[i][j] + (table[i + 1][j] - table[i][j]) * f)
+        };
+        let ep = self.episode_color.len() as u32;
+        self.episode_scene_seed.push(seed);
+        self.episode_color.push(ci as u8);
+        let follow_steps = (mix.follow_s / dt).ceil() as usize;
+        let frame = spec.width * spec.height * 3;
+        let mut q = q0;
+        q[ARM_JOINTS] = 0.0; // open while reaching, as the static expert
+        let mut on_at = None;
+        for (k, keep_draw) in keep_draws.into_iter().enumerate() {
+            let t = k as f64 * dt;
+            if Some(k) == perturb_at {
+                for v in q.iter_mut().take(ARM_JOINTS) {
+                    *v += spec.perturb_std * gaussian(rng);
+                }
+                q[1] = q[1].clamp(0.05, 2.5);
+            }
+            let now = ReachScene {
+                targets: drift.targets_at(&scene.targets, t),
+            };
+            if on_at.is_none() && now.distance(&q, color) <= 0.5 * super::REACH_TOLERANCE {
+                on_at = Some(k);
+            }
+            let last = k + 1 == steps || on_at.is_some_and(|k0| k >= k0 + follow_steps);
+            if k == 0 || last || keep_draw {
+                let start = self.image.len();
+                self.image.resize(start + frame, 0);
+                now.render_rgb(
+                    &q,
+                    spec.width,
+                    spec.height,
+                    3 * spec.width,
+                    &mut self.image[start..],
+                );
+                self.state.extend(q.iter().map(|&v| v as f32));
+                // the chunk: the tracking expert from the observed pose, action 0 the pose
+                let mut a = q;
+                for i in 0..spec.horizon {
+                    self.actions.extend(a.iter().map(|&v| v as f32));
+                    super::expert::track(&mut a, t + i as f64 * dt, dt, 1.0, &goal_at);
+                }
+                self.episode.push(ep);
+            }
+            if last {
+                break;
+            }
+            super::expert::track(&mut q, t, dt, feedforward, &goal_at);
+        }
+    }
+
     /// Writes the dataset as safetensors.
     pub fn save(&self, path: &Path) -> anyhow::Result<()> {
         use safetensors::tensor::{Dtype, TensorView};
@@ -264,6 +409,7 @@ impl Dataset {
             ("camera".to_string(), self.camera.clone()),
             ("prompts".to_string(), serde_json::to_string(&prompts)?),
             ("expert".to_string(), self.expert.name().to_string()),
+            ("drift_share".to_string(), self.drift_share.to_string()),
         ]
         .into_iter()
         .collect();
@@ -338,6 +484,14 @@ impl Dataset {
             .and_then(|s| s.parse().ok())
             .filter(|r: &f64| r.is_finite() && *r > 0.0)
             .ok_or_else(|| anyhow::anyhow!("{}: bad action_rate_hz", path.display()))?;
+        let drift_share = match meta.get("drift_share") {
+            None => 0.0,
+            Some(v) => v
+                .parse()
+                .ok()
+                .filter(|s: &f64| (0.0..=1.0).contains(s))
+                .ok_or_else(|| anyhow::anyhow!("{}: bad drift_share {v:?}", path.display()))?,
+        };
         Ok(Dataset {
             width: ish[2],
             height: ish[1],
@@ -355,6 +509,7 @@ impl Dataset {
                 .collect(),
             episode_color: colors.to_vec(),
             expert,
+            drift_share,
         })
     }
 }
@@ -362,6 +517,10 @@ impl Dataset {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The tracking expert's fastest joint: the approach plus the fastest swing of the first
+    /// joint (0.35 rad · 2π · 0.3 Hz).
+    const PEAK_VELOCITY_WITH_SWING: f64 = super::super::expert::PEAK_VELOCITY + 0.67;
 
     fn spec() -> DatasetSpec {
         DatasetSpec {
@@ -379,6 +538,7 @@ mod tests {
             home: [0.0, 1.2, 0.6, 0.0],
             keep_share: 1.0,
             profile: Default::default(),
+            drift: None,
         }
     }
 
@@ -406,6 +566,64 @@ mod tests {
             assert!(scene.distance(&q, ds.color(last)) < 1e-3);
             assert_eq!(q[3], 1.0);
         }
+    }
+
+    #[test]
+    fn drifting_episodes_follow_the_moving_target() {
+        let spec = DatasetSpec {
+            drift: Some(DriftMix::with_share(1.0)),
+            ..spec()
+        };
+        let ds = Dataset::generate(&spec, |_, _| {});
+        // (an episode whose target would leave the arm's reach is dropped)
+        assert!(ds.episodes() >= 8, "{} episodes", ds.episodes());
+        assert_eq!(ds.drift_share, 1.0);
+        let speed_limit = (PEAK_VELOCITY_WITH_SWING / spec.action_rate_hz) as f32;
+        let (mut followed, mut moving) = (0, 0);
+        for e in 0..ds.episodes() {
+            let samples: Vec<usize> = (0..ds.len())
+                .filter(|&i| ds.episode[i] as usize == e)
+                .collect();
+            for &i in &samples {
+                let (s, a) = (ds.state_of(i), ds.actions_of(i));
+                for j in 0..TASK_DOF {
+                    assert!((a[j] - s[j]).abs() < 1e-6, "action 0 is the observed pose");
+                }
+                for k in 1..ds.horizon {
+                    for j in 0..ARM_JOINTS {
+                        let step = (a[k * TASK_DOF + j] - a[(k - 1) * TASK_DOF + j]).abs();
+                        assert!(step <= speed_limit, "sample {i} step {k} joint {j}: {step}");
+                    }
+                }
+            }
+            // the last sample of an episode that got onto its target: the chunk keeps moving
+            // (with the target) and the gripper stays closed
+            let last = ds.actions_of(*samples.last().unwrap());
+            let h = ds.horizon;
+            if last[TASK_DOF + ARM_JOINTS] == 1.0 {
+                followed += 1;
+                assert!((1..h).all(|k| last[k * TASK_DOF + ARM_JOINTS] == 1.0));
+                if (last[(h - 1) * TASK_DOF] - last[0]).abs() > 0.01 {
+                    moving += 1;
+                }
+            }
+        }
+        assert!(
+            followed >= ds.episodes() / 2,
+            "{followed} of {} followed",
+            ds.episodes()
+        );
+        assert!(
+            moving * 10 >= followed * 8,
+            "{moving} of {followed} chunks move with the target"
+        );
+        // the share is kept in the file
+        let dir = std::env::temp_dir().join(format!("chunkrt-ds-drift-{}", std::process::id()));
+        let path = dir.join("d.safetensors");
+        ds.save(&path).unwrap();
+        let back = Dataset::load(&path).unwrap();
+        std::fs::remove_dir_all(&dir).ok();
+        assert_eq!(back.drift_share, 1.0);
     }
 
     #[test]

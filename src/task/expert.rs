@@ -152,6 +152,45 @@ impl Reach {
     }
 }
 
+/// The tracking expert closes the gripper once every arm joint is this close to its goal (rad).
+pub const TRACK_CLOSE: f64 = 0.02;
+
+/// The expert for a moving target: advances `q` from `t` by `dt` (s) tracking the joint-space
+/// goal `goal_at(t)` (the inverse kinematics of where the target is at t). Its velocity is
+/// `feedforward` times the goal's own velocity plus the distance-paced approach along the line
+/// to the goal (`min(v_peak, d / τ)`, d the largest joint's distance: the distance-paced expert
+/// re-planned every instant). With feed-forward 1 it catches up and then moves with the
+/// target; with 0 it trails a moving target by about its velocity times τ. The gripper closes
+/// once within [`TRACK_CLOSE`] of the goal and stays closed.
+pub fn track(
+    q: &mut [f64; TASK_DOF],
+    t: f64,
+    dt: f64,
+    feedforward: f64,
+    goal_at: &impl Fn(f64) -> [f64; ARM_JOINTS],
+) {
+    // 10 ms sub-steps: explicit Euler of the τ = 0.4 s approach is well inside its stability
+    const SUB: usize = 10;
+    let h = dt / SUB as f64;
+    for i in 0..SUB {
+        let ti = t + i as f64 * h;
+        let (g, g1) = (goal_at(ti), goal_at(ti + h));
+        let e: [f64; ARM_JOINTS] = std::array::from_fn(|j| g[j] - q[j]);
+        let d = e.iter().fold(0.0, |m: f64, v| m.max(v.abs()));
+        let speed = if d > 0.0 {
+            PEAK_VELOCITY.min(d / APPROACH_TAU) / d
+        } else {
+            0.0
+        };
+        for j in 0..ARM_JOINTS {
+            q[j] += feedforward * (g1[j] - g[j]) + e[j] * speed * h;
+        }
+        if d <= TRACK_CLOSE {
+            q[ARM_JOINTS] = 1.0;
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -201,5 +240,39 @@ mod tests {
             }
             assert!(vmax <= PEAK_VELOCITY * 1.001, "{vmax}");
         }
+    }
+
+    #[test]
+    fn tracking_with_feedforward_stays_on_a_moving_goal_and_without_trails_it() {
+        // a goal moving at 0.5 rad/s on the first joint
+        let goal = |t: f64| [0.2 + 0.5 * t, 1.0, -0.5];
+        let run = |ff: f64| {
+            let mut q = [0.0, 1.2, 0.0, 0.0];
+            for k in 0..60 {
+                track(&mut q, k as f64 * 0.1, 0.1, ff, &goal);
+            }
+            (q, goal(6.0))
+        };
+        let (q, g) = run(1.0);
+        for j in 0..ARM_JOINTS {
+            assert!(
+                (q[j] - g[j]).abs() < 1e-6,
+                "joint {j}: {} vs {}",
+                q[j],
+                g[j]
+            );
+        }
+        assert_eq!(q[ARM_JOINTS], 1.0, "the gripper closed on the goal");
+        let (q, g) = run(0.0);
+        // the distance-paced pursuit trails by about v τ = 0.2 rad
+        assert!(
+            (g[0] - q[0] - 0.5 * APPROACH_TAU).abs() < 0.01,
+            "lag {}",
+            g[0] - q[0]
+        );
+        assert_eq!(
+            q[ARM_JOINTS], 0.0,
+            "never on the goal: the gripper stays open"
+        );
     }
 }

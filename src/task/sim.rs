@@ -49,7 +49,7 @@ pub struct SimSettings {
 }
 
 /// The targets swing about the robot's base: both are rotated by `amplitude_rad ·
-/// sin(2π · frequency_hz · t)` (their distance to the base and to each other stays, so they
+/// sin(2π · frequency_hz · t + phase_rad)` (their distance to the base and to each other stays, so they
 /// stay as reachable as they were), and the prompted one must be reached where it is and
 /// followed: the episode succeeds once the end effector has stayed on it for `follow_s`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -58,6 +58,8 @@ pub struct Drift {
     pub amplitude_rad: f64,
     /// Swings per second.
     pub frequency_hz: f64,
+    /// Phase of the swing at t = 0 (rad; 0: the targets start where the scene puts them).
+    pub phase_rad: f64,
     /// How long the end effector must stay on the moving target (s; 0: touching it is enough).
     pub follow_s: f64,
 }
@@ -65,7 +67,13 @@ pub struct Drift {
 impl Drift {
     /// The rotation at `t` (s).
     pub fn angle(&self, t: f64) -> f64 {
-        self.amplitude_rad * (std::f64::consts::TAU * self.frequency_hz * t).sin()
+        self.amplitude_rad * (std::f64::consts::TAU * self.frequency_hz * t + self.phase_rad).sin()
+    }
+
+    /// The scene's targets `start` (where the scene puts them) at `t` (s).
+    pub fn targets_at(&self, start: &[[f64; 2]; 2], t: f64) -> [[f64; 2]; 2] {
+        let (sin, cos) = self.angle(t).sin_cos();
+        start.map(|p| [cos * p[0] - sin * p[1], sin * p[0] + cos * p[1]])
     }
 }
 
@@ -169,10 +177,7 @@ pub fn run_episode(
         js.seq += 1;
         js.measurement_time_ns = now;
         if let Some(drift) = &settings.drift {
-            let (sin, cos) = drift.angle(t).sin_cos();
-            for (p, p0) in scene.targets.iter_mut().zip(&start_targets) {
-                *p = [cos * p0[0] - sin * p0[1], sin * p0[0] + cos * p0[1]];
-            }
+            scene.targets = drift.targets_at(&start_targets, t);
         }
         if let (Some(at), None) = (settings.retarget_at, retargeted) {
             if t >= at {

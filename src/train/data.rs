@@ -45,7 +45,7 @@ pub(super) fn held_out_dataset(
     scenes: usize,
     expert: crate::task::expert::Profile,
 ) -> anyhow::Result<Dataset> {
-    let spec = dataset_spec(cfg, mcfg, scenes, LOSS_SCENE_BASE, 77, 0.2, expert)?;
+    let spec = dataset_spec(cfg, mcfg, scenes, LOSS_SCENE_BASE, 77, 0.2, expert, None)?;
     Ok(Dataset::generate(&spec, |_, _| {}))
 }
 
