@@ -194,7 +194,6 @@ impl Dataset {
         };
         let dt = 1.0 / spec.action_rate_hz;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(spec.seed);
-        let frame = spec.width * spec.height * 3;
         for si in 0..spec.scenes {
             let seed = spec.scene_base + si as u64;
             let scene = ReachScene::from_seed(seed);
@@ -236,22 +235,9 @@ impl Dataset {
                     if !keep {
                         continue;
                     }
-                    let q = reach.at(t);
-                    let start = ds.image.len();
-                    ds.image.resize(start + frame, 0);
-                    scene.render_rgb(
-                        &q,
-                        spec.width,
-                        spec.height,
-                        3 * spec.width,
-                        &mut ds.image[start..],
-                    );
-                    ds.state.extend(q.iter().map(|&v| v as f32));
-                    for i in 0..spec.horizon {
-                        ds.actions
-                            .extend(reach.at(t + i as f64 * dt).iter().map(|&v| v as f32));
-                    }
-                    ds.episode.push(ep);
+                    ds.push_sample(spec, &scene, &reach.at(t), ep, |i| {
+                        reach.at(t + i as f64 * dt)
+                    });
                     if last {
                         break;
                     }
@@ -260,6 +246,32 @@ impl Dataset {
             progress(si + 1, spec.scenes);
         }
         ds
+    }
+
+    /// Appends one sample: the frame of `scene` seen at pose `q`, the pose, and the chunk whose
+    /// row i is `chunk(i)` (called for i = 0..H in order), in episode `ep`.
+    fn push_sample(
+        &mut self,
+        spec: &DatasetSpec,
+        scene: &ReachScene,
+        q: &[f64; TASK_DOF],
+        ep: u32,
+        mut chunk: impl FnMut(usize) -> [f64; TASK_DOF],
+    ) {
+        let start = self.image.len();
+        self.image.resize(start + spec.width * spec.height * 3, 0);
+        scene.render_rgb(
+            q,
+            spec.width,
+            spec.height,
+            3 * spec.width,
+            &mut self.image[start..],
+        );
+        self.state.extend(q.iter().map(|&v| v as f32));
+        for i in 0..spec.horizon {
+            self.actions.extend(chunk(i).iter().map(|&v| v as f32));
+        }
+        self.episode.push(ep);
     }
 
     /// Records one episode of [`DriftMix`] (nothing if the target leaves the arm's reach or its
@@ -317,7 +329,6 @@ impl Dataset {
         self.episode_scene_seed.push(seed);
         self.episode_color.push(ci as u8);
         let follow_steps = (mix.follow_s / dt).ceil() as usize;
-        let frame = spec.width * spec.height * 3;
         let mut q = q0;
         q[ARM_JOINTS] = 0.0; // open while reaching, as the static expert
         let mut on_at = None;
@@ -337,23 +348,13 @@ impl Dataset {
             }
             let last = k + 1 == steps || on_at.is_some_and(|k0| k >= k0 + follow_steps);
             if k == 0 || last || keep_draw {
-                let start = self.image.len();
-                self.image.resize(start + frame, 0);
-                now.render_rgb(
-                    &q,
-                    spec.width,
-                    spec.height,
-                    3 * spec.width,
-                    &mut self.image[start..],
-                );
-                self.state.extend(q.iter().map(|&v| v as f32));
                 // the chunk: the tracking expert from the observed pose, action 0 the pose
                 let mut a = q;
-                for i in 0..spec.horizon {
-                    self.actions.extend(a.iter().map(|&v| v as f32));
+                self.push_sample(spec, &now, &q, ep, |i| {
+                    let row = a;
                     super::expert::track(&mut a, t + i as f64 * dt, dt, 1.0, &goal_at);
-                }
-                self.episode.push(ep);
+                    row
+                });
             }
             if last {
                 break;
