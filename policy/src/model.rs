@@ -1,7 +1,8 @@
 //! π0 / π0.5: prefix and suffix embeddings, masks and positions, the prefix KV cache, the
 //! flow-matching sampler (openpi `PI0Pytorch`). The prefix cache and its host half live in
 //! [`prefix`], the sampler (the Euler loop written once) in [`sampler`], the training loss in
-//! [`loss`].
+//! [`loss`], the flow times and time embedding in [`times`], openpi's attention masks in
+//! [`masks`].
 //!
 //! Shapes: B batch, C cameras, T tokens per camera, Lt prompt tokens, P = C*T + Lt prefix length,
 //! H horizon, A action dim, S suffix length (π0: 1 + H, π0.5: H), W / We widths of the VLM /
@@ -19,12 +20,18 @@ use super::siglip::Vision;
 use super::PolicyError;
 
 mod loss;
+mod masks;
 mod prefix;
 mod sampler;
+mod times;
 
 pub use loss::LossOutput;
+pub use masks::att_2d_mask;
+use masks::bias_tensor;
 pub use prefix::{PrefixCache, PrefixLayout, PrefixStatics};
 pub use sampler::{euler, SampleOutput};
+use times::free_mask;
+pub use times::{time_embedding, FlowTimes};
 
 /// Model-ready inputs (what openpi's `sample_actions` takes).
 #[derive(Debug, Clone)]
@@ -104,115 +111,6 @@ pub struct PiModel {
 /// adaRMS condition).
 type TimeTable =
     std::sync::Arc<std::sync::Mutex<HashMap<(u32, usize, usize), (Tensor, Option<Tensor>)>>>;
-
-/// The flow times of the action tokens: `t[b]` for every token of batch row b, except (with
-/// `committed`, training-time real-time chunking) the first `committed[b]` tokens of the row,
-/// which are clean actions at flow time 0.
-#[derive(Debug, Clone, Copy)]
-pub struct FlowTimes<'a> {
-    /// Time per batch row [B].
-    pub t: &'a [f32],
-    /// Committed (clean) action tokens per batch row [B], or none.
-    pub committed: Option<&'a [usize]>,
-}
-
-impl<'a> FlowTimes<'a> {
-    /// One time per batch row, no committed prefix.
-    pub fn new(t: &'a [f32]) -> Self {
-        Self { t, committed: None }
-    }
-}
-
-impl<'a> From<&'a [f32]> for FlowTimes<'a> {
-    fn from(t: &'a [f32]) -> Self {
-        Self::new(t)
-    }
-}
-
-impl<'a> From<&'a Vec<f32>> for FlowTimes<'a> {
-    fn from(t: &'a Vec<f32>) -> Self {
-        Self::new(t)
-    }
-}
-
-impl<'a, const N: usize> From<&'a [f32; N]> for FlowTimes<'a> {
-    fn from(t: &'a [f32; N]) -> Self {
-        Self::new(t)
-    }
-}
-
-/// The tokens a committed prefix leaves to generate: [B, H, 1] f32, 0 on the first
-/// `committed[b]` action tokens of row b (given, at flow time 0), 1 on the others.
-fn free_mask(committed: &[usize], h: usize, dev: &Device) -> candle_core::Result<Tensor> {
-    let b = committed.len();
-    let f: Vec<f32> = (0..b * h)
-        .map(|i| if i % h < committed[i / h] { 0.0 } else { 1.0 })
-        .collect();
-    Tensor::from_vec(f, (b, h, 1), dev)
-}
-
-/// Sinusoidal time embedding [B, W] (sin half then cos half), computed in f64 like openpi's
-/// PyTorch reference, then cast to f32.
-pub fn time_embedding(
-    t: &[f32],
-    width: usize,
-    min_period: f64,
-    max_period: f64,
-    dev: &Device,
-) -> candle_core::Result<Tensor> {
-    let half = width / 2;
-    let mut out = Vec::with_capacity(t.len() * width);
-    for &ti in t {
-        let mut sin = Vec::with_capacity(half);
-        let mut cos = Vec::with_capacity(half);
-        for i in 0..half {
-            let frac = if half > 1 {
-                i as f64 / (half - 1) as f64
-            } else {
-                0.0
-            };
-            let period = min_period * (max_period / min_period).powf(frac);
-            let x = (1.0 / period * 2.0 * std::f64::consts::PI) * ti as f64;
-            sin.push(x.sin() as f32);
-            cos.push(x.cos() as f32);
-        }
-        out.extend(sin);
-        out.extend(cos);
-    }
-    Tensor::from_vec(out, (t.len(), width), dev)
-}
-
-/// Additive bias from a boolean mask: 0 where visible, [`MASK_VALUE`] elsewhere (f32: scores
-/// are masked and normalised in f32 whatever the model's dtype).
-fn bias_tensor(
-    vis: Vec<bool>,
-    shape: (usize, usize, usize, usize),
-    dev: &Device,
-) -> candle_core::Result<Tensor> {
-    let v: Vec<f32> = vis
-        .into_iter()
-        .map(|b| if b { 0.0 } else { MASK_VALUE })
-        .collect();
-    Tensor::from_vec(v, shape, dev)
-}
-
-/// openpi `make_att_2d_masks`: query i sees key j iff `cum[j] <= cum[i]` and both are valid.
-pub fn att_2d_mask(pad: &[bool], ar: &[bool]) -> Vec<bool> {
-    let n = pad.len();
-    let mut cum = Vec::with_capacity(n);
-    let mut c = 0u32;
-    for &a in ar {
-        c += a as u32;
-        cum.push(c);
-    }
-    let mut m = Vec::with_capacity(n * n);
-    for i in 0..n {
-        for j in 0..n {
-            m.push(cum[j] <= cum[i] && pad[i] && pad[j]);
-        }
-    }
-    m
-}
 
 impl PiModel {
     /// Builds the model from a `VarBuilder` at the checkpoint root (openpi key names). With a
