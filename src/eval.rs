@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 
-use chunkrt_ipc::config::Config;
+use chunkrt_ipc::config::{Config, RtcJacobian};
 
 use crate::inference::PolicySource;
 use crate::task::sim::{run_episode, SimSettings};
@@ -58,9 +58,9 @@ pub struct EvalArgs {
     /// rtc_trained with a checkpoint trained for it, e.g. `models/reach_pi05_rtc`); any but sync
     /// with `/measured` appended runs without future-state inference (e.g. `rtc/measured`;
     /// rtc_trained observes the measured state while its committed rows cover the delay, and a
-    /// future state beyond: `InferenceRequest::committed_rows`); `rtc/identity` guides with the
-    /// identity Jacobian (`execution.rtc_jacobian = "identity"`: no backward pass; also
-    /// `rtc/identity/measured`).
+    /// future state beyond: `InferenceRequest::committed_rows`); `rtc/vjp` and `rtc/identity` pick
+    /// the guidance's Jacobian (`execution.rtc_jacobian`; the default `identity` has no backward
+    /// pass; also `rtc/vjp/measured`).
     #[arg(
         long,
         value_delimiter = ',',
@@ -146,9 +146,12 @@ fn run_probe(cfg: &Config, args: &EvalArgs) -> anyhow::Result<()> {
 /// Suffix of a strategy name that runs it without future-state inference (`rtc/measured`).
 pub const MEASURED: &str = "/measured";
 
-/// Suffix of `rtc` that guides with the identity Jacobian (`rtc/identity`,
-/// `execution.rtc_jacobian = "identity"`); before `/measured` where both apply.
-pub const IDENTITY: &str = "/identity";
+/// Suffixes of `rtc` that pick the guidance's Jacobian (`execution.rtc_jacobian`): `rtc/vjp`,
+/// `rtc/identity`; before `/measured` where both apply.
+pub const JACOBIANS: [(&str, RtcJacobian); 2] = [
+    ("/identity", RtcJacobian::Identity),
+    ("/vjp", RtcJacobian::Vjp),
+];
 
 /// A sweep's strategy name taken apart.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -157,8 +160,8 @@ struct Variant<'a> {
     base: &'a str,
     /// Without future-state inference.
     measured: bool,
-    /// `rtc` with the identity Jacobian.
-    identity: bool,
+    /// `rtc` with this Jacobian (None: the configured one).
+    jacobian: Option<RtcJacobian>,
 }
 
 /// The strategy name and its variant suffixes.
@@ -167,14 +170,19 @@ fn split_variant(s: &str) -> Variant<'_> {
         Some(rest) => (rest, true),
         None => (s, false),
     };
-    let (base, identity) = match s.strip_suffix(IDENTITY) {
-        Some(rest) => (rest, true),
-        None => (s, false),
-    };
+    for (suffix, j) in JACOBIANS {
+        if let Some(base) = s.strip_suffix(suffix) {
+            return Variant {
+                base,
+                measured,
+                jacobian: Some(j),
+            };
+        }
+    }
     Variant {
-        base,
+        base: s,
         measured,
-        identity,
+        jacobian: None,
     }
 }
 
@@ -188,8 +196,8 @@ pub struct World {
 }
 
 /// The configuration of a cell: strategy `s` (a sweep name, `sync` keeping the configured one
-/// for the broker, `/measured` turning future-state inference off, `/identity` the identity
-/// Jacobian) at `delay` steps, the
+/// for the broker, `/measured` turning future-state inference off, `/vjp` or `/identity` the
+/// guidance's Jacobian) at `delay` steps, the
 /// executor's delay estimate starting at the injected delay. Returns it and whether `s` is sync.
 fn cell_config(cfg: &Config, s: &str, delay: u64) -> anyhow::Result<(Config, bool)> {
     let mut c = cfg.clone();
@@ -201,8 +209,8 @@ fn cell_config(cfg: &Config, s: &str, delay: u64) -> anyhow::Result<(Config, boo
     if v.measured {
         c.execution.future_state = false;
     }
-    if v.identity {
-        c.execution.rtc_jacobian = chunkrt_ipc::config::RtcJacobian::Identity;
+    if let Some(j) = v.jacobian {
+        c.execution.rtc_jacobian = j;
     }
     c.execution.initial_delay_steps = delay as usize;
     Ok((c, sync))
@@ -223,10 +231,10 @@ pub fn sweep(
         anyhow::ensure!(
             STRATEGIES.contains(&v.base)
                 && !(v.measured && v.base == "sync")
-                && !(v.identity && v.base != "rtc"),
+                && !(v.jacobian.is_some() && v.base != "rtc"),
             "unknown strategy {s:?}: one of {}, and any but sync with {MEASURED:?} appended (the \
-             policy observes the measured state instead of the future one), rtc with \
-             {IDENTITY:?} (guidance with the identity Jacobian)",
+             policy observes the measured state instead of the future one), rtc with /vjp or \
+             /identity (the guidance's Jacobian)",
             STRATEGIES.join(", ")
         );
     }
@@ -475,26 +483,30 @@ mod tests {
 
     #[test]
     fn measured_state_variants_are_named_by_a_suffix() {
-        let v = |base, measured, identity| Variant {
+        let v = |base, measured, jacobian| Variant {
             base,
             measured,
-            identity,
+            jacobian,
         };
-        assert_eq!(split_variant("rtc/measured"), v("rtc", true, false));
-        assert_eq!(split_variant("rtc"), v("rtc", false, false));
-        assert_eq!(split_variant("rtc/identity/measured"), v("rtc", true, true));
-        let (c, _) = cell_config(&Config::embedded_default(), "rtc/identity", 2).unwrap();
+        assert_eq!(split_variant("rtc/measured"), v("rtc", true, None));
+        assert_eq!(split_variant("rtc"), v("rtc", false, None));
         assert_eq!(
-            c.execution.rtc_jacobian,
-            chunkrt_ipc::config::RtcJacobian::Identity
+            split_variant("rtc/vjp/measured"),
+            v("rtc", true, Some(RtcJacobian::Vjp))
         );
         let cfg = Config::embedded_default();
+        assert_eq!(cfg.execution.rtc_jacobian, RtcJacobian::Identity);
+        let (c, _) = cell_config(&cfg, "rtc/vjp", 2).unwrap();
+        assert_eq!(c.execution.rtc_jacobian, RtcJacobian::Vjp);
+        let (c, _) = cell_config(&cfg, "rtc/identity", 2).unwrap();
+        assert_eq!(c.execution.rtc_jacobian, RtcJacobian::Identity);
         for bad in [
             "sync/measured",
             "rtc/future",
             "magic",
             "replace/identity",
-            "rtc/measured/identity",
+            "rtc/measured/vjp",
+            "sync/vjp",
         ] {
             let e = sweep(
                 &cfg,

@@ -115,6 +115,7 @@ fn rtc_and_crossfade_switch_more_smoothly_than_replace_with_the_real_model() {
 /// will have taken the robot when the new chunk lands, and the new chunk starts there.
 #[test]
 fn future_state_inference_with_the_real_model() {
+    let mut with_future = Vec::new();
     for strategy in ["replace", "rtc"] {
         let (off, _) = run_with(strategy, 4.0, false);
         let (on, n) = run_with(strategy, 4.0, true);
@@ -133,5 +134,14 @@ fn future_state_inference_with_the_real_model() {
                 off.max_switch_jump_target
             );
         }
+        with_future.push(on.max_switch_jump_target);
     }
+    // rtc's guidance holds the new chunk's first action (where the switch happens) on the old
+    // chunk: measured 0.043 rad against replace's 3.97 with the identity Jacobian and β 10
+    assert!(
+        with_future[1] < 0.1 * with_future[0],
+        "future state: rtc {} vs replace {}",
+        with_future[1],
+        with_future[0]
+    );
 }

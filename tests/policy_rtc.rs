@@ -65,7 +65,7 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
                 prefix: &prefix,
                 weights: &ones,
                 beta: 0.0,
-                jacobian: Default::default(),
+                jacobian: Jacobian::Vjp,
             }),
         ),
         (
@@ -74,7 +74,7 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
                 prefix: &prefix,
                 weights: &zeros,
                 beta: 5.0,
-                jacobian: Default::default(),
+                jacobian: Jacobian::Vjp,
             }),
         ),
     ];
@@ -93,7 +93,7 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
                 prefix: &prefix,
                 weights: &ones,
                 beta: 5.0,
-                jacobian: Default::default(),
+                jacobian: Jacobian::Vjp,
             }),
         )
         .unwrap();
@@ -116,7 +116,7 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
         y: noise(hh, aa, 9),
         w: weight_mask(&zeros, n, aa, &Device::Cpu).unwrap(),
         beta: 5.0,
-        jacobian: Default::default(),
+        jacobian: Jacobian::Vjp,
     };
     for jacobian in [Jacobian::Vjp, Jacobian::Identity] {
         let target = GuidanceTarget {
@@ -298,7 +298,7 @@ fn vjp_matches_finite_differences_and_guided_step_cost() {
         y: noise(h, a, 5),
         w: weight_mask(&[1.0; 10], state.len(), a, &dev).unwrap(),
         beta: 5.0,
-        jacobian: Default::default(),
+        jacobian: Jacobian::Vjp,
     };
     let time = |f: &mut dyn FnMut()| {
         let t0 = Instant::now();
@@ -354,37 +354,37 @@ fn bad_guidance_is_an_error_not_a_panic() {
             prefix: &prefix[1..],
             weights: &w,
             beta: 1.0,
-            jacobian: Default::default(),
+            jacobian: Jacobian::Vjp,
         },
         Guidance {
             prefix: &prefix,
             weights: &w[1..],
             beta: 1.0,
-            jacobian: Default::default(),
+            jacobian: Jacobian::Vjp,
         },
         Guidance {
             prefix: &nan_prefix,
             weights: &w,
             beta: 1.0,
-            jacobian: Default::default(),
+            jacobian: Jacobian::Vjp,
         },
         Guidance {
             prefix: &prefix,
             weights: &neg_w,
             beta: 1.0,
-            jacobian: Default::default(),
+            jacobian: Jacobian::Vjp,
         },
         Guidance {
             prefix: &prefix,
             weights: &w,
             beta: f32::NAN,
-            jacobian: Default::default(),
+            jacobian: Jacobian::Vjp,
         },
         Guidance {
             prefix: &prefix,
             weights: &w,
             beta: -1.0,
-            jacobian: Default::default(),
+            jacobian: Jacobian::Vjp,
         },
     ];
     for g in &bad {
@@ -398,7 +398,7 @@ fn bad_guidance_is_an_error_not_a_panic() {
                 prefix: &prefix,
                 weights: &w,
                 beta: 1.0,
-                jacobian: Default::default(),
+                jacobian: Jacobian::Vjp,
             })
         )
         .unwrap()

@@ -272,9 +272,10 @@ fn committed_policy_reaches_held_out_targets() {
     assert!(ok >= MIN_SUCCESS, "{ok}/10 held-out episodes reached");
 }
 
-/// Guidance with the identity Jacobian (`execution.rtc_jacobian = "identity"`, no backward
-/// pass) in closed loop with the committed policy at 2 steps of delay: it reaches held-out
-/// targets, and its chunks switch as smoothly as with the VJP.
+/// rtc's guidance in closed loop with the committed policy at 2 steps of delay, with the default
+/// identity Jacobian (`execution.rtc_jacobian`, no backward pass) and with the exact VJP: both
+/// reach held-out targets; the identity pull holds the new chunk on the old one at the switch
+/// (issue 15's target: within 0.02 rad), the VJP's pull is weak on this policy.
 #[test]
 fn identity_jacobian_rtc_reaches_and_switches_smoothly() {
     let mut worst = [0.0f64; 2];
@@ -296,12 +297,12 @@ fn identity_jacobian_rtc_reaches_and_switches_smoothly() {
             "rtc, {jacobian} Jacobian, delay 2: {ok}/10 reached, largest switch jump {:.4} rad",
             worst[i]
         );
-        // measured 9/10 with either (simulated time, seeded noise); one episode of margin
+        // measured 10/10 (VJP) and 9/10 (identity) (simulated time, seeded noise)
         assert!(ok >= 8, "{jacobian}: {ok}/10 held-out episodes reached");
     }
-    // measured 0.0198 (VJP) and 0.0147 rad (identity); the reach sweep's 30 episodes at delay 2:
-    // 0.017 / 0.014
-    assert!(worst[1] <= 0.05 && worst[1] <= worst[0] + 0.02, "{worst:?}");
+    // measured 0.0180 (VJP) and 0.0016 rad (identity), β 10; the reach sweep's 100 episodes per
+    // cell at delays 0-4: 0.050-0.054 against 0.004-0.005
+    assert!(worst[1] <= 0.01 && worst[1] < 0.5 * worst[0], "{worst:?}");
 }
 
 /// The committed training-time-RTC checkpoint (`models/reach_pi05_rtc`) runs `rtc_trained` in

@@ -304,8 +304,8 @@ pub struct ExecutionConfig {
     /// `rtc`: soft-mask schedule between d and H − s: `exp` (the paper's), `linear`, `ones`, `zeros`.
     #[serde(default)]
     pub rtc_schedule: Schedule,
-    /// `rtc`: the guidance's Jacobian: `vjp` (exact, a backward pass per step) or `identity`
-    /// (∂Â/∂x_t ≈ I, as cheap as an unguided step).
+    /// `rtc`: the guidance's Jacobian: `identity` (∂Â/∂x_t ≈ I, as cheap as an unguided step;
+    /// the default) or `vjp` (exact, a backward pass per step).
     #[serde(default)]
     pub rtc_jacobian: RtcJacobian,
     /// Consecutive overrunning ticks that put the controller in HOLD.
@@ -338,7 +338,7 @@ fn default_initial_delay_steps() -> usize {
     5
 }
 fn default_guidance_beta() -> f64 {
-    5.0
+    10.0
 }
 fn default_overrun_streak() -> u32 {
     10

@@ -32,11 +32,10 @@ use super::PolicyError;
 
 /// How the guidance gradient g = (∂Â/∂x_t)ᵀ (W ⊙ (Y − Â)) treats the Jacobian of the clean
 /// estimate.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Jacobian {
     /// The exact vector-Jacobian product (the paper's): a differentiable forward and a backward
     /// through the action expert per step.
-    #[default]
     Vjp,
     /// ∂Â/∂x_t ≈ I, so g = W ⊙ (Y − Â): one fast forward per step, as an unguided step. Exact
     /// where the velocity does not depend on x_t; otherwise the pull on Â is not shaped by the

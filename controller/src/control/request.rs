@@ -105,7 +105,11 @@ impl Requests {
                         sampling.sample(c, t, &mut s);
                         r.prefix[i][..sampling.n].copy_from_slice(&s.position[..sampling.n]);
                     }
-                    guidance_weights(h, self.s, d, self.schedule, &mut r.weights);
+                    // RTC's hard mask covers the d actions executed while the chunk is computed;
+                    // with a future state the new chunk starts at the next one (prefix row d), so
+                    // that row is held too: the chunk's first action is where the switch happens
+                    let held = if self.future_state { d + 1 } else { d };
+                    guidance_weights(h, self.s, held, self.schedule, &mut r.weights);
                 }
                 None => {
                     r.horizon = 0;

@@ -100,13 +100,15 @@ config_enum! {
 config_enum! {
     /// `execution.rtc_jacobian`: how `rtc`'s guidance treats the Jacobian of the clean estimate.
     pub enum RtcJacobian ("rtc jacobian") {
+        /// ∂Â/∂x_t ≈ I: the guidance pulls the clean estimate straight towards the previous
+        /// chunk; a guided step costs what an unguided one does. The default: on the reach
+        /// sweep it also switches 10x more smoothly than the VJP, whose pull is weak where the
+        /// policy's chunk hardly depends on the noise (BENCHMARKS.md §5).
+        #[default]
+        Identity = "identity",
         /// The exact vector-Jacobian product (the paper's): a backward pass through the action
         /// expert per denoising step.
-        #[default]
         Vjp = "vjp",
-        /// ∂Â/∂x_t ≈ I: the guidance pulls the clean estimate straight towards the previous
-        /// chunk; a guided step costs what an unguided one does.
-        Identity = "identity",
     }
 }
 
