@@ -289,8 +289,8 @@ pub fn guided_velocity(
         }
         Jacobian::Identity => {
             let v = model.velocity_at(cache, x_t, &tv, false)?;
-            let t3 = Tensor::from_slice(&tv, (b, 1, 1), x_t.device())?;
-            let a_hat = (x_t - v.broadcast_mul(&t3)?)?;
+            // one time for the batch: a scalar on the device, nothing uploaded per step
+            let a_hat = (x_t - (&v * t as f64)?)?;
             let g = (&target.y - &a_hat)?.broadcast_mul(&target.w)?;
             (a_hat, v, g)
         }
