@@ -268,6 +268,11 @@ fn vjp(a_hat: &Tensor, x: &Var, cotangent: &Tensor) -> Result<Tensor, PolicyErro
     }
 }
 
+/// W ⊙ (Y − Â): the VJP's cotangent, and the gradient itself with the identity Jacobian.
+fn weighted_error(target: &GuidanceTarget, a_hat: &Tensor) -> candle_core::Result<Tensor> {
+    (&target.y - a_hat)?.broadcast_mul(&target.w)
+}
+
 /// One guided velocity evaluation at time `t` (the same for the whole batch).
 pub fn guided_velocity(
     model: &PiModel,
@@ -281,17 +286,15 @@ pub fn guided_velocity(
     let (a_hat, v, g) = match target.jacobian {
         Jacobian::Vjp => {
             let (a_hat, v, x) = clean_estimate(model, cache, x_t, &tv)?;
-            // cotangent W ⊙ (Y − Â), a constant for the VJP
-            let err = (&target.y - a_hat.detach())?;
-            let cot = err.broadcast_mul(&target.w)?;
-            let g = vjp(&a_hat, &x, &cot)?;
+            // the cotangent is a constant for the VJP
+            let g = vjp(&a_hat, &x, &weighted_error(target, &a_hat.detach())?)?;
             (a_hat.detach(), v.detach(), g)
         }
         Jacobian::Identity => {
             let v = model.velocity_at(cache, x_t, &tv, false)?;
             // one time for the batch: a scalar on the device, nothing uploaded per step
             let a_hat = (x_t - (&v * t as f64)?)?;
-            let g = (&target.y - &a_hat)?.broadcast_mul(&target.w)?;
+            let g = weighted_error(target, &a_hat)?;
             (a_hat, v, g)
         }
     };

@@ -224,6 +224,12 @@ impl DeviceReport {
     pub fn phase(&self, name: &str) -> Option<&DevicePhase> {
         self.phases.iter().find(|p| p.name == name)
     }
+
+    /// The wall-time p50s (ms) of phases `a` and `b`, when both ran.
+    fn p50s(&self, a: &str, b: &str) -> Option<(f64, f64)> {
+        let p50 = |p: &DevicePhase| quantile(&p.wall_ms, 0.5);
+        Some((p50(self.phase(a)?), p50(self.phase(b)?)))
+    }
 }
 
 impl std::fmt::Display for DeviceReport {
@@ -269,27 +275,21 @@ impl std::fmt::Display for DeviceReport {
                 total as f64 / 1e9
             )?;
         }
-        if let (Some(g), Some(u)) = (self.phase("step_guided"), self.phase("step_cached")) {
-            let (g50, u50) = (quantile(&g.wall_ms, 0.5), quantile(&u.wall_ms, 0.5));
+        if let Some((g50, u50)) = self.p50s("step_guided", "step_cached") {
             writeln!(
                 f,
                 "RTC guided step (forward + vector-Jacobian product) p50 {g50:.2} ms = {:.1}x an unguided step ({u50:.2} ms, both eager)",
                 g50 / u50.max(1e-9)
             )?;
         }
-        if let (Some(g), Some(u)) = (
-            self.phase("step_guided_identity"),
-            self.phase("step_cached"),
-        ) {
-            let (g50, u50) = (quantile(&g.wall_ms, 0.5), quantile(&u.wall_ms, 0.5));
+        if let Some((g50, u50)) = self.p50s("step_guided_identity", "step_cached") {
             writeln!(
                 f,
                 "RTC guided step with the identity Jacobian (rtc_jacobian = \"identity\") p50 {g50:.2} ms = {:.2}x an unguided step",
                 g50 / u50.max(1e-9)
             )?;
         }
-        if let (Some(c), Some(u)) = (self.phase("sample_committed"), self.phase("sample")) {
-            let (c50, u50) = (quantile(&c.wall_ms, 0.5), quantile(&u.wall_ms, 0.5));
+        if let Some((c50, u50)) = self.p50s("sample_committed", "sample") {
             writeln!(
                 f,
                 "training-time RTC sample (a quarter of the chunk committed) p50 {c50:.2} ms = {:.2}x an unguided sample ({u50:.2} ms, both eager)",
