@@ -8,7 +8,8 @@
 //! path keeps using candle's ops.
 //!
 //! Every entry point returns `Ok(None)` when its inputs are not contiguous f32 CPU tensors of the
-//! expected layout, so callers fall back to the candle composition.
+//! expected layout; the seam that calls them ([`crate::ops`]) then falls back to the candle
+//! composition.
 
 use candle_core::{CpuStorage, Device, Layout, Result, Storage, Tensor};
 use rayon::prelude::*;

@@ -6,14 +6,16 @@
 //! kv heads (kv-head-major), RoPE rotate-half, Gemma RMSNorm `(1 + w)`, and for π0.5's action
 //! expert adaRMSNorm `norm(x) * (1 + scale) + shift` with gated residuals.
 //!
-//! Every op has a fast path (candle's fused CPU kernels) and a differentiable path built from
-//! differentiable compositions, selected per call with `diff`.
+//! Every op has an inference path (no backward: [`ops`], which picks the device's kernel and
+//! falls back to candle's composition) and a differentiable path built from differentiable
+//! compositions, selected per call with `diff`. One stream on the inference path (the prefix
+//! pass, a denoising step) runs [`stream_layer`] on every device.
 
-use candle_core::{DType, Module, Tensor, D};
+use candle_core::{Module, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
 
 use super::config::GemmaDims;
-use super::fastops;
+use super::ops::{self, Gate};
 use super::packed::{PackedRhs, Precision};
 
 mod norm;
@@ -54,27 +56,6 @@ struct PackedLayer {
     o: PackedRhs,
     gate_up: PackedRhs,
     down: PackedRhs,
-}
-
-/// `x · w` with the packed weight when there is one (fast path), else `None`.
-fn packed_mm(x: &Tensor, w: Option<&PackedRhs>, diff: bool) -> candle_core::Result<Option<Tensor>> {
-    match (diff, w) {
-        (false, Some(w)) => w.matmul(x),
-        _ => Ok(None),
-    }
-}
-
-/// `x` [.., K] times `w` [K, N] (any strides) as one 2-D matmul: [.., N].
-fn matmul_2d(x: &Tensor, w: &Tensor) -> candle_core::Result<Tensor> {
-    let dims = x.dims();
-    let k = dims.last().copied().unwrap_or(1);
-    let rows = x.elem_count() / k.max(1);
-    let y = x.contiguous()?.reshape((rows, k))?.matmul(w)?;
-    let mut shape = dims.to_vec();
-    if let Some(last) = shape.last_mut() {
-        *last = w.dim(1)?;
-    }
-    y.reshape(shape)
 }
 
 /// The weights `[N, K]` of `ls` stacked as one row-major `[K, sum N]` matrix, and each `Linear`
@@ -210,31 +191,17 @@ pub struct Stream<'a> {
     pub cond: Option<&'a Tensor>,
     /// RoPE tables for this stream's positions.
     pub rope: &'a Rope,
-    /// A gated residual not yet added (fused path): the hidden states are
-    /// `x + m * gmod[.., 2W..3W]` (`gmod` None: `x + m`). The next fused layer adds it inside its
-    /// first norm's kernel; [`Stream::settle`] adds it for anything else. Construct with `None`.
-    pub pending: Option<(Tensor, Option<Tensor>)>,
+    /// A gated residual not yet added ([`stream_layer`]): the hidden states are `x + m · gate`.
+    /// The next layer adds it with its first norm ([`ops::add_norm`], one kernel on a GPU);
+    /// [`Stream::settle`] adds it for anything else. Construct with `None`.
+    pub pending: Option<(Tensor, Gate)>,
 }
 
 impl Stream<'_> {
     /// Adds a pending gated residual into `x`.
     pub fn settle(&mut self) -> candle_core::Result<()> {
-        if let Some((m, gmod)) = self.pending.take() {
-            self.x = match super::kernels::gated_add(&self.x, &m, gmod.as_ref())? {
-                Some(x) => x,
-                None => {
-                    let w = self.x.dim(D::Minus1)?;
-                    let gate = match &gmod {
-                        Some(g) => Some(
-                            g.narrow(1, 2 * w, w)?
-                                .unsqueeze(1)?
-                                .to_dtype(self.x.dtype())?,
-                        ),
-                        None => None,
-                    };
-                    gated_residual(&self.x, &m, gate.as_ref(), false)?
-                }
-            };
+        if let Some((m, gate)) = self.pending.take() {
+            self.x = ops::gated_add(&self.x, &m, &gate)?;
         }
         Ok(())
     }
@@ -264,7 +231,7 @@ pub enum KvMode<'a> {
 
 /// Attention `softmax(scale q k^T + bias) v` with GQA.
 /// `q` [B, nH, L, hd], `k`, `v` [B, nKV, T, hd], `bias` [B, 1, L or 1, T].
-/// Returns [B, L, nH*hd]. The fast path is one fused kernel ([`fastops::attention`]).
+/// Returns [B, L, nH*hd] ([`ops::attention`]; `diff`: candle's ops with a backward).
 pub fn attention(
     q: &Tensor,
     k: &Tensor,
@@ -273,63 +240,25 @@ pub fn attention(
     scale: f64,
     diff: bool,
 ) -> candle_core::Result<Tensor> {
-    if !diff {
-        if let Some(o) = fastops::attention(q, k, v, bias, scale as f32)? {
-            return Ok(o);
-        }
-    }
-    let q = (q * scale)?;
-    let (b, nh, l, hd) = q.dims4()?;
-    let nkv = k.dim(1)?;
-    let t = k.dim(2)?;
-    let g = nh / nkv;
-    // [B, nKV, g*L, hd]: query heads are kv-head-major, so this is a free reshape
-    let q = q.reshape((b, nkv, g * l, hd))?;
-    // [B, nKV, g*L, T]
-    let s = q.matmul(&k.t()?)?;
-    let bl = bias.dim(2)?;
-    // [B, nKV, g, L, T] + [B, 1, 1, L|1, T], masked and normalised in f32 (openpi's softmax
-    // runs in f32 whatever the model's dtype), probabilities back in the model's dtype
-    let s = s
-        .reshape((b, nkv, g, l, t))?
-        .to_dtype(DType::F32)?
-        .broadcast_add(&bias.to_dtype(DType::F32)?.reshape((b, 1, 1, bl, t))?)?;
-    let p = if diff {
-        candle_nn::ops::softmax(&s, D::Minus1)?
+    if diff {
+        ops::attention_composed(q, k, v, Some(bias), scale, true)
     } else {
-        candle_nn::ops::softmax_last_dim(&s)?
+        ops::attention(q, k, v, Some(bias), scale)
     }
-    .to_dtype(v.dtype())?;
-    // [B, nKV, g*L, hd] -> [B, nH, L, hd] -> [B, L, nH*hd]
-    let o = p.reshape((b, nkv, g * l, t))?.matmul(v)?;
-    o.reshape((b, nh, l, hd))?
-        .transpose(1, 2)?
-        .reshape((b, l, nh * hd))
 }
 
 /// `down(gelu_tanh(gate(x)) * up(x))`.
 fn mlp(layer: &ExpertLayer, x: &Tensor, diff: bool) -> candle_core::Result<Tensor> {
+    if diff {
+        let g = layer.gate.forward(x)?;
+        return layer.down.forward(&(g.gelu()? * layer.up.forward(x)?)?);
+    }
     let a = layer.packed.as_deref();
-    if let (false, Some(gu)) = (diff, &layer.gate_up) {
-        let y = match packed_mm(x, a.map(|a| &a.gate_up), diff)? {
-            Some(y) => y,
-            None => matmul_2d(x, gu)?,
-        };
-        if let Some(h) = fastops::gelu_mul_fused(&y, gu.dim(1)? / 2)? {
-            if let Some(o) = packed_mm(&h, a.map(|a| &a.down), diff)? {
-                return Ok(o);
-            }
-            return layer.down.forward(&h);
-        }
-    }
-    let g = layer.gate.forward(x)?;
-    let u = layer.up.forward(x)?;
-    if !diff {
-        if let Some(h) = fastops::gelu_mul(&g, &u)? {
-            return layer.down.forward(&h);
-        }
-    }
-    layer.down.forward(&(g.gelu()? * u)?)
+    let h = match &layer.gate_up {
+        Some(gu) => ops::gelu_mul(&ops::matmul(x, gu, a.map(|a| &a.gate_up))?, gu.dim(1)? / 2)?,
+        None => ops::gelu_mul_pair(&layer.gate.forward(x)?, &layer.up.forward(x)?)?,
+    };
+    ops::matmul(&h, &layer.down.weight().t()?, a.map(|a| &a.down))
 }
 
 /// `[B, L, n*hd]` -> `[B, n, L, hd]`.
@@ -338,161 +267,69 @@ fn heads(x: &Tensor, n: usize, hd: usize) -> candle_core::Result<Tensor> {
     x.reshape((b, l, n, hd))?.transpose(1, 2)?.contiguous()
 }
 
-/// Fast path: Q, K, V heads [B, n, L, hd] of the normed `h` [B, L, W] from the fused projection
-/// (Q and K rotated; `with_q` false skips Q). `None` when the layer has no fused weights.
-#[allow(clippy::type_complexity)]
-fn qkv_fused(
-    layer: &ExpertLayer,
-    d: &GemmaDims,
-    h: &Tensor,
-    rope: &Rope,
-    with_q: bool,
-) -> candle_core::Result<Option<(Option<Tensor>, Tensor, Tensor)>> {
-    let Some(w) = &layer.qkv else {
-        return Ok(None);
-    };
-    let qd = d.num_heads * d.head_dim;
-    let kvd = d.num_kv_heads * d.head_dim;
-    let packed = match (&layer.packed, with_q) {
-        (Some(a), true) => a.qkv.matmul(h)?.map(|y| (y, qd)),
-        (Some(a), false) => a.kv.matmul(h)?.map(|y| (y, 0)),
-        (None, _) => None,
-    };
-    let (y, kcol) = match packed {
-        Some(yk) => yk,
-        None if with_q => (matmul_2d(h, w)?, qd),
-        None => (matmul_2d(h, &w.narrow(1, qd, 2 * kvd)?)?, 0),
-    };
-    let cs = Some((&rope.cos, &rope.sin));
-    let q = if with_q {
-        match fastops::split_heads(&y, 0, d.num_heads, d.head_dim, cs)? {
-            Some(q) => Some(q),
-            None => return Ok(None),
-        }
-    } else {
-        None
-    };
-    let k = fastops::split_heads(&y, kcol, d.num_kv_heads, d.head_dim, cs)?;
-    let v = fastops::split_heads(&y, kcol + kvd, d.num_kv_heads, d.head_dim, None)?;
-    Ok(match (k, v) {
-        (Some(k), Some(v)) => Some((q, k, v)),
-        _ => None,
-    })
+/// Head layout of `d`'s fused Q/K/V product (`with_q` false: only its K/V columns).
+fn heads_of(d: &GemmaDims, with_q: bool) -> ops::Heads {
+    ops::Heads {
+        q: if with_q { d.num_heads } else { 0 },
+        kv: d.num_kv_heads,
+        dim: d.head_dim,
+    }
 }
 
-/// The fused path's attention through cuBLAS products and the in-place softmax kernel:
-/// `q` [B, nH, L, hd] against the first `bias.dim(3)` keys of `kb`/`vb`, returned as
-/// [B, L, nH·hd]. `None` where the softmax kernel does not apply.
-fn attention_matmul(
-    q: &Tensor,
-    kb: &Tensor,
-    vb: &Tensor,
-    bias: &Tensor,
-    scale: f64,
-    (b, l, nh, nkv, hd): (usize, usize, usize, usize, usize),
-) -> candle_core::Result<Option<Tensor>> {
-    // the keys the bias covers: the streams' own (prefix pass) or the cache's first T
-    let t = bias.dim(3)?;
-    let keys = kb.narrow(2, 0, t)?;
-    let values = vb.narrow(2, 0, t)?;
-    let g = nh / nkv;
-    // [B, nKV, g L, T]: query heads are kv-head-major
-    let scores = q.reshape((b, nkv, g * l, hd))?.matmul(&keys.t()?)?;
-    let Some(p) = super::kernels::softmax_bias(&scores, Some(bias), l, scale)? else {
-        return Ok(None);
-    };
-    // [B, nKV, g L, hd] -> [B, L, nH hd]
-    Ok(Some(
-        p.matmul(&values)?
-            .reshape((b, nh, l, hd))?
-            .transpose(1, 2)?
-            .reshape((b, l, nh * hd))?,
-    ))
-}
-
-/// [`joint_layer`] for one stream with the fused CUDA kernels ([`super::kernels`]): per layer
-/// the norm, the Q/K/V product, head split + RoPE + cache write, scores, softmax, values, the O
-/// product, gated residual + norm, the gate/up product, gelu·up, the down product and the gated
-/// residual — 13 kernels. `None` where they do not apply (CPU, no fused weights, no cache
-/// buffers to write K/V into).
-fn joint_layer_fused(
+/// Layer `li` for one stream on the inference path, on any device: the norm (with the previous
+/// layer's gated residual), the Q/K/V product, head split + RoPE + the K/V write into the cache,
+/// attention, the O product, gated residual + norm, the gate/up product, gelu·up and the down
+/// product, each one [`ops`] call (13 kernels per layer on a GPU). The gated residual at the end
+/// is left in `s.pending` for the next layer's norm (the last layer adds it). Returns the
+/// stream's own (post-RoPE) K/V [B, nKV, L, hd]; `None` for a layer without fused weights (a
+/// training model), which takes [`joint_layer`]'s general path.
+fn stream_layer(
     li: usize,
     s: &mut Stream<'_>,
     bias: &Tensor,
     kv: KvMode<'_>,
 ) -> candle_core::Result<Option<(Tensor, Tensor)>> {
-    use super::kernels;
     let layer = &s.expert.layers[li];
     let d = &s.expert.dims;
-    let (Some(wqkv), Some(wgu), true) =
-        (&layer.qkv, &layer.gate_up, kernels::enabled(s.x.device()))
-    else {
+    let (Some(wqkv), Some(wgu)) = (&layer.qkv, &layer.gate_up) else {
         return Ok(None);
     };
-    let (kb, vb, offset) = match kv {
-        KvMode::Own {
-            store: Some((k, v)),
-        } => (k, v, 0),
-        KvMode::Cached { k, v, offset } => (k, v, offset),
-        KvMode::Own { store: None } => return Ok(None),
-    };
-    let (Some((alpha1, m1, eps1)), Some((alpha2, m2, eps2))) = (
-        layer.input_norm.fused_operands(s.cond)?,
-        layer.post_norm.fused_operands(s.cond)?,
-    ) else {
-        return Ok(None);
-    };
-    let (b, l, _) = s.x.dims3()?;
-    let (nh, nkv, hd) = (d.num_heads, d.num_kv_heads, d.head_dim);
-    // the previous layer's gated residual, added in this norm's kernel
-    let (x0, h) = {
-        let (m0, g0) = match &s.pending {
-            Some((m, g)) => (Some(m), g.as_ref()),
-            None => (None, None),
-        };
-        match kernels::add_norm(&s.x, m0, g0, alpha1, m1.as_ref(), eps1, m0.is_some())? {
-            Some((Some(x0), h)) => (x0, h),
-            Some((None, h)) => (s.x.clone(), h),
-            None => return Ok(None),
-        }
-    };
-    s.x = x0;
-    s.pending = None;
+    let a = layer.packed.as_deref();
+    let pending = s.pending.take();
+    let residual = pending.as_ref().map(|(m, g)| (m, g));
+    let (x0, h, gate1) = ops::add_norm(&s.x, residual, &layer.input_norm, s.cond)?;
     // [B, L, (nH + 2 nKV) hd]
-    let y = matmul_2d(&h, wqkv)?;
-    let heads = kernels::Heads {
-        q: nh,
-        kv: nkv,
-        dim: hd,
+    let y = ops::matmul(&h, wqkv, a.map(|a| &a.qkv))?;
+    let cache = match kv {
+        KvMode::Own { store } => store.map(|(k, v)| (k, v, 0)),
+        KvMode::Cached { k, v, offset } => Some((k, v, offset)),
     };
-    let Some(Some(q)) =
-        kernels::qkv_rope(&y, heads, Some((&s.rope.cos, &s.rope.sin)), kb, vb, offset)?
-    else {
-        return Ok(None);
+    let (q, k, v) = ops::qkv_rope(&y, heads_of(d, true), s.rope, cache)?;
+    let q = q.ok_or_else(|| candle_core::Error::Msg("stream_layer: no query heads".into()))?;
+    // the keys the bias covers: the stream's own (prefix pass) or the cache's first T
+    let (keys, values) = match kv {
+        KvMode::Cached { k: kb, v: vb, .. } => {
+            let t = bias.dim(3)?;
+            (kb.narrow(2, 0, t)?, vb.narrow(2, 0, t)?)
+        }
+        KvMode::Own { .. } => (k.clone(), v.clone()),
     };
-    let scale = (hd as f64).powf(-0.5);
-    let Some(o) = attention_matmul(&q, kb, vb, bias, scale, (b, l, nh, nkv, hd))? else {
-        return Ok(None);
-    };
-    let o = matmul_2d(&o, &layer.o.weight().t()?)?;
-    let Some((Some(x1), h2)) =
-        kernels::add_norm(&s.x, Some(&o), m1.as_ref(), alpha2, m2.as_ref(), eps2, true)?
-    else {
-        return Ok(None);
-    };
-    let f = wgu.dim(1)? / 2;
-    let Some(a) = kernels::gelu_mul(&matmul_2d(&h2, wgu)?, f)? else {
-        return Ok(None);
-    };
-    let m = matmul_2d(&a, &layer.down.weight().t()?)?;
-    // the gated residual goes to the next layer's first norm (the last layer adds it here, so
-    // that whoever reads `x` after the loop reads the final hidden states)
+    let scale = (d.head_dim as f64).powf(-0.5);
+    let o = ops::attention(&q, &keys, &values, Some(bias), scale)?;
+    let o = ops::matmul(&o, &layer.o.weight().t()?, a.map(|a| &a.o))?;
+    let (x1, h2, gate2) = ops::add_norm(&x0, Some((&o, &gate1)), &layer.post_norm, s.cond)?;
+    let act = ops::gelu_mul(
+        &ops::matmul(&h2, wgu, a.map(|a| &a.gate_up))?,
+        wgu.dim(1)? / 2,
+    )?;
+    let m = ops::matmul(&act, &layer.down.weight().t()?, a.map(|a| &a.down))?;
     s.x = x1;
-    s.pending = Some((m, m2));
+    s.pending = Some((m, gate2));
     if li + 1 == s.expert.layers.len() {
+        // whoever reads `x` after the loop reads the final hidden states
         s.settle()?;
     }
-    Ok(Some((kb.narrow(2, offset, l)?, vb.narrow(2, offset, l)?)))
+    Ok(Some((k, v)))
 }
 
 /// Only the post-RoPE K/V of layer `li` for one stream (the last prefix layer: its attention
@@ -505,43 +342,18 @@ pub fn kv_only_layer(
 ) -> candle_core::Result<()> {
     let layer = &s.expert.layers[li];
     let d = &s.expert.dims;
-    let settled;
-    let x = match &s.pending {
-        None => &s.x,
-        Some((m, g)) => {
-            settled = match super::kernels::gated_add(&s.x, m, g.as_ref())? {
-                Some(x) => x,
-                None => candle_core::bail!(
-                    "kv_only_layer: a pending residual without the fused kernels"
-                ),
-            };
-            &settled
+    let residual = s.pending.as_ref().map(|(m, g)| (m, g));
+    let (_, h, _) = ops::add_norm(&s.x, residual, &layer.input_norm, s.cond)?;
+    let y = match &layer.qkv {
+        Some(w) => {
+            let (qd, kvd) = (d.num_heads * d.head_dim, d.num_kv_heads * d.head_dim);
+            let a = layer.packed.as_deref();
+            ops::matmul(&h, &w.narrow(1, qd, 2 * kvd)?, a.map(|a| &a.kv))?
         }
+        None => Tensor::cat(&[layer.k.forward(&h)?, layer.v.forward(&h)?], D::Minus1)?,
     };
-    let (h, _) = layer.input_norm.forward(x, s.cond, false)?;
-    if let (Some(w), true) = (&layer.qkv, super::kernels::enabled(h.device())) {
-        let (qd, kvd) = (d.num_heads * d.head_dim, d.num_kv_heads * d.head_dim);
-        let y = matmul_2d(&h, &w.narrow(1, qd, 2 * kvd)?)?;
-        let heads = super::kernels::Heads {
-            q: 0,
-            kv: d.num_kv_heads,
-            dim: d.head_dim,
-        };
-        if super::kernels::qkv_rope(&y, heads, Some((&s.rope.cos, &s.rope.sin)), kb, vb, 0)?
-            .is_some()
-        {
-            return Ok(());
-        }
-    }
-    if let Some((_, k, v)) = qkv_fused(layer, d, &h, s.rope, false)? {
-        kb.slice_set(&k, 2, 0)?;
-        return vb.slice_set(&v, 2, 0);
-    }
-    let k = heads(&layer.k.forward(&h)?, d.num_kv_heads, d.head_dim)?;
-    let k = s.rope.apply(&k, false)?;
-    let v = heads(&layer.v.forward(&h)?, d.num_kv_heads, d.head_dim)?;
-    kb.slice_set(&k.contiguous()?, 2, 0)?;
-    vb.slice_set(&v, 2, 0)
+    ops::qkv_rope(&y, heads_of(d, false), s.rope, Some((kb, vb, 0)))?;
+    Ok(())
 }
 
 /// Runs layer `li` over the streams with one joint masked attention; updates each `x` in place.
@@ -555,7 +367,7 @@ pub fn joint_layer(
     diff: bool,
 ) -> candle_core::Result<(Tensor, Tensor)> {
     if let ([s], false) = (&mut *streams, diff) {
-        if let Some(kv) = joint_layer_fused(li, s, bias, kv)? {
+        if let Some(kv) = stream_layer(li, s, bias, kv)? {
             return Ok(kv);
         }
     }
@@ -574,8 +386,9 @@ pub fn joint_layer(
         let d = &s.expert.dims;
         let (h, gate) = layer.input_norm.forward(&s.x, s.cond, diff)?;
         gates.push(gate);
-        if !diff {
-            if let Some((Some(q), k, v)) = qkv_fused(layer, d, &h, s.rope, true)? {
+        if let (false, Some(w)) = (diff, &layer.qkv) {
+            let y = ops::matmul(&h, w, layer.packed.as_deref().map(|a| &a.qkv))?;
+            if let (Some(q), k, v) = ops::qkv_rope(&y, heads_of(d, true), s.rope, None)? {
                 qs.push(q);
                 ks.push(k);
                 vs.push(v);
@@ -657,9 +470,14 @@ pub fn joint_layer(
             out.narrow(1, start, l)?
         };
         start += l;
-        let o = match packed_mm(&o, layer.packed.as_deref().map(|a| &a.o), diff)? {
-            Some(o) => o,
-            None => layer.o.forward(&o)?,
+        let o = if diff {
+            layer.o.forward(&o)?
+        } else {
+            ops::matmul(
+                &o,
+                &layer.o.weight().t()?,
+                layer.packed.as_deref().map(|a| &a.o),
+            )?
         };
         let x1 = gated_residual(&s.x, &o, gate.as_ref(), diff)?;
         let (h, gate2) = layer.post_norm.forward(&x1, s.cond, diff)?;

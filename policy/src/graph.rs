@@ -230,7 +230,8 @@ impl SampleGraph {
                 .max_all()?
                 .to_scalar::<f32>()?;
             let rms = eager.actions.sqr()?.mean_all()?.to_scalar::<f32>()?.sqrt();
-            if !(d <= 1e-3 * rms.max(1e-6)) {
+            // NaN fails too
+            if d.is_nan() || d > 1e-3 * rms.max(1e-6) {
                 return Err(cuda::mismatch(d, rms));
             }
             Ok((eager, Some(g)))

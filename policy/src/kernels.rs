@@ -14,9 +14,9 @@
 //! | [`softmax_bias`] | scale, additive mask, f32 softmax and the casts around it (in place) |
 //!
 //! Each function returns `Ok(None)` where the kernels do not apply (a CPU tensor, a build
-//! without `cuda`, a dtype other than f32/bf16, or [`set_enabled`]`(false)`); callers then run
-//! candle's ops, which stay the reference the kernels are checked against (the fixtures on the
-//! GPU, `scripts/gpu-run.sh`).
+//! without `cuda`, a dtype other than f32/bf16, or [`set_enabled`]`(false)`). Only the seam
+//! ([`crate::ops`]) calls them; it then runs candle's ops, which stay the reference the kernels
+//! are checked against (the fixtures on the GPU, `scripts/gpu-run.sh`).
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -324,7 +324,7 @@ pub fn qkv_rope(
         let (b, l, ncols) = y.dims3()?;
         let hd = heads.dim;
         let half = hd / 2;
-        if hd % 2 != 0 || ncols != (heads.q + 2 * heads.kv) * hd {
+        if !hd.is_multiple_of(2) || ncols != (heads.q + 2 * heads.kv) * hd {
             candle_core::bail!("qkv_rope: {ncols} columns do not hold {heads:?}");
         }
         if let Some((cos, sin)) = rope {

@@ -8,6 +8,8 @@
 //!
 //! Owns: the model, its sampler (written once, [`model::euler`]) and RTC guidance ([`rtc`]), the
 //! CPU kernels ([`packed`], [`amx`], [`fastops`]) and the CUDA ones ([`kernels`], [`graph`]).
+//! The layers reach the kernels through one seam, [`ops`]: a function per op kind that picks
+//! the kernel for the tensors' device and falls back to candle's composition in one place.
 //! Must not depend on: the controller, `chunkrt-ipc`, iceoryx2 (`cargo tree -p chunkrt-policy`
 //! shows neither); thread pools are the caller's (`runtime::LoadOptions`).
 
@@ -23,6 +25,7 @@ pub mod graph;
 pub mod kernels;
 pub mod model;
 pub mod openpi;
+pub mod ops;
 pub mod packed;
 pub mod preprocess;
 pub mod rtc;

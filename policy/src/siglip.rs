@@ -7,9 +7,10 @@
 //!
 //! Written out here rather than reused from `candle_transformers::models::siglip` for two
 //! reasons: every op has a differentiable path (`diff`: compositions with a backward instead of
-//! candle's fused layer-norm / softmax kernels) so the tower can be trained, and the fast path
-//! runs the patch embedding as one matmul over flattened patches and the Q/K/V projections as
-//! one fused matmul over all tokens of all images.
+//! candle's fused layer-norm / softmax kernels) so the tower can be trained, and the inference
+//! path runs the patch embedding as one matmul over flattened patches, the Q/K/V projections as
+//! one fused matmul over all tokens of all images, and every op through [`ops`] (the device's
+//! kernel, or candle's composition).
 //!
 //! Shapes: N images, S image size, p patch, g = S/p, T = g² tokens, Dv width, nH heads, hd head
 //! dim, W the language model width.
@@ -18,29 +19,8 @@ use candle_core::{DType, Tensor, D};
 use candle_nn::{Init, VarBuilder};
 
 use super::config::VisionDims;
-use super::fastops;
+use super::ops;
 use super::packed::{PackedRhs, Precision};
-
-/// The fast path's attention over a fused `[N, T, 3 Dv]` Q/K/V output: heads split in one pass
-/// each and `fastops::attention` (no mask). `None` when the kernels do not apply.
-fn fast_attention(
-    qkv: &Tensor,
-    nh: usize,
-    hd: usize,
-    scale: f64,
-) -> candle_core::Result<Option<Tensor>> {
-    let d = nh * hd;
-    let (Some(q), Some(k), Some(v)) = (
-        fastops::split_heads(qkv, 0, nh, hd, None)?,
-        fastops::split_heads(qkv, d, nh, hd, None)?,
-        fastops::split_heads(qkv, 2 * d, nh, hd, None)?,
-    ) else {
-        return Ok(None);
-    };
-    let (n, _, t, _) = q.dims4()?;
-    let bias = Tensor::zeros((n, 1, 1, t), candle_core::DType::F32, qkv.device())?;
-    fastops::attention(&q, &k, &v, &bias, scale as f32)
-}
 
 /// `x @ w^T + b` over the last dim, any leading dims (one 2-D matmul).
 fn linear(x: &Tensor, w: &Tensor, b: &Tensor) -> candle_core::Result<Tensor> {
@@ -118,6 +98,16 @@ impl Dense {
         linear(x, &self.w, &self.b)
     }
 
+    /// `act(x · wᵀ + b) + residual` on the inference path ([`ops::dense`]).
+    fn forward_infer(
+        &self,
+        x: &Tensor,
+        gelu: bool,
+        residual: Option<&Tensor>,
+    ) -> candle_core::Result<Tensor> {
+        ops::dense(x, &self.w, &self.b, self.packed.as_ref(), gelu, residual)
+    }
+
     /// Packs `w` for `precision`; false (keeping the previous packing) where this CPU has no
     /// kernel for it.
     fn pack(&mut self, precision: Precision) -> candle_core::Result<bool> {
@@ -169,50 +159,47 @@ struct EncoderLayer {
 }
 
 impl EncoderLayer {
-    /// The layer with chunkrt's fused CUDA kernels ([`super::kernels`]): bias, activation and
-    /// residual folded into one kernel after each product, the Q/K/V head split in one pass, the
-    /// scaled softmax in f32 in place. `None` where they do not apply (CPU, training layers).
-    fn forward_fused(
+    /// The layer on the inference path, on any device ([`ops`]; on a GPU: bias, activation
+    /// and residual folded into one kernel after each product, the Q/K/V head split in one
+    /// pass, the scaled softmax in f32 in place; on a CPU: packed products with the bias fused,
+    /// one fused attention kernel).
+    fn forward_infer(
         &self,
         x: &Tensor,
         nh: usize,
         hd: usize,
         scale: f64,
-    ) -> candle_core::Result<Option<Tensor>> {
-        use super::kernels;
-        let Qkv::Fused(qkv) = &self.qkv else {
-            return Ok(None);
-        };
-        let (n, t, d) = x.dims3()?;
-        // x [N, T, K] · w[O, K]^T, without the bias
-        let mm = |x: &Tensor, w: &Tensor| -> candle_core::Result<Tensor> {
-            let k = x.dim(D::Minus1)?;
-            x.reshape((n * t, k))?
-                .matmul(&w.t()?)?
-                .reshape((n, t, w.dim(0)?))
-        };
+    ) -> candle_core::Result<Tensor> {
         let h = self.ln1.forward(x, false)?;
-        let Some(y) = kernels::bias_act(&mm(&h, &qkv.w)?, Some(&qkv.b), false, None)? else {
-            return Ok(None);
+        // [N, T, 3 Dv]
+        let y = match &self.qkv {
+            Qkv::Fused(d) => d.forward_infer(&h, false, None)?,
+            Qkv::Separate(_) => self.qkv.forward(&h)?,
         };
-        let Some((q, k, v)) = kernels::split_qkv(&y, nh, hd)? else {
-            return Ok(None);
-        };
-        let Some(p) = kernels::softmax_bias(&q.matmul(&k.t()?)?, None, t, scale)? else {
-            return Ok(None);
-        };
-        // [N, nH, T, hd] -> [N, T, D]
-        let o = p.matmul(&v)?.transpose(1, 2)?.reshape((n, t, d))?;
-        let Some(x) = kernels::bias_act(&mm(&o, &self.out.w)?, Some(&self.out.b), false, Some(x))?
-        else {
-            return Ok(None);
-        };
+        let (q, k, v) = ops::split_qkv(&y, nh, hd)?;
+        // [N, T, Dv]
+        let o = ops::attention(&q, &k, &v, None, scale)?;
+        let x = self.out.forward_infer(&o, false, Some(x))?;
         let h = self.ln2.forward(&x, false)?;
-        let Some(f) = kernels::bias_act(&mm(&h, &self.fc1.w)?, Some(&self.fc1.b), true, None)?
-        else {
-            return Ok(None);
-        };
-        kernels::bias_act(&mm(&f, &self.fc2.w)?, Some(&self.fc2.b), false, Some(&x))
+        let f = self.fc1.forward_infer(&h, true, None)?;
+        self.fc2.forward_infer(&f, false, Some(&x))
+    }
+
+    /// The layer in candle's ops, with a backward.
+    fn forward_diff(
+        &self,
+        x: &Tensor,
+        nh: usize,
+        hd: usize,
+        scale: f64,
+    ) -> candle_core::Result<Tensor> {
+        let h = self.ln1.forward(x, true)?;
+        let (q, k, v) = ops::split_qkv_composed(&self.qkv.forward(&h)?, nh, hd)?;
+        let o = ops::attention_composed(&q, &k, &v, None, scale, true)?;
+        let x = x.broadcast_add(&self.out.forward(&o)?)?;
+        let h = self.ln2.forward(&x, true)?;
+        let f = self.fc1.forward(&h)?.gelu()?;
+        x.broadcast_add(&self.fc2.forward(&f)?)
     }
 }
 
@@ -343,58 +330,19 @@ impl Vision {
             .reshape((n, g * g, c * p * p))?;
         // [N, T, Dv]
         let emb = self.patch.forward(&patches)?;
-        let mut x = fastops::add_or_broadcast(&emb, &self.pos, diff)?.to_dtype(self.dtype)?;
-        let t = g * g;
+        let mut x = if diff {
+            emb.broadcast_add(&self.pos)?
+        } else {
+            ops::add(&emb, &self.pos)?
+        }
+        .to_dtype(self.dtype)?;
         let scale = (hd as f64).powf(-0.5);
         for l in &self.layers {
-            if !diff && super::kernels::enabled(x.device()) {
-                if let Some(y) = l.forward_fused(&x, nh, hd, scale)? {
-                    x = y;
-                    continue;
-                }
-            }
-            let h = l.ln1.forward(&x, diff)?;
-            // [N, T, 3 Dv]
-            let qkv = l.qkv.forward(&h)?;
-            let o = match if diff {
-                None
+            x = if diff {
+                l.forward_diff(&x, nh, hd, scale)?
             } else {
-                fast_attention(&qkv, nh, hd, scale)?
-            } {
-                Some(o) => o,
-                None => {
-                    // [N, T, 3, nH, hd] -> 3 x [N, nH, T, hd]
-                    let qkv = qkv.reshape((n, t, 3, nh, hd))?;
-                    let head = |i: usize| -> candle_core::Result<Tensor> {
-                        qkv.narrow(2, i, 1)?
-                            .squeeze(2)?
-                            .transpose(1, 2)?
-                            .contiguous()
-                    };
-                    let q = (head(0)? * scale)?;
-                    let k = head(1)?;
-                    let v = head(2)?;
-                    // [N, nH, T, T], normalised in f32 whatever the model's dtype (HF's
-                    // SigLIP attention does its softmax in f32)
-                    let sc = q.matmul(&k.t()?)?.to_dtype(DType::F32)?;
-                    let pr = if diff {
-                        candle_nn::ops::softmax(&sc, D::Minus1)?
-                    } else {
-                        candle_nn::ops::softmax_last_dim(&sc)?
-                    }
-                    .to_dtype(v.dtype())?;
-                    // [N, nH, T, hd] -> [N, T, Dv]
-                    pr.matmul(&v)?.transpose(1, 2)?.reshape((n, t, d))?
-                }
+                l.forward_infer(&x, nh, hd, scale)?
             };
-            x = fastops::add_or_broadcast(&x, &l.out.forward(&o)?, diff)?;
-            let h = l.ln2.forward(&x, diff)?;
-            let f = l.fc1.forward(&h)?;
-            let f = match if diff { None } else { fastops::gelu(&f)? } {
-                Some(g) => g,
-                None => f.gelu()?,
-            };
-            x = fastops::add_or_broadcast(&x, &l.fc2.forward(&f)?, diff)?;
         }
         self.post_ln.forward(&x, diff)
     }

@@ -37,7 +37,7 @@ pub enum Norm {
 }
 
 /// A norm as the fused kernel takes it: `1 + w` (plain), the modulation (adaptive), eps.
-type FusedNorm<'a> = (Option<&'a Tensor>, Option<Tensor>, f64);
+pub(crate) type FusedNorm<'a> = (Option<&'a Tensor>, Option<Tensor>, f64);
 
 /// [`Norm::Ada`]'s modulations by condition tensor.
 pub type ModulationCache =
@@ -112,7 +112,7 @@ impl Norm {
 
     /// The fused kernel's operands: (`1 + w`, modulation); None where the kernel does not
     /// apply (a training model's plain norm derives `1 + w` at every forward).
-    pub(super) fn fused_operands(
+    pub(crate) fn fused_operands(
         &self,
         cond: Option<&Tensor>,
     ) -> candle_core::Result<Option<FusedNorm<'_>>> {
@@ -138,31 +138,32 @@ impl Norm {
     }
 
     /// `x` [B, L, W], `cond` [B, Wc] or per token [B, L, Wc] f32 (adaptive only). Returns the
-    /// normed `x` and the gate [B, 1, W] or [B, L, W] (adaptive only), both in `x`'s dtype; the statistics, the `(1 + w)` scaling and
-    /// the adaptive modulation are computed in f32 (openpi's `GemmaRMSNorm`).
+    /// normed `x` and the gate [B, 1, W] or [B, L, W] (adaptive only), both in `x`'s dtype; the
+    /// statistics, the `(1 + w)` scaling and the adaptive modulation are computed in f32
+    /// (openpi's `GemmaRMSNorm`). The inference path (`diff` false) goes through
+    /// [`ops::add_norm`](crate::ops::add_norm), which picks the device's kernel.
     pub fn forward(
         &self,
         x: &Tensor,
         cond: Option<&Tensor>,
         diff: bool,
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
-        let dtype = x.dtype();
-        if !diff && x.rank() == 3 && crate::kernels::enabled(x.device()) {
-            if let Some((alpha, m, eps)) = self.fused_operands(cond)? {
-                if let Some((_, h)) =
-                    crate::kernels::add_norm(x, None, None, alpha, m.as_ref(), eps, false)?
-                {
-                    let gate = match m {
-                        Some(m) => {
-                            let w = x.dim(D::Minus1)?;
-                            Some(m.narrow(1, 2 * w, w)?.unsqueeze(1)?.to_dtype(dtype)?)
-                        }
-                        None => None,
-                    };
-                    return Ok((h, gate));
-                }
-            }
+        if diff {
+            return self.composed(x, cond, true);
         }
+        let (_, h, gate) = crate::ops::add_norm(x, None, self, cond)?;
+        Ok((h, gate.tensor(x.dim(D::Minus1)?, x.dtype())?))
+    }
+
+    /// [`Self::forward`] in candle's ops (`diff`: with a backward); the fallback of
+    /// [`ops::add_norm`](crate::ops::add_norm).
+    pub(crate) fn composed(
+        &self,
+        x: &Tensor,
+        cond: Option<&Tensor>,
+        diff: bool,
+    ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
+        let dtype = x.dtype();
         let x = &x.to_dtype(DType::F32)?;
         match self {
             Norm::Rms { weight, alpha, eps } => {
@@ -209,16 +210,18 @@ impl Norm {
     }
 }
 
-/// `x + y * gate` (gate absent: `x + y`; on the fast path a fused add).
+/// `x + y * gate` (gate absent: `x + y`); the inference path through
+/// [`ops::gated_add`](crate::ops::gated_add).
 pub fn gated_residual(
     x: &Tensor,
     y: &Tensor,
     gate: Option<&Tensor>,
     diff: bool,
 ) -> candle_core::Result<Tensor> {
-    match gate {
-        None => fastops::add_or_broadcast(x, y, diff),
-        Some(g) => x + y.broadcast_mul(g)?,
+    match (diff, gate) {
+        (false, g) => crate::ops::gated_add(x, y, &crate::ops::Gate::from_tensor(g.cloned())),
+        (true, None) => x.broadcast_add(y),
+        (true, Some(g)) => x + y.broadcast_mul(g)?,
     }
 }
 

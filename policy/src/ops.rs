@@ -1,0 +1,371 @@
+//! The one seam between the model's layers and the kernels.
+//!
+//! Each function here is one op kind of the inference path (no backward). It runs the fast
+//! kernel for the device its tensors live on — chunkrt's CPU kernels ([`super::fastops`],
+//! [`super::packed`], which picks AMX / AVX-512 / AVX2 itself) or its CUDA kernels
+//! ([`super::kernels`]) — and where none applies (another device or dtype, a layout the kernel
+//! does not take, the kernels switched off) it falls back to candle's composition, here and
+//! nowhere else. The layers (SigLIP, Gemma) call these and never a kernel module directly; the
+//! differentiable path (training) calls candle's ops, which have a backward.
+//!
+//! | op | CPU | CUDA | fallback |
+//! |---|---|---|---|
+//! | [`matmul`] | packed weights | — | one 2-D matmul |
+//! | [`dense`] | packed weights, bias fused; [`gelu`], [`add`] | `bias_act` after the product | matmul, bias, gelu, add |
+//! | [`add_norm`] | — | `add_norm` | [`gated_add`], then the norm's composition |
+//! | [`gated_add`] | `add` (no gate) | `gated_add` | `x + y · gate` |
+//! | [`qkv_rope`] | `split_heads` (+ RoPE) | `qkv_rope` (+ cache write) | narrow, heads, RoPE |
+//! | [`split_qkv`] | `split_heads` | `split_qkv` | reshape, transpose |
+//! | [`attention`] | `attention` | products + `softmax_bias` | [`attention_composed`] |
+//! | [`gelu_mul`] | `gelu_mul_fused` | `gelu_mul` | narrow, gelu, mul |
+//! | [`gelu`], [`add`] | `gelu`, `add` | — | candle |
+//!
+//! Must not depend on anything outside the policy crate.
+
+use candle_core::{DType, Result, Tensor, D};
+
+use super::fastops;
+use super::gemma::{Norm, Rope};
+use super::kernels;
+pub use super::kernels::Heads;
+use super::packed::PackedRhs;
+
+/// The gate of a gated residual `x + y · gate`.
+#[derive(Debug, Clone)]
+pub enum Gate {
+    /// No gate: `x + y`.
+    One,
+    /// AdaRMSNorm's modulation [B, 3W] f32 (scale, shift, gate): the gate is its last third,
+    /// one per batch row (the form the CUDA kernels take).
+    Modulation(Tensor),
+    /// A gate broadcastable over [B, L, W] ([B, 1, W] or [B, L, W]) in `x`'s dtype.
+    Tensor(Tensor),
+}
+
+impl Gate {
+    /// `Gate::Tensor` of a norm's gate, `Gate::One` without one.
+    pub fn from_tensor(g: Option<Tensor>) -> Self {
+        g.map_or(Gate::One, Gate::Tensor)
+    }
+
+    /// The gate as a tensor over `w` columns in `dtype` (None: no gate).
+    pub fn tensor(&self, w: usize, dtype: DType) -> Result<Option<Tensor>> {
+        match self {
+            Gate::One => Ok(None),
+            Gate::Modulation(m) => Ok(Some(m.narrow(1, 2 * w, w)?.unsqueeze(1)?.to_dtype(dtype)?)),
+            Gate::Tensor(g) => Ok(Some(g.clone())),
+        }
+    }
+
+    /// The modulation for a CUDA kernel: `Some(None)` no gate, `Some(Some(m))` the modulation,
+    /// `None` a gate tensor (the kernels do not take one).
+    fn modulation(&self) -> Option<Option<&Tensor>> {
+        match self {
+            Gate::One => Some(None),
+            Gate::Modulation(m) => Some(Some(m)),
+            Gate::Tensor(_) => None,
+        }
+    }
+}
+
+/// `x` [.., K] times `w` [K, N] (any strides) as one 2-D matmul: [.., N].
+pub fn matmul_2d(x: &Tensor, w: &Tensor) -> Result<Tensor> {
+    let dims = x.dims();
+    let k = dims.last().copied().unwrap_or(1);
+    let rows = x.elem_count() / k.max(1);
+    let y = x.contiguous()?.reshape((rows, k))?.matmul(w)?;
+    let mut shape = dims.to_vec();
+    if let Some(last) = shape.last_mut() {
+        *last = w.dim(1)?;
+    }
+    y.reshape(shape)
+}
+
+/// `x` [.., K] · `w` [K, N]: the packed product where `packed` (the same weight packed for
+/// this CPU) applies, else [`matmul_2d`].
+pub fn matmul(x: &Tensor, w: &Tensor, packed: Option<&PackedRhs>) -> Result<Tensor> {
+    if let Some(p) = packed {
+        if let Some(y) = p.matmul(x)? {
+            return Ok(y);
+        }
+    }
+    matmul_2d(x, w)
+}
+
+/// `x @ w^T + b` over the last dim, any leading dims (one 2-D matmul); `w` [O, K], `b` [O].
+pub fn linear(x: &Tensor, w: &Tensor, b: &Tensor) -> Result<Tensor> {
+    matmul_2d(x, &w.t()?)?.broadcast_add(b)
+}
+
+/// A dense layer with bias: `act(x · wᵀ + b) + residual`, `w` [O, K], `b` [O], `act` gelu-tanh
+/// when `gelu` (else identity), `residual` shaped as the output (None: none). `packed`: `w`
+/// packed with `b` fused ([`PackedRhs::with_bias`]).
+pub fn dense(
+    x: &Tensor,
+    w: &Tensor,
+    b: &Tensor,
+    packed: Option<&PackedRhs>,
+    gelu_act: bool,
+    residual: Option<&Tensor>,
+) -> Result<Tensor> {
+    let y = match packed.map(|p| p.matmul(x)).transpose()?.flatten() {
+        Some(y) => y,
+        None => {
+            if kernels::enabled(x.device()) {
+                let y = matmul_2d(x, &w.t()?)?;
+                if let Some(y) = kernels::bias_act(&y, Some(b), gelu_act, residual)? {
+                    return Ok(y);
+                }
+            }
+            linear(x, w, b)?
+        }
+    };
+    let y = if gelu_act { gelu(&y)? } else { y };
+    match residual {
+        Some(r) => add(r, &y),
+        None => Ok(y),
+    }
+}
+
+/// gelu-tanh.
+pub fn gelu(x: &Tensor) -> Result<Tensor> {
+    match fastops::gelu(x)? {
+        Some(y) => Ok(y),
+        None => x.gelu(),
+    }
+}
+
+/// `a + b`, `b` broadcast over `a`'s leading dimensions.
+pub fn add(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    fastops::add_or_broadcast(a, b, false)
+}
+
+/// `x + y · gate` over [B, L, W].
+pub fn gated_add(x: &Tensor, y: &Tensor, gate: &Gate) -> Result<Tensor> {
+    if let (3, Some(gmod)) = (x.rank(), gate.modulation()) {
+        if let Some(x1) = kernels::gated_add(x, y, gmod)? {
+            return Ok(x1);
+        }
+    }
+    match gate.tensor(x.dim(D::Minus1)?, x.dtype())? {
+        None => add(x, y),
+        Some(g) => x + y.broadcast_mul(&g)?,
+    }
+}
+
+/// A layer's gated residual and the norm after it: `x1 = x + y · gate` (`residual` None:
+/// `x1 = x`), `h = norm(x1)` with `cond` for an adaptive norm. Returns `x1`, `h` (both in `x`'s
+/// dtype) and the norm's gate for the residual that follows (adaptive norms; `Gate::One` else).
+pub fn add_norm(
+    x: &Tensor,
+    residual: Option<(&Tensor, &Gate)>,
+    norm: &Norm,
+    cond: Option<&Tensor>,
+) -> Result<(Tensor, Tensor, Gate)> {
+    if x.rank() == 3 && kernels::enabled(x.device()) {
+        let gmod = match residual {
+            None => Some(None),
+            Some((_, g)) => g.modulation(),
+        };
+        if let (Some(gmod), Some((alpha, m, eps))) = (gmod, norm.fused_operands(cond)?) {
+            let y = residual.map(|(y, _)| y);
+            if let Some((x1, h)) =
+                kernels::add_norm(x, y, gmod, alpha, m.as_ref(), eps, y.is_some())?
+            {
+                let x1 = x1.unwrap_or_else(|| x.clone());
+                return Ok((x1, h, m.map_or(Gate::One, Gate::Modulation)));
+            }
+        }
+    }
+    let x1 = match residual {
+        Some((y, g)) => gated_add(x, y, g)?,
+        None => x.clone(),
+    };
+    let (h, gate) = norm.composed(&x1, cond, false)?;
+    Ok((x1, h, Gate::from_tensor(gate)))
+}
+
+/// Splits `y` [B, L, (q + 2 kv) · hd] (Q columns first unless `heads.q == 0`, then K, V) into
+/// heads, Q and K rotated with `rope`: Q [B, q, L, hd] (None when `heads.q == 0`), K and V
+/// [B, kv, L, hd]. With `cache` = (K buffer, V buffer [B, kv, T, hd], offset) K and V are also
+/// written there at sequence `offset`.
+pub fn qkv_rope(
+    y: &Tensor,
+    heads: Heads,
+    rope: &Rope,
+    cache: Option<(&Tensor, &Tensor, usize)>,
+) -> Result<(Option<Tensor>, Tensor, Tensor)> {
+    let l = y.dim(1)?;
+    let cs = Some((&rope.cos, &rope.sin));
+    if let Some((kb, vb, offset)) = cache {
+        if let Some(q) = kernels::qkv_rope(y, heads, cs, kb, vb, offset)? {
+            return Ok((q, kb.narrow(2, offset, l)?, vb.narrow(2, offset, l)?));
+        }
+    }
+    let (qd, kvd, hd) = (heads.q * heads.dim, heads.kv * heads.dim, heads.dim);
+    let fast = || -> Result<Option<(Option<Tensor>, Tensor, Tensor)>> {
+        let q = match heads.q {
+            0 => None,
+            n => match fastops::split_heads(y, 0, n, hd, cs)? {
+                Some(q) => Some(q),
+                None => return Ok(None),
+            },
+        };
+        let k = fastops::split_heads(y, qd, heads.kv, hd, cs)?;
+        let v = fastops::split_heads(y, qd + kvd, heads.kv, hd, None)?;
+        Ok(k.zip(v).map(|(k, v)| (q, k, v)))
+    };
+    let (q, k, v) = match fast()? {
+        Some(qkv) => qkv,
+        None => {
+            let part = |col: usize, n: usize| -> Result<Tensor> {
+                let (b, l, _) = y.dims3()?;
+                y.narrow(2, col, n * hd)?
+                    .contiguous()?
+                    .reshape((b, l, n, hd))?
+                    .transpose(1, 2)?
+                    .contiguous()
+            };
+            let q = match heads.q {
+                0 => None,
+                n => Some(rope.apply(&part(0, n)?, false)?),
+            };
+            let k = rope.apply(&part(qd, heads.kv)?, false)?;
+            (q, k, part(qd + kvd, heads.kv)?)
+        }
+    };
+    if let Some((kb, vb, offset)) = cache {
+        kb.slice_set(&k.contiguous()?, 2, offset)?;
+        vb.slice_set(&v.contiguous()?, 2, offset)?;
+    }
+    Ok((q, k, v))
+}
+
+/// SigLIP's fused Q/K/V output `y` [N, T, 3 · n · hd] as three [N, n, T, hd] heads, unrotated.
+pub fn split_qkv(y: &Tensor, n: usize, hd: usize) -> Result<(Tensor, Tensor, Tensor)> {
+    if let Some(qkv) = kernels::split_qkv(y, n, hd)? {
+        return Ok(qkv);
+    }
+    let d = n * hd;
+    if let (Some(q), Some(k), Some(v)) = (
+        fastops::split_heads(y, 0, n, hd, None)?,
+        fastops::split_heads(y, d, n, hd, None)?,
+        fastops::split_heads(y, 2 * d, n, hd, None)?,
+    ) {
+        return Ok((q, k, v));
+    }
+    split_qkv_composed(y, n, hd)
+}
+
+/// [`split_qkv`] in candle's ops (differentiable).
+pub fn split_qkv_composed(y: &Tensor, n: usize, hd: usize) -> Result<(Tensor, Tensor, Tensor)> {
+    let (b, t, _) = y.dims3()?;
+    // [N, T, 3, nH, hd] -> 3 x [N, nH, T, hd]
+    let y = y.reshape((b, t, 3, n, hd))?;
+    let head = |i: usize| -> Result<Tensor> {
+        y.narrow(2, i, 1)?.squeeze(2)?.transpose(1, 2)?.contiguous()
+    };
+    Ok((head(0)?, head(1)?, head(2)?))
+}
+
+/// Attention `softmax(scale q kᵀ + bias) v` with GQA: `q` [B, nH, L, hd] (query heads
+/// kv-head-major), `k`, `v` [B, nKV, T, hd], `bias` [B, 1, L or 1, T] f32 (None: no mask).
+/// Returns [B, L, nH · hd]. The softmax runs in f32 whatever the model's dtype (openpi's).
+pub fn attention(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    bias: Option<&Tensor>,
+    scale: f64,
+) -> Result<Tensor> {
+    if q.device().is_cpu() {
+        let zeros;
+        let b = match bias {
+            Some(b) => b,
+            None => {
+                let (n, t) = (k.dim(0)?, k.dim(2)?);
+                zeros = Tensor::zeros((n, 1, 1, t), DType::F32, q.device())?;
+                &zeros
+            }
+        };
+        if let Some(o) = fastops::attention(q, k, v, b, scale as f32)? {
+            return Ok(o);
+        }
+    }
+    if kernels::enabled(q.device()) {
+        let (b, nh, l, hd) = q.dims4()?;
+        let nkv = k.dim(1)?;
+        let g = nh / nkv.max(1);
+        // [B, nKV, g L, T]
+        let scores = q.reshape((b, nkv, g * l, hd))?.matmul(&k.t()?)?;
+        if let Some(p) = kernels::softmax_bias(&scores, bias, l, scale)? {
+            // [B, nKV, g L, hd] -> [B, L, nH hd]
+            return p
+                .matmul(v)?
+                .reshape((b, nh, l, hd))?
+                .transpose(1, 2)?
+                .reshape((b, l, nh * hd));
+        }
+    }
+    attention_composed(q, k, v, bias, scale, false)
+}
+
+/// [`attention`] in candle's ops; `diff`: the softmax with a backward.
+pub fn attention_composed(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    bias: Option<&Tensor>,
+    scale: f64,
+    diff: bool,
+) -> Result<Tensor> {
+    let q = (q * scale)?;
+    let (b, nh, l, hd) = q.dims4()?;
+    let nkv = k.dim(1)?;
+    let t = k.dim(2)?;
+    let g = nh / nkv.max(1);
+    // [B, nKV, g*L, hd]: query heads are kv-head-major, so this is a free reshape
+    let q = q.reshape((b, nkv, g * l, hd))?;
+    // [B, nKV, g*L, T], masked and normalised in f32, probabilities back in the model's dtype
+    let s = q.matmul(&k.t()?)?.to_dtype(DType::F32)?;
+    let s = match bias {
+        Some(bias) => {
+            let bl = bias.dim(2)?;
+            // [B, nKV, g, L, T] + [B, 1, 1, L|1, T]
+            s.reshape((b, nkv, g, l, t))?
+                .broadcast_add(&bias.to_dtype(DType::F32)?.reshape((b, 1, 1, bl, t))?)?
+        }
+        None => s,
+    };
+    let p = if diff {
+        candle_nn::ops::softmax(&s, D::Minus1)?
+    } else {
+        candle_nn::ops::softmax_last_dim(&s)?
+    }
+    .to_dtype(v.dtype())?;
+    // [B, nKV, g*L, hd] -> [B, nH, L, hd] -> [B, L, nH*hd]
+    let o = p.reshape((b, nkv, g * l, t))?.matmul(v)?;
+    o.reshape((b, nh, l, hd))?
+        .transpose(1, 2)?
+        .reshape((b, l, nh * hd))
+}
+
+/// `gelu_tanh(y[.., :f]) * y[.., f:]` for the output `y` [.., 2f] of a fused gate/up product.
+pub fn gelu_mul(y: &Tensor, f: usize) -> Result<Tensor> {
+    if let Some(h) = fastops::gelu_mul_fused(y, f)? {
+        return Ok(h);
+    }
+    if let Some(h) = kernels::gelu_mul(y, f)? {
+        return Ok(h);
+    }
+    let last = y.rank().saturating_sub(1);
+    y.narrow(last, 0, f)?.gelu()? * y.narrow(last, f, f)?
+}
+
+/// `gelu_tanh(g) * u` for separate gate and up outputs (layers without a fused product).
+pub fn gelu_mul_pair(g: &Tensor, u: &Tensor) -> Result<Tensor> {
+    match fastops::gelu_mul(g, u)? {
+        Some(h) => Ok(h),
+        None => g.gelu()? * u,
+    }
+}
