@@ -204,6 +204,9 @@ pub fn qkv_rope(
     }
     let (qd, kvd, hd) = (heads.q * heads.dim, heads.kv * heads.dim, heads.dim);
     let fast = || -> Result<Option<(Option<Tensor>, Tensor, Tensor)>> {
+        if !y.device().is_cpu() {
+            return Ok(None);
+        }
         let q = match heads.q {
             0 => None,
             n => match fastops::split_heads(y, 0, n, hd, cs)? {
@@ -217,22 +220,7 @@ pub fn qkv_rope(
     };
     let (q, k, v) = match fast()? {
         Some(qkv) => qkv,
-        None => {
-            let part = |col: usize, n: usize| -> Result<Tensor> {
-                let (b, l, _) = y.dims3()?;
-                y.narrow(2, col, n * hd)?
-                    .contiguous()?
-                    .reshape((b, l, n, hd))?
-                    .transpose(1, 2)?
-                    .contiguous()
-            };
-            let q = match heads.q {
-                0 => None,
-                n => Some(rope.apply(&part(0, n)?, false)?),
-            };
-            let k = rope.apply(&part(qd, heads.kv)?, false)?;
-            (q, k, part(qd + kvd, heads.kv)?)
-        }
+        None => qkv_rope_composed(y, heads, rope)?,
     };
     if let Some((kb, vb, offset)) = cache {
         kb.slice_set(&k.contiguous()?, 2, offset)?;
@@ -241,12 +229,39 @@ pub fn qkv_rope(
     Ok((q, k, v))
 }
 
+/// [`qkv_rope`]'s split and rotation in candle's ops (no cache write).
+fn qkv_rope_composed(
+    y: &Tensor,
+    heads: Heads,
+    rope: &Rope,
+) -> Result<(Option<Tensor>, Tensor, Tensor)> {
+    let (b, l, _) = y.dims3()?;
+    let (qd, kvd, hd) = (heads.q * heads.dim, heads.kv * heads.dim, heads.dim);
+    // columns col .. col + n hd as [B, n, L, hd]
+    let part = |col: usize, n: usize| -> Result<Tensor> {
+        y.narrow(2, col, n * hd)?
+            .contiguous()?
+            .reshape((b, l, n, hd))?
+            .transpose(1, 2)?
+            .contiguous()
+    };
+    let q = match heads.q {
+        0 => None,
+        n => Some(rope.apply(&part(0, n)?, false)?),
+    };
+    let k = rope.apply(&part(qd, heads.kv)?, false)?;
+    Ok((q, k, part(qd + kvd, heads.kv)?))
+}
+
 /// SigLIP's fused Q/K/V output `y` [N, T, 3 · n · hd] as three [N, n, T, hd] heads, unrotated.
 pub fn split_qkv(y: &Tensor, n: usize, hd: usize) -> Result<(Tensor, Tensor, Tensor)> {
     if let Some(qkv) = kernels::split_qkv(y, n, hd)? {
         return Ok(qkv);
     }
     let d = n * hd;
+    if !y.device().is_cpu() {
+        return split_qkv_composed(y, n, hd);
+    }
     if let (Some(q), Some(k), Some(v)) = (
         fastops::split_heads(y, 0, n, hd, None)?,
         fastops::split_heads(y, d, n, hd, None)?,
@@ -367,5 +382,120 @@ pub fn gelu_mul_pair(g: &Tensor, u: &Tensor) -> Result<Tensor> {
     match fastops::gelu_mul(g, u)? {
         Some(h) => Ok(h),
         None => g.gelu()? * u,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The seam's CPU kernels against its own fallback compositions (the ops a GPU falls back
+    //! to): the same numbers to float rounding.
+    use super::*;
+    use candle_core::Device;
+
+    fn rand(shape: &[usize], seed: u64) -> Tensor {
+        let n: usize = shape.iter().product();
+        let mut s = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let v: Vec<f32> = (0..n)
+            .map(|_| {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+            })
+            .collect();
+        Tensor::from_vec(v, shape, &Device::Cpu).expect("shape")
+    }
+
+    fn maxdiff(a: &Tensor, b: &Tensor) -> f32 {
+        assert_eq!(a.dims(), b.dims());
+        (a - b)
+            .and_then(|d| d.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>())
+            .expect("diff")
+    }
+
+    #[test]
+    fn attention_kernel_matches_the_composition_with_and_without_mask() {
+        // GQA: 4 query heads over 2 kv heads, a mask hiding the last two keys of row 0
+        let (q, k, v) = (
+            rand(&[1, 4, 5, 8], 1),
+            rand(&[1, 2, 7, 8], 2),
+            rand(&[1, 2, 7, 8], 3),
+        );
+        let mut b = vec![0f32; 5 * 7];
+        b[5] = crate::gemma::MASK_VALUE;
+        b[6] = crate::gemma::MASK_VALUE;
+        let bias = Tensor::from_vec(b, (1, 1, 5, 7), &Device::Cpu).expect("bias");
+        for mask in [Some(&bias), None] {
+            let fast = attention(&q, &k, &v, mask, 0.35).expect("fast");
+            let comp = attention_composed(&q, &k, &v, mask, 0.35, false).expect("composed");
+            assert_eq!(fast.dims(), &[1, 5, 32]);
+            assert!(maxdiff(&fast, &comp) < 1e-5, "{}", maxdiff(&fast, &comp));
+        }
+        // the mask matters: row 0 differs with and without it
+        let masked = attention(&q, &k, &v, Some(&bias), 0.35).expect("masked");
+        let open = attention(&q, &k, &v, None, 0.35).expect("open");
+        assert!(maxdiff(&masked, &open) > 1e-3);
+    }
+
+    #[test]
+    fn head_split_rope_and_cache_write_match_the_composition() {
+        let heads = Heads {
+            q: 4,
+            kv: 2,
+            dim: 8,
+        };
+        let y = rand(&[1, 5, (4 + 2 * 2) * 8], 4);
+        let pos = vec![(3..8).collect::<Vec<i64>>()];
+        let rope = Rope::new(&pos, 8, 10_000.0, &Device::Cpu, DType::F32).expect("rope");
+        let kb = Tensor::zeros((1, 2, 9, 8), DType::F32, &Device::Cpu).expect("kb");
+        let vb = Tensor::zeros((1, 2, 9, 8), DType::F32, &Device::Cpu).expect("vb");
+        let (q, k, v) = qkv_rope(&y, heads, &rope, Some((&kb, &vb, 3))).expect("fast");
+        let (cq, ck, cv) = qkv_rope_composed(&y, heads, &rope).expect("composed");
+        let q = q.expect("q");
+        assert!(maxdiff(&q, &cq.expect("q")) < 1e-6);
+        assert!(maxdiff(&k, &ck) < 1e-6);
+        assert!(maxdiff(&v, &cv) < 1e-6);
+        // written at offset 3, nothing before it
+        assert!(maxdiff(&kb.narrow(2, 3, 5).expect("narrow"), &ck) < 1e-6);
+        assert!(maxdiff(&vb.narrow(2, 3, 5).expect("narrow"), &cv) < 1e-6);
+        let head = kb.narrow(2, 0, 3).expect("narrow");
+        assert_eq!(maxdiff(&head, &head.zeros_like().expect("zeros")), 0.0);
+        // only K/V columns
+        let kv = y.narrow(2, 32, 32).expect("kv");
+        let kv_heads = Heads { q: 0, ..heads };
+        let (none, k2, _) = qkv_rope(&kv, kv_heads, &rope, None).expect("kv only");
+        assert!(none.is_none());
+        assert!(maxdiff(&k2, &ck) < 1e-6);
+    }
+
+    #[test]
+    fn split_gelu_and_dense_match_the_composition() {
+        let y = rand(&[2, 6, 3 * 16], 5);
+        let (q, k, v) = split_qkv(&y, 2, 8).expect("fast");
+        let (cq, ck, cv) = split_qkv_composed(&y, 2, 8).expect("composed");
+        for (a, b) in [(&q, &cq), (&k, &ck), (&v, &cv)] {
+            assert_eq!(maxdiff(a, b), 0.0);
+        }
+        let gu = rand(&[2, 3, 2 * 24], 6);
+        let h = gelu_mul(&gu, 24).expect("fast");
+        let comp = (gu.narrow(2, 0, 24).and_then(|g| g.gelu()).expect("gelu")
+            * gu.narrow(2, 24, 24).expect("up"))
+        .expect("mul");
+        assert!(maxdiff(&h, &comp) < 1e-5);
+        // a dense layer with bias, gelu and residual, packed (where this CPU has the kernel)
+        let (x, w, b, r) = (
+            rand(&[2, 3, 16], 7),
+            rand(&[24, 16], 8),
+            rand(&[24], 9),
+            rand(&[2, 3, 24], 10),
+        );
+        let packed = PackedRhs::pack_weight(&w, crate::packed::Precision::F32)
+            .expect("pack")
+            .map(|p| p.with_bias(b.to_vec1().expect("bias")));
+        let fast = dense(&x, &w, &b, packed.as_ref(), true, Some(&r)).expect("dense");
+        let comp = (linear(&x, &w, &b).and_then(|y| y.gelu()).expect("linear") + &r).expect("add");
+        assert!(maxdiff(&fast, &comp) < 1e-5, "{}", maxdiff(&fast, &comp));
     }
 }
