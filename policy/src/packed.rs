@@ -17,6 +17,9 @@
 //!   in panels [N/32][K/2][32][2] (the pair order `vdpbf16ps` reads); `x` rounded per call;
 //!   products accumulated in f32.
 //! - `Amx`: bf16 on Intel AMX tiles ([`super::amx`]), preferred for bf16 where it runs.
+//! - `Bf16Wide` on AVX2 + FMA (bf16 without AVX512-BF16): `W` rounded to bf16 once, in the f32
+//!   panel layout [N/32][K][32] at half the bytes, widened to f32 in the kernel (two shifts per
+//!   16 values); `x` stays f32, products in f32. The AVX2 f32 tile otherwise.
 //!
 //! Without AVX-512 or AVX2 + FMA nothing is packed ([`PackedRhs::pack`] returns `None`) and
 //! callers keep candle's matmul (the portable fallback; [`set_enabled`]`(false)` forces it).
@@ -157,13 +160,17 @@ pub fn enabled() -> bool {
     !DISABLED.load(std::sync::atomic::Ordering::Relaxed)
 }
 
-/// The bf16 backend this CPU would use: "amx", "avx512-bf16", or `None`.
+/// The bf16 backend this CPU would use: "amx", "avx512-bf16", "avx2, bf16 weights" (the
+/// weights in bf16, widened to f32 in the kernel), or `None`.
 pub fn bf16_backend() -> Option<&'static str> {
     let s = support();
-    if s.amx {
+    let wide = use_avx512();
+    if s.amx && wide {
         Some("amx")
-    } else if s.avx512_bf16 {
+    } else if s.avx512_bf16 && wide {
         Some("avx512-bf16")
+    } else if s.avx2_fma {
+        Some("avx2, bf16 weights")
     } else {
         None
     }
@@ -176,6 +183,8 @@ enum Data {
     /// [N/32][Kp/2][32][2], Kp = K rounded up to even.
     Bf16(Vec<u16>),
     Amx(amx::PackedWeight),
+    /// [N/32][K][32] bf16, widened to f32 by the AVX2 kernel.
+    Bf16Wide(Vec<u16>),
 }
 
 /// A right-hand side `W` [K, N] packed for one of the kernels.
@@ -216,8 +225,8 @@ impl PackedRhs {
                 }
                 Data::F32(d)
             }
-            Precision::Bf16 if s.amx => Data::Amx(amx::PackedWeight::pack(k, n, w)),
-            Precision::Bf16 if s.avx512_bf16 => {
+            Precision::Bf16 if s.amx && use_avx512() => Data::Amx(amx::PackedWeight::pack(k, n, w)),
+            Precision::Bf16 if s.avx512_bf16 && use_avx512() => {
                 let kp = k.div_ceil(2);
                 let mut d = vec![0u16; panels(n) * kp * NR * 2];
                 for (p, panel) in d.chunks_exact_mut(kp * NR * 2).enumerate() {
@@ -234,6 +243,20 @@ impl PackedRhs {
                     }
                 }
                 Data::Bf16(d)
+            }
+            Precision::Bf16 if s.avx2_fma => {
+                let mut d = vec![0u16; panels(n) * k * NR];
+                for (p, panel) in d.chunks_exact_mut(k * NR).enumerate() {
+                    for (kk, row) in panel.chunks_exact_mut(NR).enumerate() {
+                        for (c, v) in row.iter_mut().enumerate() {
+                            let col = p * NR + c;
+                            if col < n {
+                                *v = amx::bf16(w(kk, col));
+                            }
+                        }
+                    }
+                }
+                Data::Bf16Wide(d)
             }
             _ => return None,
         };
@@ -297,7 +320,7 @@ impl PackedRhs {
     pub fn precision(&self) -> Precision {
         match self.data {
             Data::F32(_) => Precision::F32,
-            Data::Bf16(_) | Data::Amx(_) => Precision::Bf16,
+            Data::Bf16(_) | Data::Amx(_) | Data::Bf16Wide(_) => Precision::Bf16,
         }
     }
 
@@ -305,7 +328,7 @@ impl PackedRhs {
     pub fn bytes(&self) -> usize {
         match &self.data {
             Data::F32(d) => d.len() * 4,
-            Data::Bf16(d) => d.len() * 2,
+            Data::Bf16(d) | Data::Bf16Wide(d) => d.len() * 2,
             Data::Amx(w) => w.bytes(),
         }
     }
@@ -456,6 +479,13 @@ impl PackedRhs {
                     });
                 });
             }
+            Data::Bf16Wide(d) => {
+                let job = job(a.as_ptr(), lda, d.as_ptr() as *const u8);
+                split_panels(job, threads, |j, r| {
+                    // SAFETY: Bf16Wide data exists only where AVX2 + FMA runs; as above.
+                    unsafe { x86::bf16w_panels_avx2(j, r) }
+                });
+            }
             Data::Amx(w) => {
                 let mut packed = Vec::with_capacity(m * self.k);
                 for r in 0..m {
@@ -542,6 +572,7 @@ mod x86 {
     pub(super) unsafe fn f32_panels(_: Job, _: std::ops::Range<usize>) {}
     pub(super) unsafe fn f32_panels_avx2(_: Job, _: std::ops::Range<usize>) {}
     pub(super) unsafe fn bf16_panels(_: Job, _: std::ops::Range<usize>) {}
+    pub(super) unsafe fn bf16w_panels_avx2(_: Job, _: std::ops::Range<usize>) {}
 }
 
 #[cfg(test)]

@@ -127,20 +127,20 @@ unsafe fn panel_bias(j: &Job, p: usize) -> *const f32 {
 }
 
 macro_rules! dispatch_rows {
-    ($f:ident, $r:expr, $($arg:expr),*) => {
+    ($f:ident $(<$t:ty>)?, $r:expr, $($arg:expr),*) => {
         match $r {
-            12 => $f::<12>($($arg),*),
-            11 => $f::<11>($($arg),*),
-            10 => $f::<10>($($arg),*),
-            9 => $f::<9>($($arg),*),
-            8 => $f::<8>($($arg),*),
-            7 => $f::<7>($($arg),*),
-            6 => $f::<6>($($arg),*),
-            5 => $f::<5>($($arg),*),
-            4 => $f::<4>($($arg),*),
-            3 => $f::<3>($($arg),*),
-            2 => $f::<2>($($arg),*),
-            _ => $f::<1>($($arg),*),
+            12 => $f::<$($t,)? 12>($($arg),*),
+            11 => $f::<$($t,)? 11>($($arg),*),
+            10 => $f::<$($t,)? 10>($($arg),*),
+            9 => $f::<$($t,)? 9>($($arg),*),
+            8 => $f::<$($t,)? 8>($($arg),*),
+            7 => $f::<$($t,)? 7>($($arg),*),
+            6 => $f::<$($t,)? 6>($($arg),*),
+            5 => $f::<$($t,)? 5>($($arg),*),
+            4 => $f::<$($t,)? 4>($($arg),*),
+            3 => $f::<$($t,)? 3>($($arg),*),
+            2 => $f::<$($t,)? 2>($($arg),*),
+            _ => $f::<$($t,)? 1>($($arg),*),
         }
     };
 }
@@ -230,16 +230,38 @@ unsafe fn store_avx2<const R: usize>(
     }
 }
 
+/// An element of the AVX2 kernel's weight panels: f32, or bf16 widened to f32 as it is loaded
+/// (a bf16 is the high half of an f32).
+trait PanelElem: Copy {
+    /// Eight consecutive values at `p` as f32.
+    unsafe fn load8(p: *const Self) -> __m256;
+}
+
+impl PanelElem for f32 {
+    #[inline(always)]
+    unsafe fn load8(p: *const f32) -> __m256 {
+        _mm256_loadu_ps(p)
+    }
+}
+
+impl PanelElem for u16 {
+    #[inline(always)]
+    unsafe fn load8(p: *const u16) -> __m256 {
+        let h = _mm_loadu_si128(p as *const __m128i);
+        _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_cvtepu16_epi32(h)))
+    }
+}
+
 /// `R` rows × 16 columns (half a panel: `b` at the half's first column, rows [`NR`] apart)
 /// over `kc` values of K, with AVX2 + FMA.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-unsafe fn tile_f32_avx2<const R: usize>(
+unsafe fn tile_avx2<T: PanelElem, const R: usize>(
     kc: usize,
     a: *const f32,
     lda: usize,
-    b: *const f32,
+    b: *const T,
     c: *mut f32,
     ldc: usize,
     ncols: usize,
@@ -249,8 +271,8 @@ unsafe fn tile_f32_avx2<const R: usize>(
     let mut acc0 = [_mm256_setzero_ps(); R];
     let mut acc1 = [_mm256_setzero_ps(); R];
     for p in 0..kc {
-        let b0 = _mm256_loadu_ps(b.add(p * NR));
-        let b1 = _mm256_loadu_ps(b.add(p * NR + 8));
+        let b0 = T::load8(b.add(p * NR));
+        let b1 = T::load8(b.add(p * NR + 8));
         for i in 0..R {
             let av = _mm256_broadcast_ss(&*a.add(i * lda + p));
             acc0[i] = _mm256_fmadd_ps(av, b0, acc0[i]);
@@ -260,14 +282,12 @@ unsafe fn tile_f32_avx2<const R: usize>(
     store_avx2(&acc0, &acc1, c, ldc, ncols, first, bias);
 }
 
-/// The f32 product for the panels `r` with AVX2 + FMA (the same packing as the AVX-512
-/// kernel; each panel as two halves of 16 columns).
-///
-/// # Safety
-/// AVX2 and FMA; `j.b` points to f32 panels [N/32][K][32]; the pointers cover the shapes.
+/// The product for the panels `r` with AVX2 + FMA over weight panels [N/32][K][32] of `T`
+/// (the AVX-512 kernel's f32 packing, or its bf16 copy); each panel as two halves of 16
+/// columns.
 #[target_feature(enable = "avx2,fma")]
-pub(super) unsafe fn f32_panels_avx2(j: Job, r: std::ops::Range<usize>) {
-    let b = j.b as *const f32;
+unsafe fn panels_avx2<T: PanelElem>(j: Job, r: std::ops::Range<usize>) {
+    let b = j.b as *const T;
     let mut k0 = 0;
     while k0 < j.k {
         let kc = KC_F32.min(j.k - k0);
@@ -291,7 +311,7 @@ pub(super) unsafe fn f32_panels_avx2(j: Job, r: std::ops::Range<usize>) {
                     let a = j.a.add(m0 * j.lda + k0);
                     let c = j.c.add(m0 * j.ldc + p * NR + 16 * half);
                     dispatch_rows!(
-                        tile_f32_avx2,
+                        tile_avx2<T>,
                         rows,
                         kc,
                         a,
@@ -309,6 +329,27 @@ pub(super) unsafe fn f32_panels_avx2(j: Job, r: std::ops::Range<usize>) {
         }
         k0 += kc;
     }
+}
+
+/// The f32 product for the panels `r` with AVX2 + FMA (the same packing as the AVX-512
+/// kernel).
+///
+/// # Safety
+/// AVX2 and FMA; `j.b` points to f32 panels [N/32][K][32]; the pointers cover the shapes.
+#[target_feature(enable = "avx2,fma")]
+pub(super) unsafe fn f32_panels_avx2(j: Job, r: std::ops::Range<usize>) {
+    panels_avx2::<f32>(j, r)
+}
+
+/// The product against bf16 weights for the panels `r` with AVX2 + FMA: `x` in f32, the
+/// weights widened to f32 in the kernel.
+///
+/// # Safety
+/// AVX2 and FMA; `j.a` points to f32 rows, `j.b` to bf16 panels [N/32][K][32]; the pointers
+/// cover the shapes.
+#[target_feature(enable = "avx2,fma")]
+pub(super) unsafe fn bf16w_panels_avx2(j: Job, r: std::ops::Range<usize>) {
+    panels_avx2::<u16>(j, r)
 }
 
 /// The bf16 product for the panels `r`.
