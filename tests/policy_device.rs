@@ -226,6 +226,57 @@ fn fixed_step_layout_equals_the_compact_one() {
     }
 }
 
+/// RTC's guided loop (identity Jacobian, the default) as a captured CUDA graph gives the eager
+/// guided sampler's actions for a new observation and a new target every call. GPU only.
+#[test]
+fn cuda_guided_graph_replays_the_eager_guided_loop() {
+    use chunkrt::policy::bench::{device_bench_config, random_inputs_on, random_model_on};
+    use chunkrt::policy::graph::SampleGraph;
+    use chunkrt::policy::rtc::{sample_guided, weight_mask, GuidanceTarget, Jacobian};
+    let Some(dev) = cuda() else { return };
+    let (cfg, valid) = device_bench_config("pi05_bench").unwrap();
+    let (steps, h, a) = (cfg.num_denoise_steps, cfg.action_horizon, cfg.action_dim);
+    let mut w = vec![0.0f32; h];
+    for (i, w) in w.iter_mut().enumerate().take(h / 2) {
+        *w = 1.0 - i as f32 / h as f32;
+    }
+    for (dtype, tol) in [(DType::F32, 1e-5), (DType::BF16, 2e-2)] {
+        let model = random_model_on(&cfg, &dev, dtype, 7).unwrap();
+        let mut cache = None;
+        let mut graph: Option<SampleGraph> = None;
+        for obs in 0..4u64 {
+            let inp = random_inputs_on(&cfg, valid - 3 * obs as usize, 200 + obs, &dev).unwrap();
+            let noise = Tensor::randn(0f32, 1f32, (1, h, a), &dev).unwrap();
+            let target = GuidanceTarget {
+                y: Tensor::randn(0f32, 1f32, (1, h, a), &dev).unwrap(),
+                w: weight_mask(&w, a - 1, a, &dev).unwrap(),
+                beta: 10.0,
+                jacobian: Jacobian::Identity,
+            };
+            let eager = sample_guided(&model, &inp, &noise, steps, &mut cache, &target).unwrap();
+            let c = model.prepare_prefix(&inp, &mut cache, true).unwrap();
+            match &graph {
+                None => {
+                    graph = SampleGraph::capture_guided(&model, c, &noise, steps, &target)
+                        .unwrap()
+                        .1;
+                    assert!(graph.is_some(), "a CUDA model captures its guided sample");
+                }
+                Some(g) => {
+                    assert!(g.fits_guided(c, steps, &target));
+                    assert!(!g.fits(c, steps), "a guided graph is not the plain one");
+                    let r = g.run_guided(&noise, &target).unwrap();
+                    let d = rel_maxdiff(&r.actions, &eager.actions);
+                    println!(
+                        "{dtype:?} observation {obs}: guided graph vs eager max |diff| / RMS {d:.2e}"
+                    );
+                    assert!(d < tol, "{dtype:?} observation {obs}: {d}");
+                }
+            }
+        }
+    }
+}
+
 /// The whole sample as a captured CUDA graph gives the eager run's actions for a new
 /// observation every call (new images, a prompt of another length, new noise): nothing stale is
 /// captured. GPU only.

@@ -406,3 +406,58 @@ fn bad_guidance_is_an_error_not_a_panic() {
         h * n
     );
 }
+
+/// What a GPU captures for RTC's guided loop (`SampleGraph::capture_guided`: the prefix pass on
+/// the prepared cache, then `rtc::denoise_guided`) is the eager guided sampler, to the last bit;
+/// on the CPU no graph is made and the eager result is returned. Another target changes the
+/// result (the target is read from its buffers, not baked in). The replay on a GPU is checked
+/// in `tests/policy_device.rs`.
+#[test]
+fn the_guided_loop_a_gpu_captures_is_the_eager_guided_sampler() {
+    use chunkrt::policy::graph::SampleGraph;
+    use chunkrt::policy::rtc::sample_guided;
+    let (frames, state) = fixture();
+    let raw = raw_frames(&frames);
+    let obs = RawObservation {
+        frames: &raw,
+        joint_positions: &state,
+        prompt: "pick up the red block",
+    };
+    let mut p = policy();
+    let inputs = p.prepare(&obs).unwrap();
+    let model = p.model();
+    let (h, a) = (model.cfg.action_horizon, model.cfg.action_dim);
+    let steps = model.cfg.num_denoise_steps;
+    let x = noise(h, a, 11);
+    let target = |seed: u64| GuidanceTarget {
+        y: noise(h, a, seed),
+        w: weight_mask(
+            &[1.0, 1.0, 1.0, 0.5, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0],
+            state.len(),
+            a,
+            &Device::Cpu,
+        )
+        .unwrap(),
+        beta: 10.0,
+        jacobian: Jacobian::Identity,
+    };
+    let mut cache = None;
+    let eager = sample_guided(model, &inputs, &x, steps, &mut cache, &target(12)).unwrap();
+    let mut gcache = None;
+    let c = model.prepare_prefix(&inputs, &mut gcache, true).unwrap();
+    let (out, graph) = SampleGraph::capture_guided(model, c, &x, steps, &target(12)).unwrap();
+    assert!(graph.is_none(), "no CUDA graph on the CPU");
+    assert_eq!(maxdiff(&out.actions, &eager.actions), 0.0);
+    let c = model.prepare_prefix(&inputs, &mut gcache, true).unwrap();
+    let (other, _) = SampleGraph::capture_guided(model, c, &x, steps, &target(13)).unwrap();
+    let d = maxdiff(&other.actions, &eager.actions);
+    println!("guided loop: another target moves the actions by {d:.4}");
+    assert!(d > 1e-3, "the target had no effect ({d})");
+    // the VJP's backward is not captured
+    let vjp = GuidanceTarget {
+        jacobian: Jacobian::Vjp,
+        ..target(12)
+    };
+    let c = model.prepare_prefix(&inputs, &mut gcache, true).unwrap();
+    assert!(SampleGraph::capture_guided(model, c, &x, steps, &vjp).is_err());
+}

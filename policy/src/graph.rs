@@ -10,6 +10,11 @@
 //! launch per observation: the vision tower, the VLM prefix pass filling the KV cache, and every
 //! denoising step.
 //!
+//! RTC's guided loop with the identity Jacobian (`rtc_jacobian = "identity"`, the default) is
+//! captured the same way ([`SampleGraph::capture_guided`]): its target Y and weights W are two
+//! more buffers the graph reads, written before each replay; β and the steps are part of the
+//! graph (another β captures again).
+//!
 //! Self-checking: the first replay is compared with the eager run on the same inputs (the same
 //! kernels in the same order, so they must agree to rounding); on any capture error or mismatch
 //! the graph is dropped and the runtime stays eager, with a warning. Without the `cuda` feature
@@ -18,6 +23,7 @@
 use candle_core::{DType, Tensor, TensorId};
 
 use crate::model::{PiModel, PrefixCache, SampleOutput};
+use crate::rtc::{GuidanceTarget, Jacobian};
 use crate::PolicyError;
 
 /// What the captures and replays share.
@@ -98,6 +104,8 @@ pub struct SampleGraph {
     steps: usize,
     /// Identity of every buffer the graph reads (KV cache, the observation's buffers).
     buffers: Vec<TensorId>,
+    /// The guidance target's buffers (a guided loop), `None` for the plain sampler.
+    guide: Option<GuidanceTarget>,
 }
 
 // SAFETY: cudarc's CudaGraph holds raw driver handles and is not Sync; the driver requires that
@@ -153,14 +161,55 @@ fn buffer_ids(cache: &PrefixCache) -> Vec<TensorId> {
 }
 
 impl SampleGraph {
-    /// Whether `self` was captured against `cache`'s buffers for `steps` steps.
+    /// Whether `self` was captured against `cache`'s buffers for `steps` steps (plain sampler).
     pub fn fits(&self, cache: &PrefixCache, steps: usize) -> bool {
+        self.guide.is_none() && self.fits_cache(cache, steps)
+    }
+
+    /// [`Self::fits`] for a guided loop towards targets shaped as `target`, with its β.
+    pub fn fits_guided(&self, cache: &PrefixCache, steps: usize, target: &GuidanceTarget) -> bool {
+        let same = |g: &GuidanceTarget| {
+            g.beta == target.beta
+                && g.jacobian == target.jacobian
+                && g.y.dims() == target.y.dims()
+                && g.w.dims() == target.w.dims()
+        };
+        self.guide.as_ref().is_some_and(same) && self.fits_cache(cache, steps)
+    }
+
+    fn fits_cache(&self, cache: &PrefixCache, steps: usize) -> bool {
         self.steps == steps && cache.rows.is_empty() && self.buffers == buffer_ids(cache)
     }
 
     /// Replays prefix pass and loop for the observation [`PiModel::prepare_prefix`] copied
     /// into the cache the graph was captured with, from `noise` [B, H, A].
     pub fn run(&self, noise: &Tensor) -> Result<SampleOutput, PolicyError> {
+        if self.guide.is_some() {
+            return Err(PolicyError::Input(
+                "a guided graph replays with its target (run_guided)".into(),
+            ));
+        }
+        self.replay(noise)
+    }
+
+    /// [`Self::run`] for a guided graph, towards `target` (shaped as the captured one,
+    /// [`Self::fits_guided`]): its Y and W are copied into the graph's buffers first.
+    pub fn run_guided(
+        &self,
+        noise: &Tensor,
+        target: &GuidanceTarget,
+    ) -> Result<SampleOutput, PolicyError> {
+        let Some(g) = &self.guide else {
+            return Err(PolicyError::Input(
+                "a plain graph has no guidance target".into(),
+            ));
+        };
+        g.y.slice_set(&target.y.to_dtype(DType::F32)?.contiguous()?, 0, 0)?;
+        g.w.slice_set(&target.w.to_dtype(DType::F32)?.contiguous()?, 0, 0)?;
+        self.replay(noise)
+    }
+
+    fn replay(&self, noise: &Tensor) -> Result<SampleOutput, PolicyError> {
         self.noise
             .slice_set(&noise.to_dtype(DType::F32)?.contiguous()?, 0, 0)?;
         self.launch()?;
@@ -186,16 +235,54 @@ impl SampleGraph {
     /// observation), captures it, and checks the first replay against the eager result, which
     /// is returned with the graph. `Ok((eager, None))`: no graph applies here (CPU, no `cuda`
     /// feature, compact layout).
-    #[allow(unused_variables)]
     pub fn capture(
         model: &PiModel,
         cache: &PrefixCache,
         noise: &Tensor,
         steps: usize,
     ) -> Result<(SampleOutput, Option<Self>), PolicyError> {
+        Self::capture_with(model, cache, noise, steps, None)
+    }
+
+    /// [`Self::capture`] of RTC's guided loop towards `target` ([`crate::rtc::denoise_guided`];
+    /// checked with `rtc::check_target`, identity Jacobian only: the VJP runs autograd's
+    /// backward, which is not captured). Replays with [`Self::run_guided`].
+    pub fn capture_guided(
+        model: &PiModel,
+        cache: &PrefixCache,
+        noise: &Tensor,
+        steps: usize,
+        target: &GuidanceTarget,
+    ) -> Result<(SampleOutput, Option<Self>), PolicyError> {
+        if target.jacobian != Jacobian::Identity {
+            return Err(PolicyError::Config(
+                "only the identity Jacobian's guided loop is captured".into(),
+            ));
+        }
+        // the graph's own copies of Y and W, rewritten before every replay
+        let guide = GuidanceTarget {
+            y: target.y.to_dtype(DType::F32)?.contiguous()?.copy()?,
+            w: target.w.to_dtype(DType::F32)?.contiguous()?.copy()?,
+            beta: target.beta,
+            jacobian: target.jacobian,
+        };
+        Self::capture_with(model, cache, noise, steps, Some(guide))
+    }
+
+    #[allow(unused_variables)]
+    fn capture_with(
+        model: &PiModel,
+        cache: &PrefixCache,
+        noise: &Tensor,
+        steps: usize,
+        guide: Option<GuidanceTarget>,
+    ) -> Result<(SampleOutput, Option<Self>), PolicyError> {
         let once = |x: &Tensor| -> Result<SampleOutput, PolicyError> {
             model.run_prefix(cache, None, false)?;
-            model.denoise(cache, x, steps)
+            match &guide {
+                Some(g) => crate::rtc::denoise_guided(model, cache, x, steps, g),
+                None => model.denoise(cache, x, steps),
+            }
         };
         #[cfg(feature = "cuda")]
         {
@@ -223,8 +310,9 @@ impl SampleGraph {
                 times: captured.times,
                 steps,
                 buffers: buffer_ids(cache),
+                guide,
             };
-            let replay = g.run(noise)?;
+            let replay = g.replay(noise)?;
             let d = (&replay.actions - &eager.actions)?
                 .abs()?
                 .max_all()?

@@ -311,7 +311,11 @@ pub fn guided_velocity(
 
 /// Checks a guidance target against the sampler's shapes; `Ok(false)` when it guides nothing
 /// (β = 0 or all weights zero) so the plain sampler can run.
-fn check_target(model: &PiModel, b: usize, target: &GuidanceTarget) -> Result<bool, PolicyError> {
+pub(crate) fn check_target(
+    model: &PiModel,
+    b: usize,
+    target: &GuidanceTarget,
+) -> Result<bool, PolicyError> {
     let want = [b, model.cfg.action_horizon, model.cfg.action_dim];
     if target.y.dims() != want {
         return Err(PolicyError::Input(format!(
@@ -387,8 +391,21 @@ pub fn sample_guided(
     };
     model.fill_cache(inputs, cache, false)?;
     let c = cache.as_ref().expect("fill_cache stores the cache");
-    // the same integration as `PiModel::sample`, with the guided velocity
+    denoise_guided(model, c, noise, steps, &target)
+}
+
+/// The guided denoising loop against a filled prefix cache: the same integration as
+/// [`PiModel::denoise`] with the guided velocity. `target` checked ([`check_target`]), its Y and
+/// W f32 on the model's device. With the identity Jacobian every step stays on the device
+/// (no host round trip), so a GPU captures the loop as a graph ([`crate::graph`]).
+pub fn denoise_guided(
+    model: &PiModel,
+    cache: &PrefixCache,
+    noise: &Tensor,
+    steps: usize,
+    target: &GuidanceTarget,
+) -> Result<SampleOutput, PolicyError> {
     euler(noise, steps, |x, t| {
-        Ok(guided_velocity(model, c, x, t, &target)?.v_guided)
+        Ok(guided_velocity(model, cache, x, t, target)?.v_guided)
     })
 }

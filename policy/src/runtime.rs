@@ -16,7 +16,9 @@ use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
     NormMode, NormStats, PromptTokenizer,
 };
-use super::rtc::{model_space_actions, sample_guided, Guidance, GuidanceTarget};
+use super::rtc::{
+    check_target, model_space_actions, sample_guided, Guidance, GuidanceTarget, Jacobian,
+};
 use super::PolicyError;
 
 /// One camera frame as received over IPC (fields as in `CameraFrameHeader`).
@@ -72,9 +74,9 @@ pub struct Policy {
     /// Added to each action row after un-normalisation: the observed joint position on the
     /// model's delta dims (`ModelConfig::delta_action_mask`), 0 on the others.
     offsets: Vec<f64>,
-    /// The captured denoising loop (GPU), and whether to (still) try one.
-    graph: Option<SampleGraph>,
-    graph_on: bool,
+    /// The captured samples (GPU): [plain, RTC-guided], and whether to (still) try each.
+    graph: [Option<SampleGraph>; 2],
+    graph_on: [bool; 2],
 }
 
 /// How to load a policy (the controller builds this from its `[policy]` configuration).
@@ -196,8 +198,8 @@ impl Policy {
             images: Vec::new(),
             noise: Vec::new(),
             offsets: Vec::new(),
-            graph: None,
-            graph_on: opts.cuda_graph && opts.device.is_cuda(),
+            graph: [None, None],
+            graph_on: [opts.cuda_graph && opts.device.is_cuda(); 2],
         })
     }
 
@@ -208,41 +210,64 @@ impl Policy {
 
     /// Whether samples run as a captured CUDA graph (captured at the first call).
     pub fn uses_cuda_graph(&self) -> bool {
-        self.graph.is_some()
+        self.graph[0].is_some()
+    }
+
+    /// Whether RTC-guided samples run as a captured CUDA graph (captured at the first guided
+    /// call; the identity Jacobian only).
+    pub fn uses_guided_cuda_graph(&self) -> bool {
+        self.graph[1].is_some()
     }
 
     /// The cached sampler as one CUDA graph ([`super::graph`]): the host half of the prefix
     /// pass copies the observation into the cache's buffers, then one launch runs the vision
-    /// tower, the prefix pass and every denoising step. The first call captures the graph and
-    /// checks it against the eager run; a failure turns graphs off for this policy, with a
-    /// warning, and the eager result is used.
+    /// tower, the prefix pass and every denoising step (guided towards `guide` when given: RTC
+    /// with the identity Jacobian, its target copied into the graph's buffers). The first call
+    /// of each kind captures its graph and checks it against the eager run; a failure turns
+    /// that kind of graph off for this policy, with a warning, and the eager result is used.
     fn sample_graph(
         &mut self,
         inputs: &ModelInputs,
         noise: &Tensor,
+        guide: Option<&GuidanceTarget>,
     ) -> Result<super::model::SampleOutput, PolicyError> {
+        let slot = guide.is_some() as usize;
+        let what = ["sample", "RTC-guided sample"][slot];
         let cache = self.model.prepare_prefix(inputs, &mut self.cache, true)?;
-        if let Some(g) = self.graph.as_ref().filter(|g| g.fits(cache, self.steps)) {
-            return g.run(noise);
+        if let Some(g) = &self.graph[slot] {
+            match guide {
+                None if g.fits(cache, self.steps) => return g.run(noise),
+                Some(t) if g.fits_guided(cache, self.steps, t) => return g.run_guided(noise, t),
+                _ => {}
+            }
         }
-        self.graph = None;
-        match SampleGraph::capture(&self.model, cache, noise, self.steps) {
+        self.graph[slot] = None;
+        let captured = match guide {
+            None => SampleGraph::capture(&self.model, cache, noise, self.steps),
+            Some(t) => SampleGraph::capture_guided(&self.model, cache, noise, self.steps, t),
+        };
+        match captured {
             Ok((eager, Some(g))) => {
                 tracing::info!(
-                    "policy: sample (prefix pass and denoising loop) captured as a CUDA graph"
+                    "policy: {what} (prefix pass and denoising loop) captured as a CUDA graph"
                 );
-                self.graph = Some(g);
+                self.graph[slot] = Some(g);
                 Ok(eager)
             }
             Ok((eager, None)) => {
-                self.graph_on = false;
+                self.graph_on[slot] = false;
                 Ok(eager)
             }
             Err(e) => {
-                tracing::warn!("policy: CUDA graph capture failed, running eagerly: {e}");
-                self.graph_on = false;
+                tracing::warn!(
+                    "policy: CUDA graph capture of the {what} failed, running eagerly: {e}"
+                );
+                self.graph_on[slot] = false;
                 self.model.run_prefix(cache, None, false)?;
-                self.model.denoise(cache, noise, self.steps)
+                match guide {
+                    None => self.model.denoise(cache, noise, self.steps),
+                    Some(t) => super::rtc::denoise_guided(&self.model, cache, noise, self.steps, t),
+                }
             }
         }
     }
@@ -452,7 +477,17 @@ impl Policy {
         }
         self.noise.truncate(n);
         let noise = Tensor::from_slice(&self.noise, (1, cfg.action_horizon, cfg.action_dim), &dev)?;
+        // RTC guidance that guides nothing (β = 0, all weights zero) is the plain sampler
+        let how = match how {
+            Continue::Guided(g) if !check_target(&self.model, inputs.batch(), g)? => {
+                Continue::Fresh
+            }
+            how => how,
+        };
         let out = match how {
+            Continue::Guided(g) if self.graph_on[1] && g.jacobian == Jacobian::Identity => {
+                self.sample_graph(inputs, &noise, Some(g))?
+            }
             Continue::Guided(g) => {
                 sample_guided(&self.model, inputs, &noise, self.steps, &mut self.cache, g)?
             }
@@ -465,7 +500,7 @@ impl Policy {
                 self.model
                     .denoise_committed(cache, &noise, self.steps, y, &[d])?
             }
-            Continue::Fresh if self.graph_on => self.sample_graph(inputs, &noise)?,
+            Continue::Fresh if self.graph_on[0] => self.sample_graph(inputs, &noise, None)?,
             Continue::Fresh => {
                 self.model
                     .sample(inputs, &noise, self.steps, Some(&mut self.cache))?

@@ -299,6 +299,13 @@ impl std::fmt::Display for DeviceReport {
         if let Some(g) = &self.graph {
             writeln!(f, "sample as one CUDA graph: {g}")?;
         }
+        if let Some((g50, u50)) = self.p50s("sample_graph_guided", "sample_graph") {
+            writeln!(
+                f,
+                "RTC-guided sample (identity Jacobian) as one CUDA graph p50 {g50:.2} ms = {:.2}x the plain graph",
+                g50 / u50.max(1e-9)
+            )?;
+        }
         if let Some(a) = &self.accuracy {
             writeln!(f, "accuracy: {a}")?;
         }
@@ -517,6 +524,37 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         }
         Ok((_, None)) => {}
         Err(e) => graph_note = Some(format!("capture failed: {e}")),
+    }
+    // RTC's guided sample (identity Jacobian, the default) as one captured graph, with the
+    // first half of the chunk guided towards a previous chunk; its target is rewritten before
+    // every replay, as the runtime does
+    let mut w = vec![0f32; cfg.action_horizon];
+    for (i, w) in w.iter_mut().enumerate().take(cfg.action_horizon / 2) {
+        *w = 1.0 - i as f32 / cfg.action_horizon as f32;
+    }
+    let target = crate::rtc::GuidanceTarget {
+        y: noise.zeros_like()?,
+        w: crate::rtc::weight_mask(&w, cfg.action_dim, cfg.action_dim, dev)?,
+        beta: 10.0,
+        jacobian: crate::rtc::Jacobian::Identity,
+    };
+    let c = model.prepare_prefix(&inp, &mut scache, true)?;
+    match crate::graph::SampleGraph::capture_guided(&model, c, &noise, steps, &target) {
+        Ok((_, Some(g))) => {
+            let mut flip = false;
+            time("sample_graph_guided", opts.calls, &mut || {
+                flip = !flip;
+                model.prepare_prefix(if flip { &inp2 } else { &inp }, &mut scache, true)?;
+                let out = g.run_guided(&noise, &target)?;
+                out.actions.flatten_all()?.to_vec1::<f32>()?;
+                Ok(())
+            })?;
+        }
+        Ok((_, None)) => {}
+        Err(e) => {
+            let note = graph_note.get_or_insert_with(String::new);
+            note.push_str(&format!("; guided capture failed: {e}"));
+        }
     }
     // bf16 against an f32 model with the same weights (eager, same observation and noise)
     let mut accuracy = None;
