@@ -82,6 +82,9 @@ pub struct ConfigReport {
     pub bf16_rel_action_diff: Option<f64>,
     /// Denoising steps of a sample.
     pub steps: usize,
+    /// The interleaved full samples split into their parts, means over the same samples (ms):
+    /// vision (image and token embeddings), prefix pass, denoising loop, whole sample.
+    pub split_ms: Option<[f64; 4]>,
     /// openpi's `sample_actions` timed in this run, interleaved with the variants' full samples
     /// (phase `sample`), and what its worker reported; `None`: the stored figure
     /// [`ConfigReport::openpi_s`] is the reference.
@@ -89,16 +92,6 @@ pub struct ConfigReport {
 }
 
 impl ConfigReport {
-    /// (vision + prefix + steps × cached step, the full cached sample), p50 ms: whether the
-    /// phases account for the sample.
-    pub fn phase_sum_ms(&self) -> Option<(f64, f64)> {
-        let p = |n: &str| self.phase(n).map(|p| p.p50_ms);
-        Some((
-            p("vision")? + p("prefix")? + self.steps as f64 * p("step_cached")?,
-            p("sample_cached")?,
-        ))
-    }
-
     /// A short name of the variant: `f32`, `bf16` or `f32_candle` (the in-run baseline).
     pub fn tag(&self) -> String {
         if self.kernels.contains("baseline") {
@@ -203,12 +196,14 @@ impl std::fmt::Display for BenchReport {
                     p.flops / (p.cpu_ms * 1e-3) / 1e9
                 )?;
             }
-            if let Some((sum, total)) = c.phase_sum_ms() {
+            if let Some([v, p, l, t]) = c.split_ms {
+                let alone = c.phase("step_cached").map_or(0.0, |s| s.p50_ms);
                 writeln!(
                     f,
-                    "phases: vision + prefix + {} x cached step = {sum:.1} ms of the sample's {total:.1} ms ({:+.1} ms outside every phase)",
+                    "the full samples split (means of the same samples): vision {v:.1} + prefix {p:.1} + {} steps {l:.1} ({:.2} a step; {alone:.2} timed alone) = {:.1} of {t:.1} ms",
                     c.steps,
-                    total - sum
+                    l / c.steps.max(1) as f64,
+                    v + p + l,
                 )?;
             }
             if let Some((p, info)) = &c.openpi_same_run {
@@ -564,6 +559,7 @@ pub fn run_configs(
             },
             steps,
             openpi_same_run: None,
+            split_ms: None,
         });
     }
     // openpi's worker builds and warms up its model before the first round
@@ -576,14 +572,34 @@ pub fn run_configs(
     let mut full: Vec<Vec<u64>> = vec![Vec::new(); variants.len()];
     let mut cpu: Vec<Vec<u64>> = vec![Vec::new(); variants.len()];
     let mut caches: Vec<_> = variants.iter().map(|_| None).collect();
+    // per variant, summed over the counted rounds: vision, prefix, loop, whole sample (ms)
+    let mut split = vec![[0f64; 4]; variants.len()];
     for round in 0..=rounds {
         for (i, var) in variants.iter().enumerate() {
             let (t0, c0) = (Instant::now(), cpu_us());
-            var.with(|model| model.sample(&inp, &noise, steps, Some(&mut caches[i])))?;
+            // `PiModel::sample` with a cache, in its three parts, each timed
+            let parts = var.with(|model| -> Result<[f64; 3], PolicyError> {
+                let embs = model.embed_prefix(&inp)?;
+                let t1 = t0.elapsed();
+                model.fill_cache_from_embs(&inp, &embs, &mut caches[i], false)?;
+                let t2 = t0.elapsed();
+                let c = caches[i]
+                    .as_ref()
+                    .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
+                model.denoise(c, &noise, steps)?;
+                let t3 = t0.elapsed();
+                let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
+                Ok([ms(t1), ms(t2 - t1), ms(t3 - t2)])
+            })?;
             // round 0 warms the caches up and is not counted
             if round > 0 {
-                full[i].push(t0.elapsed().as_micros().max(1) as u64);
+                let wall = t0.elapsed();
+                full[i].push(wall.as_micros().max(1) as u64);
                 cpu[i].push(cpu_us().saturating_sub(c0).max(1));
+                for (acc, v) in split[i].iter_mut().zip(parts) {
+                    *acc += v;
+                }
+                split[i][3] += wall.as_secs_f64() * 1e3;
             }
         }
         if let Some(w) = worker.as_mut() {
@@ -607,6 +623,10 @@ pub fn run_configs(
     for (r, (wall, cpu)) in reports.iter_mut().zip(full.iter().zip(&cpu)) {
         r.phases
             .push(phase_from("sample_cached", total, wall, cpu)?);
+    }
+    let counted = rounds.max(1) as f64;
+    for (r, s) in reports.iter_mut().zip(&split) {
+        r.split_ms = Some(s.map(|v| v / counted));
     }
     Ok(reports)
 }
