@@ -201,6 +201,23 @@ fn panels(n: usize) -> usize {
     n.div_ceil(NR)
 }
 
+/// `w(k, n)` [K, N] in panels [N/32][K][32] (zero past column N): the f32 kernels' layout,
+/// in f32 or in bf16.
+fn panel_layout<T: Copy + Default>(k: usize, n: usize, w: &impl Fn(usize, usize) -> T) -> Vec<T> {
+    let mut d = vec![T::default(); panels(n) * k * NR];
+    for (p, panel) in d.chunks_exact_mut(k * NR).enumerate() {
+        for (kk, row) in panel.chunks_exact_mut(NR).enumerate() {
+            for (c, v) in row.iter_mut().enumerate() {
+                let col = p * NR + c;
+                if col < n {
+                    *v = w(kk, col);
+                }
+            }
+        }
+    }
+    d
+}
+
 impl PackedRhs {
     /// Packs `w(k, n)` [K, N] for `precision`; `None` when this CPU has no kernel for it.
     pub fn pack_with(
@@ -211,20 +228,7 @@ impl PackedRhs {
     ) -> Option<Self> {
         let s = support();
         let data = match precision {
-            Precision::F32 if s.f32_packed() => {
-                let mut d = vec![0f32; panels(n) * k * NR];
-                for (p, panel) in d.chunks_exact_mut(k * NR).enumerate() {
-                    for (kk, row) in panel.chunks_exact_mut(NR).enumerate() {
-                        for (c, v) in row.iter_mut().enumerate() {
-                            let col = p * NR + c;
-                            if col < n {
-                                *v = w(kk, col);
-                            }
-                        }
-                    }
-                }
-                Data::F32(d)
-            }
+            Precision::F32 if s.f32_packed() => Data::F32(panel_layout(k, n, &w)),
             Precision::Bf16 if s.amx && use_avx512() => Data::Amx(amx::PackedWeight::pack(k, n, w)),
             Precision::Bf16 if s.avx512_bf16 && use_avx512() => {
                 let kp = k.div_ceil(2);
@@ -245,18 +249,7 @@ impl PackedRhs {
                 Data::Bf16(d)
             }
             Precision::Bf16 if s.avx2_fma => {
-                let mut d = vec![0u16; panels(n) * k * NR];
-                for (p, panel) in d.chunks_exact_mut(k * NR).enumerate() {
-                    for (kk, row) in panel.chunks_exact_mut(NR).enumerate() {
-                        for (c, v) in row.iter_mut().enumerate() {
-                            let col = p * NR + c;
-                            if col < n {
-                                *v = amx::bf16(w(kk, col));
-                            }
-                        }
-                    }
-                }
-                Data::Bf16Wide(d)
+                Data::Bf16Wide(panel_layout(k, n, &|kk, col| amx::bf16(w(kk, col))))
             }
             _ => return None,
         };
