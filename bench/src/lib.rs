@@ -20,6 +20,7 @@ pub mod end_to_end;
 pub mod ipc_latency;
 pub mod load;
 pub mod periodic;
+pub mod ws;
 pub mod ws_baseline;
 pub mod ws_rust;
 

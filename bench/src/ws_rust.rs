@@ -27,7 +27,7 @@ use rand::{Rng, SeedableRng};
 use rmpv::Value;
 use tungstenite::{Message, WebSocket};
 
-use super::ws_baseline::{Baseline, Case, CaseResult};
+use super::ws::{Baseline, Case, CaseResult};
 use super::BenchError;
 use chunkrt::report::latency_histogram;
 

@@ -304,7 +304,7 @@ fn stream_layer(
         KvMode::Own { store } => store.map(|(k, v)| (k, v, 0)),
         KvMode::Cached { k, v, offset } => Some((k, v, offset)),
     };
-    let (q, k, v) = ops::qkv_rope(&y, heads_of(d, true), s.rope, cache)?;
+    let (q, k, v) = ops::qkv_rope(&y, heads_of(d, true), s.rope.tables(), cache)?;
     let q = q.ok_or_else(|| candle_core::Error::Msg("stream_layer: no query heads".into()))?;
     // the keys the bias covers: the stream's own (prefix pass) or the cache's first T
     let (keys, values) = match kv {
@@ -352,7 +352,7 @@ pub fn kv_only_layer(
         }
         None => Tensor::cat(&[layer.k.forward(&h)?, layer.v.forward(&h)?], D::Minus1)?,
     };
-    ops::qkv_rope(&y, heads_of(d, false), s.rope, Some((kb, vb, 0)))?;
+    ops::qkv_rope(&y, heads_of(d, false), s.rope.tables(), Some((kb, vb, 0)))?;
     Ok(())
 }
 
@@ -388,7 +388,7 @@ pub fn joint_layer(
         gates.push(gate);
         if let (false, Some(w)) = (diff, &layer.qkv) {
             let y = ops::matmul(&h, w, layer.packed.as_deref().map(|a| &a.qkv))?;
-            if let (Some(q), k, v) = ops::qkv_rope(&y, heads_of(d, true), s.rope, None)? {
+            if let (Some(q), k, v) = ops::qkv_rope(&y, heads_of(d, true), s.rope.tables(), None)? {
                 qs.push(q);
                 ks.push(k);
                 vs.push(v);

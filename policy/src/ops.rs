@@ -20,15 +20,32 @@
 //! | [`gelu_mul`] | `gelu_mul_fused` | `gelu_mul` | narrow, gelu, mul |
 //! | [`gelu`], [`add`] | `gelu`, `add` | — | candle |
 //!
-//! Must not depend on anything outside the policy crate.
+//! Depends on no layer module (the layers depend on it): a norm comes in as a [`NormOp`], RoPE
+//! as its (cos, sin) tables.
 
 use candle_core::{DType, Result, Tensor, D};
 
 use super::fastops;
-use super::gemma::{Norm, Rope};
 use super::kernels;
 pub use super::kernels::Heads;
 use super::packed::PackedRhs;
+
+/// RoPE's tables (cos, sin) [B, L, hd/2] (rotate-half).
+pub type RopeTables<'a> = (&'a Tensor, &'a Tensor);
+
+/// A norm as [`add_norm`] takes it (Gemma's RMSNorm `(1 + w)` and π0.5's AdaRMSNorm,
+/// `gemma::Norm`).
+pub trait NormOp {
+    /// The CUDA kernel's operands for condition `cond`: `1 + w` [W] f32 (None: 1), the adaptive
+    /// modulation [B, 3W] f32, eps; `None` where the kernel does not apply.
+    fn fused_operands(&self, cond: Option<&Tensor>) -> Result<Option<FusedNorm<'_>>>;
+    /// The norm in candle's ops: the normed `x` and the gate for the residual that follows
+    /// (adaptive norms), both in `x`'s dtype.
+    fn composed(&self, x: &Tensor, cond: Option<&Tensor>) -> Result<(Tensor, Option<Tensor>)>;
+}
+
+/// A norm as the CUDA kernel takes it: `1 + w`, the modulation, eps.
+pub type FusedNorm<'a> = (Option<&'a Tensor>, Option<Tensor>, f64);
 
 /// The gate of a gated residual `x + y · gate`.
 #[derive(Debug, Clone)]
@@ -159,7 +176,7 @@ pub fn gated_add(x: &Tensor, y: &Tensor, gate: &Gate) -> Result<Tensor> {
 pub fn add_norm(
     x: &Tensor,
     residual: Option<(&Tensor, &Gate)>,
-    norm: &Norm,
+    norm: &impl NormOp,
     cond: Option<&Tensor>,
 ) -> Result<(Tensor, Tensor, Gate)> {
     if x.rank() == 3 && kernels::enabled(x.device()) {
@@ -181,7 +198,7 @@ pub fn add_norm(
         Some((y, g)) => gated_add(x, y, g)?,
         None => x.clone(),
     };
-    let (h, gate) = norm.composed(&x1, cond, false)?;
+    let (h, gate) = norm.composed(&x1, cond)?;
     Ok((x1, h, Gate::from_tensor(gate)))
 }
 
@@ -192,11 +209,11 @@ pub fn add_norm(
 pub fn qkv_rope(
     y: &Tensor,
     heads: Heads,
-    rope: &Rope,
+    rope: RopeTables<'_>,
     cache: Option<(&Tensor, &Tensor, usize)>,
 ) -> Result<(Option<Tensor>, Tensor, Tensor)> {
     let l = y.dim(1)?;
-    let cs = Some((&rope.cos, &rope.sin));
+    let cs = Some(rope);
     if let Some((kb, vb, offset)) = cache {
         if let Some(q) = kernels::qkv_rope(y, heads, cs, kb, vb, offset)? {
             return Ok((q, kb.narrow(2, offset, l)?, vb.narrow(2, offset, l)?));
@@ -233,7 +250,7 @@ pub fn qkv_rope(
 fn qkv_rope_composed(
     y: &Tensor,
     heads: Heads,
-    rope: &Rope,
+    rope: RopeTables<'_>,
 ) -> Result<(Option<Tensor>, Tensor, Tensor)> {
     let (b, l, _) = y.dims3()?;
     let (qd, kvd, hd) = (heads.q * heads.dim, heads.kv * heads.dim, heads.dim);
@@ -245,11 +262,12 @@ fn qkv_rope_composed(
             .transpose(1, 2)?
             .contiguous()
     };
+    let rotate = |x: Tensor| candle_nn::rotary_emb::rope(&x, rope.0, rope.1);
     let q = match heads.q {
         0 => None,
-        n => Some(rope.apply(&part(0, n)?, false)?),
+        n => Some(rotate(part(0, n)?)?),
     };
-    let k = rope.apply(&part(qd, heads.kv)?, false)?;
+    let k = rotate(part(qd, heads.kv)?)?;
     Ok((q, k, part(qd + kvd, heads.kv)?))
 }
 
@@ -424,8 +442,9 @@ mod tests {
             rand(&[1, 2, 7, 8], 3),
         );
         let mut b = vec![0f32; 5 * 7];
-        b[5] = crate::gemma::MASK_VALUE;
-        b[6] = crate::gemma::MASK_VALUE;
+        // openpi's mask value
+        b[5] = -2.381_976_3e38;
+        b[6] = -2.381_976_3e38;
         let bias = Tensor::from_vec(b, (1, 1, 5, 7), &Device::Cpu).expect("bias");
         for mask in [Some(&bias), None] {
             let fast = attention(&q, &k, &v, mask, 0.35).expect("fast");
@@ -447,12 +466,22 @@ mod tests {
             dim: 8,
         };
         let y = rand(&[1, 5, (4 + 2 * 2) * 8], 4);
-        let pos = vec![(3..8).collect::<Vec<i64>>()];
-        let rope = Rope::new(&pos, 8, 10_000.0, &Device::Cpu, DType::F32).expect("rope");
+        // tables of positions 3..8 ([1, 5, 4]), as gemma::Rope makes them
+        let (mut cos, mut sin) = (Vec::new(), Vec::new());
+        for p in 3..8 {
+            for i in 0..4 {
+                let a = p as f32 / 10_000f32.powf(2.0 * i as f32 / 8.0);
+                cos.push(a.cos());
+                sin.push(a.sin());
+            }
+        }
+        let cos = Tensor::from_vec(cos, (1, 5, 4), &Device::Cpu).expect("cos");
+        let sin = Tensor::from_vec(sin, (1, 5, 4), &Device::Cpu).expect("sin");
+        let rope = (&cos, &sin);
         let kb = Tensor::zeros((1, 2, 9, 8), DType::F32, &Device::Cpu).expect("kb");
         let vb = Tensor::zeros((1, 2, 9, 8), DType::F32, &Device::Cpu).expect("vb");
-        let (q, k, v) = qkv_rope(&y, heads, &rope, Some((&kb, &vb, 3))).expect("fast");
-        let (cq, ck, cv) = qkv_rope_composed(&y, heads, &rope).expect("composed");
+        let (q, k, v) = qkv_rope(&y, heads, rope, Some((&kb, &vb, 3))).expect("fast");
+        let (cq, ck, cv) = qkv_rope_composed(&y, heads, rope).expect("composed");
         let q = q.expect("q");
         assert!(maxdiff(&q, &cq.expect("q")) < 1e-6);
         assert!(maxdiff(&k, &ck) < 1e-6);
@@ -465,7 +494,7 @@ mod tests {
         // only K/V columns
         let kv = y.narrow(2, 32, 32).expect("kv");
         let kv_heads = Heads { q: 0, ..heads };
-        let (none, k2, _) = qkv_rope(&kv, kv_heads, &rope, None).expect("kv only");
+        let (none, k2, _) = qkv_rope(&kv, kv_heads, rope, None).expect("kv only");
         assert!(none.is_none());
         assert!(maxdiff(&k2, &ck) < 1e-6);
     }

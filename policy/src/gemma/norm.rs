@@ -36,8 +36,7 @@ pub enum Norm {
     },
 }
 
-/// A norm as the fused kernel takes it: `1 + w` (plain), the modulation (adaptive), eps.
-pub(crate) type FusedNorm<'a> = (Option<&'a Tensor>, Option<Tensor>, f64);
+use crate::ops::FusedNorm;
 
 /// [`Norm::Ada`]'s modulations by condition tensor.
 pub type ModulationCache =
@@ -112,7 +111,7 @@ impl Norm {
 
     /// The fused kernel's operands: (`1 + w`, modulation); None where the kernel does not
     /// apply (a training model's plain norm derives `1 + w` at every forward).
-    pub(crate) fn fused_operands(
+    fn fused_operands_of(
         &self,
         cond: Option<&Tensor>,
     ) -> candle_core::Result<Option<FusedNorm<'_>>> {
@@ -149,15 +148,14 @@ impl Norm {
         diff: bool,
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
         if diff {
-            return self.composed(x, cond, true);
+            return self.composed_with(x, cond, true);
         }
         let (_, h, gate) = crate::ops::add_norm(x, None, self, cond)?;
         Ok((h, gate.tensor(x.dim(D::Minus1)?, x.dtype())?))
     }
 
-    /// [`Self::forward`] in candle's ops (`diff`: with a backward); the fallback of
-    /// [`ops::add_norm`](crate::ops::add_norm).
-    pub(crate) fn composed(
+    /// [`Self::forward`] in candle's ops (`diff`: with a backward).
+    fn composed_with(
         &self,
         x: &Tensor,
         cond: Option<&Tensor>,
@@ -210,6 +208,20 @@ impl Norm {
     }
 }
 
+impl crate::ops::NormOp for Norm {
+    fn fused_operands(&self, cond: Option<&Tensor>) -> candle_core::Result<Option<FusedNorm<'_>>> {
+        self.fused_operands_of(cond)
+    }
+
+    fn composed(
+        &self,
+        x: &Tensor,
+        cond: Option<&Tensor>,
+    ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
+        self.composed_with(x, cond, false)
+    }
+}
+
 /// `x + y * gate` (gate absent: `x + y`); the inference path through
 /// [`ops::gated_add`](crate::ops::gated_add).
 pub fn gated_residual(
@@ -243,6 +255,11 @@ pub struct Rope {
 }
 
 impl Rope {
+    /// (cos, sin), as the kernels take them ([`crate::ops::qkv_rope`]).
+    pub fn tables(&self) -> crate::ops::RopeTables<'_> {
+        (&self.cos, &self.sin)
+    }
+
     /// Tables from positions `pos[b][l]` (HF: f32 `inv_freq * pos`).
     pub fn new(
         pos: &[Vec<i64>],
