@@ -85,6 +85,9 @@ pub struct ConfigReport {
     /// The interleaved full samples split into their parts, means over the same samples (ms):
     /// vision (image and token embeddings), prefix pass, denoising loop, whole sample.
     pub split_ms: Option<[f64; 4]>,
+    /// A cached step split by op kind ([`crate::ops::profile`]): (kind, ms per step), then the
+    /// profiled steps' mean (ms); the rest of the step runs outside the seam.
+    pub step_split: Option<(Vec<(&'static str, f64)>, f64)>,
     /// openpi's `sample_actions` timed in this run, interleaved with the variants' full samples
     /// (phase `sample`), and what its worker reported; `None`: the stored figure
     /// [`ConfigReport::openpi_s`] is the reference.
@@ -194,6 +197,21 @@ impl std::fmt::Display for BenchReport {
                     p.gflops(),
                     p.cpu_ms,
                     p.flops / (p.cpu_ms * 1e-3) / 1e9
+                )?;
+            }
+            if let Some((kinds, total)) = &c.step_split {
+                let inside: f64 = kinds.iter().map(|k| k.1).sum();
+                let pct = |ms: f64| 100.0 * ms / total.max(1e-9);
+                let parts: Vec<String> = kinds
+                    .iter()
+                    .map(|(name, ms)| format!("{name} {ms:.2} ({:.0} %)", pct(*ms)))
+                    .collect();
+                writeln!(
+                    f,
+                    "a cached step by op kind (profiled, ms): {}, outside the seam {:.2} ({:.0} %) = {total:.2}",
+                    parts.join(", "),
+                    total - inside,
+                    pct(total - inside)
                 )?;
             }
             if let Some([v, p, l, t]) = c.split_ms {
@@ -511,6 +529,7 @@ pub fn run_configs(
     let mut reports = Vec::new();
     for var in &variants {
         let mut phases = Vec::new();
+        let mut step_split = None;
         var.with(|model| -> Result<(), PolicyError> {
             phases.push(time_phase("vision", n_fast, vis, || {
                 model.embed_prefix(&inp)?;
@@ -529,6 +548,21 @@ pub fn run_configs(
                 model.velocity_at(c, &noise, &[0.5], false)?;
                 Ok(())
             })?);
+            // the same steps again, each op kind's time counted at the seam
+            let n = n_fast * 10;
+            crate::ops::profile::reset();
+            crate::ops::profile::enable(true);
+            let t0 = Instant::now();
+            for _ in 0..n {
+                model.velocity_at(c, &noise, &[0.5], false)?;
+            }
+            let per_step = t0.elapsed().as_secs_f64() * 1e3 / n as f64;
+            crate::ops::profile::enable(false);
+            let kinds = crate::ops::profile::snapshot()
+                .into_iter()
+                .map(|(k, ns, _)| (k.name(), ns as f64 * 1e-6 / n as f64))
+                .collect();
+            step_split = Some((kinds, per_step));
             phases.push(time_phase("step_uncached", n_slow, unc_step, || {
                 model.velocity_uncached(&inp, &embs, &noise, &[0.5], false)?;
                 Ok(())
@@ -560,6 +594,7 @@ pub fn run_configs(
             steps,
             openpi_same_run: None,
             split_ms: None,
+            step_split,
         });
     }
     // openpi's worker builds and warms up its model before the first round

@@ -30,6 +30,9 @@ use super::kernels;
 pub use super::kernels::Heads;
 use super::packed::PackedRhs;
 
+pub mod profile;
+use profile::{span, Kind};
+
 /// RoPE's tables (cos, sin) [B, L, hd/2] (rotate-half).
 pub type RopeTables<'a> = (&'a Tensor, &'a Tensor);
 
@@ -101,6 +104,7 @@ pub fn matmul_2d(x: &Tensor, w: &Tensor) -> Result<Tensor> {
 /// `x` [.., K] · `w` [K, N]: the packed product where `packed` (the same weight packed for
 /// this CPU) applies, else [`matmul_2d`].
 pub fn matmul(x: &Tensor, w: &Tensor, packed: Option<&PackedRhs>) -> Result<Tensor> {
+    let _span = span(Kind::Products);
     if let Some(p) = packed {
         if let Some(y) = p.matmul(x)? {
             return Ok(y);
@@ -125,6 +129,7 @@ pub fn dense(
     gelu_act: bool,
     residual: Option<&Tensor>,
 ) -> Result<Tensor> {
+    let _span = span(Kind::Products);
     let y = match packed.map(|p| p.matmul(x)).transpose()?.flatten() {
         Some(y) => y,
         None => {
@@ -146,6 +151,7 @@ pub fn dense(
 
 /// gelu-tanh.
 pub fn gelu(x: &Tensor) -> Result<Tensor> {
+    let _span = span(Kind::Activations);
     match fastops::gelu(x)? {
         Some(y) => Ok(y),
         None => x.gelu(),
@@ -154,11 +160,13 @@ pub fn gelu(x: &Tensor) -> Result<Tensor> {
 
 /// `a + b`, `b` broadcast over `a`'s leading dimensions.
 pub fn add(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    let _span = span(Kind::Residuals);
     fastops::add_or_broadcast(a, b, false)
 }
 
 /// `x + y · gate` over [B, L, W].
 pub fn gated_add(x: &Tensor, y: &Tensor, gate: &Gate) -> Result<Tensor> {
+    let _span = span(Kind::Residuals);
     if let (3, Some(gmod)) = (x.rank(), gate.modulation()) {
         if let Some(x1) = kernels::gated_add(x, y, gmod)? {
             return Ok(x1);
@@ -179,6 +187,7 @@ pub fn add_norm(
     norm: &impl NormOp,
     cond: Option<&Tensor>,
 ) -> Result<(Tensor, Tensor, Gate)> {
+    let _span = span(Kind::Norms);
     if x.rank() == 3 && kernels::enabled(x.device()) {
         let gmod = match residual {
             None => Some(None),
@@ -212,6 +221,7 @@ pub fn qkv_rope(
     rope: RopeTables<'_>,
     cache: Option<(&Tensor, &Tensor, usize)>,
 ) -> Result<(Option<Tensor>, Tensor, Tensor)> {
+    let _span = span(Kind::Heads);
     let l = y.dim(1)?;
     let cs = Some(rope);
     if let Some((kb, vb, offset)) = cache {
@@ -273,6 +283,7 @@ fn qkv_rope_composed(
 
 /// SigLIP's fused Q/K/V output `y` [N, T, 3 · n · hd] as three [N, n, T, hd] heads, unrotated.
 pub fn split_qkv(y: &Tensor, n: usize, hd: usize) -> Result<(Tensor, Tensor, Tensor)> {
+    let _span = span(Kind::Heads);
     if let Some(qkv) = kernels::split_qkv(y, n, hd)? {
         return Ok(qkv);
     }
@@ -311,6 +322,7 @@ pub fn attention(
     bias: Option<&Tensor>,
     scale: f64,
 ) -> Result<Tensor> {
+    let _span = span(Kind::Attention);
     if q.device().is_cpu() {
         let zeros;
         let b = match bias {
@@ -385,6 +397,7 @@ pub fn attention_composed(
 
 /// `gelu_tanh(y[.., :f]) * y[.., f:]` for the output `y` [.., 2f] of a fused gate/up product.
 pub fn gelu_mul(y: &Tensor, f: usize) -> Result<Tensor> {
+    let _span = span(Kind::Activations);
     if let Some(h) = fastops::gelu_mul_fused(y, f)? {
         return Ok(h);
     }
@@ -397,6 +410,7 @@ pub fn gelu_mul(y: &Tensor, f: usize) -> Result<Tensor> {
 
 /// `gelu_tanh(g) * u` for separate gate and up outputs (layers without a fused product).
 pub fn gelu_mul_pair(g: &Tensor, u: &Tensor) -> Result<Tensor> {
+    let _span = span(Kind::Activations);
     match fastops::gelu_mul(g, u)? {
         Some(h) => Ok(h),
         None => g.gelu()? * u,
