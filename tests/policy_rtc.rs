@@ -25,6 +25,29 @@ fn policy() -> Policy {
     chunkrt::inference::load_policy(&data("pi05_tiny"), &pc).unwrap()
 }
 
+/// The fixture observation with its prompt.
+fn observation<'a>(
+    raw: &'a [chunkrt::policy::RawFrame<'a>],
+    state: &'a [f64],
+) -> RawObservation<'a> {
+    RawObservation {
+        frames: raw,
+        joint_positions: state,
+        prompt: "pick up the red block",
+    }
+}
+
+/// A policy and the fixture observation as model inputs (for tests that drive the model
+/// directly), with the unpadded state.
+fn prepared() -> (Policy, chunkrt::policy::ModelInputs, Vec<f64>) {
+    let (frames, state) = fixture();
+    let raw = raw_frames(&frames);
+    let obs = observation(&raw, &state);
+    let mut p = policy();
+    let inputs = p.prepare(&obs).unwrap();
+    (p, inputs, state)
+}
+
 /// Deterministic N(0,1)-ish noise (sum of uniforms from a fixed LCG) [1, H, A].
 fn noise(h: usize, a: usize, seed: u64) -> Tensor {
     let mut s = seed;
@@ -44,11 +67,7 @@ fn noise(h: usize, a: usize, seed: u64) -> Tensor {
 fn beta_zero_or_zero_weights_equal_unguided_exactly() {
     let (frames, state) = fixture();
     let raw = raw_frames(&frames);
-    let obs = RawObservation {
-        frames: &raw,
-        joint_positions: &state,
-        prompt: "pick up the red block",
-    };
+    let obs = observation(&raw, &state);
     // two policies with the same seed draw the same noise sequence
     let mut plain = policy();
     let mut guided = policy();
@@ -169,11 +188,7 @@ fn guidance_pulls(delta_action_mask: Option<Vec<bool>>, jacobian: Jacobian) {
     let policy = || chunkrt::inference::load_policy(&data("pi05_tiny"), &pc).unwrap();
     let (frames, state) = fixture();
     let raw = raw_frames(&frames);
-    let obs = RawObservation {
-        frames: &raw,
-        joint_positions: &state,
-        prompt: "pick up the red block",
-    };
+    let obs = observation(&raw, &state);
     let mut plain = policy();
     let mut guided = policy();
     let h = plain.horizon();
@@ -234,15 +249,7 @@ fn guidance_pulls(delta_action_mask: Option<Vec<bool>>, jacobian: Jacobian) {
 
 #[test]
 fn vjp_matches_finite_differences_and_guided_step_cost() {
-    let (frames, state) = fixture();
-    let raw = raw_frames(&frames);
-    let obs = RawObservation {
-        frames: &raw,
-        joint_positions: &state,
-        prompt: "pick up the red block",
-    };
-    let mut p = policy();
-    let inputs = p.prepare(&obs).unwrap();
+    let (p, inputs, state) = prepared();
     let model = p.model();
     let mut cache = None;
     model.fill_cache(&inputs, &mut cache, false).unwrap();
@@ -335,11 +342,7 @@ fn vjp_matches_finite_differences_and_guided_step_cost() {
 fn bad_guidance_is_an_error_not_a_panic() {
     let (frames, state) = fixture();
     let raw = raw_frames(&frames);
-    let obs = RawObservation {
-        frames: &raw,
-        joint_positions: &state,
-        prompt: "pick up the red block",
-    };
+    let obs = observation(&raw, &state);
     let mut p = policy();
     let h = p.horizon();
     let n = state.len();
@@ -416,15 +419,7 @@ fn bad_guidance_is_an_error_not_a_panic() {
 fn the_guided_loop_a_gpu_captures_is_the_eager_guided_sampler() {
     use chunkrt::policy::graph::SampleGraph;
     use chunkrt::policy::rtc::sample_guided;
-    let (frames, state) = fixture();
-    let raw = raw_frames(&frames);
-    let obs = RawObservation {
-        frames: &raw,
-        joint_positions: &state,
-        prompt: "pick up the red block",
-    };
-    let mut p = policy();
-    let inputs = p.prepare(&obs).unwrap();
+    let (p, inputs, state) = prepared();
     let model = p.model();
     let (h, a) = (model.cfg.action_horizon, model.cfg.action_dim);
     let steps = model.cfg.num_denoise_steps;

@@ -17,7 +17,7 @@ use super::preprocess::{
     NormMode, NormStats, PromptTokenizer,
 };
 use super::rtc::{
-    check_target, model_space_actions, sample_guided, Guidance, GuidanceTarget, Jacobian,
+    check_target, denoise_guided, model_space_actions, Guidance, GuidanceTarget, Jacobian,
 };
 use super::PolicyError;
 
@@ -266,7 +266,7 @@ impl Policy {
                 self.model.run_prefix(cache, None, false)?;
                 match guide {
                     None => self.model.denoise(cache, noise, self.steps),
-                    Some(t) => super::rtc::denoise_guided(&self.model, cache, noise, self.steps, t),
+                    Some(t) => denoise_guided(&self.model, cache, noise, self.steps, t),
                 }
             }
         }
@@ -489,14 +489,12 @@ impl Policy {
                 self.sample_graph(inputs, &noise, Some(g))?
             }
             Continue::Guided(g) => {
-                sample_guided(&self.model, inputs, &noise, self.steps, &mut self.cache, g)?
+                // checked above; Y and W are f32 on the device (`Guidance::target`)
+                let cache = filled_cache(&self.model, inputs, &mut self.cache)?;
+                denoise_guided(&self.model, cache, &noise, self.steps, g)?
             }
             Continue::Committed(y, d) => {
-                self.model.fill_cache(inputs, &mut self.cache, false)?;
-                let cache = self
-                    .cache
-                    .as_ref()
-                    .ok_or_else(|| PolicyError::Input("the prefix cache was not filled".into()))?;
+                let cache = filled_cache(&self.model, inputs, &mut self.cache)?;
                 self.model
                     .denoise_committed(cache, &noise, self.steps, y, &[d])?
             }
@@ -528,4 +526,16 @@ impl Policy {
         }
         Ok(res)
     }
+}
+
+/// Runs the prefix pass into `cache` (reusing its buffers) and returns it.
+fn filled_cache<'c>(
+    model: &PiModel,
+    inputs: &ModelInputs,
+    cache: &'c mut Option<PrefixCache>,
+) -> Result<&'c PrefixCache, PolicyError> {
+    model.fill_cache(inputs, cache, false)?;
+    cache
+        .as_ref()
+        .ok_or_else(|| PolicyError::Input("the prefix cache was not filled".into()))
 }
