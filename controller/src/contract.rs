@@ -28,6 +28,11 @@ pub trait ChunkSource: Send {
     fn uses_cameras(&self) -> bool {
         false
     }
+    /// Image inputs that are an earlier frame of a camera: the observation carries them after
+    /// the cameras' frames ([`crate::edge::history::FrameHistory`]).
+    fn delayed_views(&self) -> &[chunkrt_policy::DelayedView] {
+        &[]
+    }
 }
 
 /// The source used when no policy is configured: it never produces a chunk, so the

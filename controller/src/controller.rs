@@ -25,6 +25,7 @@ use crate::control::{EventReader, Executor, InferenceLink};
 use crate::control_loop::control_thread;
 pub use crate::control_loop::Summary;
 pub use crate::control_loop::{ControlLoop, ControlTick, RearmAnswer, TickHistograms, TickOutcome};
+use crate::edge::history::FrameHistory;
 use crate::edge::{
     event_ring, CameraInput, Counters, EdgeEvent, JointStateInput, Observation, Source,
 };
@@ -251,9 +252,10 @@ fn observation_thread(
         let node = services::node("chunkrt-observe")?;
         let cams = CameraInput::new(&node, &ns, cfg)?;
         let js = JointStateInput::new(&node, &ns, cfg)?;
-        Ok((node, cams, js))
+        let history = FrameHistory::new(cfg, source.delayed_views())?;
+        Ok((node, cams, js, history))
     };
-    let (_node, mut cams, mut js) = match setup() {
+    let (_node, mut cams, mut js, mut history) = match setup() {
         Ok(v) => {
             let _ = ready.send(Ok(()));
             v
@@ -267,7 +269,8 @@ fn observation_thread(
     // rejections are counted by the control thread already, so they go to private counters
     let private = Counters::default();
     let private_events = event_ring(1);
-    let mut obs = Observation::new(cfg);
+    let mut obs = Observation::with_views(cfg, source.delayed_views());
+    let n_cams = cfg.cameras.len();
     let poll_period_ns = 2_000_000;
     let mut next = monotonic_ns();
     let mut source_failures = 0u64;
@@ -277,12 +280,13 @@ fn observation_thread(
     while !shared.stop.load(Ordering::Relaxed) {
         next += poll_period_ns;
         sleep_until_ns(next);
-        cams.poll(&mut obs.frames, &shared.counters, &shared.events);
+        cams.poll(&mut obs.frames[..n_cams], &shared.counters, &shared.events);
+        history.update(&mut obs.frames);
         let now = monotonic_ns();
         // freshness at the time of use: a camera that stopped sending stops the policy (the
         // control tick sees the mask and holds), and the policy resumes when it is back
         let stale = if watch_cameras {
-            stale_cameras(&obs.frames, now, frame_max_age_ns)
+            stale_cameras(&obs.frames[..n_cams], now, frame_max_age_ns)
         } else {
             0
         };

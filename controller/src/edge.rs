@@ -12,6 +12,8 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
+pub mod history;
+
 use chunkrt_ipc::services::{self, Ipc, IpcError};
 use chunkrt_ipc::{
     monotonic_ns, validate_frame, validate_joint_state, validate_rearm, CameraFrameHeader, Config,
@@ -240,6 +242,22 @@ pub struct Frame {
 }
 
 impl Frame {
+    /// Bytes a frame buffer of a `width` × `height` camera holds: the largest frame validation
+    /// accepts (the widest row padding allowed).
+    pub fn capacity(width: u32, height: u32) -> usize {
+        (2 * width as usize * 3 + chunkrt_ipc::STRIDE_ALIGN_SLACK as usize) * height as usize
+    }
+
+    /// An empty buffer named `name` for a `width` × `height` camera.
+    fn empty(name: &str, width: u32, height: u32) -> Self {
+        Frame {
+            name: name.to_string(),
+            header: CameraFrameHeader::default(),
+            data: vec![0; Self::capacity(width, height)],
+            valid: false,
+        }
+    }
+
     /// The image bytes of the newest frame.
     pub fn pixels(&self) -> &[u8] {
         let n = (self.header.stride as usize) * (self.header.height as usize);
@@ -349,7 +367,8 @@ impl CameraInput {
 pub struct Observation {
     /// Newest valid joint state.
     pub joint_state: JointState,
-    /// One entry per configured camera, in configuration order.
+    /// One entry per configured camera, in configuration order, then one per delayed view of
+    /// the policy ([`history::FrameHistory`]).
     pub frames: Vec<Frame>,
     /// When the observation was assembled (monotonic ns).
     pub assembled_ns: u64,
@@ -358,23 +377,23 @@ pub struct Observation {
 impl Observation {
     /// An empty observation with frame buffers sized for the configured cameras.
     pub fn new(cfg: &Config) -> Self {
+        Self::with_views(cfg, &[])
+    }
+
+    /// An empty observation with frame buffers for the configured cameras, then one for each
+    /// delayed view ([`history::FrameHistory`]; a view of an unknown camera gets none).
+    pub fn with_views(cfg: &Config, views: &[chunkrt_policy::DelayedView]) -> Self {
+        let cams = cfg
+            .cameras
+            .iter()
+            .map(|c| Frame::empty(&c.name, c.width, c.height));
+        let views = views.iter().filter_map(|v| {
+            let c = cfg.cameras.iter().find(|c| c.name == v.camera)?;
+            Some(Frame::empty(&v.name, c.width, c.height))
+        });
         Self {
             joint_state: JointState::default(),
-            frames: cfg
-                .cameras
-                .iter()
-                .map(|c| Frame {
-                    name: c.name.clone(),
-                    header: CameraFrameHeader::default(),
-                    // the largest frame validation accepts: the widest row padding allowed
-                    data: vec![
-                        0;
-                        (2 * c.width as usize * 3 + chunkrt_ipc::STRIDE_ALIGN_SLACK as usize)
-                            * c.height as usize
-                    ],
-                    valid: false,
-                })
-                .collect(),
+            frames: cams.chain(views).collect(),
             assembled_ns: 0,
         }
     }

@@ -157,6 +157,11 @@ impl PolicySource {
         self.policy.committed_max()
     }
 
+    /// Image inputs of the loaded model that are an earlier frame of a camera.
+    pub fn delayed_views(&self) -> &[chunkrt_policy::DelayedView] {
+        self.policy.delayed_views()
+    }
+
     /// Restarts the policy's noise sequence from `seed` ([`Policy::reseed`]).
     pub fn reseed(&mut self, seed: u64) {
         self.policy.reseed(seed);
@@ -302,6 +307,10 @@ impl ChunkSource for PolicySource {
 
     fn uses_cameras(&self) -> bool {
         true
+    }
+
+    fn delayed_views(&self) -> &[chunkrt_policy::DelayedView] {
+        self.policy.delayed_views()
     }
 
     fn compute(

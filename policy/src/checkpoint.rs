@@ -425,6 +425,13 @@ pub fn inspect(dir: &Path) -> Result<String, PolicyError> {
         "vocab {} action_dim {} horizon {} max_token_len {} cameras {:?}",
         cfg.vocab_size, cfg.action_dim, cfg.action_horizon, cfg.max_token_len, cfg.cameras
     );
+    for v in &cfg.delayed_views {
+        let _ = writeln!(
+            s,
+            "image input {} is camera {} {} ms earlier (a delayed view)",
+            v.name, v.camera, v.delay_ms
+        );
+    }
     let count = |pred: &dyn Fn(&str) -> bool| -> usize {
         tensors
             .iter()

@@ -119,6 +119,32 @@ pub struct ModelConfig {
     /// given the actions the robot will execute while it computes and continue them
     /// (`PiModel::denoise_committed`). 0 (the default): trained without, and it cannot.
     pub rtc_prefix_max: usize,
+    /// Image inputs that are an earlier frame of another camera (`config.json`
+    /// `"delayed_views"`): each is one of [`Self::cameras`], and whoever builds the observation
+    /// (the controller's edge, the task simulator, the dataset recorder) fills it with the
+    /// frame its camera took `delay_ms` before the newest one. Two frames apart in time show
+    /// which way the scene moves; one frame cannot. Empty (the default): every image is a live
+    /// camera.
+    #[serde(default)]
+    pub delayed_views: Vec<DelayedView>,
+}
+
+/// An image input that shows an earlier frame of a live camera ([`ModelConfig::delayed_views`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DelayedView {
+    /// The image input's name (one of the model's cameras).
+    pub name: String,
+    /// The live camera it is an earlier frame of.
+    pub camera: String,
+    /// How much earlier than the camera's newest frame (ms).
+    pub delay_ms: f64,
+}
+
+impl DelayedView {
+    /// The delay in nanoseconds.
+    pub fn delay_ns(&self) -> u64 {
+        (self.delay_ms * 1e6) as u64
+    }
 }
 
 /// The fixtures' `config.json` (only the fields we read; everything else is ignored).
@@ -152,6 +178,8 @@ struct FileConfig {
     tokenizer: Option<serde_json::Value>,
     #[serde(default)]
     rtc_prefix_max: usize,
+    #[serde(default)]
+    delayed_views: Vec<DelayedView>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -217,6 +245,7 @@ impl ModelConfig {
                 .and_then(|t| t.as_str())
                 .is_some_and(|t| t == "byte_stand_in" || t.starts_with("STAND-IN")),
             rtc_prefix_max: f.rtc_prefix_max,
+            delayed_views: f.delayed_views,
         };
         cfg.validate()?;
         Ok(cfg)
@@ -281,6 +310,7 @@ impl ModelConfig {
             delta_action_mask: Vec::new(),
             byte_tokenizer: false,
             rtc_prefix_max: 0,
+            delayed_views: Vec::new(),
         })
     }
 
@@ -379,11 +409,48 @@ impl ModelConfig {
                 self.rtc_prefix_max, self.action_horizon
             ));
         }
+        for v in &self.delayed_views {
+            if !self.cameras.contains(&v.name) {
+                errs.push(format!(
+                    "delayed view {:?} is not one of the cameras {:?}",
+                    v.name, self.cameras
+                ));
+            }
+            if v.camera == v.name
+                || !self.cameras.contains(&v.camera)
+                || self.delayed_views.iter().any(|w| w.name == v.camera)
+            {
+                errs.push(format!(
+                    "delayed view {:?}: its camera {:?} must be another, live one of the cameras",
+                    v.name, v.camera
+                ));
+            }
+            if !(v.delay_ms.is_finite() && v.delay_ms > 0.0 && v.delay_ms <= 10_000.0) {
+                errs.push(format!(
+                    "delayed view {:?}: delay_ms = {} must be in (0, 10000]",
+                    v.name, v.delay_ms
+                ));
+            }
+            if self
+                .delayed_views
+                .iter()
+                .filter(|w| w.name == v.name)
+                .count()
+                > 1
+            {
+                errs.push(format!("delayed view {:?} is listed twice", v.name));
+            }
+        }
         if errs.is_empty() {
             Ok(())
         } else {
             Err(PolicyError::Config(errs.join("; ")))
         }
+    }
+
+    /// The delayed view named `camera`, if that image input is one.
+    pub fn delayed_view(&self, camera: &str) -> Option<&DelayedView> {
+        self.delayed_views.iter().find(|v| v.name == camera)
     }
 
     /// Prefix length `P = cameras * tokens_per_camera + max_token_len`.
@@ -444,5 +511,61 @@ impl ConfigOverrides {
             cfg.delta_action_mask = v.clone();
         }
         cfg.validate()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with_view(name: &str, camera: &str, delay_ms: f64) -> Result<ModelConfig, PolicyError> {
+        let mut cfg = ModelConfig::preset("pi05")?;
+        cfg.cameras = vec!["base_0_rgb".into(), "base_0_rgb_prev".into()];
+        cfg.delayed_views = vec![DelayedView {
+            name: name.into(),
+            camera: camera.into(),
+            delay_ms,
+        }];
+        cfg.validate().map(|()| cfg)
+    }
+
+    #[test]
+    fn a_delayed_view_must_name_an_image_input_and_another_live_camera() {
+        let cfg = with_view("base_0_rgb_prev", "base_0_rgb", 400.0).unwrap();
+        assert_eq!(
+            cfg.delayed_view("base_0_rgb_prev").unwrap().delay_ns(),
+            400_000_000
+        );
+        assert!(cfg.delayed_view("base_0_rgb").is_none());
+        for (name, camera, delay, says) in [
+            (
+                "wrist_prev",
+                "base_0_rgb",
+                400.0,
+                "is not one of the cameras",
+            ),
+            ("base_0_rgb_prev", "wrist", 400.0, "another, live one"),
+            (
+                "base_0_rgb_prev",
+                "base_0_rgb_prev",
+                400.0,
+                "another, live one",
+            ),
+            (
+                "base_0_rgb_prev",
+                "base_0_rgb",
+                0.0,
+                "must be in (0, 10000]",
+            ),
+            (
+                "base_0_rgb_prev",
+                "base_0_rgb",
+                f64::NAN,
+                "must be in (0, 10000]",
+            ),
+        ] {
+            let e = with_view(name, camera, delay).expect_err(name).to_string();
+            assert!(e.contains(says), "{name} {camera} {delay}: {e}");
+        }
     }
 }

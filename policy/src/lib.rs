@@ -32,7 +32,7 @@ pub mod rtc;
 pub mod runtime;
 pub mod siglip;
 
-pub use config::{ConfigOverrides, ModelConfig, ModelKind};
+pub use config::{ConfigOverrides, DelayedView, ModelConfig, ModelKind};
 pub use device::{model_dtype, DeviceSpec, Precision};
 pub use model::{ModelInputs, PiModel, PrefixCache, SampleOutput};
 pub use preprocess::Encoding;

@@ -383,6 +383,12 @@ impl Policy {
         self.run(&inputs, n_dof, how)
     }
 
+    /// Image inputs that are an earlier frame of a camera (`config.json` `delayed_views`): the
+    /// observation must carry them under their names, like the cameras.
+    pub fn delayed_views(&self) -> &[crate::DelayedView] {
+        &self.model.cfg.delayed_views
+    }
+
     /// The largest committed prefix the checkpoint was trained with (0: it was not;
     /// [`Self::infer_committed`]).
     pub fn committed_max(&self) -> usize {
