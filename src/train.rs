@@ -108,6 +108,7 @@ pub fn dataset_spec(
     drift: Option<DriftMix>,
 ) -> anyhow::Result<DatasetSpec> {
     let cam = task_camera(cfg)?;
+    let history_steps = history_steps(cfg, mcfg)?;
     Ok(DatasetSpec {
         scenes,
         scene_base,
@@ -124,7 +125,70 @@ pub fn dataset_spec(
         keep_share,
         profile: expert,
         drift,
+        history_steps,
     })
+}
+
+/// Policy steps between the task camera's frame and the model's delayed view of it (0: the
+/// model has none). The view must be of the task camera, one at most, its delay a whole number
+/// of policy periods (the recorder renders at the policy rate).
+pub fn history_steps(cfg: &Config, mcfg: &ModelConfig) -> anyhow::Result<usize> {
+    let cam = task_camera(cfg)?;
+    match mcfg.delayed_views.as_slice() {
+        [] => Ok(0),
+        [v] => {
+            anyhow::ensure!(
+                v.camera == cam.name,
+                "the model's delayed view {:?} is of camera {:?}; the reach task records {}",
+                v.name,
+                v.camera,
+                cam.name
+            );
+            let steps = v.delay_ms * 1e-3 * cfg.policy.action_rate_hz;
+            anyhow::ensure!(
+                steps >= 0.5 && (steps - steps.round()).abs() < 1e-6,
+                "the model's delayed view {:?}: {} ms is not a whole number of policy periods \
+                 ({} ms at {} Hz)",
+                v.name,
+                v.delay_ms,
+                1e3 / cfg.policy.action_rate_hz,
+                cfg.policy.action_rate_hz
+            );
+            Ok(steps.round() as usize)
+        }
+        _ => anyhow::bail!("the reach task records one delayed view at most"),
+    }
+}
+
+/// The model configuration `json` with a delayed view of `camera`, `delay_ms` earlier, as its
+/// second image input `<camera>_prev` (unchanged when `delay_ms` is 0). The vision tower is
+/// shared by every image, so the weights do not change: a checkpoint trained without a history
+/// can be fine-tuned with one.
+pub fn with_history(json: &str, camera: &str, delay_ms: f64) -> anyhow::Result<String> {
+    if delay_ms == 0.0 {
+        return Ok(json.to_string());
+    }
+    let mut v: serde_json::Value =
+        serde_json::from_str(json).context("the model configuration is not JSON")?;
+    let obj = v
+        .as_object_mut()
+        .context("the model configuration is not a JSON object")?;
+    let view = format!("{camera}_prev");
+    obj.insert(
+        "image_keys_in_order".into(),
+        serde_json::json!([camera, view]),
+    );
+    obj.insert(
+        "delayed_views".into(),
+        serde_json::json!([{ "name": view, "camera": camera, "delay_ms": delay_ms }]),
+    );
+    if let Some(serde_json::Value::String(about)) = obj.get_mut("about") {
+        about.push_str(&format!(
+            " Sees a frame history: beside {camera}'s newest frame, the one it took {delay_ms} \
+             ms before (`chunkrt train --history-ms {delay_ms}`)."
+        ));
+    }
+    Ok(serde_json::to_string_pretty(&v)? + "\n")
 }
 
 /// One data-parallel worker's share of a step: gradients, flow-matching loss, the auxiliary
@@ -245,6 +309,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         None => MODEL_CONFIG.to_string(),
     };
     let model_json = with_rtc_prefix(&model_json, args.rtc_prefix)?;
+    let model_json = with_history(&model_json, &cam.name, args.history_ms)?;
     let mcfg = ModelConfig::from_json_str(&model_json)?;
     anyhow::ensure!(
         mcfg.vocab_size >= vocab::vocab_len(),
@@ -298,6 +363,14 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             ds.drift_share,
             args.drift_share,
             ds.drift_share
+        );
+        let steps = history_steps(&cfg, &mcfg)?;
+        anyhow::ensure!(
+            ds.history_steps == steps,
+            "{} was recorded with a frame history of {} policy steps, the model takes {steps}: \
+             delete the file to record it anew",
+            args.dataset.display(),
+            ds.history_steps
         );
         ds
     } else {

@@ -15,6 +15,13 @@
 //! - `episode_scene_seed` u64 [E], `episode_color` u8 [E] (0 red, 1 blue);
 //! - metadata: `format` = `chunkrt.reach_dataset.v1`, `action_rate_hz`, `camera`, `prompts`
 //!   (JSON list indexed by colour).
+//! - `targets` f32 [N, 4]: where the red and the blue target are at the sample's time (x, y
+//!   each, m), and `target_velocity` f32 [N, 4] their velocities (m/s; 0 unless they drift).
+//!   Files without them (before session 13) had static targets only: they are derived from the
+//!   scene seeds.
+//! - with a frame history (`history_steps` > 0 in the metadata): `image_prev` u8 [N, H, W, 3],
+//!   the frame the camera took `history_steps` policy steps before each sample's (before the
+//!   episode: the robot at its start pose, the targets where they were then).
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -62,6 +69,8 @@ pub struct DatasetSpec {
     pub profile: super::expert::Profile,
     /// Moving-target episodes (`None`: every target stays where the scene puts it).
     pub drift: Option<DriftMix>,
+    /// Also record the frame this many policy steps before each sample's (0: none).
+    pub history_steps: usize,
 }
 
 /// A share of the episodes in which the targets swing about the robot's base (the drifting
@@ -114,11 +123,20 @@ pub struct Dataset {
     pub episode: Vec<u32>,
     pub episode_scene_seed: Vec<u64>,
     pub episode_color: Vec<u8>,
+    /// Per sample, the targets where they are at the sample's time (red x, y, blue x, y; m).
+    pub targets: Vec<f32>,
+    /// Per sample, the targets' velocities (same layout; m/s).
+    pub target_velocity: Vec<f32>,
     /// The expert's speed profile the chunks follow (metadata `expert`; files without it were
     /// recorded with the minimum-jerk expert, the only one before session 4).
     pub expert: super::expert::Profile,
     /// Share of the episodes recorded with drifting targets (metadata `drift_share`; 0 without).
     pub drift_share: f64,
+    /// Policy steps between a sample's frame and its `image_prev` (metadata `history_steps`; 0:
+    /// no earlier frames recorded).
+    pub history_steps: usize,
+    /// The earlier frames (same layout as `image`; empty without a history).
+    pub image_prev: Vec<u8>,
 }
 
 /// A standard normal sample (Box-Muller).
@@ -168,6 +186,24 @@ impl Dataset {
         &self.image[i * n..(i + 1) * n]
     }
 
+    /// The earlier frame of sample `i` (RGB rows; [`Self::history_steps`] > 0).
+    pub fn frame_prev(&self, i: usize) -> &[u8] {
+        let n = self.width * self.height * 3;
+        &self.image_prev[i * n..(i + 1) * n]
+    }
+
+    /// The targets of sample `i` where they are then: [red, blue] (x, y).
+    pub fn targets_of(&self, i: usize) -> [[f64; 2]; 2] {
+        let t = &self.targets[4 * i..4 * i + 4];
+        [[t[0] as f64, t[1] as f64], [t[2] as f64, t[3] as f64]]
+    }
+
+    /// The targets' velocities at sample `i`: [red, blue] (x, y; m/s).
+    pub fn target_velocity_of(&self, i: usize) -> [[f64; 2]; 2] {
+        let t = &self.target_velocity[4 * i..4 * i + 4];
+        [[t[0] as f64, t[1] as f64], [t[2] as f64, t[3] as f64]]
+    }
+
     /// Joint positions of sample `i`.
     pub fn state_of(&self, i: usize) -> &[f32] {
         &self.state[i * self.n_dof..(i + 1) * self.n_dof]
@@ -190,6 +226,7 @@ impl Dataset {
             camera: spec.camera.clone(),
             expert: spec.profile,
             drift_share: spec.drift.map_or(0.0, |m| m.share),
+            history_steps: spec.history_steps,
             ..Default::default()
         };
         let dt = 1.0 / spec.action_rate_hz;
@@ -215,6 +252,8 @@ impl Dataset {
                 let perturb_at = (steps > 6 && rng.gen_bool(spec.perturb_share))
                     .then(|| rng.gen_range(1..steps - 4));
                 let hold = spec.hold_steps as f64 * dt;
+                // the pose at every step so far (the history's frames)
+                let mut poses: Vec<[f64; TASK_DOF]> = Vec::new();
                 let mut k = 0;
                 loop {
                     let t = k as f64 * dt;
@@ -228,6 +267,7 @@ impl Dataset {
                             reach = r;
                         }
                     }
+                    poses.push(reach.at(t));
                     // until the (possibly re-planned) reach has arrived and held
                     let last = t >= reach.end() + hold - 1e-9;
                     let keep = k == 0 || last || rng.gen_bool(spec.keep_share.clamp(0.0, 1.0));
@@ -235,9 +275,16 @@ impl Dataset {
                     if !keep {
                         continue;
                     }
-                    ds.push_sample(spec, &scene, &reach.at(t), ep, |i| {
-                        reach.at(t + i as f64 * dt)
-                    });
+                    let then = poses[(k - 1).saturating_sub(spec.history_steps)];
+                    let still = [[0.0; 2]; 2];
+                    ds.push_sample(
+                        spec,
+                        (&scene, still),
+                        &reach.at(t),
+                        (&scene, &then),
+                        ep,
+                        |i| reach.at(t + i as f64 * dt),
+                    );
                     if last {
                         break;
                     }
@@ -248,18 +295,21 @@ impl Dataset {
         ds
     }
 
-    /// Appends one sample: the frame of `scene` seen at pose `q`, the pose, and the chunk whose
+    /// Appends one sample: the frame of `scene` seen at pose `q`, the pose, with a history the
+    /// earlier frame of `then` (the scene and pose `history_steps` before), and the chunk whose
     /// row i is `chunk(i)` (called for i = 0..H in order), in episode `ep`.
     fn push_sample(
         &mut self,
         spec: &DatasetSpec,
-        scene: &ReachScene,
+        (scene, velocity): (&ReachScene, [[f64; 2]; 2]),
         q: &[f64; TASK_DOF],
+        then: (&ReachScene, &[f64; TASK_DOF]),
         ep: u32,
         mut chunk: impl FnMut(usize) -> [f64; TASK_DOF],
     ) {
+        let n = spec.width * spec.height * 3;
         let start = self.image.len();
-        self.image.resize(start + spec.width * spec.height * 3, 0);
+        self.image.resize(start + n, 0);
         scene.render_rgb(
             q,
             spec.width,
@@ -267,7 +317,22 @@ impl Dataset {
             3 * spec.width,
             &mut self.image[start..],
         );
+        if spec.history_steps > 0 {
+            let start = self.image_prev.len();
+            self.image_prev.resize(start + n, 0);
+            then.0.render_rgb(
+                then.1,
+                spec.width,
+                spec.height,
+                3 * spec.width,
+                &mut self.image_prev[start..],
+            );
+        }
         self.state.extend(q.iter().map(|&v| v as f32));
+        self.targets
+            .extend(scene.targets.iter().flatten().map(|&v| v as f32));
+        self.target_velocity
+            .extend(velocity.iter().flatten().map(|&v| v as f32));
         for i in 0..spec.horizon {
             self.actions.extend(chunk(i).iter().map(|&v| v as f32));
         }
@@ -332,6 +397,8 @@ impl Dataset {
         let mut q = q0;
         q[ARM_JOINTS] = 0.0; // open while reaching, as the static expert
         let mut on_at = None;
+        // the observed pose at every step so far (the history's frames)
+        let mut poses: Vec<[f64; TASK_DOF]> = Vec::with_capacity(steps);
         for (k, keep_draw) in keep_draws.into_iter().enumerate() {
             let t = k as f64 * dt;
             if Some(k) == perturb_at {
@@ -343,6 +410,7 @@ impl Dataset {
             let now = ReachScene {
                 targets: drift.targets_at(&scene.targets, t),
             };
+            poses.push(q);
             if on_at.is_none() && now.distance(&q, color) <= 0.5 * super::REACH_TOLERANCE {
                 on_at = Some(k);
             }
@@ -350,7 +418,22 @@ impl Dataset {
             if k == 0 || last || keep_draw {
                 // the chunk: the tracking expert from the observed pose, action 0 the pose
                 let mut a = q;
-                self.push_sample(spec, &now, &q, ep, |i| {
+                let before = ReachScene {
+                    targets: drift.targets_at(
+                        &scene.targets,
+                        // (exactly the earlier step's time once there is one)
+                        (k as f64 - spec.history_steps as f64) * dt,
+                    ),
+                };
+                let then = poses[k.saturating_sub(spec.history_steps)];
+                // (central difference over 10 ms)
+                let (a0, a1) = (
+                    drift.targets_at(&scene.targets, t - 0.005),
+                    drift.targets_at(&scene.targets, t + 0.005),
+                );
+                let velocity: [[f64; 2]; 2] =
+                    std::array::from_fn(|c| std::array::from_fn(|x| (a1[c][x] - a0[c][x]) / 0.01));
+                self.push_sample(spec, (&now, velocity), &q, (&before, &then), ep, |i| {
                     let row = a;
                     super::expert::track(&mut a, t + i as f64 * dt, dt, 1.0, &goal_at);
                     row
@@ -377,7 +460,7 @@ impl Dataset {
             .flat_map(|x| x.to_le_bytes())
             .collect();
         let e = self.episodes();
-        let views = vec![
+        let mut views = vec![
             (
                 "image",
                 TensorView::new(Dtype::U8, vec![n, self.height, self.width, 3], &self.image)?,
@@ -400,6 +483,26 @@ impl Dataset {
                 TensorView::new(Dtype::U8, vec![e], &self.episode_color)?,
             ),
         ];
+        let targets = bytes_f32(&self.targets);
+        let target_velocity = bytes_f32(&self.target_velocity);
+        views.push((
+            "targets",
+            TensorView::new(Dtype::F32, vec![n, 4], &targets)?,
+        ));
+        views.push((
+            "target_velocity",
+            TensorView::new(Dtype::F32, vec![n, 4], &target_velocity)?,
+        ));
+        if self.history_steps > 0 {
+            views.push((
+                "image_prev",
+                TensorView::new(
+                    Dtype::U8,
+                    vec![n, self.height, self.width, 3],
+                    &self.image_prev,
+                )?,
+            ));
+        }
         let prompts: Vec<&str> = TargetColor::ALL.iter().map(|c| c.prompt()).collect();
         let meta: HashMap<String, String> = [
             ("format".to_string(), FORMAT.to_string()),
@@ -411,6 +514,7 @@ impl Dataset {
             ("prompts".to_string(), serde_json::to_string(&prompts)?),
             ("expert".to_string(), self.expert.name().to_string()),
             ("drift_share".to_string(), self.drift_share.to_string()),
+            ("history_steps".to_string(), self.history_steps.to_string()),
         ]
         .into_iter()
         .collect();
@@ -493,6 +597,54 @@ impl Dataset {
                 .filter(|s: &f64| (0.0..=1.0).contains(s))
                 .ok_or_else(|| anyhow::anyhow!("{}: bad drift_share {v:?}", path.display()))?,
         };
+        let history_steps: usize =
+            match meta.get("history_steps") {
+                None => 0,
+                Some(v) => v.parse().ok().filter(|s| *s <= 1000).ok_or_else(|| {
+                    anyhow::anyhow!("{}: bad history_steps {v:?}", path.display())
+                })?,
+            };
+        let image_prev = if history_steps > 0 {
+            let (psh, prev) = get("image_prev", Dtype::U8, 4)?;
+            anyhow::ensure!(
+                psh == ish,
+                "{}: image_prev is {psh:?}, image {ish:?}",
+                path.display()
+            );
+            prev.to_vec()
+        } else {
+            Vec::new()
+        };
+        let (targets, target_velocity) = if st.names().contains(&"targets") {
+            let (tsh, t) = get("targets", Dtype::F32, 2)?;
+            let (vsh, v) = get("target_velocity", Dtype::F32, 2)?;
+            anyhow::ensure!(
+                tsh == [n, 4] && vsh == [n, 4],
+                "{}: targets {tsh:?} / target_velocity {vsh:?}, expected [{n}, 4]",
+                path.display()
+            );
+            (f32s(t), f32s(v))
+        } else {
+            // (an older file: static targets, where the scene seeds put them)
+            anyhow::ensure!(
+                drift_share == 0.0,
+                "{}: recorded with drifting targets before the targets' positions were stored per \
+                 sample: delete it to record it anew",
+                path.display()
+            );
+            let seeds: Vec<u64> = seeds
+                .chunks_exact(8)
+                .map(|c| u64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
+                .collect();
+            let t = episode
+                .iter()
+                .flat_map(|&e| {
+                    let sc = ReachScene::from_seed(seeds.get(e as usize).copied().unwrap_or(0));
+                    sc.targets.into_iter().flatten().map(|v| v as f32)
+                })
+                .collect();
+            (t, vec![0.0; 4 * n])
+        };
         Ok(Dataset {
             width: ish[2],
             height: ish[1],
@@ -511,6 +663,10 @@ impl Dataset {
             episode_color: colors.to_vec(),
             expert,
             drift_share,
+            history_steps,
+            image_prev,
+            targets,
+            target_velocity,
         })
     }
 }
@@ -540,7 +696,47 @@ mod tests {
             keep_share: 1.0,
             profile: Default::default(),
             drift: None,
+            history_steps: 0,
         }
+    }
+
+    #[test]
+    fn the_earlier_frame_is_the_one_recorded_history_steps_before() {
+        let spec = DatasetSpec {
+            drift: Some(DriftMix::with_share(0.5)),
+            history_steps: 2,
+            ..spec()
+        };
+        let ds = Dataset::generate(&spec, |_, _| {});
+        assert_eq!(ds.image_prev.len(), ds.image.len());
+        let (mut checked, mut differ) = (0, 0);
+        for e in 0..ds.episodes() {
+            // every step is kept (keep_share 1): an episode's samples are its steps in order
+            let samples: Vec<usize> = (0..ds.len())
+                .filter(|&i| ds.episode[i] as usize == e)
+                .collect();
+            for (k, &i) in samples.iter().enumerate().skip(2) {
+                assert_eq!(
+                    ds.frame_prev(i),
+                    ds.frame(samples[k - 2]),
+                    "episode {e} step {k}"
+                );
+                checked += 1;
+                differ += usize::from(ds.frame_prev(i) != ds.frame(i));
+            }
+        }
+        assert!(checked > 100, "{checked}");
+        assert!(
+            differ * 2 > checked,
+            "{differ} of {checked} earlier frames show motion"
+        );
+        // kept in the file
+        let dir = std::env::temp_dir().join(format!("chunkrt-ds-hist-{}", std::process::id()));
+        let path = dir.join("d.safetensors");
+        ds.save(&path).unwrap();
+        let back = Dataset::load(&path).unwrap();
+        std::fs::remove_dir_all(&dir).ok();
+        assert_eq!(back, ds);
     }
 
     #[test]
@@ -618,6 +814,27 @@ mod tests {
             moving * 10 >= followed * 8,
             "{moving} of {followed} chunks move with the target"
         );
+        // each sample's targets are where the swing has them then: rotated about the base (same
+        // distances as the scene's), moving at right angles to their radius, and moving at all
+        let mut swinging = 0;
+        for i in 0..ds.len() {
+            let sc = ReachScene::from_seed(ds.episode_scene_seed[ds.episode[i] as usize]);
+            let (p, v) = (ds.targets_of(i), ds.target_velocity_of(i));
+            for c in 0..2 {
+                let r = |x: [f64; 2]| x[0].hypot(x[1]);
+                assert!((r(p[c]) - r(sc.targets[c])).abs() < 1e-5, "sample {i}");
+                assert!(
+                    (p[c][0] * v[c][0] + p[c][1] * v[c][1]).abs() < 1e-3,
+                    "sample {i}"
+                );
+            }
+            swinging += usize::from(v[0][0].hypot(v[0][1]) > 0.01);
+        }
+        assert!(
+            swinging * 2 > ds.len(),
+            "{swinging} of {} samples swing",
+            ds.len()
+        );
         // the share is kept in the file
         let dir = std::env::temp_dir().join(format!("chunkrt-ds-drift-{}", std::process::id()));
         let path = dir.join("d.safetensors");
@@ -625,6 +842,7 @@ mod tests {
         let back = Dataset::load(&path).unwrap();
         std::fs::remove_dir_all(&dir).ok();
         assert_eq!(back.drift_share, 1.0);
+        assert_eq!(back.target_velocity, ds.target_velocity);
     }
 
     #[test]

@@ -157,6 +157,26 @@ pub fn run_episode(
     let mut trace = Trace::new(control_ns as f64 * 1e-9, TASK_DOF);
     trace.skip[TASK_DOF - 1] = true; // the gripper is a step channel
     let mut image = vec![0u8; w * h * 3];
+    // the policy's delayed views (an earlier frame of the task camera): rendered from the
+    // joint positions of every tick so far (before the episode: the start pose) and the
+    // targets where they were then
+    let views: Vec<(String, u64)> = policy
+        .delayed_views()
+        .iter()
+        .map(|v| {
+            anyhow::ensure!(
+                v.camera == cam.name,
+                "the policy's image input {:?} is an earlier frame of camera {:?}; the reach \
+                 task has only {:?}",
+                v.name,
+                v.camera,
+                cam.name
+            );
+            Ok((v.name.clone(), v.delay_ns() / control_ns.max(1)))
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let mut view_images = vec![vec![0u8; w * h * 3]; views.len()];
+    let mut past: Vec<[f64; TASK_DOF]> = Vec::new();
     let mut pending: Vec<ActionChunk> = Vec::new();
     let mut next_sync_obs = START_NS;
     let mut out = EpisodeOutcome {
@@ -179,6 +199,9 @@ pub fn run_episode(
         if let Some(drift) = &settings.drift {
             scene.targets = drift.targets_at(&start_targets, t);
         }
+        if !views.is_empty() {
+            past.push(std::array::from_fn(|j| js.position[j]));
+        }
         if let (Some(at), None) = (settings.retarget_at, retargeted) {
             if t >= at {
                 (goal, other) = (other, goal);
@@ -187,19 +210,36 @@ pub fn run_episode(
                 retargeted = Some((t, d));
             }
         }
-        let mut observe =
-            |js: &JointState, req: &InferenceRequest| -> anyhow::Result<ActionChunk> {
-                scene.render_rgb(&js.position[..TASK_DOF], w, h, 3 * w, &mut image);
-                let frames = [RawFrame {
-                    camera: &cam.name,
-                    width: w as u32,
-                    height: h as u32,
-                    stride: 3 * w as u32,
-                    encoding: crate::policy::Encoding::Rgb8,
-                    data: &image,
-                }];
-                policy.infer_chunk(&frames, js, now, req)
+        let mut observe = |js: &JointState,
+                           req: &InferenceRequest|
+         -> anyhow::Result<ActionChunk> {
+            scene.render_rgb(&js.position[..TASK_DOF], w, h, 3 * w, &mut image);
+            for ((_, lag), img) in views.iter().zip(view_images.iter_mut()) {
+                let then = ReachScene {
+                    targets: match &settings.drift {
+                        Some(d) => {
+                            d.targets_at(&start_targets, t - *lag as f64 * 1e-9 * control_ns as f64)
+                        }
+                        None => scene.targets,
+                    },
+                };
+                let q = k.checked_sub(*lag).map_or(spec.start, |i| past[i as usize]);
+                then.render_rgb(&q, w, h, 3 * w, img);
+            }
+            let frame = |camera, data| RawFrame {
+                camera,
+                width: w as u32,
+                height: h as u32,
+                stride: 3 * w as u32,
+                encoding: crate::policy::Encoding::Rgb8,
+                data,
             };
+            let mut frames = vec![frame(&cam.name, &image)];
+            for ((name, _), img) in views.iter().zip(view_images.iter()) {
+                frames.push(frame(name, img));
+            }
+            policy.infer_chunk(&frames, js, now, req)
+        };
         if settings.synchronous {
             // the executor's own requests are not used: the broker asks when the robot is done
             while let Some(req) = link.requests.try_recv() {

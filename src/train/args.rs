@@ -73,8 +73,9 @@ pub struct TrainArgs {
     pub aux_weight: f64,
     /// Weight of the auxiliary goal loss: a linear head on the language model's hidden states at
     /// the input of its last layer (whose keys and values the action expert reads), averaged over
-    /// the valid prefix tokens, regresses the prompted target's inverse-kinematics joint angles
-    /// and position. It asks the prefix to do what the prompt says (pick the named target) in a
+    /// the valid prefix tokens, regresses the prompted target's inverse-kinematics joint angles,
+    /// position and velocity (where it is and where it is going at the sample's time; the
+    /// velocity is 0 unless it drifts). It asks the prefix to do what the prompt says (pick the named target) in a
     /// form the action expert can read. Not part of the checkpoint; 0 turns it off.
     #[arg(long, default_value_t = 1.0)]
     pub goal_weight: f64,
@@ -100,6 +101,13 @@ pub struct TrainArgs {
     /// static task only. A dataset file recorded with another share is refused.
     #[arg(long, default_value_t = 0.0, value_name = "F")]
     pub drift_share: f64,
+    /// A frame history: the model gets, beside the task camera's frame, the frame the camera
+    /// took this long before it (an image input `<camera>_prev`, `config.json`
+    /// `delayed_views`), so it can see which way the targets move. A multiple of the policy
+    /// period (100 ms at 10 Hz); 0 (the default) trains without. The dataset records the
+    /// earlier frames too; a dataset file recorded with another history is refused.
+    #[arg(long, default_value_t = 0.0, value_name = "MS")]
+    pub history_ms: f64,
     /// Start from this checkpoint's weights instead of a fresh initialisation (fine-tuning;
     /// its dimensions must be the model configuration's), keeping its `norm_stats.json`.
     #[arg(long, value_name = "DIR")]

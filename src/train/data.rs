@@ -111,19 +111,32 @@ pub(super) struct Batcher<'a> {
 }
 
 /// Outputs of the auxiliary goal head: the prompted target's inverse-kinematics joint angles
-/// (over π) and its (x, y) (over the view's half width).
-pub const GOAL_OUTPUTS: usize = 5;
+/// (over π), its (x, y) (over the view's half width) and its velocity (x, y; view half widths
+/// per second: 0 for a target that stays).
+pub const GOAL_OUTPUTS: usize = 7;
 
-/// The goal targets of sample scene `scene` with prompt `color` ([`GOAL_OUTPUTS`] values).
+/// The goal targets of a sample whose scene is `scene` (the targets where they are then),
+/// moving at `velocity`, with prompt `color` ([`GOAL_OUTPUTS`] values).
 pub(super) fn goal_targets(
     scene: &crate::task::ReachScene,
+    velocity: &[[f64; 2]; 2],
     color: TargetColor,
 ) -> [f32; GOAL_OUTPUTS] {
     let s = chunkrt_tools::scene::VIEW_HALF_WIDTH;
     let t = scene.target(color);
+    let v = velocity[color as usize];
     let q = crate::task::inverse_kinematics(t).unwrap_or([0.0; 3]);
     let pi = std::f64::consts::PI;
-    [q[0] / pi, q[1] / pi, q[2] / pi, t[0] / s, t[1] / s].map(|v| v as f32)
+    [
+        q[0] / pi,
+        q[1] / pi,
+        q[2] / pi,
+        t[0] / s,
+        t[1] / s,
+        v[0] / s,
+        v[1] / s,
+    ]
+    .map(|v| v as f32)
 }
 
 /// Outputs of the auxiliary localisation head: (x, y) of the red target, the blue target and
@@ -183,17 +196,15 @@ impl<'a> Batcher<'a> {
             aux: Vec::with_capacity(n * AUX_OUTPUTS),
             goal: Vec::with_capacity(n * GOAL_OUTPUTS),
         };
-        let mut scene = None;
         for i in 0..n {
-            let seed = ds.episode_scene_seed[ds.episode[i] as usize];
-            let sc = match scene {
-                Some((s, sc)) if s == seed => sc,
-                _ => crate::task::ReachScene::from_seed(seed),
+            // the targets where they are at the sample's time (they may drift)
+            let sc = crate::task::ReachScene {
+                targets: ds.targets_of(i),
             };
-            scene = Some((seed, sc));
             let q: Vec<f64> = ds.state_of(i).iter().map(|&v| v as f64).collect();
             b.aux.extend(localisation_targets(&sc, &q));
-            b.goal.extend(goal_targets(&sc, ds.color(i)));
+            b.goal
+                .extend(goal_targets(&sc, &ds.target_velocity_of(i), ds.color(i)));
             let mut s = ds.state_of(i).to_vec();
             normalize(&mut s, &norm.state, NormMode::Quantile)?;
             b.norm_state.extend_from_slice(&s);
@@ -215,6 +226,19 @@ impl<'a> Batcher<'a> {
         Ok(b)
     }
 
+    /// Appends a recorded RGB frame to `out` as the model's CHW input (resized with padding
+    /// when the recording's size is not the model's).
+    fn model_image(&self, f: &[u8], out: &mut Vec<f32>) -> anyhow::Result<()> {
+        let s = self.cfg.vision.image_size;
+        if self.ds.height == s && self.ds.width == s {
+            to_model_chw(f, s, s, out);
+        } else {
+            let r = resize_with_pad(f, self.ds.height, self.ds.width, s, s)?;
+            to_model_chw(&r, s, s, out);
+        }
+        Ok(())
+    }
+
     /// Inputs, normalised actions [B, H, A], localisation targets [B, AUX_OUTPUTS] and goal
     /// targets [B, GOAL_OUTPUTS] of samples `idx`.
     pub(super) fn batch(
@@ -232,6 +256,12 @@ impl<'a> Batcher<'a> {
         );
         let b = idx.len();
         let mut img = Vec::with_capacity(b * 3 * s * s);
+        // the earlier frames, when the model's second image input is a delayed view of the first
+        let history = c.cameras.len() > 1
+            && self.ds.history_steps > 0
+            && c.delayed_view(&c.cameras[1])
+                .is_some_and(|v| v.camera == c.cameras[0]);
+        let mut img_prev = Vec::with_capacity(if history { b * 3 * s * s } else { 0 });
         let (mut ids, mut st, mut acts) = (
             Vec::with_capacity(b * l),
             Vec::with_capacity(b * a),
@@ -242,12 +272,9 @@ impl<'a> Batcher<'a> {
         let mut goal = Vec::with_capacity(b * GOAL_OUTPUTS);
         let d = self.ds.n_dof;
         for (bi, &i) in idx.iter().enumerate() {
-            let f = self.ds.frame(i);
-            if self.ds.height == s && self.ds.width == s {
-                to_model_chw(f, s, s, &mut img);
-            } else {
-                let r = resize_with_pad(f, self.ds.height, self.ds.width, s, s)?;
-                to_model_chw(&r, s, s, &mut img);
+            self.model_image(self.ds.frame(i), &mut img)?;
+            if history {
+                self.model_image(self.ds.frame_prev(i), &mut img_prev)?;
             }
             match aug.get(bi) {
                 Some(g) if g.flip_gripper || g.noise.iter().any(|v| *v != 0.0) => {
@@ -282,8 +309,12 @@ impl<'a> Batcher<'a> {
         }
         let mut images = vec![Tensor::from_vec(img, (b, 3, s, s), &dev)?];
         let mut image_masks = vec![vec![true; b]];
+        if history {
+            images.push(Tensor::from_vec(img_prev, (b, 3, s, s), &dev)?);
+            image_masks.push(vec![true; b]);
+        }
         // cameras the task does not have: black and masked, as at inference
-        for _ in 1..c.cameras.len() {
+        for _ in images.len()..c.cameras.len() {
             images.push(Tensor::full(-1f32, (b, 3, s, s), &dev)?);
             image_masks.push(vec![false; b]);
         }
