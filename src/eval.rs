@@ -113,6 +113,10 @@ pub struct EvalArgs {
 /// First scene seed of the open-loop probe's episodes.
 pub const PROBE_SCENE_BASE: u64 = 4_000;
 
+/// How fast the motion probe's targets turn about the base (rad/s): about half the top speed of
+/// the eval's default swing (±0.3 rad at 0.25 Hz: 0.47 rad/s).
+pub const MOTION_PROBE_RATE_RAD_S: f64 = 0.25;
+
 /// `chunkrt eval --open-loop`.
 fn run_probe(cfg: &Config, args: &EvalArgs) -> anyhow::Result<()> {
     let dir = cfg.resolve(
@@ -127,13 +131,21 @@ fn run_probe(cfg: &Config, args: &EvalArgs) -> anyhow::Result<()> {
     let eps = held_out_episodes(cfg, PROBE_SCENE_BASE, n, 9);
     let t0 = Instant::now();
     let r = pool.install(|| crate::task::probe::probe(&mut policy, cfg, &eps, args.expert))?;
-    let text = format!(
+    let mut text = format!(
         "checkpoint {}, {} held-out episodes (scenes {PROBE_SCENE_BASE}..), expert {}, {:.1} s\n\n{r}",
         dir.display(),
         eps.len(),
         args.expert.name(),
         t0.elapsed().as_secs_f64()
     );
+    if !policy.delayed_views().is_empty() {
+        let m = pool.install(|| {
+            crate::task::probe::motion_probe(&mut policy, cfg, &eps, MOTION_PROBE_RATE_RAD_S)
+        })?;
+        text.push_str(&format!(
+            "\nthe targets turning at {MOTION_PROBE_RATE_RAD_S} rad/s: {m}\n"
+        ));
+    }
     println!("{text}");
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;

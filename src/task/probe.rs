@@ -14,6 +14,9 @@
 //! training loss. This is how the session-4 diagnosis found that the earlier 3-layer policy
 //! sampled chunks from the state alone. Each effect is shown beside the expert's (fresh plans
 //! from the same joints in the other scene / for the other target): what it should be.
+//!
+//! A policy with a delayed view (an earlier frame beside the newest) gets the newest frame as
+//! its earlier one there (nothing moved); [`motion_probe`] asks whether it reads the motion.
 
 use chunkrt_ipc::config::Config;
 
@@ -105,15 +108,24 @@ pub fn probe(
     let mut img = vec![0u8; width * height * 3];
     let mut img_swap = vec![0u8; width * height * 3];
     let mut r = ProbeReport::default();
+    // a delayed view (an earlier frame) gets the same image: nothing moved
+    let views: Vec<String> = policy
+        .delayed_views()
+        .iter()
+        .map(|v| v.name.clone())
+        .collect();
     let infer = |policy: &mut Policy, data: &[u8], q: &[f64], prompt: &str| {
-        let frames = [RawFrame {
+        let frame = |camera| RawFrame {
             camera,
             width: width as u32,
             height: height as u32,
             stride: 3 * width as u32,
             encoding: crate::policy::Encoding::Rgb8,
             data,
-        }];
+        };
+        let frames: Vec<RawFrame> = std::iter::once(frame(camera))
+            .chain(views.iter().map(|v| frame(v.as_str())))
+            .collect();
         policy.infer(&RawObservation {
             frames: &frames,
             joint_positions: q,
@@ -191,5 +203,170 @@ pub fn probe(
     ] {
         *v /= n;
     }
+    Ok(r)
+}
+
+/// What [`motion_probe`] measured (angles of the end effector about the robot's base at the
+/// chunk's last action, rad; positive: counter-clockwise).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MotionProbe {
+    /// Observations probed.
+    pub observations: usize,
+    /// Mean of (chunk end after a counter-clockwise motion) − (after a clockwise one).
+    pub lead: f64,
+    /// Share of the observations where that difference is positive.
+    pub lead_share: f64,
+    /// The same difference for the tracking expert ([`super::expert::track`], the labels of
+    /// the moving-target data) given the targets' true motion: what it should be.
+    pub expert_lead: f64,
+    /// Mean |difference| between two chunks of the same observation with the same noise but
+    /// the earlier frame equal to the newest (no motion) and the clockwise one: how far the
+    /// earlier frame moves the chunk at all, for scale.
+    pub still_vs_cw: f64,
+}
+
+impl std::fmt::Display for MotionProbe {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "motion probe, {} observations: chunk end after a counter-clockwise minus after a \
+             clockwise motion {:+.3} rad (positive in {:.0} %; the tracking expert {:+.3}); still \
+             vs clockwise {:.3} rad",
+            self.observations,
+            self.lead,
+            100.0 * self.lead_share,
+            self.expert_lead,
+            self.still_vs_cw
+        )
+    }
+}
+
+/// Does a policy with a delayed view ([`chunkrt_policy::DelayedView`]) read the motion in it?
+/// On the start pose of each of `episodes`, the newest frame is the scene as seeded and the
+/// earlier frame shows both targets rotated about the base one way or the other by what turning
+/// at `rate_rad_s` covers in the view's delay (they came from there: they move counter- or
+/// clockwise), or not at all; the three chunks share their noise. A policy that leads a moving target ends the counter-clockwise chunk further
+/// counter-clockwise; one that ignores the earlier frame gives the same chunk three times.
+pub fn motion_probe(
+    policy: &mut Policy,
+    cfg: &Config,
+    episodes: &[EpisodeSpec],
+    rate_rad_s: f64,
+) -> anyhow::Result<MotionProbe> {
+    let cam = task_camera(cfg)?;
+    let (width, height) = (cam.width as usize, cam.height as usize);
+    let (view, delay_s) = match policy.delayed_views() {
+        [v] if v.camera == cam.name => (v.name.clone(), v.delay_ms * 1e-3),
+        _ => anyhow::bail!(
+            "the motion probe needs a policy with one delayed view of {}",
+            cam.name
+        ),
+    };
+    let (mut now_img, mut before_img) =
+        (vec![0u8; width * height * 3], vec![0u8; width * height * 3]);
+    let swing_rad = rate_rad_s * delay_s;
+    let mut r = MotionProbe::default();
+    let mut infer =
+        |policy: &mut Policy, seed, now: &[u8], q: &[f64], before: &ReachScene, prompt| {
+            before.render_rgb(q, width, height, 3 * width, &mut before_img);
+            let frame = |camera, data| RawFrame {
+                camera,
+                width: width as u32,
+                height: height as u32,
+                stride: 3 * width as u32,
+                encoding: crate::policy::Encoding::Rgb8,
+                data,
+            };
+            let frames = [
+                frame(cam.name.as_str(), now),
+                frame(view.as_str(), &before_img),
+            ];
+            policy.reseed(seed);
+            let a = policy.infer(&RawObservation {
+                frames: &frames,
+                joint_positions: q,
+                prompt,
+            })?;
+            let h = a.len() / TASK_DOF;
+            let p = super::end_effector(&a[(h - 1) * TASK_DOF..h * TASK_DOF]);
+            anyhow::Ok(p[1].atan2(p[0]))
+        };
+    let rotated = |scene: &ReachScene, by: f64| {
+        let (s, c) = by.sin_cos();
+        ReachScene {
+            targets: scene
+                .targets
+                .map(|p| [c * p[0] - s * p[1], s * p[0] + c * p[1]]),
+        }
+    };
+    let mut positive = 0;
+    for (i, e) in episodes.iter().enumerate() {
+        let scene = ReachScene::from_seed(e.scene_seed);
+        scene.render_rgb(&e.start, width, height, 3 * width, &mut now_img);
+        let prompt = e.color.prompt();
+        let seed = 77 + i as u64;
+        let ccw = infer(
+            policy,
+            seed,
+            &now_img,
+            &e.start,
+            &rotated(&scene, -swing_rad),
+            prompt,
+        )?;
+        let cw = infer(
+            policy,
+            seed,
+            &now_img,
+            &e.start,
+            &rotated(&scene, swing_rad),
+            prompt,
+        )?;
+        let still = infer(policy, seed, &now_img, &e.start, &scene, prompt)?;
+        // the expert's chunk end with the targets turning at ±swing / delay
+        let dt = 1.0 / cfg.policy.action_rate_hz;
+        let h = policy.horizon();
+        let expert_end = |omega: f64| -> Option<f64> {
+            let target = scene.target(e.color);
+            let goals: Vec<[f64; ARM_JOINTS]> = (0..=10 * h)
+                .map(|i| {
+                    let by = omega * i as f64 * dt / 10.0;
+                    let (s, c) = by.sin_cos();
+                    inverse_kinematics([
+                        c * target[0] - s * target[1],
+                        s * target[0] + c * target[1],
+                    ])
+                })
+                .collect::<Option<_>>()?;
+            let goal_at = |t: f64| {
+                let x = (t / dt * 10.0).clamp(0.0, (10 * h - 1) as f64);
+                let i = x.floor() as usize;
+                let f = x - i as f64;
+                std::array::from_fn(|j| goals[i][j] + (goals[i + 1][j] - goals[i][j]) * f)
+            };
+            let mut a = e.start;
+            for i in 0..h - 1 {
+                super::expert::track(&mut a, i as f64 * dt, dt, 1.0, &goal_at);
+            }
+            let p = super::end_effector(&a);
+            Some(p[1].atan2(p[0]))
+        };
+        // (angles wrapped into (-π, π])
+        let wrap = |x: f64| {
+            (x + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI
+        };
+        let lead = wrap(ccw - cw);
+        if let (Some(a), Some(b)) = (expert_end(rate_rad_s), expert_end(-rate_rad_s)) {
+            r.expert_lead += wrap(a - b);
+        }
+        r.lead += lead;
+        positive += usize::from(lead > 0.0);
+        r.still_vs_cw += wrap(still - cw).abs();
+        r.observations += 1;
+    }
+    let n = r.observations.max(1) as f64;
+    r.lead /= n;
+    r.lead_share = positive as f64 / n;
+    r.still_vs_cw /= n;
+    r.expert_lead /= n;
     Ok(r)
 }
