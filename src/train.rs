@@ -168,25 +168,39 @@ pub fn with_history(json: &str, camera: &str, delay_ms: f64) -> anyhow::Result<S
     if delay_ms == 0.0 {
         return Ok(json.to_string());
     }
+    let view = format!("{camera}_prev");
+    edit_model_json(
+        json,
+        &[
+            ("image_keys_in_order", serde_json::json!([camera, view])),
+            (
+                "delayed_views",
+                serde_json::json!([{ "name": view, "camera": camera, "delay_ms": delay_ms }]),
+            ),
+        ],
+        &format!(
+            " Sees a frame history: beside {camera}'s newest frame, the one it took {delay_ms} \
+             ms before (`chunkrt train --history-ms {delay_ms}`)."
+        ),
+    )
+}
+
+/// `json` (a model configuration) with `entries` set and `about` appended to its description.
+fn edit_model_json(
+    json: &str,
+    entries: &[(&str, serde_json::Value)],
+    about: &str,
+) -> anyhow::Result<String> {
     let mut v: serde_json::Value =
         serde_json::from_str(json).context("the model configuration is not JSON")?;
     let obj = v
         .as_object_mut()
         .context("the model configuration is not a JSON object")?;
-    let view = format!("{camera}_prev");
-    obj.insert(
-        "image_keys_in_order".into(),
-        serde_json::json!([camera, view]),
-    );
-    obj.insert(
-        "delayed_views".into(),
-        serde_json::json!([{ "name": view, "camera": camera, "delay_ms": delay_ms }]),
-    );
-    if let Some(serde_json::Value::String(about)) = obj.get_mut("about") {
-        about.push_str(&format!(
-            " Sees a frame history: beside {camera}'s newest frame, the one it took {delay_ms} \
-             ms before (`chunkrt train --history-ms {delay_ms}`)."
-        ));
+    for (key, value) in entries {
+        obj.insert(key.to_string(), value.clone());
+    }
+    if let Some(serde_json::Value::String(text)) = obj.get_mut("about") {
+        text.push_str(about);
     }
     Ok(serde_json::to_string_pretty(&v)? + "\n")
 }
@@ -271,19 +285,14 @@ pub fn with_rtc_prefix(json: &str, n: usize) -> anyhow::Result<String> {
     if n == 0 {
         return Ok(json.to_string());
     }
-    let mut v: serde_json::Value =
-        serde_json::from_str(json).context("the model configuration is not JSON")?;
-    let obj = v
-        .as_object_mut()
-        .context("the model configuration is not a JSON object")?;
-    obj.insert("rtc_prefix_max".into(), n.into());
-    if let Some(serde_json::Value::String(about)) = obj.get_mut("about") {
-        about.push_str(&format!(
+    edit_model_json(
+        json,
+        &[("rtc_prefix_max", n.into())],
+        &format!(
             " Trained with a committed action prefix of up to {n} actions (training-time RTC, \
              `chunkrt train --rtc-prefix {n}`): runs strategy rtc_trained."
-        ));
-    }
-    Ok(serde_json::to_string_pretty(&v)? + "\n")
+        ),
+    )
 }
 
 fn fmt_min(s: f64) -> String {

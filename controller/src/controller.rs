@@ -269,6 +269,14 @@ fn observation_thread(
     // rejections are counted by the control thread already, so they go to private counters
     let private = Counters::default();
     let private_events = event_ring(1);
+    for v in source.delayed_views() {
+        tracing::info!(
+            "policy image input {}: camera {}'s frame of {} ms before (delayed view)",
+            v.name,
+            v.camera,
+            v.delay_ms
+        );
+    }
     let mut obs = Observation::with_views(cfg, source.delayed_views());
     let n_cams = cfg.cameras.len();
     let poll_period_ns = 2_000_000;

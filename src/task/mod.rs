@@ -39,6 +39,24 @@ pub fn task_camera(cfg: &Config) -> anyhow::Result<&CameraConfig> {
     Ok(cam)
 }
 
+/// A rendered task frame (RGB rows, `width` × `height`, no padding) as the policy takes it,
+/// under the image input `camera`.
+pub fn rgb_frame<'a>(
+    camera: &'a str,
+    width: usize,
+    height: usize,
+    data: &'a [u8],
+) -> crate::policy::runtime::RawFrame<'a> {
+    crate::policy::runtime::RawFrame {
+        camera,
+        width: width as u32,
+        height: height as u32,
+        stride: 3 * width as u32,
+        encoding: crate::policy::Encoding::Rgb8,
+        data,
+    }
+}
+
 /// The robot's home pose (the configured initial positions of the task's joints).
 pub fn home_pose(cfg: &Config) -> [f64; TASK_DOF] {
     let mut home = [0.0; TASK_DOF];

@@ -115,14 +115,7 @@ pub fn probe(
         .map(|v| v.name.clone())
         .collect();
     let infer = |policy: &mut Policy, data: &[u8], q: &[f64], prompt: &str| {
-        let frame = |camera| RawFrame {
-            camera,
-            width: width as u32,
-            height: height as u32,
-            stride: 3 * width as u32,
-            encoding: crate::policy::Encoding::Rgb8,
-            data,
-        };
+        let frame = |camera| super::rgb_frame(camera, width, height, data);
         let frames: Vec<RawFrame> = std::iter::once(frame(camera))
             .chain(views.iter().map(|v| frame(v.as_str())))
             .collect();
@@ -206,47 +199,74 @@ pub fn probe(
     Ok(r)
 }
 
-/// What [`motion_probe`] measured (angles of the end effector about the robot's base at the
-/// chunk's last action, rad; positive: counter-clockwise).
+/// One regime of [`motion_probe`]: angles of the end effector about the robot's base at the
+/// chunk's last action (rad; positive: counter-clockwise).
 #[derive(Debug, Clone, Default, PartialEq)]
-pub struct MotionProbe {
-    /// Observations probed.
-    pub observations: usize,
+pub struct MotionLead {
     /// Mean of (chunk end after a counter-clockwise motion) − (after a clockwise one).
     pub lead: f64,
     /// Share of the observations where that difference is positive.
-    pub lead_share: f64,
+    pub share: f64,
     /// The same difference for the tracking expert ([`super::expert::track`], the labels of
     /// the moving-target data) given the targets' true motion: what it should be.
-    pub expert_lead: f64,
-    /// Mean |difference| between two chunks of the same observation with the same noise but
-    /// the earlier frame equal to the newest (no motion) and the clockwise one: how far the
-    /// earlier frame moves the chunk at all, for scale.
+    pub expert: f64,
+    /// Mean |difference| between the chunk after no motion (the earlier frame equal to the
+    /// newest) and after a clockwise one, same noise: how far the earlier frame moves the chunk
+    /// at all, for scale.
     pub still_vs_cw: f64,
+}
+
+/// What [`motion_probe`] measured.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MotionProbe {
+    /// Observations probed (each in both regimes).
+    pub observations: usize,
+    /// The robot at rest at the episode's start pose, in both frames.
+    pub reaching: MotionLead,
+    /// The robot on the prompted target, and in the earlier frame on where the target was
+    /// then (it has been following it), gripper closed.
+    pub following: MotionLead,
 }
 
 impl std::fmt::Display for MotionProbe {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
+        writeln!(
             f,
-            "motion probe, {} observations: chunk end after a counter-clockwise minus after a \
-             clockwise motion {:+.3} rad (positive in {:.0} %; the tracking expert {:+.3}); still \
-             vs clockwise {:.3} rad",
-            self.observations,
-            self.lead,
-            100.0 * self.lead_share,
-            self.expert_lead,
-            self.still_vs_cw
-        )
+            "motion probe, {} observations: the chunk's end after the targets came from the \
+             clockwise side minus after they came from the other (rad about the base)",
+            self.observations
+        )?;
+        writeln!(
+            f,
+            "| regime | policy | positive in | tracking expert | still vs clockwise |\n\
+             |---|---:|---:|---:|---:|"
+        )?;
+        for (name, m) in [
+            ("reaching (start pose)", &self.reaching),
+            ("following (on the target)", &self.following),
+        ] {
+            writeln!(
+                f,
+                "| {name} | {:+.3} | {:.0} % | {:+.3} | {:.3} |",
+                m.lead,
+                100.0 * m.share,
+                m.expert,
+                m.still_vs_cw
+            )?;
+        }
+        Ok(())
     }
 }
 
 /// Does a policy with a delayed view ([`chunkrt_policy::DelayedView`]) read the motion in it?
-/// On the start pose of each of `episodes`, the newest frame is the scene as seeded and the
-/// earlier frame shows both targets rotated about the base one way or the other by what turning
-/// at `rate_rad_s` covers in the view's delay (they came from there: they move counter- or
-/// clockwise), or not at all; the three chunks share their noise. A policy that leads a moving target ends the counter-clockwise chunk further
-/// counter-clockwise; one that ignores the earlier frame gives the same chunk three times.
+/// For each of `episodes`, the newest frame is the scene as seeded and the earlier frame shows
+/// both targets rotated about the base one way or the other by what turning at `rate_rad_s`
+/// covers in the view's delay (they came from there: they move counter- or clockwise), or not
+/// at all; the three chunks share their noise. Two regimes: the robot at rest at the start pose
+/// (reaching), and the robot on the prompted target having followed it (following). A policy
+/// that leads a moving target ends the counter-clockwise chunk further counter-clockwise, as
+/// the tracking expert does; one that ignores the earlier frame gives the same chunk three
+/// times.
 pub fn motion_probe(
     policy: &mut Policy,
     cfg: &Config,
@@ -262,35 +282,36 @@ pub fn motion_probe(
             cam.name
         ),
     };
+    let dt = 1.0 / cfg.policy.action_rate_hz;
+    let h = policy.horizon();
+    let swing_rad = rate_rad_s * delay_s;
     let (mut now_img, mut before_img) =
         (vec![0u8; width * height * 3], vec![0u8; width * height * 3]);
-    let swing_rad = rate_rad_s * delay_s;
-    let mut r = MotionProbe::default();
-    let mut infer =
-        |policy: &mut Policy, seed, now: &[u8], q: &[f64], before: &ReachScene, prompt| {
-            before.render_rgb(q, width, height, 3 * width, &mut before_img);
-            let frame = |camera, data| RawFrame {
-                camera,
-                width: width as u32,
-                height: height as u32,
-                stride: 3 * width as u32,
-                encoding: crate::policy::Encoding::Rgb8,
-                data,
-            };
-            let frames = [
-                frame(cam.name.as_str(), now),
-                frame(view.as_str(), &before_img),
-            ];
-            policy.reseed(seed);
-            let a = policy.infer(&RawObservation {
-                frames: &frames,
-                joint_positions: q,
-                prompt,
-            })?;
-            let h = a.len() / TASK_DOF;
-            let p = super::end_effector(&a[(h - 1) * TASK_DOF..h * TASK_DOF]);
-            anyhow::Ok(p[1].atan2(p[0]))
-        };
+    // the chunk's end angle for the newest frame (scene, pose) and an earlier one
+    let mut infer = |policy: &mut Policy,
+                     seed,
+                     now: (&ReachScene, &[f64; TASK_DOF]),
+                     before: (&ReachScene, &[f64; TASK_DOF]),
+                     prompt| {
+        now.0
+            .render_rgb(now.1, width, height, 3 * width, &mut now_img);
+        before
+            .0
+            .render_rgb(before.1, width, height, 3 * width, &mut before_img);
+        let frame = |camera, data| super::rgb_frame(camera, width, height, data);
+        let frames = [
+            frame(cam.name.as_str(), &now_img),
+            frame(view.as_str(), &before_img),
+        ];
+        policy.reseed(seed);
+        let a = policy.infer(&RawObservation {
+            frames: &frames,
+            joint_positions: now.1,
+            prompt,
+        })?;
+        let h = a.len() / TASK_DOF;
+        anyhow::Ok(angle(&a[(h - 1) * TASK_DOF..h * TASK_DOF]))
+    };
     let rotated = |scene: &ReachScene, by: f64| {
         let (s, c) = by.sin_cos();
         ReachScene {
@@ -299,74 +320,100 @@ pub fn motion_probe(
                 .map(|p| [c * p[0] - s * p[1], s * p[0] + c * p[1]]),
         }
     };
-    let mut positive = 0;
+    let mut r = MotionProbe::default();
+    let mut positive = [0usize; 2];
     for (i, e) in episodes.iter().enumerate() {
         let scene = ReachScene::from_seed(e.scene_seed);
-        scene.render_rgb(&e.start, width, height, 3 * width, &mut now_img);
+        let on = |sc: &ReachScene| -> Option<[f64; TASK_DOF]> {
+            let g = inverse_kinematics(sc.target(e.color))?;
+            Some([g[0], g[1], g[2], 1.0])
+        };
+        let (ccw_scene, cw_scene) = (rotated(&scene, -swing_rad), rotated(&scene, swing_rad));
+        let (Some(on_now), Some(on_ccw), Some(on_cw)) = (on(&scene), on(&ccw_scene), on(&cw_scene))
+        else {
+            continue;
+        };
         let prompt = e.color.prompt();
         let seed = 77 + i as u64;
-        let ccw = infer(
-            policy,
-            seed,
-            &now_img,
-            &e.start,
-            &rotated(&scene, -swing_rad),
-            prompt,
-        )?;
-        let cw = infer(
-            policy,
-            seed,
-            &now_img,
-            &e.start,
-            &rotated(&scene, swing_rad),
-            prompt,
-        )?;
-        let still = infer(policy, seed, &now_img, &e.start, &scene, prompt)?;
-        // the expert's chunk end with the targets turning at ±swing / delay
-        let dt = 1.0 / cfg.policy.action_rate_hz;
-        let h = policy.horizon();
-        let expert_end = |omega: f64| -> Option<f64> {
-            let target = scene.target(e.color);
-            let goals: Vec<[f64; ARM_JOINTS]> = (0..=10 * h)
-                .map(|i| {
-                    let by = omega * i as f64 * dt / 10.0;
-                    let (s, c) = by.sin_cos();
-                    inverse_kinematics([
-                        c * target[0] - s * target[1],
-                        s * target[0] + c * target[1],
-                    ])
-                })
-                .collect::<Option<_>>()?;
-            let goal_at = |t: f64| {
-                let x = (t / dt * 10.0).clamp(0.0, (10 * h - 1) as f64);
-                let i = x.floor() as usize;
-                let f = x - i as f64;
-                std::array::from_fn(|j| goals[i][j] + (goals[i + 1][j] - goals[i][j]) * f)
+        // (the robot's pose now, and then after a ccw / a cw / no motion)
+        let regimes = [
+            (e.start, [e.start, e.start, e.start]),
+            (on_now, [on_ccw, on_cw, on_now]),
+        ];
+        for (k, (q, [q_ccw, q_cw, q_still])) in regimes.into_iter().enumerate() {
+            let ccw = infer(policy, seed, (&scene, &q), (&ccw_scene, &q_ccw), prompt)?;
+            let cw = infer(policy, seed, (&scene, &q), (&cw_scene, &q_cw), prompt)?;
+            let still = infer(policy, seed, (&scene, &q), (&scene, &q_still), prompt)?;
+            let m = if k == 0 {
+                &mut r.reaching
+            } else {
+                &mut r.following
             };
-            let mut a = e.start;
-            for i in 0..h - 1 {
-                super::expert::track(&mut a, i as f64 * dt, dt, 1.0, &goal_at);
+            let lead = wrap(ccw - cw);
+            m.lead += lead;
+            positive[k] += usize::from(lead > 0.0);
+            m.still_vs_cw += wrap(still - cw).abs();
+            if let (Some(a), Some(b)) = (
+                expert_end(&scene, e.color, &q, rate_rad_s, dt, h),
+                expert_end(&scene, e.color, &q, -rate_rad_s, dt, h),
+            ) {
+                m.expert += wrap(a - b);
             }
-            let p = super::end_effector(&a);
-            Some(p[1].atan2(p[0]))
-        };
-        // (angles wrapped into (-π, π])
-        let wrap = |x: f64| {
-            (x + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI
-        };
-        let lead = wrap(ccw - cw);
-        if let (Some(a), Some(b)) = (expert_end(rate_rad_s), expert_end(-rate_rad_s)) {
-            r.expert_lead += wrap(a - b);
         }
-        r.lead += lead;
-        positive += usize::from(lead > 0.0);
-        r.still_vs_cw += wrap(still - cw).abs();
         r.observations += 1;
     }
     let n = r.observations.max(1) as f64;
-    r.lead /= n;
-    r.lead_share = positive as f64 / n;
-    r.still_vs_cw /= n;
-    r.expert_lead /= n;
+    for (m, p) in [&mut r.reaching, &mut r.following]
+        .into_iter()
+        .zip(positive)
+    {
+        m.lead /= n;
+        m.share = p as f64 / n;
+        m.still_vs_cw /= n;
+        m.expert /= n;
+    }
     Ok(r)
+}
+
+/// The end effector's angle about the base at joint positions `q` (rad).
+fn angle(q: &[f64]) -> f64 {
+    let p = super::end_effector(q);
+    p[1].atan2(p[0])
+}
+
+/// `x` wrapped into (−π, π].
+fn wrap(x: f64) -> f64 {
+    (x + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI
+}
+
+/// The end angle of the tracking expert's chunk (`h` actions `dt` apart) from `q` with the
+/// prompted target of `scene` turning about the base at `omega` (rad/s); `None` where the
+/// target leaves the arm's reach.
+fn expert_end(
+    scene: &ReachScene,
+    color: super::TargetColor,
+    q: &[f64; TASK_DOF],
+    omega: f64,
+    dt: f64,
+    h: usize,
+) -> Option<f64> {
+    // the joint-space goal on a dt/10 grid, linear in between
+    let target = scene.target(color);
+    let goals: Vec<[f64; ARM_JOINTS]> = (0..=10 * h)
+        .map(|i| {
+            let (s, c) = (omega * i as f64 * dt / 10.0).sin_cos();
+            inverse_kinematics([c * target[0] - s * target[1], s * target[0] + c * target[1]])
+        })
+        .collect::<Option<_>>()?;
+    let goal_at = |t: f64| {
+        let x = (t / dt * 10.0).clamp(0.0, (10 * h - 1) as f64);
+        let i = x.floor() as usize;
+        let f = x - i as f64;
+        std::array::from_fn(|j| goals[i][j] + (goals[i + 1][j] - goals[i][j]) * f)
+    };
+    let mut a = *q;
+    for i in 0..h - 1 {
+        super::expert::track(&mut a, i as f64 * dt, dt, 1.0, &goal_at);
+    }
+    Some(angle(&a))
 }

@@ -14,7 +14,6 @@ use super::{task_camera, ReachScene, TargetColor, TASK_DOF};
 use crate::chunk::ActionChunk;
 use crate::control::{Executor, InferenceRequest, Smoothness, State, Trace};
 use crate::inference::PolicySource;
-use crate::policy::runtime::RawFrame;
 
 /// Simulated time starts here (ns), far from 0 so no timestamp saturates.
 const START_NS: u64 = 1_000_000_000;
@@ -226,14 +225,7 @@ pub fn run_episode(
                 let q = k.checked_sub(*lag).map_or(spec.start, |i| past[i as usize]);
                 then.render_rgb(&q, w, h, 3 * w, img);
             }
-            let frame = |camera, data| RawFrame {
-                camera,
-                width: w as u32,
-                height: h as u32,
-                stride: 3 * w as u32,
-                encoding: crate::policy::Encoding::Rgb8,
-                data,
-            };
+            let frame = |camera, data| super::rgb_frame(camera, w, h, data);
             let mut frames = vec![frame(&cam.name, &image)];
             for ((name, _), img) in views.iter().zip(view_images.iter()) {
                 frames.push(frame(name, img));
