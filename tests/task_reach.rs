@@ -384,29 +384,34 @@ const MIN_SUCCESS: usize = 9;
 #[test]
 fn demo_runs_an_episode_over_ipc_and_writes_its_report() {
     let dir = tmp("demo");
-    let mut cmd = Command::new(EXE);
-    cmd.args([
-        "demo",
-        "--prompts",
-        "reach the blue target",
-        "--episode-seconds",
-        "6",
-        "--out",
-    ])
-    .arg(&dir);
-    let out = run_ok(&mut cmd);
-    assert!(out.contains("episode 1/1"), "{out}");
+    let (out, md) = run_demo(None, "reach the blue target", &dir);
     assert!(out.contains("success: "), "{out}");
     assert!(out.contains("fake-robot: exited cleanly"), "{out}");
-    let md = std::fs::read_to_string(dir.join("demo.md")).unwrap();
     assert!(md.contains("reach the blue target"), "{md}");
     let png = std::fs::metadata(dir.join("demo.png")).unwrap();
     assert!(png.len() > 10_000);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Runs `chunkrt demo` (with `config`, else the embedded default) for one 6 s episode of
+/// `prompt`, writing into `dir`; checks that it ran the episode and that the controller
+/// computed chunks. Returns stdout and `demo.md`.
+fn run_demo(config: Option<&Path>, prompt: &str, dir: &Path) -> (String, String) {
+    let mut cmd = Command::new(EXE);
+    cmd.arg("demo");
+    if let Some(c) = config {
+        cmd.arg("--config").arg(c);
+    }
+    cmd.args(["--prompts", prompt, "--episode-seconds", "6", "--out"])
+        .arg(dir);
+    let out = run_ok(&mut cmd);
+    assert!(out.contains("episode 1/1"), "{out}");
+    let md = std::fs::read_to_string(dir.join("demo.md")).unwrap();
     // the controller computed chunks and moved the robot
     let row = md.lines().nth(2).unwrap();
     let chunks: u64 = row.split('|').nth(5).unwrap().trim().parse().unwrap();
     assert!(chunks >= 2, "{row}");
-    std::fs::remove_dir_all(&dir).ok();
+    (out, md)
 }
 
 /// Open loop: on held-out scenes, the committed policy's chunk for an observation on the
@@ -585,23 +590,6 @@ const MIN_DRIFT_FOLLOWED: usize = 10;
 fn demo_runs_the_history_policy_over_ipc() {
     let dir = tmp("demo-drift");
     let cfg = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/reach_drift.toml");
-    let mut cmd = Command::new(EXE);
-    cmd.arg("demo")
-        .arg("--config")
-        .arg(&cfg)
-        .args([
-            "--prompts",
-            "reach the red target",
-            "--episode-seconds",
-            "6",
-            "--out",
-        ])
-        .arg(&dir);
-    let out = run_ok(&mut cmd);
-    assert!(out.contains("episode 1/1"), "{out}");
-    let md = std::fs::read_to_string(dir.join("demo.md")).unwrap();
-    let row = md.lines().nth(2).unwrap();
-    let chunks: u64 = row.split('|').nth(5).unwrap().trim().parse().unwrap();
-    assert!(chunks >= 2, "{row}");
+    run_demo(Some(&cfg), "reach the red target", &dir);
     std::fs::remove_dir_all(&dir).ok();
 }
