@@ -349,6 +349,20 @@ fn drifting_targets_must_be_reached_and_followed() {
         (d.angle(1.0) - 0.3).abs() < 1e-12,
         "a quarter swing at 0.25 Hz"
     );
+    // the velocity is the derivative of the position (central difference, 1 ms)
+    let start = [[0.6, 0.1], [-0.2, 0.7]];
+    for t in [0.0, 0.7, 1.9] {
+        let (a, b) = (
+            d.targets_at(&start, t - 5e-4),
+            d.targets_at(&start, t + 5e-4),
+        );
+        let v = d.velocities_at(&start, t);
+        for c in 0..2 {
+            for x in 0..2 {
+                assert!((v[c][x] - (b[c][x] - a[c][x]) / 1e-3).abs() < 1e-6, "t {t}");
+            }
+        }
+    }
     let cfg = Config::embedded_default();
     let mut p = PolicySource::load(&cfg).unwrap();
     let eps = held_out_episodes(&cfg, 3_000, 6, 42);

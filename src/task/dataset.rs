@@ -426,13 +426,7 @@ impl Dataset {
                     ),
                 };
                 let then = poses[k.saturating_sub(spec.history_steps)];
-                // (central difference over 10 ms)
-                let (a0, a1) = (
-                    drift.targets_at(&scene.targets, t - 0.005),
-                    drift.targets_at(&scene.targets, t + 0.005),
-                );
-                let velocity: [[f64; 2]; 2] =
-                    std::array::from_fn(|c| std::array::from_fn(|x| (a1[c][x] - a0[c][x]) / 0.01));
+                let velocity = drift.velocities_at(&scene.targets, t);
                 self.push_sample(spec, (&now, velocity), &q, (&before, &then), ep, |i| {
                     let row = a;
                     super::expert::track(&mut a, t + i as f64 * dt, dt, 1.0, &goal_at);
@@ -615,6 +609,10 @@ impl Dataset {
         } else {
             Vec::new()
         };
+        let episode_scene_seed: Vec<u64> = seeds
+            .chunks_exact(8)
+            .map(|c| u64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
+            .collect();
         let (targets, target_velocity) = if st.names().contains(&"targets") {
             let (tsh, t) = get("targets", Dtype::F32, 2)?;
             let (vsh, v) = get("target_velocity", Dtype::F32, 2)?;
@@ -632,14 +630,11 @@ impl Dataset {
                  sample: delete it to record it anew",
                 path.display()
             );
-            let seeds: Vec<u64> = seeds
-                .chunks_exact(8)
-                .map(|c| u64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
-                .collect();
             let t = episode
                 .iter()
                 .flat_map(|&e| {
-                    let sc = ReachScene::from_seed(seeds.get(e as usize).copied().unwrap_or(0));
+                    let seed = episode_scene_seed.get(e as usize).copied().unwrap_or(0);
+                    let sc = ReachScene::from_seed(seed);
                     sc.targets.into_iter().flatten().map(|v| v as f32)
                 })
                 .collect();
@@ -656,10 +651,7 @@ impl Dataset {
             state: f32s(state),
             actions: f32s(actions),
             episode,
-            episode_scene_seed: seeds
-                .chunks_exact(8)
-                .map(|c| u64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
-                .collect(),
+            episode_scene_seed,
             episode_color: colors.to_vec(),
             expert,
             drift_share,

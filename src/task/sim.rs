@@ -74,6 +74,15 @@ impl Drift {
         let (sin, cos) = self.angle(t).sin_cos();
         start.map(|p| [cos * p[0] - sin * p[1], sin * p[0] + cos * p[1]])
     }
+
+    /// The targets' velocities at `t` (m/s): the rotation's rate times the perpendicular of
+    /// where [`Self::targets_at`] has them.
+    pub fn velocities_at(&self, start: &[[f64; 2]; 2], t: f64) -> [[f64; 2]; 2] {
+        let w = std::f64::consts::TAU * self.frequency_hz;
+        let rate = self.amplitude_rad * w * (w * t + self.phase_rad).cos();
+        self.targets_at(start, t)
+            .map(|p| [-rate * p[1], rate * p[0]])
+    }
 }
 
 /// The robot has reacted to a retarget once its end effector is this much further from the

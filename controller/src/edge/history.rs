@@ -101,16 +101,6 @@ impl FrameHistory {
         })
     }
 
-    /// Views kept.
-    pub fn len(&self) -> usize {
-        self.views.len()
-    }
-
-    /// No views.
-    pub fn is_empty(&self) -> bool {
-        self.views.is_empty()
-    }
-
     /// Takes the cameras' newest frames (`frames[..cameras]`, as [`super::CameraInput::poll`]
     /// leaves them) into the rings and sets each view's frame (`frames[cameras + v]`). No
     /// allocation.
