@@ -12,6 +12,8 @@
 //! composition.
 
 use candle_core::{CpuStorage, Device, Layout, Result, Storage, Tensor};
+
+use super::packed::Precision;
 use rayon::prelude::*;
 
 /// Compiles `$body` three times (AVX-512, AVX2+FMA, baseline) and picks the best variant the CPU
@@ -109,10 +111,12 @@ multiversion! {
 }
 
 multiversion! {
-    /// Row-wise `softmax(scale * s + bias)` in place over the `t` columns of `rows` (bias: one
-    /// row of `t` shared by all rows when `bias.len() == t`, else one per row).
-    fn softmax_bias_rows(rows: &mut [f32], bias: &[f32], t: usize, scale: f32) {
-        for (ri, row) in rows.chunks_exact_mut(t).enumerate() {
+    /// Row-wise `exp(scale * s + bias - max)` in place over the `t` columns of `rows` (bias: one
+    /// row of `t` shared by all rows when `bias.len() == t`, else one per row), and each row's
+    /// `1 / sum` into `inv`: the softmax without its division, which the caller applies to the
+    /// attention's output rows (hd values a row instead of T).
+    fn softmax_bias_rows(rows: &mut [f32], bias: &[f32], t: usize, scale: f32, inv: &mut [f32]) {
+        for ((ri, row), inv) in rows.chunks_exact_mut(t).enumerate().zip(inv.iter_mut()) {
             let b = if bias.len() == t { bias } else { &bias[ri * t..(ri + 1) * t] };
             let mut mx = [f32::NEG_INFINITY; LANES];
             let mut rc = row.chunks_exact_mut(LANES);
@@ -144,10 +148,21 @@ multiversion! {
                 *r = e;
                 sm[0] += e;
             }
-            let s: f32 = sm.iter().sum();
-            for r in row.iter_mut() {
-                *r /= s;
-            }
+            *inv = 1.0 / sm.iter().sum::<f32>();
+        }
+    }
+}
+
+/// Scales row `r` of the `rows` × `cols` block at `c` (row stride `ldc`) by `inv[r]`.
+///
+/// # Safety
+/// `c` must be valid for reads and writes of that block, and no one else may access it.
+unsafe fn scale_rows(c: *mut f32, rows: usize, cols: usize, ldc: usize, inv: &[f32]) {
+    for (r, &f) in inv.iter().enumerate().take(rows) {
+        // SAFETY: row r of the block (the caller's contract).
+        let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc), cols) };
+        for v in row {
+            *v *= f;
         }
     }
 }
@@ -422,12 +437,16 @@ thread_local! {
 /// is fine); `bias` [B, 1, L or 1, T] contiguous; query heads are kv-head-major (head `h` uses kv
 /// head `h / (nH / nKV)`). Returns [B, L, nH * hd]. One task per (batch row, head), spread over
 /// the threads; each runs two single-threaded gemms and the fused bias + softmax in between.
+/// `arith`: [`Precision::Bf16`] runs both products with bf16 inputs (f32 accumulation, the
+/// softmax in f32, as openpi's bf16 models do) where the CPU has native bf16 arithmetic
+/// ([`super::packed::bf16_native`]); f32 elsewhere.
 pub fn attention(
     q: &Tensor,
     k: &Tensor,
     v: &Tensor,
     bias: &Tensor,
     scale: f32,
+    arith: Precision,
 ) -> Result<Option<Tensor>> {
     let (b, nh, l, hd) = q.dims4()?;
     let (kb, nkv, t, khd) = k.dims4()?;
@@ -450,7 +469,13 @@ pub fn attention(
         return Ok(None);
     }
     if super::packed::support().f32_packed() && super::packed::enabled() {
-        return attention_packed(q, k, v, bias, scale);
+        let bf16 = arith == Precision::Bf16 && super::packed::bf16_native();
+        let arith = if bf16 {
+            Precision::Bf16
+        } else {
+            Precision::F32
+        };
+        return attention_packed(q, k, v, bias, scale, arith);
     }
     let (k_b, k_h, k_r) = (ks[0], ks[1], ks[2]);
     let (v_b, v_h, v_r) = (vs[0], vs[1], vs[2]);
@@ -502,14 +527,16 @@ pub fn attention(
                                     gemm::Parallelism::None,
                                 );
                             }
-                            softmax_bias_rows(s, brow, t, 1.0);
+                            let mut inv = vec![0f32; l];
+                            softmax_bias_rows(s, brow, t, 1.0, &mut inv);
                             let d = dst;
+                            let c = d.0.wrapping_add(bi * l * width + h * hd);
                             unsafe {
                                 gemm::gemm(
                                     l,
                                     hd,
                                     t,
-                                    d.0.add(bi * l * width + h * hd),
+                                    c,
                                     1,
                                     width as isize,
                                     false,
@@ -526,6 +553,7 @@ pub fn attention(
                                     false,
                                     gemm::Parallelism::None,
                                 );
+                                scale_rows(c, l, hd, width, &inv);
                             }
                         });
                     };
@@ -559,31 +587,32 @@ fn attention_packed(
     v: &Tensor,
     bias: &Tensor,
     scale: f32,
+    arith: Precision,
 ) -> Result<Option<Tensor>> {
-    use super::packed::{PackedRhs, Precision};
+    use super::packed::PackedRhs;
     let (b, nh, l, hd) = q.dims4()?;
     let (_, nkv, t, _) = k.dims4()?;
     let bl = bias.dim(2)?;
     let (ks, vs) = (k.stride(), v.stride());
     let g = nh / nkv;
     let width = nh * hd;
-    // Kᵀ [hd, T] and V [T, hd] of every (batch row, kv head), packed
+    // Kᵀ [hd, T] and V [T, hd] of every (batch row, kv head), packed (K and V side by side on
+    // the threads)
     let packed = cpu_f32(k, |kd, _| {
         cpu_f32(v, |vd, _| {
-            let mut out = Vec::with_capacity(b * nkv);
-            for bi in 0..b {
-                for kv in 0..nkv {
-                    let kp = &kd[bi * ks[0] + kv * ks[1]..];
-                    let vp = &vd[bi * vs[0] + kv * vs[1]..];
-                    let kt = PackedRhs::pack_with(hd, t, Precision::F32, |d, j| kp[j * ks[2] + d]);
-                    let vv = PackedRhs::pack_with(t, hd, Precision::F32, |j, d| vp[j * vs[2] + d]);
-                    match (kt, vv) {
-                        (Some(kt), Some(vv)) => out.push((kt, vv)),
-                        _ => return Ok(None),
-                    }
+            let one = |i: usize| {
+                let (bi, kv) = (i / nkv, i % nkv);
+                let kp = &kd[bi * ks[0] + kv * ks[1]..];
+                let vp = &vd[bi * vs[0] + kv * vs[1]..];
+                match rayon::join(
+                    || PackedRhs::pack_cols(hd, t, kp, ks[2], arith),
+                    || PackedRhs::pack_rows(t, hd, vp, vs[2], arith),
+                ) {
+                    (Some(kt), Some(vv)) => Some((kt, vv)),
+                    _ => None,
                 }
-            }
-            Ok(Some(out))
+            };
+            Ok((0..b * nkv).map(one).collect::<Option<Vec<_>>>())
         })
     })?
     .flatten()
@@ -623,19 +652,15 @@ fn attention_packed(
                     }
                     let s = &mut sc[..rows * t];
                     kt.matmul_into(qp, rows, hd, s, t, 1);
-                    softmax_bias_rows(s, brow, t, scale);
+                    let mut inv = [0f32; ATT_ROWS];
+                    softmax_bias_rows(s, brow, t, scale, &mut inv[..rows]);
                     let d = dst;
                     // SAFETY: the output block of this task (rows r0.. of batch bi, columns
                     // h*hd..(h+1)*hd) lies inside `out` and is written by this task only.
                     unsafe {
-                        vv.matmul_ptr(
-                            s,
-                            rows,
-                            t,
-                            d.0.add((bi * l + r0) * width + h * hd),
-                            width,
-                            1,
-                        );
+                        let c = d.0.add((bi * l + r0) * width + h * hd);
+                        vv.matmul_ptr(s, rows, t, c, width, 1);
+                        scale_rows(c, rows, hd, width, &inv[..rows]);
                     }
                 });
             };

@@ -243,7 +243,7 @@ pub fn attention(
     if diff {
         ops::attention_composed(q, k, v, Some(bias), scale, true)
     } else {
-        ops::attention(q, k, v, Some(bias), scale)
+        ops::attention(q, k, v, Some(bias), scale, Precision::F32)
     }
 }
 
@@ -315,7 +315,9 @@ fn stream_layer(
         KvMode::Own { .. } => (k.clone(), v.clone()),
     };
     let scale = (d.head_dim as f64).powf(-0.5);
-    let o = ops::attention(&q, &keys, &values, Some(bias), scale)?;
+    // the products in bf16 where the layer's weights are (a native bf16 CPU kernel only)
+    let arith = a.map_or(Precision::F32, |a| a.o.precision());
+    let o = ops::attention(&q, &keys, &values, Some(bias), scale, arith)?;
     let o = ops::matmul(&o, &layer.o.weight().t()?, a.map(|a| &a.o))?;
     let (x1, h2, gate2) = ops::add_norm(&x0, Some((&o, &gate1)), &layer.post_norm, s.cond)?;
     let act = ops::gelu_mul(

@@ -28,7 +28,7 @@ use candle_core::{DType, Result, Tensor, D};
 use super::fastops;
 use super::kernels;
 pub use super::kernels::Heads;
-use super::packed::PackedRhs;
+use super::packed::{PackedRhs, Precision};
 
 pub mod profile;
 use profile::{span, Kind};
@@ -315,12 +315,15 @@ pub fn split_qkv_composed(y: &Tensor, n: usize, hd: usize) -> Result<(Tensor, Te
 /// Attention `softmax(scale q kᵀ + bias) v` with GQA: `q` [B, nH, L, hd] (query heads
 /// kv-head-major), `k`, `v` [B, nKV, T, hd], `bias` [B, 1, L or 1, T] f32 (None: no mask).
 /// Returns [B, L, nH · hd]. The softmax runs in f32 whatever the model's dtype (openpi's).
+/// `arith`: the CPU kernel's products in bf16 where the CPU has native bf16 arithmetic (the
+/// layer's weights are packed in bf16); a GPU follows the tensors' dtype.
 pub fn attention(
     q: &Tensor,
     k: &Tensor,
     v: &Tensor,
     bias: Option<&Tensor>,
     scale: f64,
+    arith: Precision,
 ) -> Result<Tensor> {
     let _span = span(Kind::Attention);
     if q.device().is_cpu() {
@@ -333,7 +336,7 @@ pub fn attention(
                 &zeros
             }
         };
-        if let Some(o) = fastops::attention(q, k, v, b, scale as f32)? {
+        if let Some(o) = fastops::attention(q, k, v, b, scale as f32, arith)? {
             return Ok(o);
         }
     }
@@ -461,14 +464,14 @@ mod tests {
         b[6] = -2.381_976_3e38;
         let bias = Tensor::from_vec(b, (1, 1, 5, 7), &Device::Cpu).expect("bias");
         for mask in [Some(&bias), None] {
-            let fast = attention(&q, &k, &v, mask, 0.35).expect("fast");
+            let fast = attention(&q, &k, &v, mask, 0.35, Precision::F32).expect("fast");
             let comp = attention_composed(&q, &k, &v, mask, 0.35, false).expect("composed");
             assert_eq!(fast.dims(), &[1, 5, 32]);
             assert!(maxdiff(&fast, &comp) < 1e-5, "{}", maxdiff(&fast, &comp));
         }
         // the mask matters: row 0 differs with and without it
-        let masked = attention(&q, &k, &v, Some(&bias), 0.35).expect("masked");
-        let open = attention(&q, &k, &v, None, 0.35).expect("open");
+        let masked = attention(&q, &k, &v, Some(&bias), 0.35, Precision::F32).expect("masked");
+        let open = attention(&q, &k, &v, None, 0.35, Precision::F32).expect("open");
         assert!(maxdiff(&masked, &open) > 1e-3);
     }
 

@@ -176,6 +176,12 @@ pub fn bf16_backend() -> Option<&'static str> {
     }
 }
 
+/// Whether bf16 products run on native bf16 arithmetic here (AMX or AVX512-BF16), not on
+/// bf16 weights widened to f32: only then do bf16 activations (the attention's) pay off.
+pub fn bf16_native() -> bool {
+    matches!(bf16_backend(), Some("amx" | "avx512-bf16"))
+}
+
 #[derive(Debug, Clone)]
 enum Data {
     /// [N/32][K][32].
@@ -252,6 +258,118 @@ impl PackedRhs {
                 Data::Bf16Wide(panel_layout(k, n, &|kk, col| amx::bf16(w(kk, col))))
             }
             _ => return None,
+        };
+        Some(PackedRhs {
+            k,
+            n,
+            data,
+            bias: None,
+        })
+    }
+
+    /// Packs `W` [K, N] stored row by row (`W[k][n]` at `src[k * ld + n]`, e.g. an attention's
+    /// V [T, hd] with T as K) for `precision`, reading each row once (f32: one copy of up to 32
+    /// values per panel row). `None` when this CPU has no kernel for it, or `src` is shorter
+    /// than the extent.
+    pub fn pack_rows(
+        k: usize,
+        n: usize,
+        src: &[f32],
+        ld: usize,
+        precision: Precision,
+    ) -> Option<Self> {
+        if k > 0 && n > 0 && src.len() < (k - 1) * ld + n {
+            return None;
+        }
+        Self::pack_strided(k, n, precision, src, |kk, col| kk * ld + col, true)
+    }
+
+    /// Packs `W` [K, N] stored column by column (`W[k][n]` at `src[n * ld + k]`, e.g. an
+    /// attention's Kᵀ [hd, T] from K [T, hd]) for `precision`, reading each column once.
+    /// `None` when this CPU has no kernel for it, or `src` is shorter than the extent.
+    pub fn pack_cols(
+        k: usize,
+        n: usize,
+        src: &[f32],
+        ld: usize,
+        precision: Precision,
+    ) -> Option<Self> {
+        if k > 0 && n > 0 && src.len() < (n - 1) * ld + k {
+            return None;
+        }
+        Self::pack_strided(k, n, precision, src, |kk, col| col * ld + kk, false)
+    }
+
+    /// The f32 panels and the AVX512-BF16 pairs filled straight from `src` (`at(k, n)`: the
+    /// index of `W[k][n]`), with the loops along `src`'s rows (`by_rows`) or columns; the
+    /// other layouts (AMX, bf16 widened on AVX2) through [`Self::pack_with`].
+    fn pack_strided(
+        k: usize,
+        n: usize,
+        precision: Precision,
+        src: &[f32],
+        at: impl Fn(usize, usize) -> usize,
+        by_rows: bool,
+    ) -> Option<Self> {
+        let data = match precision {
+            Precision::F32 if support().f32_packed() => {
+                let mut d = vec![0f32; panels(n) * k * NR];
+                for (p, panel) in d.chunks_exact_mut(k * NR).enumerate() {
+                    let w = NR.min(n - p * NR);
+                    if by_rows {
+                        for (kk, row) in panel.chunks_exact_mut(NR).enumerate() {
+                            let i = at(kk, p * NR);
+                            row[..w].copy_from_slice(&src[i..i + w]);
+                        }
+                    } else {
+                        for c in 0..w {
+                            let i = at(0, p * NR + c);
+                            for (kk, &v) in src[i..i + k].iter().enumerate() {
+                                panel[kk * NR + c] = v;
+                            }
+                        }
+                    }
+                }
+                Data::F32(d)
+            }
+            Precision::Bf16 if bf16_backend() == Some("avx512-bf16") => {
+                // [N/32][Kp/2][32][2]: pairs of consecutive k side by side
+                let kp2 = k.div_ceil(2);
+                let mut d = vec![0u16; panels(n) * kp2 * NR * 2];
+                for (p, panel) in d.chunks_exact_mut(kp2 * NR * 2).enumerate() {
+                    let w = NR.min(n - p * NR);
+                    if by_rows {
+                        for (pair, row) in panel.chunks_exact_mut(NR * 2).enumerate() {
+                            let i0 = at(2 * pair, p * NR);
+                            let r0 = &src[i0..i0 + w];
+                            if 2 * pair + 1 < k {
+                                let i1 = at(2 * pair + 1, p * NR);
+                                let r1 = &src[i1..i1 + w];
+                                for ((o, &a), &b) in row.chunks_exact_mut(2).zip(r0).zip(r1) {
+                                    o[0] = amx::bf16(a);
+                                    o[1] = amx::bf16(b);
+                                }
+                            } else {
+                                for (o, &a) in row.chunks_exact_mut(2).zip(r0) {
+                                    o[0] = amx::bf16(a);
+                                }
+                            }
+                        }
+                    } else {
+                        for c in 0..w {
+                            let i = at(0, p * NR + c);
+                            let pairs = src[i..i + k].chunks(2);
+                            for (row, two) in panel.chunks_exact_mut(NR * 2).zip(pairs) {
+                                for (o, &v) in row[2 * c..2 * c + 2].iter_mut().zip(two) {
+                                    *o = amx::bf16(v);
+                                }
+                            }
+                        }
+                    }
+                }
+                Data::Bf16(d)
+            }
+            _ => return Self::pack_with(k, n, precision, |kk, col| src[at(kk, col)]),
         };
         Some(PackedRhs {
             k,

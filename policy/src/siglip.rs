@@ -178,7 +178,12 @@ impl EncoderLayer {
         };
         let (q, k, v) = ops::split_qkv(&y, nh, hd)?;
         // [N, T, Dv]
-        let o = ops::attention(&q, &k, &v, None, scale)?;
+        let arith = self
+            .out
+            .packed
+            .as_ref()
+            .map_or(Precision::F32, |p| p.precision());
+        let o = ops::attention(&q, &k, &v, None, scale, arith)?;
         let x = self.out.forward_infer(&o, false, Some(x))?;
         let h = self.ln2.forward(&x, false)?;
         let f = self.fc1.forward_infer(&h, true, None)?;

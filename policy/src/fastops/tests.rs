@@ -128,8 +128,21 @@ fn attention_matches_candle() {
             .unwrap()
             .reshape((b, l, nh * 16))
             .unwrap();
-        let got = attention(&q, &k, &v, &bias, scale).unwrap().unwrap();
+        let got = attention(&q, &k, &v, &bias, scale, Precision::F32)
+            .unwrap()
+            .unwrap();
         let d = maxdiff(&want, &got);
         assert!(d < 1e-5, "attention {d}");
+        // bf16 products where the CPU has native bf16 arithmetic (8 significant bits in q, k,
+        // v and the probabilities), else the same f32 result
+        let got = attention(&q, &k, &v, &bias, scale, Precision::Bf16)
+            .unwrap()
+            .unwrap();
+        let d16 = maxdiff(&want, &got);
+        if crate::packed::bf16_native() && crate::packed::enabled() {
+            assert!(d16 > 0.0 && d16 < 3e-2, "bf16 attention {d16}");
+        } else {
+            assert!(d16 < 1e-5, "bf16 attention without a bf16 kernel {d16}");
+        }
     }
 }

@@ -43,6 +43,26 @@ fn packed_products_match_a_reference() {
             };
             let mut c = vec![7f32; m * ldc];
             p.matmul_into(&a, m, lda, &mut c, ldc, threads);
+            // the strided packers (the attention's V rows and K columns) lay out the same
+            // panels: the same product, bit for bit
+            let wt: Vec<f32> = (0..n * k).map(|x| w[(x % k) * n + x / k]).collect();
+            for (how, q) in [
+                ("rows", PackedRhs::pack_rows(k, n, &w, n, prec)),
+                ("cols", PackedRhs::pack_cols(k, n, &wt, k, prec)),
+            ] {
+                let q = q.expect("a kernel packs strided too");
+                let q = if with_bias {
+                    q.with_bias(bias.clone())
+                } else {
+                    q
+                };
+                let mut c2 = vec![7f32; m * ldc];
+                q.matmul_into(&a, m, lda, &mut c2, ldc, threads);
+                assert!(
+                    c == c2,
+                    "{prec:?} (avx2 {avx2}) {m}x{k}x{n}: pack_{how} differs"
+                );
+            }
             let round = |v: f32| match prec {
                 Precision::F32 => v as f64,
                 Precision::Bf16 => amx::f32_of(amx::bf16(v)) as f64,
