@@ -19,12 +19,14 @@ use super::packed::Precision;
 use super::siglip::Vision;
 use super::PolicyError;
 
+mod action_time;
 mod loss;
 mod masks;
 mod prefix;
 mod sampler;
 mod times;
 
+use action_time::ActionTimeMlp;
 pub use loss::LossOutput;
 pub use masks::att_2d_mask;
 use masks::bias_tensor;
@@ -77,6 +79,8 @@ enum SuffixHeads {
         state_proj: Linear,
         mlp_in: Linear,
         mlp_out: Linear,
+        /// The same MLP split for inference (`None` when trainable).
+        split: Option<Box<ActionTimeMlp>>,
     },
     Pi05 {
         time_in: Linear,
@@ -107,10 +111,19 @@ pub struct PiModel {
     fixed_step_shapes: bool,
 }
 
-/// Per-time suffix tensors: (time bits, batch, committed prefix length) -> (time embedding,
-/// adaRMS condition).
-type TimeTable =
-    std::sync::Arc<std::sync::Mutex<HashMap<(u32, usize, usize), (Tensor, Option<Tensor>)>>>;
+/// What the suffix needs of the flow times ([`PiModel::time_features`]).
+#[derive(Debug, Clone)]
+struct TimeFeatures {
+    /// The sinusoidal time embedding [B, We] (or per token [B, H, We]).
+    te: Tensor,
+    /// π0.5's adaRMS condition, same shape.
+    cond: Option<Tensor>,
+    /// π0's time half of the action-time MLP ([`ActionTimeMlp::time_term`]), same shape.
+    mlp_time: Option<Tensor>,
+}
+
+/// Per-time suffix tensors: (time bits, batch, committed prefix length) -> time features.
+type TimeTable = std::sync::Arc<std::sync::Mutex<HashMap<(u32, usize, usize), TimeFeatures>>>;
 
 impl PiModel {
     /// Builds the model from a `VarBuilder` at the checkpoint root (openpi key names). With a
@@ -150,11 +163,16 @@ impl PiModel {
         let action_in_proj = candle_nn::linear(a, we, vf.pp("action_in_proj"))?;
         let action_out_proj = candle_nn::linear(we, a, vf.pp("action_out_proj"))?;
         let heads = match cfg.kind {
-            ModelKind::Pi0 => SuffixHeads::Pi0 {
-                state_proj: candle_nn::linear(a, we, vf.pp("state_proj"))?,
-                mlp_in: candle_nn::linear(2 * we, we, vf.pp("action_time_mlp_in"))?,
-                mlp_out: candle_nn::linear(we, we, vf.pp("action_time_mlp_out"))?,
-            },
+            ModelKind::Pi0 => {
+                let mlp_in = candle_nn::linear(2 * we, we, vf.pp("action_time_mlp_in"))?;
+                let mlp_out = candle_nn::linear(we, we, vf.pp("action_time_mlp_out"))?;
+                SuffixHeads::Pi0 {
+                    state_proj: candle_nn::linear(a, we, vf.pp("state_proj"))?,
+                    split: ActionTimeMlp::new(&mlp_in, &mlp_out)?.map(Box::new),
+                    mlp_in,
+                    mlp_out,
+                }
+            }
             ModelKind::Pi05 => SuffixHeads::Pi05 {
                 time_in: candle_nn::linear(we, we, vf.pp("time_mlp_in"))?,
                 time_out: candle_nn::linear(we, we, vf.pp("time_mlp_out"))?,
@@ -422,7 +440,7 @@ impl PiModel {
         with_state: bool,
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
         let we = self.cfg.action_expert.width;
-        let (te, cond) = self.time_features(times)?;
+        let TimeFeatures { te, cond, mlp_time } = self.time_features(times)?;
         // [B, H, We], in f32 like the heads; the tokens enter the expert in the model's dtype
         let a = self.action_in_proj.forward(&x_t.to_dtype(DType::F32)?)?;
         match &self.heads {
@@ -430,16 +448,22 @@ impl PiModel {
                 state_proj,
                 mlp_in,
                 mlp_out,
+                split,
             } => {
-                let (b, h, _) = a.dims3()?;
-                // per batch row [B, We] or already per token [B, H, We]
-                let te = if te.rank() == 2 {
-                    te.unsqueeze(1)?.broadcast_as((b, h, we))?
-                } else {
-                    te
+                let at = match (split, &mlp_time) {
+                    (Some(mlp), Some(tt)) => mlp.forward(&a, tt)?,
+                    _ => {
+                        let (b, h, _) = a.dims3()?;
+                        // per batch row [B, We] or already per token [B, H, We]
+                        let te = if te.rank() == 2 {
+                            te.unsqueeze(1)?.broadcast_as((b, h, we))?
+                        } else {
+                            te
+                        };
+                        let at = Tensor::cat(&[&a, &te], 2)?;
+                        mlp_out.forward(&mlp_in.forward(&at)?.silu()?)?
+                    }
                 };
-                let at = Tensor::cat(&[&a, &te], 2)?;
-                let at = mlp_out.forward(&mlp_in.forward(&at)?.silu()?)?;
                 if with_state {
                     // [B, 1, We]
                     let s = state_proj
@@ -460,7 +484,7 @@ impl PiModel {
     /// observation, so for a batch at one time (and one prefix length) they are made once per
     /// model and time and kept on the device: a denoising step uploads nothing and runs no time
     /// MLP. (Not for a model whose time MLP is being trained: its weights change.)
-    fn time_features(&self, times: FlowTimes<'_>) -> candle_core::Result<(Tensor, Option<Tensor>)> {
+    fn time_features(&self, times: FlowTimes<'_>) -> candle_core::Result<TimeFeatures> {
         let t = times.t;
         let b = t.len();
         let h = self.cfg.action_horizon;
@@ -510,26 +534,30 @@ impl PiModel {
             Some(_) => te.reshape((b, h, width))?,
             None => te,
         };
-        let cond = match &self.heads {
-            SuffixHeads::Pi0 { .. } => None,
-            SuffixHeads::Pi05 { time_in, time_out } => {
-                Some(time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?)
+        let (cond, mlp_time) = match &self.heads {
+            SuffixHeads::Pi0 { split, .. } => {
+                (None, split.as_ref().map(|m| m.time_term(&te)).transpose()?)
             }
+            SuffixHeads::Pi05 { time_in, time_out } => (
+                Some(time_out.forward(&time_in.forward(&te)?.silu()?)?.silu()?),
+                None,
+            ),
         };
+        let f = TimeFeatures { te, cond, mlp_time };
         if let (Some(k), Ok(mut m)) = (key, self.time_table.lock()) {
             // a handful of step counts and prefix lengths in practice; bounded whatever a
             // caller does
             if m.len() >= 4096 {
                 m.clear();
             }
-            m.insert(k, (te.clone(), cond.clone()));
+            m.insert(k, f.clone());
         }
-        Ok((te, cond))
+        Ok(f)
     }
 
     /// The adaRMS condition at time `t` (π0.5; `None` for π0) [B, We].
     pub fn adarms_cond(&self, t: &[f32]) -> candle_core::Result<Option<Tensor>> {
-        Ok(self.time_features(FlowTimes::new(t))?.1)
+        Ok(self.time_features(FlowTimes::new(t))?.cond)
     }
 
     /// `embed_suffix` output at time `t` (π0: state token first) [B, S, We].
