@@ -14,6 +14,9 @@
 #
 # Prints the two variables the bench reads; then:
 #   cargo bench --bench inference -- --openpi "$CHUNKRT_OPENPI"
+# To compare both programs' AVX2 paths on an AVX-512 CPU, cap both:
+#   CHUNKRT_CPU_ISA=avx2 ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2 ONEDNN_MAX_CPU_ISA=AVX2 \
+#     cargo bench --bench inference -- --openpi "$CHUNKRT_OPENPI"
 set -euo pipefail
 
 main() {

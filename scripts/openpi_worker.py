@@ -5,7 +5,7 @@ The bench (`cargo bench --bench inference -- --openpi DIR`) starts this worker o
 configuration and asks it for one `sample_actions` call per round, between its own calls, so a
 slow period of the machine hits both programs alike. Protocol (one line each way, JSON out):
 
-    worker -> {"ready": true, "torch": ..., "params": ..., "threads": ...}
+    worker -> {"ready": true, "torch": ..., "params": ..., "threads": ..., "cpu_capability": ...}
     bench  -> sample            worker -> {"wall_us": ..., "cpu_us": ...}
     bench  -> quit  (or EOF)
 
@@ -145,6 +145,8 @@ def main():
         "torch": torch.__version__,
         "params": params,
         "threads": torch.get_num_threads(),
+        # ATen's vectorised kernels (ATEN_CPU_CAPABILITY caps them), e.g. "AVX2", "AVX512"
+        "cpu_capability": getattr(torch.backends.cpu, "get_cpu_capability", lambda: "?")(),
         "actions_shape": list(actions.shape),
     }
     print(json.dumps(hello), flush=True)

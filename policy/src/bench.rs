@@ -227,7 +227,7 @@ impl std::fmt::Display for BenchReport {
             if let Some((p, info)) = &c.openpi_same_run {
                 writeln!(
                     f,
-                    "{:<16} {:>5} {:>10.2} {:>10.2} {:>9} {:>10.2}   (openpi PyTorch, this run: torch {}, {} threads, {:.1} M parameters)",
+                    "{:<16} {:>5} {:>10.2} {:>10.2} {:>9} {:>10.2}   (openpi PyTorch, this run: torch {} (ATen {}), {} threads, {:.1} M parameters)",
                     "openpi sample",
                     p.n,
                     p.p50_ms,
@@ -235,6 +235,7 @@ impl std::fmt::Display for BenchReport {
                     "",
                     p.cpu_ms,
                     info.torch,
+                    info.cpu_capability,
                     info.threads,
                     info.params as f64 / 1e6
                 )?;
@@ -261,6 +262,19 @@ impl std::fmt::Display for BenchReport {
                 "openpi: measured in this run, interleaved with chunkrt's calls on {}",
                 self.cpu
             )?;
+            let torch_wider = self.configs.iter().any(|c| {
+                c.openpi_same_run
+                    .as_ref()
+                    .is_some_and(|(_, i)| i.cpu_capability.starts_with("AVX512"))
+            });
+            if torch_wider && super::packed::support().f32_kernel() == "avx2" {
+                writeln!(
+                    f,
+                    "note: chunkrt's kernels are capped to AVX2 but torch runs its AVX512 kernels; \
+                     ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2 ONEDNN_MAX_CPU_ISA=AVX2 \
+                     cap it too"
+                )?;
+            }
         } else {
             writeln!(
                 f,

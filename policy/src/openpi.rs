@@ -49,6 +49,8 @@ pub struct OpenpiInfo {
     pub params: u64,
     /// torch threads.
     pub threads: u64,
+    /// ATen's CPU capability (`torch.backends.cpu.get_cpu_capability()`: "AVX2", "AVX512", …).
+    pub cpu_capability: String,
 }
 
 /// A running worker; killed on drop.
@@ -120,6 +122,7 @@ impl OpenpiWorker {
             torch: hello["torch"].as_str().unwrap_or("?").to_string(),
             params: hello["params"].as_u64().unwrap_or(0),
             threads: hello["threads"].as_u64().unwrap_or(0),
+            cpu_capability: hello["cpu_capability"].as_str().unwrap_or("?").to_string(),
         };
         Ok(w)
     }
