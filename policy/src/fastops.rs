@@ -589,7 +589,7 @@ fn attention_packed(
     scale: f32,
     arith: Precision,
 ) -> Result<Option<Tensor>> {
-    use super::packed::PackedRhs;
+    use super::packed::{PackedRhs, Stored};
     let (b, nh, l, hd) = q.dims4()?;
     let (_, nkv, t, _) = k.dims4()?;
     let bl = bias.dim(2)?;
@@ -605,8 +605,8 @@ fn attention_packed(
                 let kp = &kd[bi * ks[0] + kv * ks[1]..];
                 let vp = &vd[bi * vs[0] + kv * vs[1]..];
                 match rayon::join(
-                    || PackedRhs::pack_cols(hd, t, kp, ks[2], arith),
-                    || PackedRhs::pack_rows(t, hd, vp, vs[2], arith),
+                    || PackedRhs::pack_strided(hd, t, kp, ks[2], Stored::Cols, arith),
+                    || PackedRhs::pack_strided(t, hd, vp, vs[2], Stored::Rows, arith),
                 ) {
                     (Some(kt), Some(vv)) => Some((kt, vv)),
                     _ => None,

@@ -193,6 +193,15 @@ enum Data {
     Bf16Wide(Vec<u16>),
 }
 
+/// How a right-hand side `W` [K, N] lies in memory ([`PackedRhs::pack_strided`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stored {
+    /// `W[k][n]` at `src[k * ld + n]`.
+    Rows,
+    /// `W[k][n]` at `src[n * ld + k]`.
+    Cols,
+}
+
 /// A right-hand side `W` [K, N] packed for one of the kernels.
 #[derive(Debug, Clone)]
 pub struct PackedRhs {
@@ -267,43 +276,35 @@ impl PackedRhs {
         })
     }
 
-    /// Packs `W` [K, N] stored row by row (`W[k][n]` at `src[k * ld + n]`, e.g. an attention's
-    /// V [T, hd] with T as K) for `precision`, reading each row once (f32: one copy of up to 32
-    /// values per panel row). `None` when this CPU has no kernel for it, or `src` is shorter
-    /// than the extent.
-    pub fn pack_rows(
+    /// Packs `W` [K, N] read from `src` with stride `ld` as `stored` says (an attention's V
+    /// [T, hd] by rows with T as K, its Kᵀ [hd, T] by columns from K [T, hd]) for `precision`,
+    /// reading each row (column) once. `None` when this CPU has no kernel for it, or `src` is
+    /// shorter than the extent.
+    pub fn pack_strided(
         k: usize,
         n: usize,
         src: &[f32],
         ld: usize,
+        stored: Stored,
         precision: Precision,
     ) -> Option<Self> {
-        if k > 0 && n > 0 && src.len() < (k - 1) * ld + n {
+        let (outer, inner) = match stored {
+            Stored::Rows => (k, n),
+            Stored::Cols => (n, k),
+        };
+        if outer > 0 && inner > 0 && src.len() < (outer - 1) * ld + inner {
             return None;
         }
-        Self::pack_strided(k, n, precision, src, |kk, col| kk * ld + col, true)
-    }
-
-    /// Packs `W` [K, N] stored column by column (`W[k][n]` at `src[n * ld + k]`, e.g. an
-    /// attention's Kᵀ [hd, T] from K [T, hd]) for `precision`, reading each column once.
-    /// `None` when this CPU has no kernel for it, or `src` is shorter than the extent.
-    pub fn pack_cols(
-        k: usize,
-        n: usize,
-        src: &[f32],
-        ld: usize,
-        precision: Precision,
-    ) -> Option<Self> {
-        if k > 0 && n > 0 && src.len() < (n - 1) * ld + k {
-            return None;
+        match stored {
+            Stored::Rows => Self::pack_from(k, n, precision, src, |kk, col| kk * ld + col, true),
+            Stored::Cols => Self::pack_from(k, n, precision, src, |kk, col| col * ld + kk, false),
         }
-        Self::pack_strided(k, n, precision, src, |kk, col| col * ld + kk, false)
     }
 
     /// The f32 panels and the AVX512-BF16 pairs filled straight from `src` (`at(k, n)`: the
     /// index of `W[k][n]`), with the loops along `src`'s rows (`by_rows`) or columns; the
     /// other layouts (AMX, bf16 widened on AVX2) through [`Self::pack_with`].
-    fn pack_strided(
+    fn pack_from(
         k: usize,
         n: usize,
         precision: Precision,

@@ -47,8 +47,14 @@ fn packed_products_match_a_reference() {
             // panels: the same product, bit for bit
             let wt: Vec<f32> = (0..n * k).map(|x| w[(x % k) * n + x / k]).collect();
             for (how, q) in [
-                ("rows", PackedRhs::pack_rows(k, n, &w, n, prec)),
-                ("cols", PackedRhs::pack_cols(k, n, &wt, k, prec)),
+                (
+                    "rows",
+                    PackedRhs::pack_strided(k, n, &w, n, Stored::Rows, prec),
+                ),
+                (
+                    "cols",
+                    PackedRhs::pack_strided(k, n, &wt, k, Stored::Cols, prec),
+                ),
             ] {
                 let q = q.expect("a kernel packs strided too");
                 let q = if with_bias {
@@ -58,10 +64,7 @@ fn packed_products_match_a_reference() {
                 };
                 let mut c2 = vec![7f32; m * ldc];
                 q.matmul_into(&a, m, lda, &mut c2, ldc, threads);
-                assert!(
-                    c == c2,
-                    "{prec:?} (avx2 {avx2}) {m}x{k}x{n}: pack_{how} differs"
-                );
+                assert!(c == c2, "{prec:?} (avx2 {avx2}) {m}x{k}x{n}: {how} differs");
             }
             let round = |v: f32| match prec {
                 Precision::F32 => v as f64,
