@@ -469,12 +469,8 @@ pub fn attention(
         return Ok(None);
     }
     if super::packed::support().f32_packed() && super::packed::enabled() {
-        let bf16 = arith == Precision::Bf16 && super::packed::bf16_native();
-        let arith = if bf16 {
-            Precision::Bf16
-        } else {
-            Precision::F32
-        };
+        let native = arith == Precision::Bf16 && super::packed::bf16_native();
+        let arith = [Precision::F32, Precision::Bf16][native as usize];
         return attention_packed(q, k, v, bias, scale, arith);
     }
     let (k_b, k_h, k_r) = (ks[0], ks[1], ks[2]);
@@ -531,6 +527,8 @@ pub fn attention(
                             softmax_bias_rows(s, brow, t, 1.0, &mut inv);
                             let d = dst;
                             let c = d.0.wrapping_add(bi * l * width + h * hd);
+                            // SAFETY: as above; `c` starts this task's output block (L rows of
+                            // hd at stride `width`), which the product and the scaling alone touch.
                             unsafe {
                                 gemm::gemm(
                                     l,
