@@ -277,8 +277,8 @@ impl PackedRhs {
     }
 
     /// Packs `W` [K, N] read from `src` with stride `ld` as `stored` says (an attention's V
-    /// [T, hd] by rows with T as K, its Kᵀ [hd, T] by columns from K [T, hd]) for `precision`,
-    /// reading each row (column) once. `None` when this CPU has no kernel for it, or `src` is
+    /// [T, hd] by rows with T as K, its Kᵀ [hd, T] by columns from K [T, hd]) for `precision`
+    /// (f32: straight copies; bf16: through [`Self::pack_with`]). `None` when this CPU has no kernel for it, or `src` is
     /// shorter than the extent.
     pub fn pack_strided(
         k: usize,
@@ -295,87 +295,39 @@ impl PackedRhs {
         if outer > 0 && inner > 0 && src.len() < (outer - 1) * ld + inner {
             return None;
         }
-        match stored {
-            Stored::Rows => Self::pack_from(k, n, precision, src, |kk, col| kk * ld + col, true),
-            Stored::Cols => Self::pack_from(k, n, precision, src, |kk, col| col * ld + kk, false),
-        }
-    }
-
-    /// The f32 panels and the AVX512-BF16 pairs filled straight from `src` (`at(k, n)`: the
-    /// index of `W[k][n]`), with the loops along `src`'s rows (`by_rows`) or columns; the
-    /// other layouts (AMX, bf16 widened on AVX2) through [`Self::pack_with`].
-    fn pack_from(
-        k: usize,
-        n: usize,
-        precision: Precision,
-        src: &[f32],
-        at: impl Fn(usize, usize) -> usize,
-        by_rows: bool,
-    ) -> Option<Self> {
-        let data = match precision {
-            Precision::F32 if support().f32_packed() => {
-                let mut d = vec![0f32; panels(n) * k * NR];
-                for (p, panel) in d.chunks_exact_mut(k * NR).enumerate() {
-                    let w = NR.min(n - p * NR);
-                    if by_rows {
-                        for (kk, row) in panel.chunks_exact_mut(NR).enumerate() {
-                            let i = at(kk, p * NR);
-                            row[..w].copy_from_slice(&src[i..i + w]);
-                        }
-                    } else {
-                        for c in 0..w {
-                            let i = at(0, p * NR + c);
-                            for (kk, &v) in src[i..i + k].iter().enumerate() {
-                                panel[kk * NR + c] = v;
-                            }
-                        }
-                    }
-                }
-                Data::F32(d)
-            }
-            Precision::Bf16 if bf16_backend() == Some("avx512-bf16") => {
-                // [N/32][Kp/2][32][2]: pairs of consecutive k side by side
-                let kp2 = k.div_ceil(2);
-                let mut d = vec![0u16; panels(n) * kp2 * NR * 2];
-                for (p, panel) in d.chunks_exact_mut(kp2 * NR * 2).enumerate() {
-                    let w = NR.min(n - p * NR);
-                    if by_rows {
-                        for (pair, row) in panel.chunks_exact_mut(NR * 2).enumerate() {
-                            let i0 = at(2 * pair, p * NR);
-                            let r0 = &src[i0..i0 + w];
-                            if 2 * pair + 1 < k {
-                                let i1 = at(2 * pair + 1, p * NR);
-                                let r1 = &src[i1..i1 + w];
-                                for ((o, &a), &b) in row.chunks_exact_mut(2).zip(r0).zip(r1) {
-                                    o[0] = amx::bf16(a);
-                                    o[1] = amx::bf16(b);
-                                }
-                            } else {
-                                for (o, &a) in row.chunks_exact_mut(2).zip(r0) {
-                                    o[0] = amx::bf16(a);
-                                }
-                            }
-                        }
-                    } else {
-                        for c in 0..w {
-                            let i = at(0, p * NR + c);
-                            let pairs = src[i..i + k].chunks(2);
-                            for (row, two) in panel.chunks_exact_mut(NR * 2).zip(pairs) {
-                                for (o, &v) in row[2 * c..2 * c + 2].iter_mut().zip(two) {
-                                    *o = amx::bf16(v);
-                                }
-                            }
-                        }
-                    }
-                }
-                Data::Bf16(d)
-            }
-            _ => return Self::pack_with(k, n, precision, |kk, col| src[at(kk, col)]),
+        let at = |kk: usize, col: usize| match stored {
+            Stored::Rows => kk * ld + col,
+            Stored::Cols => col * ld + kk,
         };
+        if precision != Precision::F32 || !support().f32_packed() {
+            // the bf16 layouts (one conversion per value dominates): through the closure
+            return Self::pack_with(k, n, precision, |kk, col| src[at(kk, col)]);
+        }
+        // the f32 panels [N/32][K][32], each row (column) of `src` read once, contiguously
+        let mut d = vec![0f32; panels(n) * k * NR];
+        for (p, panel) in d.chunks_exact_mut(k * NR).enumerate() {
+            let w = NR.min(n - p * NR);
+            match stored {
+                Stored::Rows => {
+                    for (kk, row) in panel.chunks_exact_mut(NR).enumerate() {
+                        let i = at(kk, p * NR);
+                        row[..w].copy_from_slice(&src[i..i + w]);
+                    }
+                }
+                Stored::Cols => {
+                    for c in 0..w {
+                        let i = at(0, p * NR + c);
+                        for (kk, &v) in src[i..i + k].iter().enumerate() {
+                            panel[kk * NR + c] = v;
+                        }
+                    }
+                }
+            }
+        }
         Some(PackedRhs {
             k,
             n,
-            data,
+            data: Data::F32(d),
             bias: None,
         })
     }

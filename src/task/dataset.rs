@@ -723,11 +723,7 @@ mod tests {
             "{differ} of {checked} earlier frames show motion"
         );
         // kept in the file
-        let dir = std::env::temp_dir().join(format!("chunkrt-ds-hist-{}", std::process::id()));
-        let path = dir.join("d.safetensors");
-        ds.save(&path).unwrap();
-        let back = Dataset::load(&path).unwrap();
-        std::fs::remove_dir_all(&dir).ok();
+        let back = saved_and_loaded(&ds, "hist");
         assert_eq!(back, ds);
     }
 
@@ -828,11 +824,7 @@ mod tests {
             ds.len()
         );
         // the share is kept in the file
-        let dir = std::env::temp_dir().join(format!("chunkrt-ds-drift-{}", std::process::id()));
-        let path = dir.join("d.safetensors");
-        ds.save(&path).unwrap();
-        let back = Dataset::load(&path).unwrap();
-        std::fs::remove_dir_all(&dir).ok();
+        let back = saved_and_loaded(&ds, "drift");
         assert_eq!(back.drift_share, 1.0);
         assert_eq!(back.target_velocity, ds.target_velocity);
     }
@@ -863,14 +855,20 @@ mod tests {
         }
     }
 
-    #[test]
-    fn save_and_load_round_trip() {
-        let ds = Dataset::generate(&spec(), |_, _| {});
-        let dir = std::env::temp_dir().join(format!("chunkrt-ds-{}", std::process::id()));
+    /// `ds` written to a file of its own and read back.
+    fn saved_and_loaded(ds: &Dataset, tag: &str) -> Dataset {
+        let dir = std::env::temp_dir().join(format!("chunkrt-ds-{tag}-{}", std::process::id()));
         let path = dir.join("d.safetensors");
         ds.save(&path).unwrap();
         let back = Dataset::load(&path).unwrap();
         std::fs::remove_dir_all(&dir).ok();
+        back
+    }
+
+    #[test]
+    fn save_and_load_round_trip() {
+        let ds = Dataset::generate(&spec(), |_, _| {});
+        let back = saved_and_loaded(&ds, "plain");
         assert_eq!(back, ds);
     }
 }
