@@ -1,8 +1,8 @@
 //! Shapes the fixtures do not cover (batch > 1, num_kv_heads > 1), with random weights:
 //! cached == uncached, batch rows == single runs, differentiable ops == fast ops, gradients flow.
 
-use candle_core::{DType, Device, Tensor, Var};
-use chunkrt::policy::bench::random_model;
+use candle_core::{Device, Tensor, Var};
+use chunkrt::policy::bench::{random_inference_model, random_model};
 use chunkrt::policy::model::{ModelInputs, PiModel};
 use chunkrt::policy::ModelConfig;
 
@@ -66,7 +66,8 @@ fn row(inp: &ModelInputs, i: usize) -> ModelInputs {
 
 fn check_kind(pi05: bool) {
     let cfg = small_config(pi05);
-    let (model, _vm): (PiModel, _) = random_model(&cfg).unwrap();
+    // held as a checkpoint holds its weights: the inference path (fused and packed) runs
+    let model: PiModel = random_inference_model(&cfg).unwrap();
     let inp = inputs(&cfg);
     let noise = Tensor::randn(
         0f32,
@@ -129,15 +130,9 @@ fn check_kind(pi05: bool) {
     let grads = a_hat.sum_all().unwrap().backward().unwrap();
     let g = grads.get(x.as_tensor()).expect("gradient w.r.t. x_t");
     assert_eq!(g.dims(), noise.dims());
-    // finite-difference check of one entry
-    let eps = 1e-2f64;
-    let bump = Tensor::zeros(noise.dims(), DType::F32, &Device::Cpu).unwrap();
-    let bump = bump
-        .slice_assign(
-            &[0..1, 1..2, 2..3],
-            &Tensor::full(eps as f32, (1, 1, 1), &Device::Cpu).unwrap(),
-        )
-        .unwrap();
+    // finite differences of every entry (the fast, packed path evaluates f): a VJP that misses
+    // the path through the velocity (analytic 1 everywhere) fails on most entries
+    let eps = 1e-2f32;
     let f = |xx: &Tensor| -> f64 {
         let v = model.velocity(c, xx, &t, false).unwrap();
         (xx - v.broadcast_mul(&t3).unwrap())
@@ -147,21 +142,28 @@ fn check_kind(pi05: bool) {
             .to_scalar::<f32>()
             .unwrap() as f64
     };
-    let fd = (f(&(&noise + &bump).unwrap()) - f(&(&noise - &bump).unwrap())) / (2.0 * eps);
-    let an = g
-        .get(0)
-        .unwrap()
-        .get(1)
-        .unwrap()
-        .get(2)
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap() as f64;
-    println!("pi05={pi05}: vjp analytic {an:.5} finite-difference {fd:.5}");
-    assert!(
-        (an - fd).abs() < 2e-2 * (1.0 + fd.abs()),
-        "vjp {an} vs fd {fd}"
+    let x0 = noise.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let an = g.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let (mut worst, mut through_v) = (0f64, 0f64);
+    for i in 0..x0.len() {
+        let at = |d: f32| {
+            let mut x = x0.clone();
+            x[i] += d;
+            f(&Tensor::from_vec(x, noise.dims(), &Device::Cpu).unwrap())
+        };
+        let fd = (at(eps) - at(-eps)) / (2.0 * eps as f64);
+        let a = an[i] as f64;
+        worst = worst.max((a - fd).abs() / (1.0 + fd.abs()));
+        through_v = through_v.max((fd - 1.0).abs());
+    }
+    println!(
+        "pi05={pi05}: vjp vs finite differences, worst {worst:.2e} (|fd - 1| up to {through_v:.2})"
     );
+    assert!(
+        through_v > 0.05,
+        "the velocity barely depends on x_t: the check is void"
+    );
+    assert!(worst < 2e-2, "vjp vs finite differences {worst}");
 }
 
 #[test]

@@ -431,13 +431,15 @@ impl PiModel {
     /// Suffix tokens and the adaRMS condition at time `t` [B]: tokens [B, S or H, We].
     /// `with_state`: prepend π0's state token. `committed` (training-time RTC, [`FlowTimes`]):
     /// the first `committed[b]` action tokens of row b are at flow time 0, and the condition
-    /// is per token [B, H, We].
+    /// is per token [B, H, We]. `diff`: candle's ops with a backward (π0's action-time MLP
+    /// concatenated, not split onto the packed kernels, which have none).
     fn embed_suffix(
         &self,
         state: &Tensor,
         x_t: &Tensor,
         times: FlowTimes<'_>,
         with_state: bool,
+        diff: bool,
     ) -> candle_core::Result<(Tensor, Option<Tensor>)> {
         let we = self.cfg.action_expert.width;
         let TimeFeatures { te, cond, mlp_time } = self.time_features(times)?;
@@ -450,8 +452,8 @@ impl PiModel {
                 mlp_out,
                 split,
             } => {
-                let at = match (split, &mlp_time) {
-                    (Some(mlp), Some(tt)) => mlp.forward(&a, tt)?,
+                let at = match (split, &mlp_time, diff) {
+                    (Some(mlp), Some(tt), false) => mlp.forward(&a, tt)?,
                     _ => {
                         let (b, h, _) = a.dims3()?;
                         // per batch row [B, We] or already per token [B, H, We]
@@ -567,7 +569,9 @@ impl PiModel {
         x_t: &Tensor,
         t: &[f32],
     ) -> Result<Tensor, PolicyError> {
-        Ok(self.embed_suffix(state, x_t, FlowTimes::new(t), true)?.0)
+        Ok(self
+            .embed_suffix(state, x_t, FlowTimes::new(t), true, false)?
+            .0)
     }
 
     /// Runs the prefix through the VLM expert only, filling `cache` (reusing its buffers when the
@@ -640,7 +644,7 @@ impl PiModel {
             )));
         }
         // the state token (π0) is already in the cache; `state` is unused without it
-        let (tokens, cond) = self.embed_suffix(x_t, x_t, times, false)?;
+        let (tokens, cond) = self.embed_suffix(x_t, x_t, times, false, differentiable)?;
         let mut st = [Stream {
             x: tokens,
             expert: &self.expert,
@@ -698,7 +702,7 @@ impl PiModel {
     ) -> Result<(Tensor, Tensor, Option<Tensor>), PolicyError> {
         let b = self.check_inputs(inp)?;
         let layout = self.prefix_layout(inp);
-        let (suffix, cond) = self.embed_suffix(&inp.state, x_t, times.into(), true)?;
+        let (suffix, cond) = self.embed_suffix(&inp.state, x_t, times.into(), true, diff)?;
         let s = suffix.dim(1)?;
         let p = self.cfg.prefix_len();
         let ar_s = self.suffix_ar();

@@ -157,7 +157,7 @@ impl PiModel {
         // suffix: B·k rows against the repeated prefix K/V
         let state = rep(&inp.state)?;
         let times = FlowTimes { t: &tv, committed };
-        let (suffix, cond) = self.embed_suffix(&state, &x_t, times, true)?;
+        let (suffix, cond) = self.embed_suffix(&state, &x_t, times, true, diff)?;
         let s = suffix.dim(1)?;
         let ar_s = self.suffix_ar();
         let mut vis = Vec::with_capacity(bk * s * (p + s));
