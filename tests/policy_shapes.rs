@@ -103,6 +103,29 @@ fn check_kind(pi05: bool) {
         "cache buffers reallocated"
     );
     assert!(maxdiff(&again.actions, &cached.actions) < 1e-6);
+    // the prefix K/V packed once per observation for the CPU attention kernel: present where
+    // that kernel runs, and a new observation through the reused cache repacks it (a stale
+    // prefix would give the first observation's actions)
+    let depth = cfg.action_expert.depth;
+    let packs = chunkrt::policy::packed::support().f32_packed();
+    let panels = cache.as_ref().unwrap().packed_prefix();
+    assert_eq!(panels.as_ref().map(|p| p.len()), packs.then_some(depth));
+    let offset = cache.as_ref().unwrap().action_offset;
+    assert!(panels
+        .iter()
+        .flat_map(|p| p.iter())
+        .all(|p| p.keys() == offset));
+    let mut other = inp.clone();
+    other.images = inp.images.iter().map(|t| (t * -0.5).unwrap()).collect();
+    other.state = (&inp.state * 2.0).unwrap();
+    let reused = model.sample(&other, &noise, 5, Some(&mut cache)).unwrap();
+    let fresh = model.sample(&other, &noise, 5, Some(&mut None)).unwrap();
+    assert!(
+        maxdiff(&reused.actions, &fresh.actions) < 1e-6,
+        "stale prefix"
+    );
+    assert!(maxdiff(&reused.actions, &cached.actions) > 1e-3);
+    let _ = model.sample(&inp, &noise, 5, Some(&mut cache)).unwrap();
     for i in 0..2 {
         let single = model
             .sample(

@@ -167,6 +167,20 @@ unsafe fn scale_rows(c: *mut f32, rows: usize, cols: usize, ldc: usize, inv: &[f
     }
 }
 
+/// Adds the `rows` × `cols` block `part` (contiguous) into the block at `c` (row stride `ldc`).
+///
+/// # Safety
+/// As [`scale_rows`].
+unsafe fn add_rows(c: *mut f32, rows: usize, cols: usize, ldc: usize, part: &[f32]) {
+    for (r, src) in part.chunks_exact(cols).enumerate().take(rows) {
+        // SAFETY: row r of the block (the caller's contract).
+        let row = unsafe { std::slice::from_raw_parts_mut(c.add(r * ldc), cols) };
+        for (v, a) in row.iter_mut().zip(src) {
+            *v += a;
+        }
+    }
+}
+
 /// Number of threads for the fused kernels (candle's setting, `RAYON_NUM_THREADS`).
 fn threads() -> usize {
     candle_core::utils::get_num_threads()
@@ -440,6 +454,11 @@ thread_local! {
 /// `arith`: [`Precision::Bf16`] runs both products with bf16 inputs (f32 accumulation, the
 /// softmax in f32, as openpi's bf16 models do) where the CPU has native bf16 arithmetic
 /// ([`super::packed::bf16_native`]); f32 elsewhere.
+///
+/// `prefix`: keys and values `0..prefix.keys()` already packed ([`PackedKv`], a KV cache's
+/// prefix, packed once per observation); the kernel then packs only the keys after them and
+/// reads the prefix's from the panels. Ignored where it does not fit (other shapes or
+/// arithmetic) or where the packed kernel does not run.
 pub fn attention(
     q: &Tensor,
     k: &Tensor,
@@ -447,6 +466,7 @@ pub fn attention(
     bias: &Tensor,
     scale: f32,
     arith: Precision,
+    prefix: Option<&PackedKv>,
 ) -> Result<Option<Tensor>> {
     let (b, nh, l, hd) = q.dims4()?;
     let (kb, nkv, t, khd) = k.dims4()?;
@@ -468,10 +488,8 @@ pub fn attention(
     if ks[3] != 1 || vs[3] != 1 {
         return Ok(None);
     }
-    if super::packed::support().f32_packed() && super::packed::enabled() {
-        let native = arith == Precision::Bf16 && super::packed::bf16_native();
-        let arith = [Precision::F32, Precision::Bf16][native as usize];
-        return attention_packed(q, k, v, bias, scale, arith);
+    if let Some(arith) = packed_arith(arith) {
+        return attention_packed(q, k, v, bias, scale, arith, prefix);
     }
     let (k_b, k_h, k_r) = (ks[0], ks[1], ks[2]);
     let (v_b, v_h, v_r) = (vs[0], vs[1], vs[2]);
@@ -575,36 +593,38 @@ pub fn attention(
 /// that a block's scores stay in L2 (48 × 600 keys: 115 KB).
 const ATT_ROWS: usize = 48;
 
-/// [`attention`] on the packed f32 kernel: each kv head's Kᵀ and V are packed into panels once
-/// and shared by its query heads; tasks are (batch row, head, block of [`ATT_ROWS`] queries),
-/// spread over the threads, each computing its scores, the fused scale + bias + softmax, and
-/// its block of the output. Shapes as checked by [`attention`].
-fn attention_packed(
-    q: &Tensor,
+/// The arithmetic of [`attention`]'s packed kernel for the layer's `arith` (bf16 only where
+/// the CPU has native bf16 products), `None` where the packed kernels do not run.
+fn packed_arith(arith: Precision) -> Option<Precision> {
+    if !(super::packed::support().f32_packed() && super::packed::enabled()) {
+        return None;
+    }
+    let native = arith == Precision::Bf16 && super::packed::bf16_native();
+    Some([Precision::F32, Precision::Bf16][native as usize])
+}
+
+/// Kᵀ [hd, n] and V [n, hd] of keys `from..from + n` of each (batch row, kv head) of `k`, `v`
+/// [B, nKV, T, hd] (rows contiguous), packed for `arith` (K and V side by side on the threads);
+/// `None` where they cannot be packed.
+fn pack_heads(
     k: &Tensor,
     v: &Tensor,
-    bias: &Tensor,
-    scale: f32,
+    from: usize,
+    n: usize,
     arith: Precision,
-) -> Result<Option<Tensor>> {
+) -> Result<Option<Vec<(super::packed::PackedRhs, super::packed::PackedRhs)>>> {
     use super::packed::{PackedRhs, Stored};
-    let (b, nh, l, hd) = q.dims4()?;
-    let (_, nkv, t, _) = k.dims4()?;
-    let bl = bias.dim(2)?;
+    let (b, nkv, _, hd) = k.dims4()?;
     let (ks, vs) = (k.stride(), v.stride());
-    let g = nh / nkv;
-    let width = nh * hd;
-    // Kᵀ [hd, T] and V [T, hd] of every (batch row, kv head), packed (K and V side by side on
-    // the threads)
     let packed = cpu_f32(k, |kd, _| {
         cpu_f32(v, |vd, _| {
             let one = |i: usize| {
                 let (bi, kv) = (i / nkv, i % nkv);
-                let kp = &kd[bi * ks[0] + kv * ks[1]..];
-                let vp = &vd[bi * vs[0] + kv * vs[1]..];
+                let kp = kd.get(bi * ks[0] + kv * ks[1] + from * ks[2]..)?;
+                let vp = vd.get(bi * vs[0] + kv * vs[1] + from * vs[2]..)?;
                 match rayon::join(
-                    || PackedRhs::pack_strided(hd, t, kp, ks[2], Stored::Cols, arith),
-                    || PackedRhs::pack_strided(t, hd, vp, vs[2], Stored::Rows, arith),
+                    || PackedRhs::pack_strided(hd, n, kp, ks[2], Stored::Cols, arith),
+                    || PackedRhs::pack_strided(n, hd, vp, vs[2], Stored::Rows, arith),
                 ) {
                     (Some(kt), Some(vv)) => Some((kt, vv)),
                     _ => None,
@@ -612,11 +632,85 @@ fn attention_packed(
             };
             Ok((0..b * nkv).map(one).collect::<Option<Vec<_>>>())
         })
-    })?
-    .flatten()
-    .flatten();
-    let Some(packed) = packed else {
-        return Ok(None);
+    })?;
+    Ok(packed.flatten().flatten())
+}
+
+/// One layer's keys and values over positions `0..keys` of a KV cache, packed once for
+/// [`attention`]'s kernel. The denoising steps of a sample all attend to the same cached
+/// prefix; with it packed per observation, a step packs only its own few keys.
+#[derive(Debug, Clone)]
+pub struct PackedKv {
+    keys: usize,
+    /// (batch, kv heads, head dim) of the cache it was packed from.
+    dims: (usize, usize, usize),
+    arith: Precision,
+    /// Kᵀ [hd, keys] and V [keys, hd] of every (batch row, kv head).
+    heads: Vec<(super::packed::PackedRhs, super::packed::PackedRhs)>,
+}
+
+impl PackedKv {
+    /// Packs keys and values `0..keys` of `k`, `v` [B, nKV, T, hd] (rows contiguous) for an
+    /// attention whose layer runs in `arith`. `None` where [`attention`]'s packed kernel does not
+    /// run (not f32 CPU tensors, no packed kernel on this CPU, the kernels off) or the shapes do
+    /// not allow it.
+    pub fn pack(k: &Tensor, v: &Tensor, keys: usize, arith: Precision) -> Result<Option<Self>> {
+        let Some(arith) = packed_arith(arith) else {
+            return Ok(None);
+        };
+        let (b, nkv, t, hd) = k.dims4()?;
+        if v.dims() != k.dims() || keys == 0 || keys > t || k.stride()[3] != 1 || v.stride()[3] != 1
+        {
+            return Ok(None);
+        }
+        Ok(pack_heads(k, v, 0, keys, arith)?.map(|heads| PackedKv {
+            keys,
+            dims: (b, nkv, hd),
+            arith,
+            heads,
+        }))
+    }
+
+    /// Positions covered: `0..keys`.
+    pub fn keys(&self) -> usize {
+        self.keys
+    }
+
+    /// Bytes of the panels.
+    pub fn bytes(&self) -> usize {
+        self.heads.iter().map(|(k, v)| k.bytes() + v.bytes()).sum()
+    }
+}
+
+/// [`attention`] on the packed f32 kernel: each kv head's Kᵀ and V are packed into panels once
+/// (or taken from `prefix` for its keys) and shared by its query heads; tasks are (batch row,
+/// head, block of [`ATT_ROWS`] queries), spread over the threads, each computing its scores,
+/// the fused scale + bias + softmax, and its block of the output. Shapes as checked by
+/// [`attention`].
+fn attention_packed(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    bias: &Tensor,
+    scale: f32,
+    arith: Precision,
+    prefix: Option<&PackedKv>,
+) -> Result<Option<Tensor>> {
+    let (b, nh, l, hd) = q.dims4()?;
+    let (_, nkv, t, _) = k.dims4()?;
+    let bl = bias.dim(2)?;
+    let g = nh / nkv;
+    let width = nh * hd;
+    // the prefix's panels where they fit this call, then the keys after them packed here
+    let prefix = prefix.filter(|p| p.dims == (b, nkv, hd) && p.keys <= t && p.arith == arith);
+    let tp = prefix.map_or(0, |p| p.keys);
+    let own = if tp < t {
+        match pack_heads(k, v, tp, t - tp, arith)? {
+            Some(h) => Some(h),
+            None => return Ok(None),
+        }
+    } else {
+        None
     };
     let mut out = vec![0f32; b * l * width];
     let dst = SendPtr(out.as_mut_ptr());
@@ -629,7 +723,9 @@ fn attention_packed(
             let task = |i: usize| {
                 let (bi, rest) = (i / (nh * blocks), i % (nh * blocks));
                 let (h, blk) = (rest / blocks, rest % blocks);
-                let (kt, vv) = &packed[bi * nkv + h / g];
+                let head = bi * nkv + h / g;
+                let pre = prefix.map(|p| &p.heads[head]);
+                let own = own.as_ref().map(|o| &o[head]);
                 let r0 = blk * per_block;
                 let rows = per_block.min(l - r0);
                 let qp = &qs[((bi * nh + h) * l + r0) * hd..][..rows * hd];
@@ -645,11 +741,18 @@ fn attention_packed(
                         Ok(v) => v,
                         Err(_) => &mut fresh,
                     };
-                    if sc.len() < rows * t {
-                        sc.resize(rows * t, 0.0);
+                    // the scores, then (with a prefix) the own keys' share of the output
+                    let need = rows * t + if pre.is_some() { rows * hd } else { 0 };
+                    if sc.len() < need {
+                        sc.resize(need, 0.0);
                     }
-                    let s = &mut sc[..rows * t];
-                    kt.matmul_into(qp, rows, hd, s, t, 1);
+                    let (s, part) = sc[..need].split_at_mut(rows * t);
+                    if let Some((kt, _)) = pre {
+                        kt.matmul_into(qp, rows, hd, s, t, 1);
+                    }
+                    if let Some((kt, _)) = own {
+                        kt.matmul_into(qp, rows, hd, &mut s[tp..], t, 1);
+                    }
                     let mut inv = [0f32; ATT_ROWS];
                     softmax_bias_rows(s, brow, t, scale, &mut inv[..rows]);
                     let d = dst;
@@ -657,7 +760,19 @@ fn attention_packed(
                     // h*hd..(h+1)*hd) lies inside `out` and is written by this task only.
                     unsafe {
                         let c = d.0.add((bi * l + r0) * width + h * hd);
-                        vv.matmul_ptr(s, rows, t, c, width, 1);
+                        match (pre, own) {
+                            (Some((_, pv)), Some((_, ov))) => {
+                                // P·V = P[:, ..tp]·V_prefix + P[:, tp..]·V_own
+                                pv.matmul_ptr(s, rows, t, c, width, 1);
+                                ov.matmul_into(&s[tp..], rows, t, part, hd, 1);
+                                add_rows(c, rows, hd, width, part);
+                            }
+                            // all T keys in one set of panels
+                            (Some((_, vv)), None) | (None, Some((_, vv))) => {
+                                vv.matmul_ptr(s, rows, t, c, width, 1)
+                            }
+                            (None, None) => {}
+                        }
                         scale_rows(c, rows, hd, width, &inv[..rows]);
                     }
                 });

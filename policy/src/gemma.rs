@@ -107,6 +107,20 @@ impl ExpertLayer {
         Ok(true)
     }
 
+    /// Whether the inference path's fused layer runs this layer (a trainable model's layers
+    /// have no fused weights and take the general path).
+    pub fn is_fused(&self) -> bool {
+        self.qkv.is_some() && self.gate_up.is_some()
+    }
+
+    /// The arithmetic of this layer's attention products on the CPU: bf16 where its weights are
+    /// packed in bf16 (a native bf16 kernel then runs them), else f32.
+    pub fn attention_arith(&self) -> Precision {
+        self.packed
+            .as_ref()
+            .map_or(Precision::F32, |a| a.o.precision())
+    }
+
     /// Builds the fused fast-path weights unless the weights are trainable variables (a `VarMap`
     /// model: the copies would go stale when an optimiser updates the variables).
     fn with_fused(mut self) -> candle_core::Result<Self> {
@@ -226,6 +240,9 @@ pub enum KvMode<'a> {
         v: &'a Tensor,
         /// Where the streams' tokens go.
         offset: usize,
+        /// The cache's keys/values before `offset`, packed once for the CPU attention kernel
+        /// ([`ops::PackedKv`]; None: the kernel packs them itself).
+        packed: Option<&'a ops::PackedKv>,
     },
 }
 
@@ -302,7 +319,7 @@ fn stream_layer(
     let y = ops::matmul(&h, wqkv, a.map(|a| &a.qkv))?;
     let cache = match kv {
         KvMode::Own { store } => store.map(|(k, v)| (k, v, 0)),
-        KvMode::Cached { k, v, offset } => Some((k, v, offset)),
+        KvMode::Cached { k, v, offset, .. } => Some((k, v, offset)),
     };
     let (q, k, v) = ops::qkv_rope(&y, heads_of(d, true), s.rope.tables(), cache)?;
     let q = q.ok_or_else(|| candle_core::Error::Msg("stream_layer: no query heads".into()))?;
@@ -316,8 +333,12 @@ fn stream_layer(
     };
     let scale = (d.head_dim as f64).powf(-0.5);
     // the products in bf16 where the layer's weights are (a native bf16 CPU kernel only)
-    let arith = a.map_or(Precision::F32, |a| a.o.precision());
-    let o = ops::attention(&q, &keys, &values, Some(bias), scale, arith)?;
+    let arith = layer.attention_arith();
+    let prefix = match kv {
+        KvMode::Cached { packed, .. } => packed,
+        KvMode::Own { .. } => None,
+    };
+    let o = ops::attention_cached(&q, &keys, &values, Some(bias), scale, arith, prefix)?;
     let o = ops::matmul(&o, &layer.o.weight().t()?, a.map(|a| &a.o))?;
     let (x1, h2, gate2) = ops::add_norm(&x0, Some((&o, &gate1)), &layer.post_norm, s.cond)?;
     let act = ops::gelu_mul(
@@ -429,6 +450,7 @@ pub fn joint_layer(
             k: kb,
             v: vb,
             offset,
+            ..
         } => {
             if diff {
                 let kk = Tensor::cat(&[&kb.narrow(2, 0, offset)?, &k], 2)?;

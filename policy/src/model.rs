@@ -652,6 +652,8 @@ impl PiModel {
             rope: cache.action_rope(),
             pending: None,
         }];
+        // the prefix's K/V as packed once for this observation (the CPU kernel's fast path)
+        let packed = cache.packed_prefix();
         for li in 0..self.cfg.action_expert.depth {
             joint_layer(
                 li,
@@ -661,6 +663,7 @@ impl PiModel {
                     k: &cache.k[li],
                     v: &cache.v[li],
                     offset: cache.action_offset,
+                    packed: packed.as_ref().and_then(|p| p.get(li)),
                 },
                 differentiable,
             )?;

@@ -16,7 +16,7 @@
 //! | [`gated_add`] | `add` (no gate) | `gated_add` | `x + y · gate` |
 //! | [`qkv_rope`] | `split_heads` (+ RoPE) | `qkv_rope` (+ cache write) | narrow, heads, RoPE |
 //! | [`split_qkv`] | `split_heads` | `split_qkv` | reshape, transpose |
-//! | [`attention`] | `attention` | products + `softmax_bias` | [`attention_composed`] |
+//! | [`attention`], [`attention_cached`] | `attention` (+ a prefix packed once) | products + `softmax_bias` | [`attention_composed`] |
 //! | [`gelu_mul`] | `gelu_mul_fused` | `gelu_mul` | narrow, gelu, mul |
 //! | [`gelu`], [`add`] | `gelu`, `add` | — | candle |
 //!
@@ -26,6 +26,7 @@
 use candle_core::{DType, Result, Tensor, D};
 
 use super::fastops;
+pub use super::fastops::PackedKv;
 use super::kernels;
 pub use super::kernels::Heads;
 use super::packed::{PackedRhs, Precision};
@@ -325,6 +326,21 @@ pub fn attention(
     scale: f64,
     arith: Precision,
 ) -> Result<Tensor> {
+    attention_cached(q, k, v, bias, scale, arith, None)
+}
+
+/// [`attention`] over a KV cache whose keys `0..prefix.keys()` the CPU kernel has packed
+/// already ([`PackedKv`], once per observation): it packs only the keys after them. `prefix`
+/// is ignored where it does not apply (another device, the kernels off, other shapes).
+pub fn attention_cached(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    bias: Option<&Tensor>,
+    scale: f64,
+    arith: Precision,
+    prefix: Option<&PackedKv>,
+) -> Result<Tensor> {
     let _span = span(Kind::Attention);
     if q.device().is_cpu() {
         let zeros;
@@ -336,7 +352,7 @@ pub fn attention(
                 &zeros
             }
         };
-        if let Some(o) = fastops::attention(q, k, v, b, scale as f32, arith)? {
+        if let Some(o) = fastops::attention(q, k, v, b, scale as f32, arith, prefix)? {
             return Ok(o);
         }
     }

@@ -128,14 +128,14 @@ fn attention_matches_candle() {
             .unwrap()
             .reshape((b, l, nh * 16))
             .unwrap();
-        let got = attention(&q, &k, &v, &bias, scale, Precision::F32)
+        let got = attention(&q, &k, &v, &bias, scale, Precision::F32, None)
             .unwrap()
             .unwrap();
         let d = maxdiff(&want, &got);
         assert!(d < 1e-5, "attention {d}");
         // bf16 products where the CPU has native bf16 arithmetic (8 significant bits in q, k,
         // v and the probabilities), else the same f32 result
-        let got = attention(&q, &k, &v, &bias, scale, Precision::Bf16)
+        let got = attention(&q, &k, &v, &bias, scale, Precision::Bf16, None)
             .unwrap()
             .unwrap();
         let d16 = maxdiff(&want, &got);
@@ -143,6 +143,73 @@ fn attention_matches_candle() {
             assert!(d16 > 0.0 && d16 < 3e-2, "bf16 attention {d16}");
         } else {
             assert!(d16 < 1e-5, "bf16 attention without a bf16 kernel {d16}");
+        }
+    }
+}
+
+/// A prefix packed once ([`PackedKv`]) gives the attention over the whole cache, and the kernel
+/// reads the prefix from its panels: after the cache's prefix is overwritten, the result holds.
+#[test]
+fn attention_reads_a_prepacked_prefix() {
+    if !(crate::packed::support().f32_packed() && crate::packed::enabled()) {
+        eprintln!("skipped: no packed f32 kernel on this CPU");
+        return;
+    }
+    let dev = Device::Cpu;
+    for &(b, nh, nkv, l, t, tp) in &[(1, 8, 1, 50, 97, 41), (2, 4, 2, 7, 40, 40)] {
+        let q = Tensor::randn(0f32, 1f32, (b, nh, l, 16), &dev).unwrap();
+        let kf = Tensor::randn(0f32, 1f32, (b, nkv, t + 5, 16), &dev).unwrap();
+        let vf = Tensor::randn(0f32, 1f32, (b, nkv, t + 5, 16), &dev).unwrap();
+        let (k, v) = (kf.narrow(2, 0, t).unwrap(), vf.narrow(2, 0, t).unwrap());
+        // the last key of the first batch row masked
+        let mut bias = vec![0f32; b * t];
+        bias[t - 1] = -2.381_976_3e38;
+        let bias = Tensor::from_vec(bias, (b, 1, 1, t), &dev).unwrap();
+        for arith in [Precision::F32, Precision::Bf16] {
+            let want = attention(&q, &k, &v, &bias, 0.25, arith, None)
+                .unwrap()
+                .unwrap();
+            let pk = PackedKv::pack(&k, &v, tp, arith).unwrap().unwrap();
+            assert_eq!(pk.keys(), tp);
+            let got = attention(&q, &k, &v, &bias, 0.25, arith, Some(&pk))
+                .unwrap()
+                .unwrap();
+            // the split changes only the order of the P·V sums
+            let d = maxdiff(&want, &got);
+            assert!(d < 1e-5, "{arith:?} t {t} tp {tp}: {d}");
+            // the cache's prefix overwritten: the panels still give the same result, the
+            // cache read directly does not
+            let (k2, v2) = (kf.copy().unwrap(), vf.copy().unwrap());
+            let zeros = Tensor::zeros((b, nkv, tp, 16), candle_core::DType::F32, &dev).unwrap();
+            k2.slice_set(&zeros, 2, 0).unwrap();
+            v2.slice_set(&zeros, 2, 0).unwrap();
+            let (k2, v2) = (k2.narrow(2, 0, t).unwrap(), v2.narrow(2, 0, t).unwrap());
+            let got = attention(&q, &k2, &v2, &bias, 0.25, arith, Some(&pk))
+                .unwrap()
+                .unwrap();
+            assert!(
+                maxdiff(&want, &got) < 1e-5,
+                "{arith:?}: prefix not read from the panels"
+            );
+            let plain = attention(&q, &k2, &v2, &bias, 0.25, arith, None)
+                .unwrap()
+                .unwrap();
+            assert!(maxdiff(&want, &plain) > 1e-2);
+            // panels that do not fit the call (another batch size) are ignored
+            let other = PackedKv::pack(
+                &k.narrow(0, 0, 1).unwrap(),
+                &v.narrow(0, 0, 1).unwrap(),
+                tp,
+                arith,
+            )
+            .unwrap()
+            .unwrap();
+            if b > 1 {
+                let got = attention(&q, &k, &v, &bias, 0.25, arith, Some(&other))
+                    .unwrap()
+                    .unwrap();
+                assert_eq!(maxdiff(&want, &got), 0.0);
+            }
         }
     }
 }

@@ -208,6 +208,7 @@ impl PiModel {
                     k: &kr,
                     v: &vr,
                     offset: p,
+                    packed: None,
                 },
                 diff,
             )?;

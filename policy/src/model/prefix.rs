@@ -2,7 +2,11 @@
 //! masks, RoPE tables, copies of the observation into the cache's buffers) and
 //! [`PiModel::run_prefix`] (device: vision, the VLM's prefix pass filling K/V in place).
 
+use std::sync::{Arc, Mutex};
+
 use candle_core::{DType, Module, Tensor};
+
+use crate::ops::PackedKv;
 
 use super::*;
 
@@ -39,6 +43,10 @@ pub struct PrefixCache {
     pub layout: PrefixLayout,
     /// Batch size.
     pub batch: usize,
+    /// Each layer's K/V before `action_offset` (everything a denoising step reads but does not
+    /// write) packed for the CPU attention kernel, once per observation by
+    /// [`PiModel::run_prefix`] (None: not packed — a GPU, the kernels off, a refill since).
+    packed: Mutex<Option<Arc<Vec<PackedKv>>>>,
 }
 
 impl PrefixCache {
@@ -50,6 +58,18 @@ impl PrefixCache {
     /// RoPE tables of the action tokens.
     pub fn action_rope(&self) -> &Rope {
         &self.statics.action_rope
+    }
+
+    /// The layers' prefix K/V packed for the CPU attention kernel, where
+    /// [`PiModel::run_prefix`] packed them for the observation now in the cache.
+    pub fn packed_prefix(&self) -> Option<Arc<Vec<PackedKv>>> {
+        self.packed.lock().ok().and_then(|p| p.clone())
+    }
+
+    fn set_packed(&self, packed: Option<Vec<PackedKv>>) {
+        if let Ok(mut p) = self.packed.lock() {
+            *p = packed.map(Arc::new);
+        }
     }
 }
 
@@ -332,6 +352,7 @@ impl PiModel {
                 c.rows = rows;
                 c.action_offset = so + ns;
                 c.layout = layout;
+                c.set_packed(None);
                 c
             }
             _ => {
@@ -355,6 +376,7 @@ impl PiModel {
                     action_offset: so + ns,
                     layout,
                     batch: b,
+                    packed: Mutex::new(None),
                 }
             }
         };
@@ -375,6 +397,8 @@ impl PiModel {
         let d = &self.cfg.paligemma;
         let b = c.batch;
         let s = &c.statics;
+        // the panels of the previous observation go before its K/V are overwritten
+        c.set_packed(None);
         let embs = match embs {
             Some(e) => e.clone(),
             None => self.embed_from(c)?,
@@ -457,12 +481,37 @@ impl PiModel {
                         k: &c.k[li],
                         v: &c.v[li],
                         offset: c.action_offset - 1,
+                        packed: None,
                     },
                     false,
                 )?;
             }
         }
+        c.set_packed(self.pack_prefix(c)?);
         Ok(out)
+    }
+
+    /// Every layer's cached K/V before the action tokens, packed for the CPU attention kernel in
+    /// the arithmetic of the action expert's layer that reads them; `None` where any layer
+    /// cannot be (not the CPU, the kernels off, a layout the kernel does not take, a trainable
+    /// model).
+    fn pack_prefix(&self, c: &PrefixCache) -> Result<Option<Vec<PackedKv>>, PolicyError> {
+        if !self.device.is_cpu() {
+            return Ok(None);
+        }
+        let _span = crate::ops::profile::span(crate::ops::profile::Kind::Attention);
+        let mut out = Vec::with_capacity(c.k.len());
+        for (li, (k, v)) in c.k.iter().zip(&c.v).enumerate() {
+            // only the fused layer reads the panels
+            let Some(layer) = self.expert.layers.get(li).filter(|l| l.is_fused()) else {
+                return Ok(None);
+            };
+            match PackedKv::pack(k, v, c.action_offset, layer.attention_arith())? {
+                Some(p) => out.push(p),
+                None => return Ok(None),
+            }
+        }
+        Ok(Some(out))
     }
 
     /// Prefix embeddings [B, P, W] from the cache's images and token ids: image embeddings per
