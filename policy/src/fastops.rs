@@ -18,22 +18,23 @@ use rayon::prelude::*;
 
 /// Compiles `$body` three times (AVX-512, AVX2+FMA, baseline) and picks the best variant the CPU
 /// supports at run time. The body must only call `#[inline(always)]` helpers so they are compiled
-/// with the variant's features.
+/// with the variant's features. In the body, the const `FMA` says whether the variant has fused
+/// multiply-adds (pass it on to [`madd`]'s callers: without the feature `mul_add` is a libm call).
 macro_rules! multiversion {
     ($(#[$m:meta])* fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $body:block) => {
         $(#[$m])*
         fn $name($($arg: $ty),*) {
             #[inline(always)]
-            fn imp($($arg: $ty),*) $body
+            fn imp<const FMA: bool>($($arg: $ty),*) $body
             #[cfg(target_arch = "x86_64")]
             {
                 #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
                 unsafe fn v4($($arg: $ty),*) {
-                    imp($($arg),*)
+                    imp::<true>($($arg),*)
                 }
                 #[target_feature(enable = "avx2,fma")]
                 unsafe fn v3($($arg: $ty),*) {
-                    imp($($arg),*)
+                    imp::<true>($($arg),*)
                 }
                 let isa = crate::packed::support();
                 if isa.avx512 {
@@ -45,9 +46,20 @@ macro_rules! multiversion {
                     return unsafe { v3($($arg),*) };
                 }
             }
-            imp($($arg),*)
+            imp::<false>($($arg),*)
         }
     };
+}
+
+/// `a * b + c`, fused (one rounding, one instruction) where `FMA` says the variant compiled
+/// has fused multiply-adds.
+#[inline(always)]
+fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
 }
 
 /// Lanes of the explicit reductions (one AVX-512 register of f32).
@@ -56,23 +68,23 @@ const LANES: usize = 16;
 /// `exp(x)` in f32 (Cephes `expf`: `2^n * p(r)`, |r| <= ln 2 / 2, about 1 ulp); 0 below -87.
 /// Branch-free so that loops over it vectorise.
 #[inline(always)]
-fn exp_f32(x: f32) -> f32 {
+fn exp_f32<const FMA: bool>(x: f32) -> f32 {
     const LOG2E: f32 = std::f32::consts::LOG2_E;
     const LN2_HI: f32 = 0.693_359_4;
     const LN2_LO: f32 = -2.121_944_4e-4;
     // round-to-nearest through the 1.5 * 2^23 trick (no libm `roundf` call)
     const MAGIC: f32 = 12_582_912.0;
     let xc = x.clamp(-87.0, 88.0);
-    let t = xc * LOG2E + MAGIC;
+    let t = madd::<FMA>(xc, LOG2E, MAGIC);
     let n = t - MAGIC;
-    let r = (xc - n * LN2_HI) - n * LN2_LO;
+    let r = madd::<FMA>(-n, LN2_LO, madd::<FMA>(-n, LN2_HI, xc));
     let mut p = 1.987_569_1e-4f32;
-    p = p * r + 1.398_199_9e-3;
-    p = p * r + 8.333_452e-3;
-    p = p * r + 4.166_579_6e-2;
-    p = p * r + 1.666_666_5e-1;
-    p = p * r + 0.5;
-    let y = p * r * r + r + 1.0;
+    p = madd::<FMA>(p, r, 1.398_199_9e-3);
+    p = madd::<FMA>(p, r, 8.333_452e-3);
+    p = madd::<FMA>(p, r, 4.166_579_6e-2);
+    p = madd::<FMA>(p, r, 1.666_666_5e-1);
+    p = madd::<FMA>(p, r, 0.5);
+    let y = madd::<FMA>(p, r * r, r + 1.0);
     // n in [-126, 127]: the low bits of `t` hold n + 0x40_0000
     let ni = (t.to_bits() as i32).wrapping_sub(0x4B40_0000);
     let scale = f32::from_bits(((ni + 127) << 23) as u32);
@@ -86,17 +98,17 @@ fn exp_f32(x: f32) -> f32 {
 /// gelu with the tanh approximation, `0.5 x (1 + tanh(u)) = x * sigmoid(2u)`,
 /// `u = sqrt(2/pi) (x + 0.044715 x^3)`.
 #[inline(always)]
-fn gelu_tanh(x: f32) -> f32 {
+fn gelu_tanh<const FMA: bool>(x: f32) -> f32 {
     const C: f32 = 0.797_884_6;
-    let u = C * (x + 0.044_715 * x * x * x);
-    x / (1.0 + exp_f32(-2.0 * u))
+    let u = C * madd::<FMA>(0.044_715 * x, x * x, x);
+    x / (1.0 + exp_f32::<FMA>(-2.0 * u))
 }
 
 multiversion! {
     /// `out = gelu_tanh(g) * u`.
     fn gelu_mul_slice(g: &[f32], u: &[f32], out: &mut [f32]) {
         for ((o, &g), &u) in out.iter_mut().zip(g).zip(u) {
-            *o = gelu_tanh(g) * u;
+            *o = gelu_tanh::<FMA>(g) * u;
         }
     }
 }
@@ -105,7 +117,7 @@ multiversion! {
     /// `out = gelu_tanh(x)`.
     fn gelu_slice(x: &[f32], out: &mut [f32]) {
         for (o, &x) in out.iter_mut().zip(x) {
-            *o = gelu_tanh(x);
+            *o = gelu_tanh::<FMA>(x);
         }
     }
 }
@@ -123,13 +135,13 @@ multiversion! {
             let mut bc = b.chunks_exact(LANES);
             for (r, b) in (&mut rc).zip(&mut bc) {
                 for i in 0..LANES {
-                    let v = r[i] * scale + b[i];
+                    let v = madd::<FMA>(r[i], scale, b[i]);
                     r[i] = v;
                     mx[i] = if v > mx[i] { v } else { mx[i] };
                 }
             }
             for (r, b) in rc.into_remainder().iter_mut().zip(bc.remainder()) {
-                let v = *r * scale + *b;
+                let v = madd::<FMA>(*r, scale, *b);
                 *r = v;
                 mx[0] = if v > mx[0] { v } else { mx[0] };
             }
@@ -138,13 +150,13 @@ multiversion! {
             let mut rc = row.chunks_exact_mut(LANES);
             for r in &mut rc {
                 for i in 0..LANES {
-                    let e = exp_f32(r[i] - m);
+                    let e = exp_f32::<FMA>(r[i] - m);
                     r[i] = e;
                     sm[i] += e;
                 }
             }
             for r in rc.into_remainder() {
-                let e = exp_f32(*r - m);
+                let e = exp_f32::<FMA>(*r - m);
                 *r = e;
                 sm[0] += e;
             }
