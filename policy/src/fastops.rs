@@ -687,11 +687,6 @@ impl PackedKv {
     pub fn keys(&self) -> usize {
         self.keys
     }
-
-    /// Bytes of the panels.
-    pub fn bytes(&self) -> usize {
-        self.heads.iter().map(|(k, v)| k.bytes() + v.bytes()).sum()
-    }
 }
 
 /// [`attention`] on the packed f32 kernel: each kv head's Kᵀ and V are packed into panels once
