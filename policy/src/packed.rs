@@ -176,6 +176,16 @@ pub fn bf16_backend() -> Option<&'static str> {
     }
 }
 
+/// Rows of the register tile the packed products run for `arith` on this CPU (the AVX-512
+/// and AVX512-BF16 kernels' 12, AVX2's 6).
+pub fn tile_rows(arith: Precision) -> usize {
+    if use_avx512() || (arith == Precision::Bf16 && bf16_native()) {
+        MR
+    } else {
+        MR_AVX2
+    }
+}
+
 /// Whether bf16 products run on native bf16 arithmetic here (AMX or AVX512-BF16), not on
 /// bf16 weights widened to f32: only then do bf16 activations (the attention's) pay off.
 pub fn bf16_native() -> bool {

@@ -218,3 +218,21 @@ fn attention_reads_a_prepacked_prefix() {
         }
     }
 }
+
+/// A head's query rows split into balanced blocks of at most `ATT_ROWS`, in whole register tiles
+/// where that adds no block, covering every row once.
+#[test]
+fn query_blocks_cover_the_rows_in_whole_tiles() {
+    use super::{query_blocks, ATT_ROWS};
+    assert_eq!(query_blocks(50, 6), (2, 30));
+    assert_eq!(query_blocks(50, 12), (2, 36));
+    assert_eq!(query_blocks(816, 12), (17, 48));
+    assert_eq!(query_blocks(1, 12), (1, 12));
+    for l in 1..400 {
+        for mr in [6, 12] {
+            let (blocks, rows) = query_blocks(l, mr);
+            assert!(rows <= ATT_ROWS && rows * blocks >= l && rows * (blocks - 1) < l);
+            assert_eq!(blocks, l.div_ceil(ATT_ROWS), "l {l} mr {mr}");
+        }
+    }
+}
