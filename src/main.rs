@@ -47,6 +47,7 @@ enum Command {
 
 fn main() {
     let cli = Cli::parse();
+    chunkrt_policy::keep_freed_memory();
     chunkrt::rt::init_logging();
     let result = match cli.command {
         Command::Run(a) => chunkrt::run::run(a),
