@@ -88,6 +88,8 @@ pub struct ConfigReport {
     /// A cached step split by op kind ([`crate::ops::profile`]): (kind, ms per step), then the
     /// profiled steps' mean (ms); the rest of the step runs outside the seam.
     pub step_split: Option<(Vec<(&'static str, f64)>, f64)>,
+    /// The prefix pass (from the embeddings, as phase `prefix`) split the same way.
+    pub prefix_split: Option<(Vec<(&'static str, f64)>, f64)>,
     /// openpi's `sample_actions` timed in this run, interleaved with the variants' full samples
     /// (phase `sample`), and what its worker reported; `None`: the stored figure
     /// [`ConfigReport::openpi_s`] is the reference.
@@ -199,7 +201,13 @@ impl std::fmt::Display for BenchReport {
                     p.flops / (p.cpu_ms * 1e-3) / 1e9
                 )?;
             }
-            if let Some((kinds, total)) = &c.step_split {
+            for (what, split) in [
+                ("a cached step", &c.step_split),
+                ("the prefix pass", &c.prefix_split),
+            ] {
+                let Some((kinds, total)) = split else {
+                    continue;
+                };
                 let inside: f64 = kinds.iter().map(|k| k.1).sum();
                 let pct = |ms: f64| 100.0 * ms / total.max(1e-9);
                 let parts: Vec<String> = kinds
@@ -208,7 +216,7 @@ impl std::fmt::Display for BenchReport {
                     .collect();
                 writeln!(
                     f,
-                    "a cached step by op kind (profiled, ms): {}, outside the seam {:.2} ({:.0} %) = {total:.2}",
+                    "{what} by op kind (profiled, ms): {}, outside the seam {:.2} ({:.0} %) = {total:.2}",
                     parts.join(", "),
                     total - inside,
                     pct(total - inside)
@@ -380,6 +388,27 @@ fn time_phase(
     phase_from(name, flops, &wall, &cpu)
 }
 
+/// `n` calls of `f` with each op kind's time counted at the seam ([`crate::ops::profile`]):
+/// (kind, ms per call) and the profiled calls' mean (ms).
+fn split_by_kind(
+    n: usize,
+    mut f: impl FnMut() -> Result<(), PolicyError>,
+) -> Result<(Vec<(&'static str, f64)>, f64), PolicyError> {
+    let n = n.max(1);
+    crate::ops::profile::reset();
+    crate::ops::profile::enable(true);
+    let t0 = Instant::now();
+    let run = (0..n).try_for_each(|_| f());
+    let per_call = t0.elapsed().as_secs_f64() * 1e3 / n as f64;
+    crate::ops::profile::enable(false);
+    run?;
+    let kinds = crate::ops::profile::snapshot()
+        .into_iter()
+        .map(|(k, ns, _)| (k.name(), ns as f64 * 1e-6 / n as f64))
+        .collect();
+    Ok((kinds, per_call))
+}
+
 /// A model with random weights (a `VarMap`) for `cfg`.
 pub fn random_model(cfg: &ModelConfig) -> Result<(PiModel, VarMap), PolicyError> {
     let vm = VarMap::new();
@@ -543,7 +572,7 @@ pub fn run_configs(
     let mut reports = Vec::new();
     for var in &variants {
         let mut phases = Vec::new();
-        let mut step_split = None;
+        let (mut step_split, mut prefix_split) = (None, None);
         var.with(|model| -> Result<(), PolicyError> {
             phases.push(time_phase("vision", n_fast, vis, || {
                 model.embed_prefix(&inp)?;
@@ -562,21 +591,16 @@ pub fn run_configs(
                 model.velocity_at(c, &noise, &[0.5], false)?;
                 Ok(())
             })?);
-            // the same steps again, each op kind's time counted at the seam
-            let n = n_fast * 10;
-            crate::ops::profile::reset();
-            crate::ops::profile::enable(true);
-            let t0 = Instant::now();
-            for _ in 0..n {
+            // the same passes again, each op kind's time counted at the seam
+            let mut cache2 = None;
+            prefix_split = Some(split_by_kind(n_fast, || {
+                model.fill_cache_from_embs(&inp, &embs, &mut cache2, false)?;
+                Ok(())
+            })?);
+            step_split = Some(split_by_kind(n_fast * 10, || {
                 model.velocity_at(c, &noise, &[0.5], false)?;
-            }
-            let per_step = t0.elapsed().as_secs_f64() * 1e3 / n as f64;
-            crate::ops::profile::enable(false);
-            let kinds = crate::ops::profile::snapshot()
-                .into_iter()
-                .map(|(k, ns, _)| (k.name(), ns as f64 * 1e-6 / n as f64))
-                .collect();
-            step_split = Some((kinds, per_step));
+                Ok(())
+            })?);
             phases.push(time_phase("step_uncached", n_slow, unc_step, || {
                 model.velocity_uncached(&inp, &embs, &noise, &[0.5], false)?;
                 Ok(())
@@ -609,6 +633,7 @@ pub fn run_configs(
             openpi_same_run: None,
             split_ms: None,
             step_split,
+            prefix_split,
         });
     }
     // openpi's worker builds and warms up its model before the first round
