@@ -87,9 +87,9 @@ pub struct ConfigReport {
     pub split_ms: Option<[f64; 4]>,
     /// A cached step split by op kind ([`crate::ops::profile`]): (kind, ms per step), then the
     /// profiled steps' mean (ms); the rest of the step runs outside the seam.
-    pub step_split: Option<(Vec<(&'static str, f64)>, f64)>,
+    pub step_split: Option<OpSplit>,
     /// The prefix pass (from the embeddings, as phase `prefix`) split the same way.
-    pub prefix_split: Option<(Vec<(&'static str, f64)>, f64)>,
+    pub prefix_split: Option<OpSplit>,
     /// openpi's `sample_actions` timed in this run, interleaved with the variants' full samples
     /// (phase `sample`), and what its worker reported; `None`: the stored figure
     /// [`ConfigReport::openpi_s`] is the reference.
@@ -388,12 +388,15 @@ fn time_phase(
     phase_from(name, flops, &wall, &cpu)
 }
 
+/// A pass's time by op kind: (kind, ms per call), then the profiled calls' mean (ms).
+pub type OpSplit = (Vec<(&'static str, f64)>, f64);
+
 /// `n` calls of `f` with each op kind's time counted at the seam ([`crate::ops::profile`]):
 /// (kind, ms per call) and the profiled calls' mean (ms).
 fn split_by_kind(
     n: usize,
     mut f: impl FnMut() -> Result<(), PolicyError>,
-) -> Result<(Vec<(&'static str, f64)>, f64), PolicyError> {
+) -> Result<OpSplit, PolicyError> {
     let n = n.max(1);
     crate::ops::profile::reset();
     crate::ops::profile::enable(true);
