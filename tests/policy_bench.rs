@@ -75,18 +75,18 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
         // timer reads; 0.8 leaves room for a preemption there on a loaded machine)
         // a cached step split by op kind at the seam: the products take time, and the kinds
         // (outermost calls only) never add up to more than the steps they were counted in
-        let (kinds, step) = c.step_split.as_ref().expect("the step's split");
-        let products = kinds
-            .iter()
-            .find(|k| k.0 == "products")
-            .map_or(0.0, |k| k.1);
-        let inside: f64 = kinds.iter().map(|k| k.1).sum();
-        assert!(
-            products > 0.0 && inside <= step * 1.0001,
-            "{} {}: {kinds:?} in a {step} ms step",
-            c.name,
-            c.kernels
-        );
+        // (the prefix pass the same way, where the attention also takes time)
+        for (what, split) in [("step", &c.step_split), ("prefix pass", &c.prefix_split)] {
+            let (kinds, total) = split.as_ref().expect("the split");
+            let kind = |name: &str| kinds.iter().find(|k| k.0 == name).map_or(0.0, |k| k.1);
+            let inside: f64 = kinds.iter().map(|k| k.1).sum();
+            assert!(
+                kind("products") > 0.0 && kind("attention") > 0.0 && inside <= total * 1.0001,
+                "{} {}: {kinds:?} in a {total} ms {what}",
+                c.name,
+                c.kernels
+            );
+        }
         let [v, p, l, total] = c.split_ms.expect("the samples' split");
         assert!(
             v > 0.0
