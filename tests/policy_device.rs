@@ -2,12 +2,15 @@
 //!
 //! On every machine (CI included):
 //! - the candle compositions a GPU model runs, held to openpi's fixtures on the CPU with
-//!   chunkrt's CPU kernels turned off (`set_cpu_fast_paths(false)`: this test binary only);
+//!   chunkrt's CPU kernels turned off (`set_cpu_fast_paths(false)`, for those tests only:
+//!   [`GenericPaths`]);
 //! - the bf16 dtype path (what `precision = "bf16"` stores on a GPU) run on the CPU, against f32.
 //!
 //! With a GPU (a build with `--features cuda` on a machine with an NVIDIA GPU; skipped loudly
 //! otherwise): the fixtures on CUDA in f32 within the fixtures' tolerances, and CUDA bf16 actions
 //! within 3 % of the f32 actions' RMS.
+
+use std::sync::{Mutex, MutexGuard};
 
 use candle_core::{DType, Device, Tensor};
 
@@ -16,6 +19,35 @@ mod fixture;
 use fixture::{load_on, maxdiff, rel_maxdiff, Fixture};
 
 const FIXTURES: [&str; 2] = ["pi05_tiny", "pi0_tiny"];
+
+/// The CPU fast paths are one process-wide switch, and the harness runs tests on parallel
+/// threads: every test that computes on the CPU holds this lock, so none sees the switch flip
+/// between two of its calls.
+fn cpu_paths() -> MutexGuard<'static, ()> {
+    static CPU_PATHS: Mutex<()> = Mutex::new(());
+    // a failed test poisons it; the next one still needs the exclusion
+    CPU_PATHS.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// chunkrt's CPU kernels off (the candle compositions a GPU runs) while it lives, under
+/// [`cpu_paths`]; back on when dropped.
+struct GenericPaths {
+    _lock: MutexGuard<'static, ()>,
+}
+
+impl GenericPaths {
+    fn on() -> Self {
+        let lock = cpu_paths();
+        chunkrt::policy::set_cpu_fast_paths(false);
+        GenericPaths { _lock: lock }
+    }
+}
+
+impl Drop for GenericPaths {
+    fn drop(&mut self) {
+        chunkrt::policy::set_cpu_fast_paths(true);
+    }
+}
 
 /// Cached and uncached actions, and the first velocity, of a fixture's model on its device.
 fn sample(f: &Fixture) -> (Tensor, Tensor, Tensor) {
@@ -48,7 +80,7 @@ fn assert_matches_openpi(name: &str, f: &Fixture, what: &str) {
 
 #[test]
 fn generic_path_matches_openpi_on_the_cpu() {
-    chunkrt::policy::set_cpu_fast_paths(false);
+    let _generic = GenericPaths::on();
     for name in FIXTURES {
         let f = load_on(name, &Device::Cpu, DType::F32);
         assert_matches_openpi(name, &f, "cpu generic");
@@ -60,7 +92,7 @@ fn generic_path_matches_openpi_on_the_cpu() {
 /// from f32 is measured here on every machine.
 #[test]
 fn bf16_dtype_stays_close_to_f32() {
-    chunkrt::policy::set_cpu_fast_paths(false);
+    let _generic = GenericPaths::on();
     for name in FIXTURES {
         let f32m = load_on(name, &Device::Cpu, DType::F32);
         let bf = load_on(name, &Device::Cpu, DType::BF16);
@@ -174,6 +206,7 @@ fn time_features_are_made_once_per_time() {
 /// fixtures, again on the reused cache, and after the prompt's valid length changes.
 #[test]
 fn fixed_step_layout_equals_the_compact_one() {
+    let _paths = cpu_paths();
     for name in FIXTURES {
         let mut fixed = load_on(name, &Device::Cpu, DType::F32);
         fixed.model.set_fixed_step_shapes(true);

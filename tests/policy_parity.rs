@@ -216,12 +216,17 @@ fn pi0_tiny_matches_openpi() {
     parity("pi0_tiny");
 }
 
-/// The same fixture on the AVX2 + FMA f32 kernel, forced where AVX-512 would be picked (on a CPU
-/// without AVX-512 it is the default path, and without AVX2 the candle fallback runs).
+/// The fixtures on the AVX2 + FMA kernels, as on a CPU without AVX-512 (emulated: a child
+/// process with `CHUNKRT_CPU_ISA=avx2`, so the packed products, the attention and the small ops
+/// all take their AVX2 code). A child, not a process-wide switch flipped here: this binary's
+/// other tests run on parallel threads and would then run on either kernel by chance.
 #[test]
-fn pi05_tiny_matches_openpi_on_the_avx2_kernel() {
-    chunkrt::policy::packed::force_avx2(true);
-    parity("pi05_tiny");
+fn fixtures_match_on_the_avx2_kernels() {
+    if !chunkrt::policy::packed::support().avx2_fma {
+        eprintln!("skipped: no AVX2 + FMA on this CPU (the portable fallback test covers it)");
+        return;
+    }
+    rerun_capped("avx2");
 }
 
 /// The fixtures on a CPU with neither AVX-512 nor AVX2 (emulated: this test binary re-runs the
@@ -229,8 +234,14 @@ fn pi05_tiny_matches_openpi_on_the_avx2_kernel() {
 /// products fall back to candle and the fused small ops run their portable code).
 #[test]
 fn fixtures_match_on_the_portable_fallback() {
+    rerun_capped("baseline");
+}
+
+/// Re-runs the ISA check and the π0 / π0.5 parity tests in a child of this test binary with
+/// `CHUNKRT_CPU_ISA=isa`; nothing where this process is such a child (or capped by its caller).
+fn rerun_capped(isa: &str) {
     if std::env::var_os(chunkrt::policy::packed::ISA_ENV).is_some() {
-        return; // already the child (or capped by the caller)
+        return;
     }
     let exe = std::env::current_exe().expect("test binary path");
     for test in [
@@ -239,20 +250,22 @@ fn fixtures_match_on_the_portable_fallback() {
         "pi0_tiny_matches_openpi",
     ] {
         let out = std::process::Command::new(&exe)
-            .env(chunkrt::policy::packed::ISA_ENV, "baseline")
+            .env(chunkrt::policy::packed::ISA_ENV, isa)
             .args([test, "--exact", "--test-threads", "1"])
             .output()
             .expect("re-run the test binary");
         let text = String::from_utf8_lossy(&out.stdout);
         assert!(
             out.status.success() && text.contains("1 passed"),
-            "{test} on the portable fallback:\n{text}\n{}",
+            "{test} with {}={isa}:\n{text}\n{}",
+            chunkrt::policy::packed::ISA_ENV,
             String::from_utf8_lossy(&out.stderr)
         );
     }
 }
 
-/// In the child of [`fixtures_match_on_the_portable_fallback`]: no kernel is picked.
+/// In the children of [`rerun_capped`]: the cap holds (no kernel for `baseline`, nothing
+/// beyond AVX2 for `avx2`).
 #[test]
 fn the_isa_cap_is_honoured() {
     let s = chunkrt::policy::packed::support();

@@ -143,6 +143,17 @@ pub fn force_avx2(on: bool) {
     AVX512_OFF.store(on, std::sync::atomic::Ordering::Relaxed);
 }
 
+/// Held by the unit tests that flip [`force_avx2`] and by those whose checks need one kernel
+/// choice for their whole run: the choice is process-wide and the test harness runs tests on
+/// parallel threads (a flip between two calls of the attention test once compared an
+/// AVX512-BF16 result with an f32 one).
+#[cfg(test)]
+pub(crate) fn kernel_choice_lock() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    // a failed test poisons it; the next one still needs the exclusion, not the state
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 fn use_avx512() -> bool {
     support().avx512 && !AVX512_OFF.load(std::sync::atomic::Ordering::Relaxed)
 }

@@ -91,6 +91,7 @@ fn fused_gelu_and_heads_match_candle() {
 
 #[test]
 fn attention_matches_candle() {
+    let _choice = crate::packed::kernel_choice_lock();
     let dev = Device::Cpu;
     for &(b, nh, nkv, l, t, bl) in &[(2, 8, 2, 5, 37, 5), (1, 4, 1, 50, 70, 1)] {
         let q = Tensor::randn(0f32, 1f32, (b, nh, l, 16), &dev).unwrap();
@@ -156,6 +157,7 @@ fn attention_matches_candle() {
 /// reads the prefix from its panels: after the cache's prefix is overwritten, the result holds.
 #[test]
 fn attention_reads_a_prepacked_prefix() {
+    let _choice = crate::packed::kernel_choice_lock();
     if !(crate::packed::support().f32_packed() && crate::packed::enabled()) {
         eprintln!("skipped: no packed f32 kernel on this CPU");
         return;

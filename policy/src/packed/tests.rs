@@ -6,6 +6,7 @@ use super::*;
 /// product; for bf16, of the bf16-rounded inputs.
 #[test]
 fn packed_products_match_a_reference() {
+    let _choice = kernel_choice_lock();
     let s = support();
     // the AVX-512 kernel where it runs, and the AVX2 one (forced there, the only one elsewhere)
     for (prec, avx2) in [
@@ -98,6 +99,7 @@ fn packed_products_match_a_reference() {
 
 #[test]
 fn tensor_products_match_candle() {
+    let _choice = kernel_choice_lock();
     let dev = Device::Cpu;
     let x = Tensor::randn(0f32, 1f32, (2, 9, 48), &dev).unwrap();
     let w = Tensor::randn(0f32, 1f32, (40, 48), &dev).unwrap(); // [N, K]
