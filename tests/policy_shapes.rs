@@ -64,6 +64,11 @@ fn row(inp: &ModelInputs, i: usize) -> ModelInputs {
     }
 }
 
+/// max |a - b| over the larger of 1 and max |b|.
+fn scaled_maxdiff(a: &Tensor, b: &Tensor) -> f32 {
+    maxdiff(a, b) / absmax(b).max(1.0)
+}
+
 fn check_kind(pi05: bool) {
     let cfg = small_config(pi05);
     // held as a checkpoint holds its weights: the inference path (fused and packed) runs
@@ -79,8 +84,12 @@ fn check_kind(pi05: bool) {
     let mut cache = None;
     let cached = model.sample(&inp, &noise, 5, Some(&mut cache)).unwrap();
     let uncached = model.sample(&inp, &noise, 5, None).unwrap();
-    let d = maxdiff(&cached.actions, &uncached.actions);
-    println!("pi05={pi05}: cached vs uncached {d:.2e}");
+    // the weights and inputs are random per run, and so is the outputs' scale (actions up to ~20
+    // here): the two paths' rounding is bounded relative to it (over 400 draws of each kind the
+    // worst was 4e-6 of the scale for the actions, 3.4e-6 for the velocity below; absolute, up
+    // to 4.4e-5 and 2.2e-5)
+    let d = scaled_maxdiff(&cached.actions, &uncached.actions);
+    println!("pi05={pi05}: cached vs uncached {d:.2e} of the scale");
     assert!(d < 1e-4, "cached vs uncached {d}");
     assert!(
         cached
@@ -145,8 +154,8 @@ fn check_kind(pi05: bool) {
     let fast = model.velocity(c, &noise, &t, false).unwrap();
     let x = Var::from_tensor(&noise).unwrap();
     let slow = model.velocity(c, x.as_tensor(), &t, true).unwrap();
-    let d = maxdiff(&fast, &slow);
-    assert!(d < 1e-5, "differentiable vs fast velocity {d}");
+    let d = scaled_maxdiff(&fast, &slow);
+    assert!(d < 3e-5, "differentiable vs fast velocity {d} of the scale");
     // clean estimate A = x - t v; VJP with a ones cotangent
     let t3 = t.reshape((2, 1, 1)).unwrap();
     let a_hat = (x.as_tensor() - slow.broadcast_mul(&t3).unwrap()).unwrap();
