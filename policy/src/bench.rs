@@ -286,7 +286,7 @@ impl std::fmt::Display for BenchReport {
         } else {
             writeln!(
                 f,
-                "openpi: fell back to stored figures ({OPENPI_SAMPLE_CPU}), not this CPU ({}); \
+                "openpi: fell back to stored figures ({OPENPI_SAMPLE_CPU}); this run's CPU: {}; \
                  for a same-run baseline pass --openpi DIR (scripts/openpi-env.sh); on another CPU \
                  compare with the in-run candle baseline",
                 self.cpu
