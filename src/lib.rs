@@ -27,8 +27,8 @@ pub mod task;
 pub mod train;
 
 pub use chunkrt_controller::{
-    chunk, contract, control, control_loop, controller, edge, histlog, inference, log_limit, rt,
-    shared,
+    chunk, conditioning, contract, control, control_loop, controller, edge, histlog, inference,
+    log_limit, rt, shared, worker,
 };
 pub use chunkrt_ipc as ipc;
 pub use chunkrt_ipc::config;

@@ -7,10 +7,12 @@
 use std::sync::atomic::Ordering;
 
 use chunkrt::config::Config;
+use chunkrt::contract::Observation;
 use chunkrt::control::{cxx_allocations, Executor, ScriptedChunkSource, ScriptedConfig, State};
 use chunkrt::controller::{ControlLoop, Shared};
 use chunkrt::ipc::services;
 use chunkrt::ipc::{monotonic_ns, JointState};
+use chunkrt::worker::{Delivery, InferenceWorker};
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
@@ -24,7 +26,8 @@ fn control_tick_with_ipc_allocates_only_the_iceoryx2_loan() {
     let shared = Shared::new();
     let mut lp = ControlLoop::new(&node, &cfg).unwrap();
     let mut exec = Executor::new(&cfg).unwrap();
-    let link = exec.connect();
+    let mut worker = InferenceWorker::new(exec.connect(), Delivery::AtReady);
+    let obs = Observation::new(&cfg);
     let mut src = ScriptedChunkSource::new(ScriptedConfig::demo(60_000_000, 0.05));
 
     // the robot side, in this process: a joint-state publisher
@@ -51,14 +54,7 @@ fn control_tick_with_ipc_allocates_only_the_iceoryx2_loan() {
         js.seq += 1;
         js.measurement_time_ns = now;
         js_pub.send_copy(js).unwrap();
-        if let Some(req) = link.requests.try_recv() {
-            src.start(&req);
-            link.requests.done(req);
-        }
-        if let Some(c) = src.poll(now) {
-            drop(link.chunks.send(c));
-        }
-        while link.chunks.take_recycled().is_some() {}
+        worker.step(now, &mut src, &obs);
         if k == warmup {
             publishes_before = shared.commands.load(Ordering::Relaxed);
         }

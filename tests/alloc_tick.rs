@@ -5,8 +5,10 @@
 //! (a test double) outside the measured window, as the inference thread would.
 
 use chunkrt::config::Config;
+use chunkrt::contract::Observation;
 use chunkrt::control::{cxx_allocations, Executor, ScriptedChunkSource, ScriptedConfig, State};
 use chunkrt::ipc::{ControllerStatus, JointCommand, JointState};
+use chunkrt::worker::{Delivery, InferenceWorker};
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
@@ -20,7 +22,8 @@ fn measure(strategy: &str, ticks: usize, warmup: usize) -> (u64, u64, [bool; 4])
     let mut cfg = Config::embedded_default();
     cfg.execution.strategy = strategy.parse().expect("a strategy name");
     let mut exec = Executor::new(&cfg).expect("executor builds");
-    let link = exec.connect();
+    let mut worker = InferenceWorker::new(exec.connect(), Delivery::AtReady);
+    let obs = Observation::new(&cfg);
     let mut src = ScriptedChunkSource::new(ScriptedConfig::demo(100_000_000, 0.05));
     let mut js = JointState {
         n_dof: 4,
@@ -35,14 +38,7 @@ fn measure(strategy: &str, ticks: usize, warmup: usize) -> (u64, u64, [bool; 4])
     for k in 0..ticks {
         let now = START_NS + k as u64 * 1_000_000;
         // Inference side (allocates freely; not measured).
-        if let Some(req) = link.requests.try_recv() {
-            src.start(&req);
-            link.requests.done(req);
-        }
-        if let Some(c) = src.poll(now) {
-            drop(link.chunks.send(c));
-        }
-        while link.chunks.take_recycled().is_some() {}
+        worker.step(now, &mut src, &obs);
         // A 100 ms gap in the joint state stream → HOLD and recovery, once.
         let fresh = !(2000..2100).contains(&k);
         if fresh {

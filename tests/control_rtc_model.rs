@@ -7,10 +7,10 @@
 
 use chunkrt::config::Config;
 use chunkrt::control::{Executor, Trace};
-use chunkrt::controller::ChunkSource;
 use chunkrt::edge::Observation;
 use chunkrt::inference::PolicySource;
 use chunkrt::ipc::{JointCommand, JointState};
+use chunkrt::worker::{Delivery, InferenceWorker, Turn};
 
 const DELAY_STEPS: u64 = 3;
 const START_NS: u64 = 10_000_000_000;
@@ -29,7 +29,6 @@ fn run_with(
     cfg.execution.strategy = strategy.parse().expect("a strategy name");
     cfg.execution.future_state = future_state;
     let mut exec = Executor::new(&cfg).unwrap();
-    let link = exec.connect();
     let mut policy = PolicySource::load(&cfg).unwrap();
     let period_ns = (1e9 / cfg.policy.action_rate_hz) as u64;
     let mut obs = Observation::new(&cfg);
@@ -46,29 +45,21 @@ fn run_with(
     for (i, j) in cfg.robot.joints.iter().enumerate() {
         trace.skip[i] = j.step;
     }
-    let mut pending: Vec<(u64, chunkrt::chunk::ActionChunk)> = Vec::new();
+    let mut worker = InferenceWorker::new(exec.connect(), Delivery::After(DELAY_STEPS * period_ns));
     let mut chunks = 0;
     let ticks = (seconds * 1000.0) as u64;
     for k in 0..ticks {
         let now = START_NS + k * 1_000_000;
-        // the inference side, in simulated time
-        if let Some(req) = link.requests.try_recv() {
+        // the inference side, in simulated time: each chunk lands DELAY_STEPS periods later
+        if let Some(req) = worker.next_request() {
             obs.joint_state = js;
             obs.joint_state.measurement_time_ns = now;
             obs.assembled_ns = now;
-            if let Some(mut c) = policy.compute(&obs, &req).unwrap() {
-                c.t_obs_ns = now;
-                c.ready_ns = now + DELAY_STEPS * period_ns;
-                pending.push((c.ready_ns, c));
+            if let Turn::Chunk { .. } = worker.answer(now, req, &mut policy, &obs) {
                 chunks += 1;
             }
-            link.requests.done(req);
         }
-        if let Some(i) = pending.iter().position(|(t, _)| *t <= now) {
-            let (_, c) = pending.remove(i);
-            drop(link.chunks.send(c));
-        }
-        while link.chunks.take_recycled().is_some() {}
+        worker.poll(now);
         // the robot follows the command exactly
         js.measurement_time_ns = now;
         let r = exec.tick(now, Some(&js), &mut cmd);

@@ -9,7 +9,7 @@ use chunkrt::policy::preprocess::{
     discretize_state, normalize, pi05_prompt, resize_with_pad, unnormalize, NormMode,
     PromptTokenizer, Stats,
 };
-use chunkrt::policy::{ConfigOverrides, RawFrame, RawObservation};
+use chunkrt::policy::{Conditioning, ConfigOverrides, RawFrame, RawObservation};
 
 #[path = "common/fixture.rs"]
 mod fixture;
@@ -243,11 +243,11 @@ fn runtime_prepares_fixture_inputs_and_infers() {
     let img = &prepared.images[0];
     let d = maxdiff(img, &inp["image.base_0_rgb"]);
     assert!(d <= 2.0 / 255.0 + 1e-6, "model image differs by {d}");
-    let acts = policy.infer(&obs).unwrap();
+    let acts = policy.infer(&obs, &Conditioning::Fresh).unwrap();
     assert_eq!(acts.len(), 10 * 6);
     assert!(acts.iter().all(|a| a.is_finite()));
     // the cache buffers survive across calls and bad input is an error
-    let acts2 = policy.infer(&obs).unwrap();
+    let acts2 = policy.infer(&obs, &Conditioning::Fresh).unwrap();
     assert_eq!(acts2.len(), acts.len());
     let bad = RawFrame {
         stride: 3,
@@ -255,22 +255,31 @@ fn runtime_prepares_fixture_inputs_and_infers() {
     };
     let frames_bad = [bad];
     assert!(policy
-        .infer(&RawObservation {
-            frames: &frames_bad,
-            ..obs
-        })
+        .infer(
+            &RawObservation {
+                frames: &frames_bad,
+                ..obs
+            },
+            &Conditioning::Fresh
+        )
         .is_err());
     assert!(policy
-        .infer(&RawObservation {
-            joint_positions: &[f64::NAN],
-            ..obs
-        })
+        .infer(
+            &RawObservation {
+                joint_positions: &[f64::NAN],
+                ..obs
+            },
+            &Conditioning::Fresh
+        )
         .is_err());
     assert!(policy
-        .infer(&RawObservation {
-            joint_positions: &[0.0; 9],
-            ..obs
-        })
+        .infer(
+            &RawObservation {
+                joint_positions: &[0.0; 9],
+                ..obs
+            },
+            &Conditioning::Fresh
+        )
         .is_err());
 }
 
@@ -432,11 +441,11 @@ fn delta_action_mask_adds_the_observed_state_on_its_dims() {
     delta.model.delta_action_mask = Some(mask.clone());
     let a = chunkrt::inference::load_policy(&dir, &absolute)
         .unwrap()
-        .infer(&obs)
+        .infer(&obs, &Conditioning::Fresh)
         .unwrap();
     let mut p = chunkrt::inference::load_policy(&dir, &delta).unwrap();
     assert_eq!(p.model().cfg.delta_action_mask, mask);
-    let b = p.infer(&obs).unwrap();
+    let b = p.infer(&obs, &Conditioning::Fresh).unwrap();
     assert_eq!(a.len(), b.len());
     for (i, (x, y)) in a.iter().zip(&b).enumerate() {
         let d = i % n;
@@ -468,11 +477,11 @@ fn bf16_precision_stays_close_to_f32() {
     bf16_cfg.precision = chunkrt::config::PolicyPrecision::Bf16;
     let a = chunkrt::inference::load_policy(&dir, &f32_cfg)
         .unwrap()
-        .infer(&obs)
+        .infer(&obs, &Conditioning::Fresh)
         .unwrap();
     let b = chunkrt::inference::load_policy(&dir, &bf16_cfg)
         .unwrap()
-        .infer(&obs)
+        .infer(&obs, &Conditioning::Fresh)
         .unwrap();
     let rms = (a.iter().map(|x| x * x).sum::<f64>() / a.len() as f64).sqrt();
     let worst = a

@@ -9,7 +9,7 @@ use chunkrt::policy::rtc::{
     clean_estimate_vjp, guidance_scale, guided_velocity, weight_mask, Guidance, GuidanceTarget,
     Jacobian,
 };
-use chunkrt::policy::{Policy, RawObservation};
+use chunkrt::policy::{Conditioning, Policy, RawObservation};
 
 #[path = "common/fixture.rs"]
 mod fixture;
@@ -98,17 +98,23 @@ fn beta_zero_or_zero_weights_equal_unguided_exactly() {
         ),
     ];
     for (name, g) in cases {
-        let a = plain.infer(&obs).unwrap();
-        let b = guided.infer_guided(&obs, g.as_ref()).unwrap();
+        let a = plain.infer(&obs, &Conditioning::Fresh).unwrap();
+        let b = guided
+            .infer(
+                &obs,
+                &g.as_ref()
+                    .map_or(Conditioning::Fresh, |g| Conditioning::Guided(*g)),
+            )
+            .unwrap();
         assert_eq!(a.len(), h * n);
         assert_eq!(a, b, "{name}: guided differs from infer");
     }
     // with guidance on, the same noise gives a different chunk
-    let a = plain.infer(&obs).unwrap();
+    let a = plain.infer(&obs, &Conditioning::Fresh).unwrap();
     let b = guided
-        .infer_guided(
+        .infer(
             &obs,
-            Some(&Guidance {
+            &Conditioning::Guided(Guidance {
                 prefix: &prefix,
                 weights: &ones,
                 beta: 5.0,
@@ -194,7 +200,7 @@ fn guidance_pulls(delta_action_mask: Option<Vec<bool>>, jacobian: Jacobian) {
     let h = plain.horizon();
     let n = state.len();
     // the unguided chunk for the first noise draw
-    let unguided = plain.infer(&obs).unwrap();
+    let unguided = plain.infer(&obs, &Conditioning::Fresh).unwrap();
     // a previous chunk that disagrees with it by ~0.5 on every joint
     let prefix: Vec<f64> = unguided
         .iter()
@@ -218,7 +224,7 @@ fn guidance_pulls(delta_action_mask: Option<Vec<bool>>, jacobian: Jacobian) {
         beta: 5.0,
         jacobian,
     };
-    let out = guided.infer_guided(&obs, Some(&g)).unwrap();
+    let out = guided.infer(&obs, &Conditioning::Guided(g)).unwrap();
     assert!(out.iter().all(|x| x.is_finite()));
     let err = |a: &[f64], rows: std::ops::Range<usize>| -> f64 {
         let mut s = 0.0;
@@ -391,13 +397,16 @@ fn bad_guidance_is_an_error_not_a_panic() {
         },
     ];
     for g in &bad {
-        assert!(p.infer_guided(&obs, Some(g)).is_err(), "accepted {g:?}");
+        assert!(
+            p.infer(&obs, &Conditioning::Guided(*g)).is_err(),
+            "accepted {g:?}"
+        );
     }
     // still usable afterwards
     assert_eq!(
-        p.infer_guided(
+        p.infer(
             &obs,
-            Some(&Guidance {
+            &Conditioning::Guided(Guidance {
                 prefix: &prefix,
                 weights: &w,
                 beta: 1.0,

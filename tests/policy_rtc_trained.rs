@@ -7,7 +7,7 @@
 
 use candle_core::{DType, Device, Tensor};
 use chunkrt::policy::model::{FlowTimes, PrefixCache};
-use chunkrt::policy::RawObservation;
+use chunkrt::policy::{Conditioning, RawObservation};
 
 #[path = "common/fixture.rs"]
 mod fixture;
@@ -219,7 +219,10 @@ fn the_runtime_gives_the_committed_actions_in_robot_units() {
     // a checkpoint not trained for it refuses, with the reason
     let mut plain = chunkrt::inference::load_policy(&data("pi05_tiny"), &pc).unwrap();
     assert_eq!(plain.committed_max(), 0);
-    let err = plain.infer_committed(&obs, &state).unwrap_err().to_string();
+    let err = plain
+        .infer(&obs, &Conditioning::Committed(&state))
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("rtc_prefix_max"), "{err}");
 
     let dir = trained_copy(3);
@@ -233,11 +236,13 @@ fn the_runtime_gives_the_committed_actions_in_robot_units() {
         .collect();
     // no rows: plain sampling (same seed, same noise)
     assert_eq!(
-        p.infer_committed(&obs, &[]).unwrap(),
-        fresh.infer(&obs).unwrap()
+        p.infer(&obs, &Conditioning::Committed(&[])).unwrap(),
+        fresh.infer(&obs, &Conditioning::Fresh).unwrap()
     );
     // 5 rows given, the checkpoint's maximum 3 kept: the chunk starts with exactly those
-    let out = p.infer_committed(&obs, &prev[..5 * n]).unwrap();
+    let out = p
+        .infer(&obs, &Conditioning::Committed(&prev[..5 * n]))
+        .unwrap();
     for i in 0..3 * n {
         let e = (out[i] - prev[i]).abs();
         // normalised and un-normalised in f32
@@ -249,9 +254,11 @@ fn the_runtime_gives_the_committed_actions_in_robot_units() {
         );
     }
     assert!((3 * n..4 * n).any(|i| (out[i] - prev[i]).abs() > 1e-4));
-    assert!(p.infer_committed(&obs, &prev[..n + 1]).is_err());
+    assert!(p
+        .infer(&obs, &Conditioning::Committed(&prev[..n + 1]))
+        .is_err());
     let mut bad = prev.clone();
     bad[0] = f64::NAN;
-    assert!(p.infer_committed(&obs, &bad[..n]).is_err());
+    assert!(p.infer(&obs, &Conditioning::Committed(&bad[..n])).is_err());
     std::fs::remove_dir_all(&dir).ok();
 }

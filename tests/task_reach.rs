@@ -460,11 +460,14 @@ fn committed_policy_reproduces_expert_chunks_open_loop() {
                 data: &img,
             }];
             let acts = policy
-                .infer(&RawObservation {
-                    frames: &frames,
-                    joint_positions: &q,
-                    prompt: e.color.prompt(),
-                })
+                .infer(
+                    &RawObservation {
+                        frames: &frames,
+                        joint_positions: &q,
+                        prompt: e.color.prompt(),
+                    },
+                    &chunkrt::policy::Conditioning::Fresh,
+                )
                 .unwrap();
             let hz = acts.len() / 4;
             let want_last = reach.at(t + (hz - 1) as f64 * 0.1);

@@ -20,7 +20,9 @@ use super::periodic::{run_periodic, PeriodicConfig, SyntheticTick, TickBody};
 use super::{geomean, write_outputs, BenchError, BenchOpts, Outputs};
 use chunkrt::control::{Executor, ScriptedChunkSource, ScriptedConfig};
 use chunkrt::controller::{ControlLoop, Shared};
+use chunkrt::edge::Observation;
 use chunkrt::report::{fmt_us, LatencyRow, LatencyTable, Series};
+use chunkrt::worker::{Delivery, InferenceWorker};
 use chunkrt_ipc::services;
 use chunkrt_ipc::JointState;
 
@@ -165,6 +167,8 @@ impl ControllerTick {
                     js.position[i] = j.initial_position;
                 }
                 let mut src = ScriptedChunkSource::new(ScriptedConfig::demo(5_000_000, 0.02));
+                let mut worker = InferenceWorker::new(link, Delivery::AtReady);
+                let obs = Observation::new(&cfg);
                 while !stop2.load(Ordering::Relaxed) {
                     // the robot: follows the newest command exactly
                     while let Ok(Some(c)) = cmd_sub.receive() {
@@ -173,15 +177,8 @@ impl ControllerTick {
                     js.seq += 1;
                     js.measurement_time_ns = chunkrt_ipc::monotonic_ns();
                     let _ = js_pub.send_copy(js);
-                    // the policy: scripted chunks through the real hand-off
-                    if let Some(req) = link.requests.try_recv() {
-                        src.start(&req);
-                        link.requests.done(req);
-                    }
-                    if let Some(c) = src.poll(chunkrt_ipc::monotonic_ns()) {
-                        drop(link.chunks.send(c));
-                    }
-                    while link.chunks.take_recycled().is_some() {}
+                    // the policy: scripted chunks through the controller's inference worker
+                    worker.step(chunkrt_ipc::monotonic_ns(), &mut src, &obs);
                     std::thread::sleep(Duration::from_micros(250));
                 }
             })

@@ -33,6 +33,12 @@ pub trait ChunkSource: Send {
     fn delayed_views(&self) -> &[chunkrt_policy::DelayedView] {
         &[]
     }
+    /// Sets the prompt of the chunks from now on (a source without one ignores it).
+    fn set_prompt(&mut self, _prompt: &str) {}
+    /// Restarts the source's noise sequence from `seed`, where it has one it controls (the
+    /// in-process policy; a remote server's noise is its own): an evaluation then gives every
+    /// strategy and delay the same noise.
+    fn reseed(&mut self, _seed: u64) {}
 }
 
 /// The source used when no policy is configured: it never produces a chunk, so the

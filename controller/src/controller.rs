@@ -31,6 +31,7 @@ use crate::edge::{
 };
 use crate::rt;
 pub use crate::shared::Shared;
+use crate::worker::{Delivery, InferenceWorker, Turn};
 
 /// Cameras whose frame is missing or older than `max_age_ns` at `now_ns` (bit i = camera i).
 pub fn stale_cameras(frames: &[crate::edge::Frame], now_ns: u64, max_age_ns: u64) -> u64 {
@@ -89,7 +90,7 @@ impl Controller {
             let ready = ready_tx.clone();
             std::thread::Builder::new()
                 .name("chunkrt-observe".into())
-                .spawn(move || observation_thread(&cfg, &shared, source.as_mut(), &link, ready))
+                .spawn(move || observation_thread(&cfg, &shared, source.as_mut(), link, ready))
                 .context("cannot spawn the observation thread")?
         };
         let control = {
@@ -235,9 +236,10 @@ fn observation_thread(
     cfg: &Config,
     shared: &Shared,
     source: &mut dyn ChunkSource,
-    link: &InferenceLink,
+    link: InferenceLink,
     ready: crossbeam::channel::Sender<anyhow::Result<()>>,
 ) -> anyhow::Result<()> {
+    let mut worker = InferenceWorker::new(link, Delivery::Immediate);
     // the inference thread gets a core of its own when there is one besides the control core
     let control_core = cfg.control.cpu.unwrap_or_else(rt::default_control_core);
     if rt::available_cores() > 1 {
@@ -281,7 +283,6 @@ fn observation_thread(
     let n_cams = cfg.cameras.len();
     let poll_period_ns = 2_000_000;
     let mut next = monotonic_ns();
-    let mut source_failures = 0u64;
     let frame_max_age_ns = (cfg.control.frame_max_age_ms * 1e6) as u64;
     let watch_cameras = source.uses_cameras();
     let mut stale_before = 0u64;
@@ -298,7 +299,7 @@ fn observation_thread(
         } else {
             0
         };
-        link.stale_cameras.store(stale, Ordering::Relaxed);
+        worker.link().stale_cameras.store(stale, Ordering::Relaxed);
         shared.stale_cameras.store(stale, Ordering::Relaxed);
         if stale != stale_before {
             let gone = stale & !stale_before;
@@ -317,8 +318,7 @@ fn observation_thread(
         }
         js.poll(&private, &private_events);
         while private_events.pop().is_some() {}
-        // chunk buffers the control thread is done with are dropped here, off the RT path
-        while link.chunks.take_recycled().is_some() {}
+        worker.poll(now);
         // a second joint-state publisher: nothing trusted, no observation from a forged state
         let Some(state) = js.trusted(now) else {
             continue;
@@ -326,33 +326,28 @@ fn observation_thread(
         if stale != 0 {
             continue;
         }
-        let Some(request) = link.requests.try_recv() else {
+        let Some(request) = worker.next_request() else {
             continue;
         };
         obs.joint_state = *state;
         obs.assembled_ns = now;
-        let result = source.compute(&obs, &request);
-        link.requests.done(request);
-        match result {
-            Ok(Some(chunk)) => {
+        match worker.answer(now, request, source, &obs) {
+            Turn::Chunk { latency_ns } => {
                 shared.chunks.fetch_add(1, Ordering::Relaxed);
-                shared.last_inference_latency_ns.store(
-                    chunk.ready_ns.saturating_sub(chunk.t_obs_ns),
-                    Ordering::Relaxed,
-                );
-                // a displaced, never-executed chunk comes back here and is dropped here
-                drop(link.chunks.send(chunk));
+                shared
+                    .last_inference_latency_ns
+                    .store(latency_ns, Ordering::Relaxed);
             }
-            Ok(None) => {}
-            Err(e) => {
-                source_failures += 1;
-                if source_failures.is_power_of_two() {
+            Turn::Failed(e) => {
+                let failures = worker.stats().failures;
+                if failures.is_power_of_two() {
                     tracing::error!(
-                        "chunk source '{}' failed ({source_failures} times so far): {e:#}",
+                        "chunk source '{}' failed ({failures} times so far): {e:#}",
                         source.name()
                     );
                 }
             }
+            Turn::Idle | Turn::Nothing => {}
         }
         if now > next + 100 * poll_period_ns {
             next = now; // the source took long: do not try to catch up

@@ -258,6 +258,32 @@ impl Frame {
         }
     }
 
+    /// Makes this an rgb8 frame of `width` × `height` (tightly packed rows) captured at
+    /// `capture_time_ns`, and returns its pixel bytes to be written: a frame that did not come
+    /// over IPC (a simulator renders it, a remote client sends it). `None` when the buffer is
+    /// smaller than the frame.
+    pub fn write_rgb8(
+        &mut self,
+        width: u32,
+        height: u32,
+        capture_time_ns: u64,
+    ) -> Option<&mut [u8]> {
+        let n = 3 * width as usize * height as usize;
+        if n > self.data.len() {
+            return None;
+        }
+        self.header = CameraFrameHeader {
+            capture_time_ns,
+            encoding: chunkrt_ipc::ENCODING_RGB8,
+            width,
+            height,
+            stride: 3 * width,
+            ..Default::default()
+        };
+        self.valid = true;
+        Some(&mut self.data[..n])
+    }
+
     /// The image bytes of the newest frame.
     pub fn pixels(&self) -> &[u8] {
         let n = (self.header.stride as usize) * (self.header.height as usize);

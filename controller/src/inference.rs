@@ -6,15 +6,15 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use anyhow::Context;
 
-use chunkrt_ipc::config::{PolicyConfig, PolicyDevice, PolicyKind, PolicyPrecision, RtcJacobian};
+use chunkrt_ipc::config::{PolicyConfig, PolicyDevice, PolicyKind, PolicyPrecision};
 use chunkrt_ipc::{monotonic_ns, Config, ENCODING_BGR8, ENCODING_MONO8, ENCODING_RGB8};
 
 use crate::chunk::ActionChunk;
+use crate::conditioning::Conditioner;
 use crate::contract::ChunkSource;
-use crate::control::{Continuation, InferenceRequest};
+use crate::control::InferenceRequest;
 use crate::edge::Observation;
 use crate::policy::config::ConfigOverrides;
-use crate::policy::rtc::{Guidance, Jacobian};
 use crate::policy::runtime::{LoadOptions, Policy, RawFrame, RawObservation};
 use crate::policy::{DeviceSpec, Encoding, ModelKind, Precision};
 
@@ -90,13 +90,7 @@ pub struct PolicySource {
     pool: rayon::ThreadPool,
     prompt: String,
     period_ns: u64,
-    n_dof: usize,
-    prefix: Vec<f64>,
-    weights: Vec<f32>,
-    /// Per joint: `Some((open, closed))` for step channels (their state is snapped to the
-    /// nearer end before it reaches the policy), `None` for ordinary joints.
-    step_ends: Vec<Option<(f64, f64)>>,
-    state: Vec<f64>,
+    conditioner: Conditioner,
 }
 
 impl PolicySource {
@@ -133,16 +127,7 @@ impl PolicySource {
             pool,
             prompt: cfg.policy.prompt.clone(),
             period_ns: (1e9 / cfg.policy.action_rate_hz).round() as u64,
-            n_dof: cfg.n_dof(),
-            prefix: Vec::new(),
-            weights: Vec::new(),
-            step_ends: cfg
-                .robot
-                .joints
-                .iter()
-                .map(|j| j.step.then_some((j.position_min, j.position_max)))
-                .collect(),
-            state: Vec::new(),
+            conditioner: Conditioner::new(cfg),
         })
     }
 
@@ -172,8 +157,8 @@ impl PolicySource {
         self.prompt = prompt.to_string();
     }
 
-    /// One chunk from frames and a joint state observed at `t_obs_ns`, guided by `request` when
-    /// it asks for real-time chunking. (The inference thread's `compute`, and in-process
+    /// One chunk from frames and a joint state observed at `t_obs_ns`, conditioned as
+    /// `request` asks ([`Conditioner::ask`]). (The inference thread's `compute`, and in-process
     /// closed-loop evaluation.)
     pub fn infer_chunk(
         &mut self,
@@ -182,99 +167,28 @@ impl PolicySource {
         t_obs_ns: u64,
         request: &InferenceRequest,
     ) -> anyhow::Result<ActionChunk> {
-        let n = self.n_dof.min(joint_state.n_dof as usize);
-        let usable = request.horizon > 0 && request.n_dof >= n;
-        // Training-time RTC: the chunk starts with the actions the robot executes until it
-        // lands (`c` prefix rows from row `shift`, [`InferenceRequest::committed_rows`]).
-        let committed = request.continuation == Continuation::Committed && usable;
-        // Future-state inference (VLASH): the policy observes where the current chunk will have
-        // taken the robot when the new chunk lands (`prefix[d]`, d the estimated delay) and the
-        // new chunk starts there, so it continues the motion instead of restarting it from the
-        // stale measured state. (With a committed prefix: where the committed rows start.)
-        let (shift, c) = if committed {
-            request.committed_rows()
-        } else if request.future_state && usable {
-            (request.delay_steps.min(request.horizon - 1), 0)
-        } else {
-            (0, 0)
-        };
-        // (a committed prefix that starts at the request goes with the measured state there)
-        let from_prefix = usable && request.future_state && (!committed || shift > 0);
-        let (observed, start_shift_ns) = if from_prefix {
-            let start = request.t_ref_ns + shift as u64 * request.period_ns;
-            (&request.prefix[shift][..n], start.saturating_sub(t_obs_ns))
-        } else {
-            (&joint_state.position[..n], 0)
-        };
-        // A step channel (a gripper) is open or closed: the policy sees it as one of its two
-        // ends, as in its training data, not the in-between values a real gripper passes through.
-        self.state.clear();
-        for (i, &v) in observed.iter().enumerate() {
-            self.state
-                .push(match self.step_ends.get(i).copied().flatten() {
-                    Some((lo, hi)) => {
-                        if v >= 0.5 * (lo + hi) {
-                            hi
-                        } else {
-                            lo
-                        }
-                    }
-                    None => v,
-                });
-        }
+        let horizon = self.policy.horizon();
+        let ask = self
+            .conditioner
+            .ask(request, joint_state, t_obs_ns, horizon);
         let raw = RawObservation {
             frames,
-            joint_positions: &self.state,
+            joint_positions: ask.state,
             prompt: &self.prompt,
         };
-        let actions = if committed {
-            self.prefix.clear();
-            for row in &request.prefix[shift..(shift + c).min(request.horizon)] {
-                self.prefix.extend_from_slice(&row[..n]);
-            }
-            let (policy, prefix) = (&mut self.policy, &self.prefix);
-            self.pool.install(|| policy.infer_committed(&raw, prefix))?
-        } else if request.continuation == Continuation::Guided && request.beta > 0.0 {
-            // real-time chunking: guide towards what the robot will execute meanwhile
-            let h = self.policy.horizon().min(request.horizon.max(1));
-            let full_h = self.policy.horizon();
-            self.prefix.clear();
-            self.weights.clear();
-            // (with a future state the new chunk's action i is the old one's i + shift)
-            for i in 0..full_h {
-                let k = i + shift;
-                let row = &request.prefix[k.min(h - 1)];
-                self.prefix.extend_from_slice(&row[..n]);
-                self.weights.push(if k < h {
-                    request.weights[k] as f32
-                } else {
-                    0.0
-                });
-            }
-            let g = Guidance {
-                prefix: &self.prefix,
-                weights: &self.weights,
-                beta: request.beta as f32,
-                jacobian: match request.jacobian {
-                    RtcJacobian::Vjp => Jacobian::Vjp,
-                    RtcJacobian::Identity => Jacobian::Identity,
-                },
-            };
-            let policy = &mut self.policy;
-            self.pool.install(|| policy.infer_guided(&raw, Some(&g)))?
-        } else {
-            let policy = &mut self.policy;
-            self.pool.install(|| policy.infer(&raw))?
-        };
+        let policy = &mut self.policy;
+        let actions = self
+            .pool
+            .install(|| policy.infer(&raw, &ask.conditioning))?;
         let chunk = ActionChunk {
             id: next_chunk_id(),
             observation_seq: joint_state.seq,
             t_obs_ns,
             period_ns: self.period_ns,
-            n_dof: n,
+            n_dof: ask.state.len(),
             actions,
             ready_ns: monotonic_ns(),
-            start_shift_ns,
+            start_shift_ns: ask.start_shift_ns,
         };
         chunk.validate()?;
         Ok(chunk)
@@ -311,6 +225,14 @@ impl ChunkSource for PolicySource {
 
     fn delayed_views(&self) -> &[chunkrt_policy::DelayedView] {
         self.policy.delayed_views()
+    }
+
+    fn set_prompt(&mut self, prompt: &str) {
+        PolicySource::set_prompt(self, prompt);
+    }
+
+    fn reseed(&mut self, seed: u64) {
+        PolicySource::reseed(self, seed);
     }
 
     fn compute(

@@ -18,6 +18,8 @@
 //!   shaping, ruckig, the safety state machine, measurement.
 //! - [`control_loop`]: the control thread — one tick over IPC, the periodic loop.
 //! - [`controller`]: the process's threads, start/stop, status; [`shared`]: what they share.
+//! - [`conditioning`]: request → the state the policy observes and how its chunk is conditioned.
+//! - [`worker`]: the inference protocol once (request → chunk source → hand-off → recycling).
 //! - [`inference`]: the policy as a chunk source (`PolicySource`).
 //! - [`rt`]: real-time set-up (pinning, SCHED_FIFO, memory locking, the periodic loop).
 //! - [`histlog`]: latency histograms, tables and interval logs (no plots).
@@ -26,6 +28,7 @@
 //! devices (the binary's composition root in the `chunkrt` crate wires those up).
 
 pub mod chunk;
+pub mod conditioning;
 pub mod contract;
 pub mod control;
 pub mod control_loop;
@@ -36,6 +39,7 @@ pub mod inference;
 pub mod log_limit;
 pub mod rt;
 pub mod shared;
+pub mod worker;
 
 pub use chunkrt_ipc as ipc;
 pub use chunkrt_ipc::config;

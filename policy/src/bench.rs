@@ -12,7 +12,7 @@ use hdrhistogram::Histogram;
 use super::config::{GemmaDims, ModelConfig};
 use super::model::{ModelInputs, PiModel};
 use super::openpi::{OpenpiInfo, OpenpiSetup, OpenpiWorker};
-use super::PolicyError;
+use crate::error::PolicyError;
 
 mod device;
 

@@ -10,7 +10,7 @@ use candle_nn::VarBuilder;
 
 use super::config::{ConfigOverrides, ModelConfig, ModelKind};
 use super::model::PiModel;
-use super::PolicyError;
+use crate::error::PolicyError;
 
 const PG: &str = "paligemma_with_expert.paligemma";
 /// The token embedding's key, and the LM head's (which holds it when the embedding is absent).

@@ -5,7 +5,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::PolicyError;
+use crate::error::PolicyError;
 
 /// π0 (state token in the suffix) or π0.5 (adaRMS action expert, discrete state in the prompt).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

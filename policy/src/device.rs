@@ -12,8 +12,8 @@ use std::str::FromStr;
 
 use candle_core::{DType, Device};
 
+use crate::error::PolicyError;
 pub use crate::packed::Precision;
-use crate::PolicyError;
 
 /// The device a policy runs on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

@@ -22,9 +22,9 @@
 
 use candle_core::{DType, Tensor, TensorId};
 
+use crate::error::PolicyError;
 use crate::model::{PiModel, PrefixCache, SampleOutput};
 use crate::rtc::{GuidanceTarget, Jacobian};
-use crate::PolicyError;
 
 /// What the captures and replays share.
 #[cfg(feature = "cuda")]
@@ -32,8 +32,8 @@ mod cuda {
     use candle_core::cuda_backend::cudarc::driver::{sys, CudaGraph};
     use candle_core::cuda_backend::CudaDevice;
 
+    use crate::error::PolicyError;
     use crate::model::{PiModel, PrefixCache};
-    use crate::PolicyError;
 
     fn err(what: &str, e: &dyn std::fmt::Display) -> PolicyError {
         PolicyError::Candle(candle_core::Error::Msg(format!("{what}: {e}")))

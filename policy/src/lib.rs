@@ -18,6 +18,7 @@ pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod device;
+pub mod error;
 pub mod fastops;
 pub mod gemma;
 pub mod gpu;
@@ -34,9 +35,11 @@ pub mod siglip;
 
 pub use config::{ConfigOverrides, DelayedView, ModelConfig, ModelKind};
 pub use device::{model_dtype, DeviceSpec, Precision};
+pub use error::PolicyError;
 pub use model::{ModelInputs, PiModel, PrefixCache, SampleOutput};
 pub use preprocess::Encoding;
-pub use runtime::{LoadOptions, Policy, RawFrame, RawObservation};
+pub use rtc::{Guidance, Jacobian};
+pub use runtime::{Conditioning, LoadOptions, Policy, RawFrame, RawObservation};
 
 /// Turns chunkrt's CPU kernels (the packed matrix products, [`packed`], and the fused ops,
 /// [`fastops`]) off or back on for the whole process. Off, a CPU model runs the same candle
@@ -71,27 +74,4 @@ pub fn keep_freed_memory() {
             libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
         }
     }
-}
-
-/// Errors of the policy.
-#[derive(Debug, thiserror::Error)]
-pub enum PolicyError {
-    /// Bad or inconsistent configuration.
-    #[error("policy config: {0}")]
-    Config(String),
-    /// Missing or mismatched checkpoint tensors (one line each).
-    #[error("checkpoint: {0}")]
-    Checkpoint(String),
-    /// File system.
-    #[error("io: {0}")]
-    Io(String),
-    /// Bad input data (shapes, ranges, encodings).
-    #[error("policy input: {0}")]
-    Input(String),
-    /// Tokenizer.
-    #[error("tokenizer: {0}")]
-    Tokenizer(String),
-    /// Tensor library.
-    #[error("candle: {0}")]
-    Candle(#[from] candle_core::Error),
 }

@@ -17,7 +17,7 @@ use super::config::{ModelConfig, ModelKind};
 use super::gemma::{joint_layer, kv_only_layer, Expert, KvMode, Rope, Stream, MASK_VALUE};
 use super::packed::Precision;
 use super::siglip::Vision;
-use super::PolicyError;
+use crate::error::PolicyError;
 
 mod action_time;
 mod loss;

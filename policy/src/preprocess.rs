@@ -5,7 +5,7 @@ use std::path::Path;
 
 use serde::Deserialize;
 
-use super::PolicyError;
+use crate::error::PolicyError;
 
 /// Pixel layout of a raw frame (the `ENCODING_*` codes of `CameraFrameHeader`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

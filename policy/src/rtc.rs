@@ -28,7 +28,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use super::config::ModelConfig;
 use super::model::{euler, ModelInputs, PiModel, PrefixCache, SampleOutput};
 use super::preprocess::{normalize, NormMode, Stats};
-use super::PolicyError;
+use crate::error::PolicyError;
 
 /// How the guidance gradient g = (∂Â/∂x_t)ᵀ (W ⊙ (Y − Â)) treats the Jacobian of the clean
 /// estimate.
@@ -44,7 +44,7 @@ pub enum Jacobian {
 }
 
 /// Guidance towards the previous chunk (robot units, [H][n_dof] row-major, right-padded by the
-/// caller) for [`super::Policy::infer_guided`].
+/// caller): [`crate::Conditioning::Guided`].
 #[derive(Debug, Clone, Copy)]
 pub struct Guidance<'a> {
     /// Previous chunk's remaining actions, `[H][n_dof]` row-major in robot units.

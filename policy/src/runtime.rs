@@ -1,5 +1,5 @@
 //! The runtime API for the controller's inference thread: load once, then
-//! `infer(&RawObservation) -> [H][n_dof]` actions in robot units. The prefix KV cache buffers are
+//! `infer(&RawObservation, &Conditioning) -> [H][n_dof]` actions in robot units. The prefix KV cache buffers are
 //! kept across calls.
 
 use std::path::Path;
@@ -16,10 +16,9 @@ use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
     NormMode, NormStats, PromptTokenizer,
 };
-use super::rtc::{
-    check_target, denoise_guided, model_space_actions, Guidance, GuidanceTarget, Jacobian,
-};
-use super::PolicyError;
+pub use super::rtc::Guidance;
+use super::rtc::{check_target, denoise_guided, model_space_actions, GuidanceTarget, Jacobian};
+use crate::error::PolicyError;
 
 /// One camera frame as received over IPC (fields as in `CameraFrameHeader`).
 #[derive(Debug, Clone, Copy)]
@@ -50,7 +49,28 @@ pub struct RawObservation<'a> {
     pub prompt: &'a str,
 }
 
-/// How a chunk continues the previous one.
+/// How a chunk is conditioned on the chunk the robot is executing (real-time chunking): the
+/// one public description, for [`Policy::infer`] and for anything that carries the request
+/// elsewhere (the openpi protocol's chunkrt keys).
+#[derive(Debug, Clone, Copy, Default)]
+pub enum Conditioning<'a> {
+    /// Not at all: plain sampling.
+    #[default]
+    Fresh,
+    /// Inference-time RTC: the sampler is guided towards the previous chunk's remaining
+    /// actions ([`Guidance`]). β = 0 or all-zero weights give exactly the fresh chunk for the
+    /// same noise. The prefix is normalised with the action norm stats and padded to the action
+    /// dim; the padded dims are not guided.
+    Guided(Guidance<'a>),
+    /// Training-time RTC: the actions the robot executes while the chunk is computed
+    /// (`[d][n_dof]` row-major, robot units, d ≥ 0 rows from where the chunk starts); the chunk
+    /// starts with exactly them (to f32 rounding) and continues them. Only for a checkpoint
+    /// trained with a committed prefix (`rtc_prefix_max` in its `config.json`; an error
+    /// otherwise); d is clipped to that maximum. Costs what a fresh chunk costs.
+    Committed(&'a [f64]),
+}
+
+/// How a chunk continues the previous one, in the model's space.
 #[derive(Clone, Copy)]
 enum Continue<'a> {
     /// Not at all: plain sampling.
@@ -299,88 +319,62 @@ impl Policy {
     }
 
     /// Runs the policy: returns `[H][n_dof]` actions (row-major) in robot units, where `n_dof` is
-    /// the number of joint positions given.
-    pub fn infer(&mut self, obs: &RawObservation<'_>) -> Result<Vec<f64>, PolicyError> {
-        let inputs = self.prepare(obs)?;
-        self.run(&inputs, obs.joint_positions.len(), Continue::Fresh)
-    }
-
-    /// Like [`Self::infer`], guided towards `guidance` (real-time chunking, [`super::rtc`]) when
-    /// it is Some. β = 0 or all-zero weights give exactly `infer`'s actions for the same noise.
-    /// The prefix is normalised with the action norm stats and padded to the action dim; the
-    /// padded dims are not guided.
-    pub fn infer_guided(
+    /// the number of joint positions given, conditioned on the chunk the robot is executing as
+    /// `how` says ([`Conditioning`]). The one entry point for every kind of chunk.
+    pub fn infer(
         &mut self,
         obs: &RawObservation<'_>,
-        guidance: Option<&Guidance<'_>>,
+        how: &Conditioning<'_>,
     ) -> Result<Vec<f64>, PolicyError> {
         let inputs = self.prepare(obs)?;
         let n_dof = obs.joint_positions.len();
         let stats = self.norm.as_ref().map(|n| &n.actions);
-        let target = match guidance {
-            Some(g) => Some(g.target(
-                &self.model.cfg,
-                n_dof,
-                stats,
-                self.mode(),
-                &self.offsets,
-                self.model.device(),
-            )?),
-            None => None,
-        };
-        let how = match &target {
-            Some(t) => Continue::Guided(t),
-            None => Continue::Fresh,
-        };
-        self.run(&inputs, n_dof, how)
-    }
-
-    /// Training-time real-time chunking: like [`Self::infer`], with the first actions of the
-    /// chunk given: `committed` holds the actions the robot will execute while the chunk is
-    /// computed (`[d][n_dof]` row-major, robot units, d ≥ 0 rows starting where the chunk
-    /// starts) and the chunk returned starts with exactly them (to f32 rounding) and continues
-    /// them. Only for a checkpoint trained with a committed prefix (`rtc_prefix_max` in its
-    /// `config.json`); d is clipped to that maximum (the chunk then starts with the first
-    /// `rtc_prefix_max` of them). Costs what `infer` costs.
-    pub fn infer_committed(
-        &mut self,
-        obs: &RawObservation<'_>,
-        committed: &[f64],
-    ) -> Result<Vec<f64>, PolicyError> {
-        let max = self.model.cfg.rtc_prefix_max;
-        if max == 0 {
-            return Err(PolicyError::Config(
-                "this checkpoint was not trained with a committed action prefix (no \
-                 rtc_prefix_max in its config.json): it cannot run training-time real-time \
-                 chunking (train one with `chunkrt train --rtc-prefix N`, or use strategy rtc)"
-                    .into(),
-            ));
+        match how {
+            Conditioning::Fresh => self.run(&inputs, n_dof, Continue::Fresh),
+            Conditioning::Guided(g) => {
+                let target = g.target(
+                    &self.model.cfg,
+                    n_dof,
+                    stats,
+                    self.mode(),
+                    &self.offsets,
+                    self.model.device(),
+                )?;
+                self.run(&inputs, n_dof, Continue::Guided(&target))
+            }
+            Conditioning::Committed(committed) => {
+                let max = self.model.cfg.rtc_prefix_max;
+                if max == 0 {
+                    return Err(PolicyError::Config(
+                        "this checkpoint was not trained with a committed action prefix (no \
+                         rtc_prefix_max in its config.json): it cannot run training-time \
+                         real-time chunking (train one with `chunkrt train --rtc-prefix N`, or \
+                         use strategy rtc)"
+                            .into(),
+                    ));
+                }
+                if !committed.len().is_multiple_of(n_dof) {
+                    return Err(PolicyError::Input(format!(
+                        "{} committed action values are not whole rows of {n_dof} joints",
+                        committed.len()
+                    )));
+                }
+                let d = (committed.len() / n_dof).min(max);
+                if d == 0 {
+                    return self.run(&inputs, n_dof, Continue::Fresh);
+                }
+                let y = model_space_actions(
+                    &committed[..d * n_dof],
+                    n_dof,
+                    &self.model.cfg,
+                    stats,
+                    self.mode(),
+                    &self.offsets,
+                    self.model.device(),
+                )?;
+                self.run(&inputs, n_dof, Continue::Committed(&y, d))
+            }
         }
-        let inputs = self.prepare(obs)?;
-        let n_dof = obs.joint_positions.len();
-        if !committed.len().is_multiple_of(n_dof) {
-            return Err(PolicyError::Input(format!(
-                "{} committed action values are not whole rows of {n_dof} joints",
-                committed.len()
-            )));
-        }
-        let d = (committed.len() / n_dof).min(max);
-        let stats = self.norm.as_ref().map(|n| &n.actions);
-        let y = model_space_actions(
-            &committed[..d * n_dof],
-            n_dof,
-            &self.model.cfg,
-            stats,
-            self.mode(),
-            &self.offsets,
-            self.model.device(),
-        )?;
-        let how = if d == 0 {
-            Continue::Fresh
-        } else {
-            Continue::Committed(&y, d)
-        };
-        self.run(&inputs, n_dof, how)
     }
 
     /// Image inputs that are an earlier frame of a camera (`config.json` `delayed_views`): the
@@ -390,7 +384,7 @@ impl Policy {
     }
 
     /// The largest committed prefix the checkpoint was trained with (0: it was not;
-    /// [`Self::infer_committed`]).
+    /// [`Conditioning::Committed`]).
     pub fn committed_max(&self) -> usize {
         self.model.cfg.rtc_prefix_max
     }

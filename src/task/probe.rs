@@ -23,7 +23,7 @@ use chunkrt_ipc::config::Config;
 use super::expert::{Profile, Reach};
 use super::sim::EpisodeSpec;
 use super::{inverse_kinematics, task_camera, ReachScene, ARM_JOINTS, TASK_DOF};
-use crate::policy::runtime::{Policy, RawFrame, RawObservation};
+use crate::policy::runtime::{Conditioning, Policy, RawFrame, RawObservation};
 
 /// Scene seeds of the swapped images are the episode's plus this (still held out).
 const SWAP_SCENE_OFFSET: u64 = 100_000;
@@ -119,11 +119,14 @@ pub fn probe(
         let frames: Vec<RawFrame> = std::iter::once(frame(camera))
             .chain(views.iter().map(|v| frame(v.as_str())))
             .collect();
-        policy.infer(&RawObservation {
-            frames: &frames,
-            joint_positions: q,
-            prompt,
-        })
+        policy.infer(
+            &RawObservation {
+                frames: &frames,
+                joint_positions: q,
+                prompt,
+            },
+            &Conditioning::Fresh,
+        )
     };
     for e in episodes {
         let scene = ReachScene::from_seed(e.scene_seed);
@@ -304,11 +307,14 @@ pub fn motion_probe(
             frame(view.as_str(), &before_img),
         ];
         policy.reseed(seed);
-        let a = policy.infer(&RawObservation {
-            frames: &frames,
-            joint_positions: now.1,
-            prompt,
-        })?;
+        let a = policy.infer(
+            &RawObservation {
+                frames: &frames,
+                joint_positions: now.1,
+                prompt,
+            },
+            &Conditioning::Fresh,
+        )?;
         let h = a.len() / TASK_DOF;
         anyhow::Ok(angle(&a[(h - 1) * TASK_DOF..h * TASK_DOF]))
     };

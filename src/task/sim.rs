@@ -11,9 +11,9 @@ use chunkrt_ipc::config::Config;
 use chunkrt_ipc::{JointCommand, JointState};
 
 use super::{task_camera, ReachScene, TargetColor, TASK_DOF};
-use crate::chunk::ActionChunk;
+use crate::contract::{ChunkSource, Observation};
 use crate::control::{Executor, InferenceRequest, Smoothness, State, Trace};
-use crate::inference::PolicySource;
+use crate::worker::{Delivery, InferenceWorker, Turn};
 
 /// Simulated time starts here (ns), far from 0 so no timestamp saturates.
 const START_NS: u64 = 1_000_000_000;
@@ -125,14 +125,17 @@ pub struct EpisodeOutcome {
 }
 
 /// Runs one episode with `policy` under `cfg` (its `execution.strategy` unless synchronous).
+/// The policy is any chunk source: the in-process one, or a server behind the openpi protocol
+/// (`chunkrt eval --remote`); it answers through the controller's [`InferenceWorker`], which
+/// delivers each chunk `delay_steps` action periods after its observation.
 pub fn run_episode(
     cfg: &Config,
-    policy: &mut PolicySource,
+    policy: &mut dyn ChunkSource,
     spec: &EpisodeSpec,
     settings: &SimSettings,
 ) -> anyhow::Result<EpisodeOutcome> {
     let cam = task_camera(cfg)?.clone();
-    let (w, h) = (cam.width as usize, cam.height as usize);
+    let (w, h) = (cam.width, cam.height);
     let mut scene = ReachScene::from_seed(spec.scene_seed);
     let start_targets = scene.targets;
     // since when the end effector has been on the prompted target
@@ -146,15 +149,15 @@ pub fn run_episode(
         cfg.execution.strategy = crate::config::Strategy::Replace;
     }
     let mut exec = Executor::new(&cfg)?;
-    let link = exec.connect();
-    policy.set_prompt(spec.color.prompt());
-    // the episode's own noise: its chunks do not depend on which episodes ran before it, and
-    // every strategy and delay of a sweep sees the same noise (common random numbers)
-    policy.reseed(spec.scene_seed ^ ((spec.color as u64) << 32));
     let period_ns = (1e9 / cfg.policy.action_rate_hz).round() as u64;
     let control_ns = cfg.control_period_ns();
     let s = cfg.execution.execute_horizon.max(1);
     let delay_ns = settings.delay_steps * period_ns;
+    let mut worker = InferenceWorker::new(exec.connect(), Delivery::After(delay_ns));
+    policy.set_prompt(spec.color.prompt());
+    // the episode's own noise: its chunks do not depend on which episodes ran before it, and
+    // every strategy and delay of a sweep sees the same noise (common random numbers)
+    policy.reseed(spec.scene_seed ^ ((spec.color as u64) << 32));
 
     let mut js = JointState {
         n_dof: TASK_DOF as u32,
@@ -164,11 +167,10 @@ pub fn run_episode(
     let mut cmd = JointCommand::default();
     let mut trace = Trace::new(control_ns as f64 * 1e-9, TASK_DOF);
     trace.skip[TASK_DOF - 1] = true; // the gripper is a step channel
-    let mut image = vec![0u8; w * h * 3];
-    // the policy's delayed views (an earlier frame of the task camera): rendered from the
-    // joint positions of every tick so far (before the episode: the start pose) and the
-    // targets where they were then
-    let views: Vec<(String, u64)> = policy
+                                     // the policy's delayed views (an earlier frame of the task camera): rendered from the
+                                     // joint positions of every tick so far (before the episode: the start pose) and the
+                                     // targets where they were then
+    let views: Vec<u64> = policy
         .delayed_views()
         .iter()
         .map(|v| {
@@ -180,12 +182,12 @@ pub fn run_episode(
                 v.camera,
                 cam.name
             );
-            Ok((v.name.clone(), v.delay_ns() / control_ns.max(1)))
+            Ok(v.delay_ns() / control_ns.max(1))
         })
         .collect::<anyhow::Result<_>>()?;
-    let mut view_images = vec![vec![0u8; w * h * 3]; views.len()];
+    // the observation the policy is given: the camera's frame, then the delayed views
+    let mut obs = Observation::with_views(&cfg, policy.delayed_views());
     let mut past: Vec<[f64; TASK_DOF]> = Vec::new();
-    let mut pending: Vec<ActionChunk> = Vec::new();
     let mut next_sync_obs = START_NS;
     let mut out = EpisodeOutcome {
         success: false,
@@ -218,11 +220,14 @@ pub fn run_episode(
                 retargeted = Some((t, d));
             }
         }
-        let mut observe = |js: &JointState,
-                           req: &InferenceRequest|
-         -> anyhow::Result<ActionChunk> {
-            scene.render_rgb(&js.position[..TASK_DOF], w, h, 3 * w, &mut image);
-            for ((_, lag), img) in views.iter().zip(view_images.iter_mut()) {
+        // renders the observation of this tick (only when a chunk is asked for)
+        let observe = |obs: &mut Observation| -> anyhow::Result<()> {
+            let bad = || anyhow::anyhow!("the task camera's frame buffer is too small");
+            let (frame, delayed) = obs.frames.split_first_mut().ok_or_else(bad)?;
+            let px = frame.write_rgb8(w, h, now).ok_or_else(bad)?;
+            let (wu, hu) = (w as usize, h as usize);
+            scene.render_rgb(&js.position[..TASK_DOF], wu, hu, 3 * wu, px);
+            for (lag, view) in views.iter().zip(delayed.iter_mut()) {
                 let then = ReachScene {
                     targets: match &settings.drift {
                         Some(d) => {
@@ -232,22 +237,21 @@ pub fn run_episode(
                     },
                 };
                 let q = k.checked_sub(*lag).map_or(spec.start, |i| past[i as usize]);
-                then.render_rgb(&q, w, h, 3 * w, img);
+                let px = view.write_rgb8(w, h, now).ok_or_else(bad)?;
+                then.render_rgb(&q, wu, hu, 3 * wu, px);
             }
-            let frame = |camera, data| super::rgb_frame(camera, w, h, data);
-            let mut frames = vec![frame(&cam.name, &image)];
-            for ((name, _), img) in views.iter().zip(view_images.iter()) {
-                frames.push(frame(name, img));
-            }
-            policy.infer_chunk(&frames, js, now, req)
+            obs.joint_state = js;
+            obs.assembled_ns = now;
+            Ok(())
         };
         if settings.synchronous {
             // the executor's own requests are not used: the broker asks when the robot is done
-            while let Some(req) = link.requests.try_recv() {
-                link.requests.done(req);
-            }
-            if pending.is_empty() && now >= next_sync_obs {
-                let mut c = observe(&js, &InferenceRequest::default())?;
+            worker.discard_requests();
+            if now >= next_sync_obs && !worker.has_pending() {
+                observe(&mut obs)?;
+                let mut c = policy
+                    .compute(&obs, &InferenceRequest::default())?
+                    .ok_or_else(|| anyhow::anyhow!("the policy gave no chunk"))?;
                 out.chunks += 1;
                 // the robot waits: the chunk starts when it arrives; s actions, then it holds
                 // the last of them until the next chunk (which arrives after the delay)
@@ -261,22 +265,18 @@ pub fn run_episode(
                 c.t_obs_ns = ready;
                 c.ready_ns = ready;
                 next_sync_obs = ready + s as u64 * period_ns;
-                pending.push(c);
+                worker.deliver_at_ready(c);
             }
-        } else if let Some(req) = link.requests.try_recv() {
-            let mut c = observe(&js, &req)?;
-            out.chunks += 1;
-            c.t_obs_ns = now;
-            c.ready_ns = now + delay_ns;
+        } else if let Some(req) = worker.next_request() {
+            observe(&mut obs)?;
             // (a future-state chunk keeps its start shift: it was observed at `now` too)
-            pending.push(c);
-            link.requests.done(req);
+            match worker.answer(now, req, policy, &obs) {
+                Turn::Chunk { .. } => out.chunks += 1,
+                Turn::Failed(e) => return Err(e),
+                Turn::Idle | Turn::Nothing => {}
+            }
         }
-        while let Some(i) = pending.iter().position(|c| c.ready_ns <= now) {
-            let c = pending.remove(i);
-            drop(link.chunks.send(c));
-        }
-        while link.chunks.take_recycled().is_some() {}
+        worker.poll(now);
 
         let r = exec.tick(now, Some(&js), &mut cmd);
         if r.publish {

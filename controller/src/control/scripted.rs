@@ -3,12 +3,15 @@
 //! (so consecutive chunks disagree by a configurable jump), lands them after a configurable
 //! latency, and — when a request is guided (RTC) — emulates guidance by blending the chunk
 //! towards the request's prefix with the request's weights (W = 1 ⇒ the first d actions equal
-//! what was executed). Used by the control tests, the evaluation and the benches.
+//! what was executed). Used by the control tests and the benches, through the controller's
+//! [`InferenceWorker`] like any chunk source.
 
 use chunkrt_ipc::MAX_DOF;
 
 use super::rtc::{Continuation, InferenceRequest};
 use crate::chunk::ActionChunk;
+use crate::contract::{ChunkSource, Observation};
+use crate::worker::{Delivery, InferenceWorker};
 
 /// Settings of the scripted source.
 #[derive(Debug, Clone)]
@@ -66,7 +69,6 @@ impl ScriptedConfig {
 pub struct ScriptedChunkSource {
     cfg: ScriptedConfig,
     next_id: u64,
-    pending: Option<ActionChunk>,
     /// When set, the next chunk produced carries a NaN (watchdog tests).
     pub inject_nan: bool,
     /// While false, requests are ignored (missing-chunk tests).
@@ -79,7 +81,6 @@ impl ScriptedChunkSource {
         Self {
             cfg,
             next_id: 1,
-            pending: None,
             inject_nan: false,
             enabled: true,
         }
@@ -110,11 +111,12 @@ impl ScriptedChunkSource {
         r
     }
 
-    /// Starts an "inference" for `req` with the observation captured at `req.t_ref_ns`; the
-    /// chunk is ready `latency_ns` later. A request arriving while one is pending replaces it.
-    pub fn start(&mut self, req: &InferenceRequest) {
+    /// The "inference" for `req` with the observation captured at `req.t_ref_ns`; the chunk is
+    /// ready `latency_ns` later (`ready_ns`: deliver it with [`crate::worker::Delivery::AtReady`]).
+    /// None while disabled.
+    pub fn chunk_for(&mut self, req: &InferenceRequest) -> Option<ActionChunk> {
         if !self.enabled {
-            return;
+            return None;
         }
         let (n, h, p) = (self.cfg.n_dof, self.cfg.horizon, self.cfg.period_ns);
         let t_obs = req.t_ref_ns;
@@ -155,7 +157,7 @@ impl ScriptedChunkSource {
             self.inject_nan = false;
             actions[n * (h / 2)] = f64::NAN;
         }
-        self.pending = Some(ActionChunk {
+        Some(ActionChunk {
             id,
             observation_seq: id,
             t_obs_ns: t_obs,
@@ -164,16 +166,21 @@ impl ScriptedChunkSource {
             actions,
             ready_ns: t_obs + self.cfg.latency_ns,
             start_shift_ns: 0,
-        });
+        })
+    }
+}
+
+impl ChunkSource for ScriptedChunkSource {
+    fn name(&self) -> &str {
+        "scripted (test double)"
     }
 
-    /// The chunk, once it is ready at `now_ns`.
-    pub fn poll(&mut self, now_ns: u64) -> Option<ActionChunk> {
-        if self.pending.as_ref().is_some_and(|c| c.ready_ns <= now_ns) {
-            self.pending.take()
-        } else {
-            None
-        }
+    fn compute(
+        &mut self,
+        _obs: &Observation,
+        request: &InferenceRequest,
+    ) -> anyhow::Result<Option<ActionChunk>> {
+        Ok(self.chunk_for(request))
     }
 }
 
@@ -184,7 +191,9 @@ pub struct ScriptedSim {
     /// The executor under test.
     pub exec: super::Executor,
     /// The inference side of its hand-offs.
-    pub link: super::InferenceLink,
+    pub worker: InferenceWorker,
+    /// What the source is given (the scripted source does not look at it).
+    pub observation: Observation,
     /// The scripted policy.
     pub source: ScriptedChunkSource,
     /// Joint state reported by the simulated robot.
@@ -214,7 +223,7 @@ impl ScriptedSim {
         start_ns: u64,
     ) -> Result<Self, super::ExecutorError> {
         let exec = super::Executor::new(config)?;
-        let link = exec.connect();
+        let worker = InferenceWorker::new(exec.connect(), Delivery::AtReady);
         let n = config.n_dof();
         let mut js = chunkrt_ipc::JointState {
             n_dof: n as u32,
@@ -231,7 +240,8 @@ impl ScriptedSim {
         }
         Ok(Self {
             exec,
-            link,
+            worker,
+            observation: Observation::new(config),
             source: ScriptedChunkSource::new(source),
             joint_state: js,
             robot_reports: true,
@@ -247,14 +257,7 @@ impl ScriptedSim {
     /// Runs one tick and returns its report.
     pub fn step(&mut self) -> super::TickReport {
         let now = self.now_ns;
-        if let Some(req) = self.link.requests.try_recv() {
-            self.source.start(&req);
-            self.link.requests.done(req);
-        }
-        if let Some(c) = self.source.poll(now) {
-            let _ = self.link.chunks.send(c);
-        }
-        while self.link.chunks.take_recycled().is_some() {}
+        self.worker.step(now, &mut self.source, &self.observation);
         if self.robot_reports {
             self.joint_state.seq += 1;
             self.joint_state.measurement_time_ns = now;
