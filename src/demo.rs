@@ -387,8 +387,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     });
     std::fs::create_dir_all(&log_dir)
         .with_context(|| format!("cannot create {}", log_dir.display()))?;
-    let task = crate::task::task_camera(&cfg).is_ok()
-        && cfg.policy.kind != chunkrt_ipc::config::PolicyKind::Hold;
+    let task = crate::task::task_camera(&cfg).is_ok() && cfg.policy.kind.is_some();
     let scene = task.then(|| ReachScene::from_seed(args.seed));
 
     let mut common = vec!["--namespace".to_string(), ns.clone()];
@@ -405,7 +404,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         cfg.robot.name,
         cfg.n_dof(),
         cfg.cameras.len(),
-        cfg.policy.kind,
+        cfg.policy.kind_name(),
         log_dir.display()
     );
     let mut cam_args = with("fake-camera");

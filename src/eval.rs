@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 
-use chunkrt_ipc::config::{Config, RtcJacobian};
+use crate::config::{Config, Jacobian};
 
 use crate::inference::PolicySource;
 use crate::task::sim::{run_episode, SimSettings};
@@ -160,10 +160,8 @@ pub const MEASURED: &str = "/measured";
 
 /// Suffixes of `rtc` that pick the guidance's Jacobian (`execution.rtc_jacobian`): `rtc/vjp`,
 /// `rtc/identity`; before `/measured` where both apply.
-pub const JACOBIANS: [(&str, RtcJacobian); 2] = [
-    ("/identity", RtcJacobian::Identity),
-    ("/vjp", RtcJacobian::Vjp),
-];
+pub const JACOBIANS: [(&str, Jacobian); 2] =
+    [("/identity", Jacobian::Identity), ("/vjp", Jacobian::Vjp)];
 
 /// A sweep's strategy name taken apart.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -173,7 +171,7 @@ struct Variant<'a> {
     /// Without future-state inference.
     measured: bool,
     /// `rtc` with this Jacobian (None: the configured one).
-    jacobian: Option<RtcJacobian>,
+    jacobian: Option<Jacobian>,
 }
 
 /// The strategy name and its variant suffixes.
@@ -311,8 +309,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             std::fs::canonicalize(c)
                 .with_context(|| format!("checkpoint {} does not exist", c.display()))?,
         );
-        if cfg.policy.kind == chunkrt_ipc::config::PolicyKind::Hold {
-            cfg.policy.kind = chunkrt_ipc::config::PolicyKind::Pi05;
+        if cfg.policy.kind.is_none() {
+            cfg.policy.kind = Some(crate::config::ModelKind::Pi05);
         }
     }
     if args.open_loop {
@@ -504,14 +502,14 @@ mod tests {
         assert_eq!(split_variant("rtc"), v("rtc", false, None));
         assert_eq!(
             split_variant("rtc/vjp/measured"),
-            v("rtc", true, Some(RtcJacobian::Vjp))
+            v("rtc", true, Some(Jacobian::Vjp))
         );
         let cfg = Config::embedded_default();
-        assert_eq!(cfg.execution.rtc_jacobian, RtcJacobian::Identity);
+        assert_eq!(cfg.execution.rtc_jacobian, Jacobian::Identity);
         let (c, _) = cell_config(&cfg, "rtc/vjp", 2).unwrap();
-        assert_eq!(c.execution.rtc_jacobian, RtcJacobian::Vjp);
+        assert_eq!(c.execution.rtc_jacobian, Jacobian::Vjp);
         let (c, _) = cell_config(&cfg, "rtc/identity", 2).unwrap();
-        assert_eq!(c.execution.rtc_jacobian, RtcJacobian::Identity);
+        assert_eq!(c.execution.rtc_jacobian, Jacobian::Identity);
         for bad in [
             "sync/measured",
             "rtc/future",

@@ -22,14 +22,15 @@ pub mod eval;
 pub mod policy_cli;
 pub mod report;
 pub mod run;
+pub mod serve;
 pub mod soak;
 pub mod task;
 pub mod train;
 
+pub use chunkrt_controller::config;
 pub use chunkrt_controller::{
     chunk, conditioning, contract, control, control_loop, controller, edge, histlog, inference,
-    log_limit, rt, shared, worker,
+    log_limit, remote, rt, shared, worker,
 };
 pub use chunkrt_ipc as ipc;
-pub use chunkrt_ipc::config;
 pub use chunkrt_policy as policy;

@@ -28,6 +28,9 @@ enum Command {
     /// Ask the controller to leave FAULT without a restart; prints its answer (refused, with
     /// the reason, while an input is still bad).
     Rearm(chunkrt_tools::rearm::Args),
+    /// Serve a checkpoint over openpi's websocket protocol (any openpi client, or a controller
+    /// with `policy.source = "remote"` on another machine).
+    Serve(chunkrt::serve::ServeArgs),
     /// Compute an action chunk from a safetensors file of inputs.
     Sample(chunkrt::policy_cli::SampleArgs),
     /// Describe a checkpoint: architecture, parameter counts, dtype, what is missing.
@@ -57,6 +60,7 @@ fn main() {
         Command::FakeRobot(a) => chunkrt_tools::fake_robot::run(a),
         Command::Monitor(a) => chunkrt_tools::monitor::run(a),
         Command::Rearm(a) => chunkrt_tools::rearm::run(a),
+        Command::Serve(a) => chunkrt::serve::run(a),
         Command::Sample(a) => chunkrt::policy_cli::sample(a),
         Command::Inspect(a) => chunkrt::policy_cli::inspect(a),
         Command::BenchInference(a) => chunkrt::policy_cli::bench(a),

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 
-use crate::config::{Config, PolicyDevice, PolicyKind};
+use crate::config::{Config, DeviceSpec, ModelKind, PolicySource};
 use crate::control::Executor;
 use crate::controller::{
     frames_per_camera, print_summary, status_line, ChunkSource, Controller, HoldSource, Shared,
@@ -37,11 +37,16 @@ pub struct RunArgs {
     pub prompt: Option<String>,
     /// Override `policy.kind`: hold, pi0 or pi05 (`hold` runs without a model: the robot is
     /// held where it is).
-    #[arg(long)]
-    pub policy: Option<PolicyKind>,
+    #[arg(long, value_parser = ["hold", "pi0", "pi05"])]
+    pub policy: Option<String>,
     /// Override `policy.device`: cpu, cuda or cuda:N (a GPU needs a build with `--features cuda`).
     #[arg(long)]
-    pub device: Option<PolicyDevice>,
+    pub device: Option<DeviceSpec>,
+    /// Take the chunks from an openpi-protocol server (`chunkrt serve`, openpi's
+    /// `serve_policy.py`, SGLang, vLLM-Omni) at this `ws://host:port[/path]` instead of running
+    /// the policy here (sets `policy.source = "remote"` and `policy.url`).
+    #[arg(long, value_name = "URL")]
+    pub remote: Option<String>,
 }
 
 /// Loads the configuration named by `--config` (or the embedded default) and applies
@@ -65,11 +70,24 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if let Some(p) = &args.prompt {
         cfg.policy.prompt = p.clone();
     }
-    if let Some(k) = args.policy {
-        cfg.policy.kind = k;
+    if let Some(k) = &args.policy {
+        cfg.policy.kind = match k.as_str() {
+            "pi0" => Some(ModelKind::Pi0),
+            "pi05" => Some(ModelKind::Pi05),
+            _ => None,
+        };
     }
     if let Some(d) = args.device {
         cfg.policy.device = d;
+    }
+    if let Some(url) = &args.remote {
+        cfg.policy.source = PolicySource::Remote;
+        cfg.policy.url = Some(url.clone());
+        if cfg.policy.kind.is_none() {
+            cfg.policy.kind = Some(ModelKind::Pi05);
+        }
+        let file = cfg.source.display().to_string();
+        cfg.validate(&format!("{file} (with --remote)"))?;
     }
     let stop_flag = chunkrt_tools::shutdown::flag();
     tracing::info!(
@@ -79,12 +97,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         cfg.robot.namespace,
         cfg.cameras.len(),
         cfg.control.rate_hz,
-        cfg.policy.kind
+        cfg.policy.kind_name()
     );
     let executor = Executor::new(&cfg).context("invalid execution settings")?;
-    let source: Box<dyn ChunkSource> = match cfg.policy.kind {
-        PolicyKind::Hold => Box::new(HoldSource),
-        PolicyKind::Pi0 | PolicyKind::Pi05 => Box::new(crate::inference::PolicySource::load(&cfg)?),
+    let source: Box<dyn ChunkSource> = match (cfg.policy.kind, cfg.policy.source) {
+        (None, _) => Box::new(HoldSource),
+        (Some(_), PolicySource::Local) => Box::new(crate::inference::PolicySource::load(&cfg)?),
+        (Some(_), PolicySource::Remote) => Box::new(crate::remote::RemoteSource::connect(&cfg)?),
     };
     tracing::info!("chunk source: {}", source.name());
     let mut controller = Controller::start(cfg.clone(), executor, source)?;

@@ -221,8 +221,7 @@ pub fn run(args: SoakArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let hlog = args.out.join("soak.hlog");
-    let task = crate::task::task_camera(&cfg).is_ok()
-        && cfg.policy.kind != chunkrt_ipc::config::PolicyKind::Hold;
+    let task = crate::task::task_camera(&cfg).is_ok() && cfg.policy.kind.is_some();
 
     let mut common = vec!["--namespace".to_string(), ns.clone()];
     if let Some(c) = &args.config {
@@ -256,7 +255,7 @@ pub fn run(args: SoakArgs) -> anyhow::Result<()> {
         "chunkrt soak: robot '{}' at {} Hz, policy '{}' on {}, {:.0} s after {:.0} s warm-up, namespace '{ns}', logs in {}",
         cfg.robot.name,
         cfg.control.rate_hz,
-        cfg.policy.kind,
+        cfg.policy.kind_name(),
         cfg.policy.device,
         args.duration,
         args.warmup,
@@ -297,7 +296,7 @@ type Stats = Vec<(&'static str, ProcStats, ProcStats)>;
 
 fn follow(
     args: &SoakArgs,
-    cfg: &chunkrt_ipc::config::Config,
+    cfg: &crate::config::Config,
     procs: &mut [Proc],
     stop_flag: &std::sync::atomic::AtomicBool,
 ) -> anyhow::Result<(SoakFigures, Stats)> {
@@ -432,7 +431,7 @@ fn follow(
 }
 
 fn summary_markdown(
-    cfg: &chunkrt_ipc::config::Config,
+    cfg: &crate::config::Config,
     f: &SoakFigures,
     stats: &Stats,
     outcomes: &[(&'static str, String, PathBuf)],
@@ -440,7 +439,11 @@ fn summary_markdown(
     let st = &f.status;
     let mut md = format!(
         "## chunkrt soak: {:.0} s, robot '{}' at {} Hz, policy '{}' ({})\n\n",
-        f.seconds, cfg.robot.name, cfg.control.rate_hz, cfg.policy.kind, cfg.policy.device
+        f.seconds,
+        cfg.robot.name,
+        cfg.control.rate_hz,
+        cfg.policy.kind_name(),
+        cfg.policy.device
     );
     md.push_str("| figure | value |\n|---|---:|\n");
     let mut row = |k: &str, v: String| md.push_str(&format!("| {k} | {v} |\n"));

@@ -29,7 +29,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use rand::{Rng, SeedableRng};
 
-use chunkrt_ipc::config::Config;
+use crate::config::Config;
 
 use crate::inference::PolicySource;
 use crate::policy::config::ModelConfig;
@@ -257,7 +257,7 @@ pub fn validate(
 ) -> anyhow::Result<(usize, f64)> {
     let mut c = cfg.clone();
     c.policy.checkpoint = Some(std::fs::canonicalize(dir)?);
-    c.policy.kind = chunkrt_ipc::config::PolicyKind::Pi05;
+    c.policy.kind = Some(crate::config::ModelKind::Pi05);
     c.execution.strategy = crate::config::Strategy::Replace;
     let mut policy = PolicySource::load(&c)?;
     let settings = SimSettings {

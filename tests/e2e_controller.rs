@@ -3,9 +3,10 @@
 
 use std::time::{Duration, Instant};
 
+use chunkrt::config::Config;
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
-    monotonic_ns, CameraFrameHeader, Config, JointState, Namespace, RejectReason, ENCODING_RGB8,
+    monotonic_ns, CameraFrameHeader, JointState, Namespace, RejectReason, ENCODING_RGB8,
     JOINT_STATUS_LIMIT_CLAMPED,
 };
 use chunkrt_tools::testing::{summary_value, unique_namespace};

@@ -6,11 +6,12 @@
 
 use std::path::PathBuf;
 
+use chunkrt::config::Config;
 use chunkrt::policy::config::ModelConfig;
 use chunkrt::policy::preprocess::{NormMode, NormStats, PromptTokenizer};
 use chunkrt_ipc::{
-    validate_frame, validate_joint_command, validate_joint_state, CameraFrameHeader, Config,
-    Freshness, JointCommand, JointState, StreamGuard, MAX_DOF,
+    validate_frame, validate_joint_command, validate_joint_state, CameraFrameHeader, Freshness,
+    JointCommand, JointState, StreamGuard, MAX_DOF,
 };
 use proptest::prelude::*;
 use proptest::test_runner::{Config as RunConfig, RngAlgorithm, TestRng, TestRunner};

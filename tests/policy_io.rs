@@ -474,7 +474,7 @@ fn bf16_precision_stays_close_to_f32() {
     };
     let f32_cfg = chunkrt::config::PolicyConfig::default();
     let mut bf16_cfg = f32_cfg.clone();
-    bf16_cfg.precision = chunkrt::config::PolicyPrecision::Bf16;
+    bf16_cfg.precision = chunkrt::config::Precision::Bf16;
     let a = chunkrt::inference::load_policy(&dir, &f32_cfg)
         .unwrap()
         .infer(&obs, &Conditioning::Fresh)

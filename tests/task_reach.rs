@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use chunkrt::config::{Config, RtcJacobian};
+use chunkrt::config::{Config, Jacobian};
 use chunkrt::inference::PolicySource;
 use chunkrt::task::sim::{run_episode, SimSettings};
 use chunkrt::train::held_out_episodes;
@@ -279,10 +279,7 @@ fn committed_policy_reaches_held_out_targets() {
 #[test]
 fn identity_jacobian_rtc_reaches_and_switches_smoothly() {
     let mut worst = [0.0f64; 2];
-    for (i, jacobian) in [RtcJacobian::Vjp, RtcJacobian::Identity]
-        .into_iter()
-        .enumerate()
-    {
+    for (i, jacobian) in [Jacobian::Vjp, Jacobian::Identity].into_iter().enumerate() {
         let mut cfg = Config::embedded_default();
         cfg.execution.rtc_jacobian = jacobian;
         cfg.execution.initial_delay_steps = 2;

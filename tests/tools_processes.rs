@@ -6,6 +6,7 @@
 use std::time::{Duration, Instant};
 
 use chunkrt_ipc::services::{self, Ipc};
+use chunkrt_ipc::SharedConfig as Config;
 use chunkrt_ipc::*;
 use chunkrt_tools::fake_camera::read_seq_stamp;
 use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};

@@ -115,7 +115,7 @@ impl ControllerTick {
     pub fn new(helper_core: Option<usize>) -> Result<Self, BenchError> {
         static INSTANCE: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let err = |e: &dyn std::fmt::Display| BenchError::Thread(format!("controller tick: {e}"));
-        let mut cfg = chunkrt_ipc::config::Config::embedded_default();
+        let mut cfg = chunkrt::config::Config::embedded_default();
         cfg.robot.namespace = format!(
             "chunkrt/bench-{}-{}",
             std::process::id(),

@@ -151,7 +151,7 @@ fn prepare(opts: &Options) -> Result<(PathBuf, String), BenchError> {
 /// Runs the bench.
 pub fn run(opts: &Options) -> Result<Summary, BenchError> {
     let (cfg_path, model) = prepare(opts)?;
-    let cfg = chunkrt_ipc::config::Config::load(&cfg_path).map_err(|e| perr("config", e))?;
+    let cfg = chunkrt::config::Config::load(&cfg_path).map_err(|e| perr("config", e))?;
     let ns = format!("chunkrt/bench-e2e-{}", std::process::id());
     let exe = opts.exe.display().to_string();
     let cfg_arg = cfg_path.display().to_string();

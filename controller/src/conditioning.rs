@@ -8,9 +8,9 @@
 //! step-channel snapping, and the request → conditioning mapping. Allocates only its buffers'
 //! growth (it runs in the inference thread, never in the control thread).
 
-use chunkrt_ipc::config::{Config, RtcJacobian};
+use crate::config::Config;
 use chunkrt_ipc::JointState;
-use chunkrt_policy::{Conditioning, Guidance, Jacobian};
+use chunkrt_policy::{Conditioning, Guidance};
 
 use crate::control::{Continuation, InferenceRequest};
 
@@ -138,10 +138,7 @@ impl Conditioner {
                 prefix: &self.rows,
                 weights: &self.weights,
                 beta: request.beta as f32,
-                jacobian: match request.jacobian {
-                    RtcJacobian::Vjp => Jacobian::Vjp,
-                    RtcJacobian::Identity => Jacobian::Identity,
-                },
+                jacobian: request.jacobian,
             })
         } else {
             Conditioning::Fresh

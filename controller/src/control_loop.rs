@@ -9,9 +9,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use hdrhistogram::Histogram;
 
+use crate::config::Config;
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
-    monotonic_ns, Config, ControllerStatus, JointCommand, JointState, CONTROLLER_STATE_HOLD,
+    monotonic_ns, ControllerStatus, JointCommand, JointState, CONTROLLER_STATE_HOLD,
     CONTROLLER_STATE_STARTING, CONTROLLER_STATE_STOPPED,
 };
 

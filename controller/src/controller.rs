@@ -17,8 +17,9 @@ use std::time::Duration;
 use anyhow::Context;
 use hdrhistogram::Histogram;
 
+use crate::config::Config;
 use chunkrt_ipc::services;
-use chunkrt_ipc::{controller_state_name, monotonic_ns, sleep_until_ns, Config, RejectReason};
+use chunkrt_ipc::{controller_state_name, monotonic_ns, sleep_until_ns, RejectReason};
 
 pub use crate::contract::{ChunkSource, HoldSource};
 use crate::control::{EventReader, Executor, InferenceLink};

@@ -14,9 +14,10 @@ use iceoryx2::prelude::*;
 
 pub mod history;
 
+use crate::config::Config;
 use chunkrt_ipc::services::{self, Ipc, IpcError};
 use chunkrt_ipc::{
-    monotonic_ns, validate_frame, validate_joint_state, validate_rearm, CameraFrameHeader, Config,
+    monotonic_ns, validate_frame, validate_joint_state, validate_rearm, CameraFrameHeader,
     ControllerStatus, Freshness, JointCommand, JointState, Namespace, RearmRequest, RejectReason,
     StreamGuard, ValidationError, REJECT_REASON_COUNT,
 };

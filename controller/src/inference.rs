@@ -6,17 +6,16 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use anyhow::Context;
 
-use chunkrt_ipc::config::{PolicyConfig, PolicyDevice, PolicyKind, PolicyPrecision};
-use chunkrt_ipc::{monotonic_ns, Config, ENCODING_BGR8, ENCODING_MONO8, ENCODING_RGB8};
+use crate::config::{Config, PolicyConfig};
+use chunkrt_ipc::{monotonic_ns, ENCODING_BGR8, ENCODING_MONO8, ENCODING_RGB8};
 
 use crate::chunk::ActionChunk;
 use crate::conditioning::Conditioner;
 use crate::contract::ChunkSource;
 use crate::control::InferenceRequest;
 use crate::edge::Observation;
-use crate::policy::config::ConfigOverrides;
-use crate::policy::runtime::{LoadOptions, Policy, RawFrame, RawObservation};
-use crate::policy::{DeviceSpec, Encoding, ModelKind, Precision};
+use crate::policy::runtime::{Policy, RawFrame, RawObservation};
+use crate::policy::Encoding;
 
 static NEXT_CHUNK_ID: AtomicU64 = AtomicU64::new(1);
 
@@ -25,40 +24,10 @@ pub fn next_chunk_id() -> u64 {
     NEXT_CHUNK_ID.fetch_add(1, Ordering::Relaxed)
 }
 
-/// The policy crate's load options for a `[policy]` section (the composition root's
-/// translation from the controller's configuration to the policy's own types).
-pub fn load_options(cfg: &PolicyConfig) -> LoadOptions {
-    LoadOptions {
-        kind: match cfg.kind {
-            PolicyKind::Hold => None,
-            PolicyKind::Pi0 => Some(ModelKind::Pi0),
-            PolicyKind::Pi05 => Some(ModelKind::Pi05),
-        },
-        num_steps: cfg.num_steps,
-        precision: match cfg.precision {
-            PolicyPrecision::F32 => Precision::F32,
-            PolicyPrecision::Bf16 => Precision::Bf16,
-        },
-        device: match cfg.device {
-            PolicyDevice::Cpu => DeviceSpec::Cpu,
-            PolicyDevice::Cuda(n) => DeviceSpec::Cuda(n as usize),
-        },
-        overrides: ConfigOverrides {
-            action_horizon: cfg.model.action_horizon,
-            action_dim: cfg.model.action_dim,
-            max_token_len: cfg.model.max_token_len,
-            cameras: cfg.model.cameras.clone(),
-            num_denoise_steps: Some(cfg.num_steps),
-            delta_action_mask: cfg.model.delta_action_mask.clone(),
-        },
-        cuda_graph: true,
-    }
-}
-
 /// Loads the policy of a `[policy]` section from `dir` (call it inside [`policy_pool`]'s
 /// `install` so the packing at load runs on the policy's threads too).
 pub fn load_policy(dir: &std::path::Path, cfg: &PolicyConfig) -> anyhow::Result<Policy> {
-    Policy::load(dir, &load_options(cfg))
+    Policy::load(dir, &cfg.load_options())
         .with_context(|| format!("cannot load the policy from {}", dir.display()))
 }
 
@@ -108,7 +77,7 @@ impl PolicySource {
             .check_dof(cfg.n_dof())
             .with_context(|| format!("{}: norm_stats.json", dir.display()))?;
         anyhow::ensure!(
-            cfg.execution.strategy != chunkrt_ipc::config::Strategy::RtcTrained
+            cfg.execution.strategy != crate::config::Strategy::RtcTrained
                 || policy.committed_max() > 0,
             "execution.strategy = \"rtc_trained\" needs a policy trained with a committed \
              action prefix, and {} was not (no rtc_prefix_max in its config.json): train one \

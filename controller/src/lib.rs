@@ -20,7 +20,8 @@
 //! - [`controller`]: the process's threads, start/stop, status; [`shared`]: what they share.
 //! - [`conditioning`]: request → the state the policy observes and how its chunk is conditioned.
 //! - [`worker`]: the inference protocol once (request → chunk source → hand-off → recycling).
-//! - [`inference`]: the policy as a chunk source (`PolicySource`).
+//! - [`inference`]: the policy as a chunk source (`PolicySource`); [`remote`]: a policy behind
+//!   an openpi-protocol server (`RemoteSource`).
 //! - [`rt`]: real-time set-up (pinning, SCHED_FIFO, memory locking, the periodic loop).
 //! - [`histlog`]: latency histograms, tables and interval logs (no plots).
 //!
@@ -29,6 +30,7 @@
 
 pub mod chunk;
 pub mod conditioning;
+pub mod config;
 pub mod contract;
 pub mod control;
 pub mod control_loop;
@@ -37,10 +39,10 @@ pub mod edge;
 pub mod histlog;
 pub mod inference;
 pub mod log_limit;
+pub mod remote;
 pub mod rt;
 pub mod shared;
 pub mod worker;
 
 pub use chunkrt_ipc as ipc;
-pub use chunkrt_ipc::config;
 pub use chunkrt_policy as policy;

@@ -113,6 +113,9 @@ impl InferenceWorker {
             Ok(None) => Turn::Nothing,
             Err(e) => {
                 self.stats.failures += 1;
+                self.link
+                    .failed_requests
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 Turn::Failed(e)
             }
         }

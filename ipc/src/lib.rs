@@ -17,7 +17,7 @@ pub mod services;
 pub mod validate;
 
 pub use clock::{monotonic_ns, sleep_until_ns};
-pub use config::{Config, ConfigError};
+pub use config::{ConfigError, SharedConfig};
 pub use messages::*;
 pub use services::{IpcError, Namespace};
 pub use validate::{

@@ -254,7 +254,9 @@ impl Request {
                         other.kind()
                     )))
                 }
-                None if optional.contains(name) => {}
+                // chunkrt's own layout names every input; the ones a robot has no camera for
+                // are masked, as the policy in process masks them (at least one must come)
+                None if optional.contains(name) || layout.images.is_none() => {}
                 None => {
                     return Err(err(format!(
                         "missing key {key}: the image for input {name} (layout {})",
@@ -262,6 +264,17 @@ impl Request {
                     )))
                 }
             }
+        }
+        if images.is_empty() && !image_names.is_empty() {
+            let keys: Vec<String> = image_names
+                .iter()
+                .filter_map(|n| layout.image_key(n).map(|k| k.to_string()))
+                .collect();
+            return Err(err(format!(
+                "no image: expected at least one of the keys {} (layout {})",
+                keys.join(", "),
+                layout.preset.name()
+            )));
         }
         let mut state = Vec::new();
         for k in &layout.state {
@@ -745,13 +758,16 @@ pub struct ChunkrtMetadata {
     pub rtc_prefix_max: usize,
     /// The request layout's preset.
     pub layout: String,
+    /// Image inputs that are an earlier frame of a camera: `(input, camera, delay_ms)`; the
+    /// client sends them under the input's name.
+    pub delayed_views: Vec<(String, String, f64)>,
 }
 
 impl ChunkrtMetadata {
     /// Packs the whole metadata map: `{"chunkrt": {...}}` plus `extra` entries written by the
     /// caller (none: pass 0 and a no-op).
     pub fn write(&self, w: &mut Writer) {
-        w.map(1).str(keys::METADATA).map(8);
+        w.map(1).str(keys::METADATA).map(9);
         w.str("version").str(&self.version);
         w.str("model").str(&self.model);
         w.str("action_horizon").uint(self.action_horizon as u64);
@@ -766,6 +782,10 @@ impl ChunkrtMetadata {
         }
         w.str("rtc_prefix_max").uint(self.rtc_prefix_max as u64);
         w.str("layout").str(&self.layout);
+        w.str("delayed_views").list(self.delayed_views.len());
+        for (name, camera, ms) in &self.delayed_views {
+            w.list(3).str(name).str(camera).f64(*ms);
+        }
     }
 
     /// The chunkrt map of a server's metadata; `None` for a server that is not chunkrt (openpi's,
@@ -790,6 +810,20 @@ impl ChunkrtMetadata {
             conditioning: list("conditioning"),
             rtc_prefix_max: u("rtc_prefix_max"),
             layout: s("layout"),
+            delayed_views: match m.get("delayed_views") {
+                Some(Value::Array(xs)) => xs
+                    .iter()
+                    .filter_map(|x| match x {
+                        Value::Array(t) if t.len() == 3 => Some((
+                            t[0].key_str()?.to_string(),
+                            t[1].key_str()?.to_string(),
+                            t[2].as_f64().filter(|d| d.is_finite() && *d >= 0.0)?,
+                        )),
+                        _ => None,
+                    })
+                    .collect(),
+                _ => Vec::new(),
+            },
         })
     }
 
@@ -947,6 +981,7 @@ mod tests {
             conditioning: names(&["guided"]),
             rtc_prefix_max: 0,
             layout: "chunkrt".into(),
+            delayed_views: vec![("base_1s".into(), "base_0_rgb".into(), 1000.0)],
         };
         let mut w = Writer::new();
         meta.write(&mut w);

@@ -24,6 +24,7 @@ fn start(api_key: Option<&str>) -> Server {
         conditioning: vec!["guided".into()],
         rtc_prefix_max: 0,
         layout: "libero".into(),
+        delayed_views: vec![],
     };
     let mut w = Writer::new();
     meta.write(&mut w);

@@ -472,20 +472,30 @@ impl ModelConfig {
     }
 }
 
-/// Overrides applied on top of a preset or a `config.json` (from the controller's TOML).
-#[derive(Debug, Clone, Default, PartialEq)]
+/// Overrides applied on top of a preset or a `config.json`: a robot configuration's
+/// `[policy.model]` deserializes into it (for real openpi / LeRobot checkpoints that ship no
+/// `config.json`, whose dimensions come from the preset of the detected kind).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ConfigOverrides {
-    /// Action horizon.
+    /// Actions per chunk the checkpoint was trained with.
+    #[serde(default)]
     pub action_horizon: Option<usize>,
-    /// Action dimension.
+    /// Padded action dimension.
+    #[serde(default)]
     pub action_dim: Option<usize>,
-    /// Prompt length.
+    /// Prompt length in tokens.
+    #[serde(default)]
     pub max_token_len: Option<usize>,
-    /// Camera order.
+    /// Image keys in the model's order (configured cameras are matched by name).
+    #[serde(default)]
     pub cameras: Option<Vec<String>>,
-    /// Denoising steps.
+    /// Denoising steps (from `policy.num_steps`, not `[policy.model]`).
+    #[serde(skip)]
     pub num_denoise_steps: Option<usize>,
-    /// Action dims relative to the state.
+    /// Joints whose actions the checkpoint predicts relative to the observed state (openpi's
+    /// `DeltaActions`), in robot joint order; the rest are absolute.
+    #[serde(default)]
     pub delta_action_mask: Option<Vec<bool>>,
 }
 

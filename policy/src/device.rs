@@ -132,11 +132,34 @@ impl FromStr for Precision {
             "f32" => Ok(Precision::F32),
             "bf16" => Ok(Precision::Bf16),
             _ => Err(PolicyError::Config(format!(
-                "precision {s:?}: expected \"f32\" or \"bf16\""
+                "precision {s:?}: must be one of f32, bf16"
             ))),
         }
     }
 }
+
+/// serde through the names users write (`"cpu"`, `"cuda:1"`, `"bf16"`, ...): the `[policy]`
+/// section of a robot configuration deserializes into these types directly.
+macro_rules! serde_by_name {
+    ($($t:ty),*) => {$(
+        impl serde::Serialize for $t {
+            fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+                s.collect_str(self)
+            }
+        }
+
+        impl<'de> serde::Deserialize<'de> for $t {
+            fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+                let s = <String as serde::Deserialize>::deserialize(d)?;
+                s.parse()
+                    .map_err(|e: PolicyError| serde::de::Error::custom(e.to_string()))
+            }
+        }
+    )*};
+}
+pub(crate) use serde_by_name;
+
+serde_by_name!(DeviceSpec, Precision);
 
 /// The dtype the model's tensors are stored in on `device` for `precision`: f32 on the CPU
 /// (bf16 there is a property of the packed products, not of storage), the precision's dtype on

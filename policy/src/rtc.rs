@@ -31,17 +31,55 @@ use super::preprocess::{normalize, NormMode, Stats};
 use crate::error::PolicyError;
 
 /// How the guidance gradient g = (∂Â/∂x_t)ᵀ (W ⊙ (Y − Â)) treats the Jacobian of the clean
-/// estimate.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// estimate (`execution.rtc_jacobian`: `identity` or `vjp`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum Jacobian {
     /// The exact vector-Jacobian product (the paper's): a differentiable forward and a backward
     /// through the action expert per step.
     Vjp,
     /// ∂Â/∂x_t ≈ I, so g = W ⊙ (Y − Â): one fast forward per step, as an unguided step. Exact
     /// where the velocity does not depend on x_t; otherwise the pull on Â is not shaped by the
-    /// model's sensitivity (stronger at high noise, where the true Jacobian is small).
+    /// model's sensitivity (stronger at high noise, where the true Jacobian is small). The
+    /// default: on the reach sweep it also switches 10x more smoothly than the VJP, whose pull
+    /// is weak where the policy's chunk hardly depends on the noise (BENCHMARKS.md §5).
+    #[default]
     Identity,
 }
+
+impl Jacobian {
+    /// Every value.
+    pub const ALL: [Jacobian; 2] = [Jacobian::Identity, Jacobian::Vjp];
+
+    /// `identity` / `vjp`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Jacobian::Vjp => "vjp",
+            Jacobian::Identity => "identity",
+        }
+    }
+}
+
+impl std::fmt::Display for Jacobian {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Jacobian {
+    type Err = PolicyError;
+
+    fn from_str(s: &str) -> Result<Self, PolicyError> {
+        match s {
+            "identity" => Ok(Jacobian::Identity),
+            "vjp" => Ok(Jacobian::Vjp),
+            _ => Err(PolicyError::Config(format!(
+                "rtc jacobian {s:?}: must be one of identity, vjp"
+            ))),
+        }
+    }
+}
+
+crate::device::serde_by_name!(Jacobian);
 
 /// Guidance towards the previous chunk (robot units, [H][n_dof] row-major, right-padded by the
 /// caller): [`crate::Conditioning::Guided`].

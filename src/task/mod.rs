@@ -13,7 +13,7 @@ pub use chunkrt_tools::scene::{
     end_effector, inverse_kinematics, ReachScene, TargetColor, REACH_TOLERANCE, TARGET_RADIUS,
 };
 
-use chunkrt_ipc::config::{CameraConfig, Config};
+use crate::config::{CameraConfig, Config};
 
 /// Arm joints of the task robot (then the gripper).
 pub const ARM_JOINTS: usize = 3;

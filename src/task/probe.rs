@@ -18,7 +18,7 @@
 //! A policy with a delayed view (an earlier frame beside the newest) gets the newest frame as
 //! its earlier one there (nothing moved); [`motion_probe`] asks whether it reads the motion.
 
-use chunkrt_ipc::config::Config;
+use crate::config::Config;
 
 use super::expert::{Profile, Reach};
 use super::sim::EpisodeSpec;

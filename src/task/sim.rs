@@ -7,7 +7,7 @@
 //! `synchronous` reproduces openpi's `ActionChunkBroker`: the robot executes `s` actions of a
 //! chunk, then stands still while the next chunk is computed (no overlap, no blending).
 
-use chunkrt_ipc::config::Config;
+use crate::config::Config;
 use chunkrt_ipc::{JointCommand, JointState};
 
 use super::{task_camera, ReachScene, TargetColor, TASK_DOF};

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use chunkrt_ipc::services::{self, Ipc};
-use chunkrt_ipc::{Config, Namespace};
+use chunkrt_ipc::{Namespace, SharedConfig as Config};
 use iceoryx2::prelude::Node;
 
 /// Options shared by every tool: which configuration and which namespace.

@@ -464,7 +464,7 @@ mod tests {
 
     #[test]
     fn plan_applies_overrides_and_rejects_bad_names() {
-        let cfg = Config::embedded_default();
+        let cfg = chunkrt_ipc::SharedConfig::embedded_default();
         let mut args = Args {
             common: CommonArgs::default(),
             cameras: None,

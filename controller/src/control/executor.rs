@@ -17,7 +17,7 @@
 //! Owns: the order of the stages and the generator's state. Must not depend on: IPC services,
 //! the policy, threads.
 
-use chunkrt_ipc::config::Config;
+use crate::config::Config;
 use chunkrt_ipc::{
     ControllerStatus, JointCommand, JointState, COMMAND_MODE_HOLD, COMMAND_MODE_POSITION, MAX_DOF,
 };
@@ -34,7 +34,7 @@ use super::timing::TickTiming;
 use crate::chunk::ActionChunk;
 
 pub use super::safety::Rearm;
-pub use chunkrt_ipc::config::{Strategy, Trigger};
+pub use crate::config::{Strategy, Trigger};
 
 /// The executor could not be built.
 #[derive(Debug, thiserror::Error)]
@@ -73,6 +73,10 @@ pub struct InferenceLink {
     /// Cameras the policy would use with a missing or too old frame (bit i = camera i), set by
     /// the inference thread at every poll; the control tick holds while it is non-zero.
     pub stale_cameras: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    /// Requests answered without a chunk because the source failed (a remote server that is
+    /// down, an inference error), counted by the inference side: the control tick asks again
+    /// at its next tick instead of waiting out `execution.inference_timeout_ms`.
+    pub failed_requests: std::sync::Arc<std::sync::atomic::AtomicU64>,
 }
 
 /// ruckig's `Synchronization::None`.
@@ -111,6 +115,9 @@ pub struct Executor {
     last_problem: Option<Reason>,
     /// See [`InferenceLink::stale_cameras`].
     stale_cameras: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    /// See [`InferenceLink::failed_requests`], and its value at the last tick.
+    failed_requests: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    failed_seen: u64,
     /// Its value at the last tick (for the status).
     stale_seen: u64,
     /// The joint state was missing or stale at some tick since the last fresh one (a robot
@@ -166,6 +173,8 @@ impl Executor {
             initialized: false,
             last_problem: None,
             stale_cameras: Default::default(),
+            failed_requests: Default::default(),
+            failed_seen: 0,
             stale_seen: 0,
             js_gap: false,
             chunk_tx,
@@ -192,6 +201,7 @@ impl Executor {
             chunks: self.chunk_tx.clone(),
             requests: self.req_rx.clone(),
             stale_cameras: self.stale_cameras.clone(),
+            failed_requests: self.failed_requests.clone(),
         }
     }
 
@@ -289,6 +299,14 @@ impl Executor {
     ) -> TickReport {
         self.ticks += 1;
         if self.timeline.receive(now_ns) {
+            self.requests.landed();
+        }
+        let failed = self
+            .failed_requests
+            .load(std::sync::atomic::Ordering::Relaxed);
+        if failed != self.failed_seen {
+            // the request in flight came back without a chunk: ask again now
+            self.failed_seen = failed;
             self.requests.landed();
         }
         let js = self.check_joint_state(now_ns, joint_state);

@@ -11,7 +11,7 @@ use chunkrt_ipc::MAX_DOF;
 
 use crate::chunk::ActionChunk;
 
-pub use chunkrt_ipc::config::Interpolation;
+pub use crate::config::Interpolation;
 
 /// Position, velocity and acceleration of every joint at one instant.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -4,7 +4,7 @@
 //! Owns: the request hand-off's sending end and the outstanding request. Must not depend on:
 //! the safety state machine, ruckig, IPC.
 
-use chunkrt_ipc::config::{Config, RtcJacobian, Schedule, Trigger};
+use crate::config::{Config, Jacobian, Schedule, Trigger};
 
 use super::handoff::RequestSender;
 use super::interp::Sample;
@@ -19,7 +19,7 @@ pub(crate) struct Requests {
     /// s: actions of a chunk executed before the next inference starts.
     s: usize,
     beta: f64,
-    jacobian: RtcJacobian,
+    jacobian: Jacobian,
     future_state: bool,
     action_period_ns: u64,
     timeout_ns: u64,

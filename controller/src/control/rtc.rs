@@ -16,7 +16,7 @@ use chunkrt_ipc::MAX_DOF;
 /// Largest chunk horizon a request can carry.
 pub const MAX_HORIZON: usize = 128;
 
-pub use chunkrt_ipc::config::Schedule;
+pub use crate::config::Schedule;
 
 /// Writes the guidance weights W_0..W_{H−1} into `out[..h]` (pure; no allocation).
 /// `d` and `s` are clamped so that `d ≤ H − s` holds.
@@ -131,7 +131,7 @@ pub struct InferenceRequest {
     /// β, the guidance weight clip.
     pub beta: f64,
     /// `rtc`: the guidance's Jacobian (exact VJP or identity).
-    pub jacobian: chunkrt_ipc::config::RtcJacobian,
+    pub jacobian: chunkrt_policy::Jacobian,
     /// How the chunk continues the previous one (guided for `rtc`, committed for `rtc_trained`;
     /// fresh for the other strategies and while no previous chunk exists).
     pub continuation: Continuation,

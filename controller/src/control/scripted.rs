@@ -218,7 +218,7 @@ impl ScriptedSim {
     /// A simulation of `config` fed by a scripted source; the robot starts at its configured
     /// initial positions at time `start_ns`.
     pub fn new(
-        config: &chunkrt_ipc::Config,
+        config: &crate::config::Config,
         source: ScriptedConfig,
         start_ns: u64,
     ) -> Result<Self, super::ExecutorError> {

@@ -4,7 +4,7 @@
 //! Owns: the tracking law and the limit rules. Must not depend on: chunks, the safety state
 //! machine, IPC.
 
-use chunkrt_ipc::config::Config;
+use crate::config::Config;
 use chunkrt_ipc::MAX_DOF;
 
 use super::interp::Sample;

@@ -8,7 +8,7 @@
 
 use std::collections::VecDeque;
 
-use chunkrt_ipc::config::Config;
+use crate::config::Config;
 use chunkrt_ipc::MAX_DOF;
 
 use super::handoff::ChunkReceiver;

@@ -9,7 +9,8 @@
 //! is that old yet, the oldest one). Frames are copied only when they enter the ring or the view
 //! changes: nothing is allocated once the rings exist.
 
-use chunkrt_ipc::{CameraFrameHeader, Config};
+use crate::config::Config;
+use chunkrt_ipc::CameraFrameHeader;
 use chunkrt_policy::DelayedView;
 
 use super::Frame;

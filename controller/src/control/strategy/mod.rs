@@ -8,7 +8,7 @@
 
 use std::collections::VecDeque;
 
-use chunkrt_ipc::config::{Config, Interpolation, Strategy};
+use crate::config::{Config, Interpolation, Strategy};
 use chunkrt_ipc::MAX_DOF;
 
 use super::interp::{self, Coverage, Sample};
