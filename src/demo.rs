@@ -57,6 +57,11 @@ pub struct DemoArgs {
     /// Where the processes' logs go (default: a temporary folder).
     #[arg(long)]
     pub log_dir: Option<PathBuf>,
+    /// Take the chunks from an openpi-protocol server at this `ws://host:port` (e.g. `chunkrt
+    /// serve --checkpoint models/reach_pi05` on a GPU machine) instead of running the policy in
+    /// the controller (`chunkrt run --remote`).
+    #[arg(long, value_name = "URL")]
+    pub remote: Option<String>,
 }
 
 pub(crate) struct Proc {
@@ -444,6 +449,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     };
     let mut run_args = with("run");
     run_args.extend(["--log-every".into(), "0".into()]);
+    if let Some(url) = &args.remote {
+        run_args.extend(["--remote".into(), url.clone()]);
+    }
     let started = Instant::now();
     let prompts: Vec<String> = if task {
         args.prompts.clone()

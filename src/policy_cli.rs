@@ -21,9 +21,18 @@ pub struct SampleArgs {
     /// Inputs (safetensors named like the fixtures: `image.<camera>` f32 NCHW or
     /// `image_raw_uint8.<camera>` HWC, `image_mask.<camera>`, `tokenized_prompt`,
     /// `tokenized_prompt_mask`, `state`, `noise`).
+    #[arg(long, required_unless_present = "request", conflicts_with = "request")]
+    pub inputs: Option<PathBuf>,
+    /// Instead of `--inputs`: an openpi request (a msgpack-numpy observation, as an openpi
+    /// client sends it) answered exactly as `chunkrt serve` answers it, in this process; the
+    /// output is the reply (msgpack-numpy). Its `chunkrt/reseed` seeds the noise.
     #[arg(long)]
-    pub inputs: PathBuf,
-    /// Output safetensors (`actions` [B, H, A], `v_t_step0`).
+    pub request: Option<PathBuf>,
+    /// With `--request`: the robot configuration whose `[openpi]` layout and default prompt the
+    /// server would use (default: the embedded demo robot's).
+    #[arg(long, requires = "request")]
+    pub config: Option<PathBuf>,
+    /// Output: safetensors (`actions` [B, H, A], `v_t_step0`); with `--request` the reply.
     #[arg(long)]
     pub output: PathBuf,
     /// Denoising steps (default: the checkpoint's).
@@ -129,6 +138,42 @@ fn mask_rows(t: &Tensor) -> anyhow::Result<Vec<bool>> {
         .collect())
 }
 
+/// `chunkrt sample --request`: one openpi request answered by [`crate::serve::answer`] in this
+/// process (the same code `chunkrt serve` runs), the reply written as msgpack-numpy.
+fn sample_request(args: &SampleArgs, path: &std::path::Path) -> anyhow::Result<()> {
+    let mut cfg = crate::run::load_config(args.config.as_ref(), None)?;
+    cfg.policy.device = args.device;
+    cfg.policy.precision = args.precision;
+    if let Some(s) = args.steps {
+        cfg.policy.num_steps = s;
+    }
+    let layout = crate::serve::layout_of(&cfg, None)?;
+    let pool = crate::inference::policy_pool(&cfg.policy)?;
+    let mut opts = cfg.policy.load_options();
+    opts.kind = None;
+    let mut policy = pool.install(|| crate::policy::Policy::load(&args.checkpoint, &opts))?;
+    let bytes = crate::policy::checkpoint::read_bounded(path, 256 << 20)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let msg = chunkrt_openpi::decode(&bytes, chunkrt_openpi::Limits::default())
+        .with_context(|| format!("{}: not msgpack-numpy", path.display()))?;
+    let req = chunkrt_openpi::Request::parse(&msg, &layout, &policy.model().cfg.cameras)
+        .with_context(|| format!("{}: not an observation", path.display()))?;
+    let reply = crate::serve::answer(&mut policy, &pool, &cfg.policy.prompt, &req)
+        .map_err(anyhow::Error::msg)?;
+    let mut w = chunkrt_openpi::Writer::new();
+    reply.write(&mut w);
+    std::fs::write(&args.output, &w.buf)
+        .with_context(|| format!("writing {}", args.output.display()))?;
+    println!(
+        "actions [{}, {}] in {:.1} ms -> {}",
+        reply.horizon,
+        reply.dims,
+        reply.policy_infer_ms.unwrap_or(0.0),
+        args.output.display()
+    );
+    Ok(())
+}
+
 /// Builds model inputs from a fixture-style safetensors map.
 pub fn inputs_from_map(
     cfg: &crate::policy::ModelConfig,
@@ -225,6 +270,13 @@ pub fn inputs_from_map(
 
 /// `chunkrt sample`.
 pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
+    if let Some(req) = &args.request {
+        return sample_request(&args, req);
+    }
+    let inputs_path = args
+        .inputs
+        .clone()
+        .context("--inputs or --request is required")?;
     let device = args.device.open()?;
     crate::policy::kernels::set_enabled(!args.unfused);
     let dtype = model_dtype(&device, args.precision);
@@ -238,8 +290,8 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
     if device.is_cpu() && args.precision == Precision::Bf16 && !model.use_bf16()? {
         eprintln!("sample: this CPU has no bf16 kernel (AMX / AVX512-BF16): running f32");
     }
-    let m = candle_core::safetensors::load(&args.inputs, &Device::Cpu)
-        .with_context(|| format!("reading {}", args.inputs.display()))?;
+    let m = candle_core::safetensors::load(&inputs_path, &Device::Cpu)
+        .with_context(|| format!("reading {}", inputs_path.display()))?;
     let (inputs, noise) = inputs_from_map(&model.cfg, &m)?;
     let inputs = inputs.to_device(&device)?;
     let b = inputs.batch();

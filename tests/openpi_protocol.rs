@@ -1,0 +1,374 @@
+//! openpi's websocket protocol against openpi's own code, as real processes on loopback:
+//!
+//! - `openpi-client` 0.1.2 (PyPI, unmodified) against `chunkrt serve`: metadata, `/healthz`,
+//!   the api key, two clients at once, every kind of bad input (the server keeps serving), and
+//!   actions equal to `chunkrt sample --request` on the same checkpoint and observation;
+//! - the controller with a remote policy (`chunkrt run --remote`) behind `chunkrt serve`: the
+//!   demo reaches both targets; a server killed mid-episode holds the robot, a restarted one
+//!   resumes it, and no command jumps;
+//! - the controller against openpi's own `WebsocketPolicyServer` (PyPI `openpi-server`)
+//!   serving a Python policy that replays a known chunk (a test double, named as such).
+//!
+//! The Python peers need `openpi-client`, `openpi-server` (`.ci/run` installs them): without
+//! them a test says so loudly and passes, and fails when `CI` is set.
+
+use std::net::TcpStream;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use chunkrt::config::Config;
+use chunkrt_openpi::{decode, Limits, Reply};
+use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};
+
+#[path = "common/stack.rs"]
+mod stack;
+use stack::*;
+
+const PEER: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/python/openpi_peer.py");
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+fn in_ci() -> bool {
+    std::env::var("CI").is_ok_and(|v| !v.is_empty() && v != "0" && v != "false")
+}
+
+/// True if openpi's Python packages import; otherwise shouts (and fails in CI).
+fn openpi_python() -> bool {
+    let probe = Command::new("python3")
+        .args([
+            "-c",
+            "import openpi_client.websocket_client_policy, openpi_server",
+        ])
+        .output();
+    let why = match probe {
+        Ok(o) if o.status.success() => return true,
+        Ok(o) => String::from_utf8_lossy(&o.stderr).trim().to_string(),
+        Err(e) => format!("cannot run python3: {e}"),
+    };
+    let msg = format!(
+        "\n!!! openpi_protocol: openpi's Python packages are not usable:\n!!! {why}\n!!! This \
+         test did NOT run (pip install openpi-client==0.1.2 openpi-server==0.1.0 \
+         typing_extensions; .ci/run does).\n"
+    );
+    if in_ci() {
+        panic!("{msg}(CI is set: this is a failure)");
+    }
+    eprintln!("{msg}");
+    false
+}
+
+/// A port that was free a moment ago.
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("a free port")
+}
+
+/// Waits until `GET /healthz` on `port` answers 200.
+fn wait_healthy(port: u16, timeout: Duration, server: &mut ChildGuard) {
+    use std::io::{Read, Write};
+    let t0 = Instant::now();
+    loop {
+        assert!(server.running(), "the server exited before it was healthy");
+        if let Ok(mut s) = TcpStream::connect(("127.0.0.1", port)) {
+            let _ = s.set_read_timeout(Some(Duration::from_secs(2)));
+            let _ = s.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n");
+            let mut out = String::new();
+            let _ = s.read_to_string(&mut out);
+            if out.starts_with("HTTP/1.1 200") && out.ends_with("OK\n") {
+                return;
+            }
+        }
+        assert!(
+            t0.elapsed() < timeout,
+            "the server on {port} never became healthy"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn serve(checkpoint: &str, port: u16, extra: &[&str]) -> ChildGuard {
+    let port_s = port.to_string();
+    let mut args = vec![
+        "serve",
+        "--checkpoint",
+        checkpoint,
+        "--port",
+        &port_s,
+        "--log-every",
+        "0",
+    ];
+    args.extend_from_slice(extra);
+    let mut g = ChildGuard::spawn(EXE, &args).expect("spawn chunkrt serve");
+    wait_healthy(port, Duration::from_secs(60), &mut g);
+    g
+}
+
+fn tmp(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("chunkrt-openpi-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn actions_of(path: &std::path::Path) -> Reply {
+    let bytes = std::fs::read(path).unwrap();
+    Reply::parse(&decode(&bytes, Limits::default()).unwrap()).unwrap()
+}
+
+#[test]
+fn openpi_client_against_chunkrt_serve() {
+    if !openpi_python() {
+        return;
+    }
+    let _serial = serial();
+    let dir = tmp("client");
+    let port = free_port();
+    let ckpt = format!("{ROOT}/tests/data/pi05_tiny");
+    let server = serve(&ckpt, port, &["--api-key", "k3y", "--max-message-mb", "2"]);
+    let (req, reply) = (dir.join("request.msgpack"), dir.join("reply.msgpack"));
+    let out = Command::new("python3")
+        .arg(PEER)
+        .args([
+            "check",
+            "--url",
+            &format!("ws://127.0.0.1:{port}"),
+            "--api-key",
+            "k3y",
+        ])
+        .args(["--images", "base_0_rgb,left_wrist_0_rgb,right_wrist_0_rgb"])
+        .args(["--state-dim", "4", "--big-side", "1024"])
+        .arg("--request-out")
+        .arg(&req)
+        .arg("--reply-out")
+        .arg(&reply)
+        .output()
+        .expect("run the Python peer");
+    let text = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{text}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "openpi-client checks failed:\n{text}");
+    for check in [
+        "healthz",
+        "api_key_required",
+        "metadata",
+        "reply",
+        "two_clients",
+        "missing_key",
+        "nan_state",
+        "wrong_dtype",
+        "wrong_shape",
+        "too_large",
+        "malformed_msgpack",
+        "text_frame",
+        "text_frame_then_served",
+    ] {
+        assert!(
+            text.lines().any(|l| l.starts_with(&format!("ok {check}"))),
+            "{check} not confirmed:\n{text}"
+        );
+    }
+    let finished = server.terminate(Duration::from_secs(10));
+    // the status line at exit counts what the server refused and answered
+    let last = finished.stdout.lines().last().unwrap_or("").to_string();
+    assert!(last.contains("unauthorized 2"), "{last}");
+    for kind in ["decode=1", "request=5", "too_large=1", "text_frame=1"] {
+        assert!(last.contains(kind), "{kind} not counted: {last}");
+    }
+    // the same observation in process gives the same chunk (same seed, same code)
+    let refp = dir.join("ref.msgpack");
+    let o = Command::new(EXE)
+        .args(["sample", "--checkpoint", &ckpt, "--request"])
+        .arg(&req)
+        .arg("--output")
+        .arg(&refp)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (a, b) = (actions_of(&reply), actions_of(&refp));
+    assert_eq!((a.horizon, a.dims), (b.horizon, b.dims));
+    let scale = b.actions.iter().fold(1.0f64, |m, x| m.max(x.abs()));
+    let worst = a
+        .actions
+        .iter()
+        .zip(&b.actions)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    eprintln!("served vs chunkrt sample --request: max |diff| {worst:.2e} (scale {scale:.2})");
+    assert!(worst <= 1e-5 * scale, "served actions differ by {worst}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The reach demo with its policy behind `chunkrt serve` in another process: both targets.
+#[test]
+fn remote_policy_drives_the_demo_to_both_targets() {
+    let _serial = serial();
+    let dir = tmp("demo");
+    let port = free_port();
+    let ckpt = format!("{ROOT}/models/reach_pi05");
+    let server = serve(&ckpt, port, &[]);
+    let out = Command::new(EXE)
+        .args(["demo", "--remote", &format!("ws://127.0.0.1:{port}")])
+        .args(["--episode-seconds", "10", "--out"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("success: 2/2"), "{text}");
+    let finished = server.terminate(Duration::from_secs(10));
+    let last = finished.stdout.lines().last().unwrap_or("").to_string();
+    assert!(last.contains("failures []"), "{last}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Largest change of any joint's command between two consecutive commands (rad).
+fn largest_step(cmds: &[chunkrt_ipc::JointCommand], n: usize) -> f64 {
+    cmds.windows(2)
+        .filter(|w| w[1].seq == w[0].seq + 1)
+        .map(|w| {
+            (0..n)
+                .map(|j| (w[1].position[j] - w[0].position[j]).abs())
+                .fold(0.0, f64::max)
+        })
+        .fold(0.0, f64::max)
+}
+
+/// A server killed mid-episode: chunks expire and the robot holds; restarted, the controller
+/// reconnects and runs again. No command steps further than the joints' velocity limits allow.
+#[test]
+fn a_dead_server_holds_the_robot_and_a_restarted_one_resumes_it() {
+    let _serial = serial();
+    let ns = unique_namespace("remote");
+    let cfg = Config::embedded_default();
+    let port = free_port();
+    let ckpt = format!("{ROOT}/models/reach_pi05");
+    let server = serve(&ckpt, port, &[]);
+    let url = format!("ws://127.0.0.1:{port}");
+    let robot = start("fake-robot", &ns, &[]);
+    let camera = start("fake-camera", &ns, &["--scene", "reach"]);
+    let ctl = start(
+        "run",
+        &ns,
+        &[
+            "--log-every",
+            "0",
+            "--remote",
+            &url,
+            "--prompt",
+            "reach the red target",
+        ],
+    );
+    let mut w = Watch::new(&ns);
+    let running = |w: &Watch| w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING;
+    w.wait_for(
+        Duration::from_secs(30),
+        "RUNNING with the remote policy",
+        running,
+    );
+    w.pump(Duration::from_millis(500));
+    let chunks_before = w.last_status.chunks;
+    kill9(server);
+    w.wait_for(Duration::from_secs(15), "HOLD after the server died", |w| {
+        w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_HOLD
+    });
+    let held_at = w.last_js;
+    w.pump(Duration::from_millis(500));
+    // held: the robot does not move while the server is gone
+    for j in 0..cfg.n_dof() {
+        let d = (w.last_js.position[j] - held_at.position[j]).abs();
+        assert!(d < 0.02, "joint {j} moved {d} rad while held");
+    }
+    let server = serve(&ckpt, port, &[]);
+    w.wait_for(Duration::from_secs(30), "RUNNING again", running);
+    w.pump(Duration::from_secs(1));
+    assert!(
+        w.last_status.chunks > chunks_before,
+        "no chunk after the restart"
+    );
+    let dt = 1.0 / cfg.control.rate_hz;
+    let vmax = cfg
+        .robot
+        .joints
+        .iter()
+        .map(|j| j.max_velocity)
+        .fold(0.0, f64::max);
+    let step = largest_step(&w.commands, cfg.n_dof());
+    eprintln!(
+        "largest command step {step:.5} rad over {} commands (velocity limit allows {:.5})",
+        w.commands.len(),
+        vmax * dt
+    );
+    assert!(
+        step <= vmax * dt * 1.01 + 1e-9,
+        "a command jumped {step} rad"
+    );
+    let out = ctl.terminate(Duration::from_secs(10));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    let r = robot.terminate(Duration::from_secs(5));
+    let track = summary_value(&r.stdout, "max_tracking_error").unwrap_or(f64::NAN);
+    assert!(track < 0.05, "robot tracking error {track}: {}", r.stdout);
+    drop((camera, server));
+}
+
+/// openpi's own server (PyPI `openpi-server`) with a Python policy replaying one chunk (a test
+/// double): the controller takes its chunks and the robot goes where the chunk says.
+#[test]
+fn controller_takes_chunks_from_openpi_s_own_server() {
+    if !openpi_python() {
+        return;
+    }
+    let _serial = serial();
+    let ns = unique_namespace("openpi-server");
+    let port = free_port();
+    let pose = [0.3, 0.9, 0.4, 0.0];
+    let chunk: Vec<[f64; 4]> = vec![pose; 50];
+    let chunk_json = serde_json::to_string(&chunk).unwrap();
+    let port_s = port.to_string();
+    let mut py = ChildGuard::spawn(
+        "python3",
+        &[PEER, "serve", "--port", &port_s, "--chunk", &chunk_json],
+    )
+    .expect("start openpi's server");
+    wait_healthy(port, Duration::from_secs(30), &mut py);
+    let robot = start("fake-robot", &ns, &[]);
+    let camera = start("fake-camera", &ns, &["--scene", "reach"]);
+    let ctl = start(
+        "run",
+        &ns,
+        &[
+            "--log-every",
+            "0",
+            "--remote",
+            &format!("ws://127.0.0.1:{port}"),
+        ],
+    );
+    let mut w = Watch::new(&ns);
+    w.wait_for(
+        Duration::from_secs(30),
+        "the robot at the replayed pose",
+        |w| {
+            w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING
+                && (0..4).all(|j| (w.last_js.position[j] - pose[j]).abs() < 0.01)
+        },
+    );
+    // a few more chunks: from the second on, the strategy (rtc) would guide them
+    let chunks = w.last_status.chunks;
+    w.wait_for(Duration::from_secs(15), "two more chunks", |w| {
+        w.last_status.chunks >= chunks + 2
+    });
+    for j in 0..4 {
+        let d = (w.last_js.position[j] - pose[j]).abs();
+        assert!(d < 0.01, "joint {j} left the replayed pose by {d} rad");
+    }
+    let out = ctl.terminate(Duration::from_secs(10));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    assert!(
+        out.stderr.contains("takes no real-time-chunking keys"),
+        "the controller did not say the server's chunks are plain: {}",
+        out.stderr
+    );
+    drop((robot, camera, py));
+}

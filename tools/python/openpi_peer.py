@@ -1,0 +1,206 @@
+"""openpi's own Python code as chunkrt's protocol peer (the tests' other side).
+
+  check   openpi-client (PyPI 0.1.2, unmodified) against a `chunkrt serve`: metadata, /healthz,
+          the api key, two clients at once, every kind of bad input (each answered with an error,
+          the server keeps serving), and one request saved with its reply for a parity check.
+  serve   openpi's own WebsocketPolicyServer (PyPI openpi-server) serving a small Python policy
+          that replays a known chunk, for a chunkrt controller with policy.source = "remote".
+
+Each check prints one line "ok NAME ..." or "FAIL NAME ..."; the exit code is 1 when any failed.
+"""
+
+import argparse
+import json
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+
+import numpy as np
+from openpi_client import msgpack_numpy
+from openpi_client import websocket_client_policy as wcp
+
+FAILED = []
+
+
+def report(name, ok, detail=""):
+    print(("ok " if ok else "FAIL ") + name + (": " + detail if detail else ""), flush=True)
+    if not ok:
+        FAILED.append(name)
+
+
+def observation(rng, images, state_dim, prompt="reach the red target", size=64):
+    obs = {f"observation/{n}": rng.integers(0, 255, size=(size, size, 3), dtype=np.uint8) for n in images}
+    obs["observation/state"] = rng.uniform(-0.5, 0.5, size=state_dim)
+    obs["prompt"] = prompt
+    return obs
+
+
+def expect_error(url, api_key, obs, want, name, raw=None):
+    """Sends one bad request on its own connection: the server must answer with an error text."""
+    client = wcp.WebsocketClientPolicy(host=url, api_key=api_key)
+    try:
+        if raw is not None:
+            client._ws.send(raw)
+            resp = client._ws.recv()
+            if isinstance(resp, str):
+                raise RuntimeError("Error in inference server:\n" + resp)
+            report(name, False, "no error for a malformed message")
+            return
+        client.infer(obs)
+        report(name, False, "the bad request was served")
+    except RuntimeError as e:
+        report(name, want in str(e), str(e).splitlines()[-1][:160])
+
+
+def check(args):
+    url = args.url
+    images = args.images.split(",")
+    rng = np.random.default_rng(0)
+
+    # /healthz
+    health = url.replace("ws://", "http://") + "/healthz"
+    with urllib.request.urlopen(health, timeout=5) as r:
+        body = r.read().decode()
+        report("healthz", r.status == 200 and body.strip() == "OK", f"{r.status} {body.strip()!r}")
+
+    # the api key: refused without it, before any model work
+    try:
+        wcp.WebsocketClientPolicy(host=url)
+        report("api_key_required", False, "connected without the key")
+    except Exception as e:  # websockets' InvalidStatus (HTTP 401)
+        report("api_key_required", "401" in str(e), type(e).__name__ + ": " + str(e)[:80])
+    try:
+        wcp.WebsocketClientPolicy(host=url, api_key="wrong")
+        report("api_key_wrong", False, "connected with a wrong key")
+    except Exception as e:
+        report("api_key_wrong", "401" in str(e), type(e).__name__)
+
+    # metadata
+    client = wcp.WebsocketClientPolicy(host=url, api_key=args.api_key)
+    meta = client.get_server_metadata()
+    m = meta.get("chunkrt", {})
+    report(
+        "metadata",
+        m.get("action_horizon", 0) > 0 and m.get("image_inputs") == images,
+        json.dumps(meta)[:200],
+    )
+    horizon = m.get("action_horizon")
+
+    # one request saved with its reply: the parity check against `chunkrt sample --request`
+    obs = observation(rng, images, args.state_dim)
+    obs["chunkrt/reseed"] = 7
+    with open(args.request_out, "wb") as f:
+        f.write(msgpack_numpy.packb(obs))
+    reply = client.infer(obs)
+    with open(args.reply_out, "wb") as f:
+        f.write(msgpack_numpy.packb({"actions": reply["actions"]}))
+    a = reply["actions"]
+    report(
+        "reply",
+        a.shape == (horizon, args.state_dim)
+        and a.dtype == np.float32
+        and np.isfinite(a).all()
+        and "infer_ms" in reply.get("server_timing", {})
+        and "infer_ms" in reply.get("policy_timing", {}),
+        f"actions {a.shape} {a.dtype}, timings {reply.get('server_timing')}",
+    )
+    reply2 = client.infer(observation(rng, images, args.state_dim))
+    report("prev_total_ms", "prev_total_ms" in reply2.get("server_timing", {}), str(reply2.get("server_timing")))
+
+    # two clients at once: both get their chunks, in any interleaving
+    results = {}
+
+    def worker(i):
+        c = wcp.WebsocketClientPolicy(host=url, api_key=args.api_key)
+        local = np.random.default_rng(100 + i)
+        n = 0
+        for _ in range(4):
+            r = c.infer(observation(local, images, args.state_dim))
+            n += r["actions"].shape == (horizon, args.state_dim)
+        results[i] = n
+
+    threads = [threading.Thread(target=worker, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    report("two_clients", results == {0: 4, 1: 4}, str(results))
+
+    # every bad input gets an error the client can read, and the server keeps serving
+    good = observation(rng, images, args.state_dim)
+    bad = []
+    o = dict(good)
+    del o["observation/state"]
+    bad.append(("missing_key", o, "missing key", None))
+    o = dict(good)
+    o["observation/state"] = np.array([np.nan] + [0.0] * (args.state_dim - 1))
+    bad.append(("nan_state", o, "not finite", None))
+    o = dict(good)
+    o[f"observation/{images[0]}"] = np.zeros((64, 64, 3), dtype=np.int32)
+    bad.append(("wrong_dtype", o, "expected uint8", None))
+    o = dict(good)
+    o[f"observation/{images[0]}"] = np.zeros((64, 64, 4), dtype=np.uint8)
+    bad.append(("wrong_shape", o, "expected [H, W, 3]", None))
+    o = dict(good)
+    o["observation/state"] = "not numbers"
+    bad.append(("state_not_array", o, "expected a float array", None))
+    o = dict(good)
+    o[f"observation/{images[0]}"] = np.zeros((args.big_side, args.big_side, 3), dtype=np.uint8)
+    bad.append(("too_large", o, "larger than the server's limit", None))
+    bad.append(("malformed_msgpack", None, "malformed msgpack-numpy", b"\xc1\x00\x01"))
+    bad.append(("text_frame", None, "expected a binary msgpack frame", "hello"))
+    for name, o, want, raw in bad:
+        expect_error(url, args.api_key, o, want, name, raw)
+        r = client.infer(observation(rng, images, args.state_dim))
+        report(name + "_then_served", r["actions"].shape == (horizon, args.state_dim))
+    return 1 if FAILED else 0
+
+
+class ReplayPolicy:
+    """Replays one known chunk, whatever the observation (a test double, named as such)."""
+
+    def __init__(self, chunk):
+        self.chunk = chunk
+        self.calls = 0
+
+    def infer(self, obs):
+        self.calls += 1
+        state = np.asarray(obs["observation/state"])
+        assert state.shape == (self.chunk.shape[1],), state.shape
+        return {"actions": self.chunk.copy(), "policy_timing": {"infer_ms": 0.1}}
+
+
+def serve(args):
+    from openpi_server import WebsocketPolicyServer
+
+    chunk = np.array(json.loads(args.chunk), dtype=np.float32)
+    policy = ReplayPolicy(chunk)
+    server = WebsocketPolicyServer(policy, host="127.0.0.1", port=args.port, metadata={"replay": True})
+    print(f"openpi server on ws://127.0.0.1:{args.port}", flush=True)
+    server.serve_forever()
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    c = sub.add_parser("check")
+    c.add_argument("--url", required=True)
+    c.add_argument("--api-key", required=True)
+    c.add_argument("--images", required=True, help="the model's image inputs, comma separated")
+    c.add_argument("--state-dim", type=int, default=4)
+    c.add_argument("--big-side", type=int, default=1024)
+    c.add_argument("--request-out", required=True)
+    c.add_argument("--reply-out", required=True)
+    s = sub.add_parser("serve")
+    s.add_argument("--port", type=int, required=True)
+    s.add_argument("--chunk", required=True, help="JSON [[...], ...]: the chunk to replay")
+    args = ap.parse_args()
+    if args.cmd == "check":
+        sys.exit(check(args))
+    serve(args)
+
+
+if __name__ == "__main__":
+    main()
