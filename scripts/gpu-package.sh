@@ -21,8 +21,7 @@ out=${1:-.gpu}
 prefix=${CHUNKRT_CUDA_PREFIX:-$HOME/.cache/chunkrt-cuda13}
 export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$(cd .. && pwd)/target-cuda}
 
-# the toolkit script builds its libcuda stub from cudarc's sources: have them in the registry
-cargo fetch --quiet
+# installs the toolkit if needed (and `cargo fetch`es cudarc's sources for its libcuda stub)
 bash scripts/cuda-toolkit.sh "$prefix" >/dev/null
 eval "$(bash scripts/cuda-toolkit.sh --env "$prefix")"
 

@@ -16,7 +16,10 @@ use anyhow::Context;
 
 use crate::config::{Config, Jacobian};
 
-use crate::inference::PolicySource;
+use crate::config::PolicySource;
+use crate::contract::ChunkSource;
+use crate::inference::PolicySource as LocalPolicy;
+use crate::remote::RemoteSource;
 use crate::task::sim::{run_episode, SimSettings};
 use crate::train::held_out_episodes;
 
@@ -108,6 +111,11 @@ pub struct EvalArgs {
     /// The expert the open-loop probe compares with (the one the policy was trained on).
     #[arg(long, value_enum, default_value_t = crate::task::expert::Profile::DistancePaced)]
     pub expert: crate::task::expert::Profile,
+    /// Take every chunk from an openpi-protocol server at this `ws://host:port` instead of
+    /// the policy in process (`chunkrt serve --checkpoint models/reach_pi05`; a chunkrt server
+    /// is reseeded per episode, so the sweep sees the same noise as in process).
+    #[arg(long, value_name = "URL")]
+    pub remote: Option<String>,
 }
 
 /// First scene seed of the open-loop probe's episodes.
@@ -249,13 +257,24 @@ pub fn sweep(
         );
     }
     let specs = held_out_episodes(cfg, EVAL_SCENE_BASE, episodes, 0xe7a1);
-    let mut policy = PolicySource::load(cfg)?;
+    let (mut policy, committed_max): (Box<dyn ChunkSource>, usize) = match cfg.policy.source {
+        PolicySource::Local => {
+            let p = LocalPolicy::load(cfg)?;
+            let max = p.committed_max();
+            (Box::new(p), max)
+        }
+        PolicySource::Remote => {
+            let r = RemoteSource::connect(cfg)?;
+            let max = r.server().map_or(0, |m| m.rtc_prefix_max);
+            (Box::new(r), max)
+        }
+    };
     if strategies
         .iter()
         .any(|s| split_variant(s).base == "rtc_trained")
     {
         anyhow::ensure!(
-            policy.committed_max() > 0,
+            committed_max > 0,
             "strategy rtc_trained needs a checkpoint trained with a committed prefix (`chunkrt \
              train --rtc-prefix N`), and {} is not: pass --checkpoint models/reach_pi05_rtc",
             cfg.policy
@@ -282,7 +301,7 @@ pub fn sweep(
             };
             let mut outs = Vec::with_capacity(episodes);
             for e in &specs {
-                outs.push(run_episode(&c, &mut policy, e, &settings)?);
+                outs.push(run_episode(&c, policy.as_mut(), e, &settings)?);
                 done += 1;
                 progress(done, total, s, d);
             }
@@ -313,7 +332,18 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             cfg.policy.kind = Some(crate::config::ModelKind::Pi05);
         }
     }
+    if let Some(url) = &args.remote {
+        cfg.policy.source = crate::config::PolicySource::Remote;
+        cfg.policy.url = Some(url.clone());
+        if cfg.policy.kind.is_none() {
+            cfg.policy.kind = Some(crate::config::ModelKind::Pi05);
+        }
+    }
     if args.open_loop {
+        anyhow::ensure!(
+            args.remote.is_none(),
+            "--open-loop probes the policy in process; it does not take --remote"
+        );
         return run_probe(&cfg, &args);
     }
     let (delays, episodes, max_seconds): (Vec<u64>, usize, f64) = if args.quick {

@@ -41,10 +41,10 @@ fn controller_holds_the_robot_and_sees_every_camera() {
     // published every 100 ms, so its counts are compared with the robot's seq seen when each
     // status arrived). Not all: the subscriber keeps the newest 4 states by design (the tick
     // needs only the newest), so a control thread descheduled for more than 4 ms on this shared
-    // 2-core VM skips some; session 3 measured 85-99 % here depending on the load.
+    // 2-core VM skips some; 85-99 % were measured here on 2026-11-22, depending on the load.
     // (Contract, not load: the robot is alive, the stream is consumed, nothing but stale
     // states is rejected. How many of the robot's states the controller reads depends on the
-    // load: session 3 measured 85-99 %.)
+    // load: 85-99 % on 2026-11-22.)
     let published = (seq2 - seq1) as f64;
     let received = (s2.joint_states - s1.joint_states) as f64;
     assert!(published > 200.0, "robot published only {published}");

@@ -332,7 +332,7 @@ fn multi_sample_loss_equals_the_joint_loss_on_repeated_inputs() {
 
 /// A checkpoint computes the function that was trained: after optimiser steps on a trainable
 /// (VarMap) model, the loss of the model as trained equals the loss of its saved checkpoint
-/// loaded as the runtime loads it (fused, packed inference model). Session 4 found two tensors
+/// loaded as the runtime loads it (fused, packed inference model). Before 4d5b2df two tensors were
 /// derived from trainable variables once at construction (Gemma's RMSNorm `1 + w`, SigLIP's
 /// stacked Q/K/V): the optimiser moved the variables but the forward pass kept the stale copies,
 /// so deployed policies computed another function than the one trained.

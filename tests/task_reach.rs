@@ -387,8 +387,8 @@ fn drifting_targets_must_be_reached_and_followed() {
     );
 }
 
-/// Lower bound on the committed policy's held-out success (of 10): measured 10/10 for the session-4
-/// weights (the run is deterministic: simulated time, seeded noise; one episode of margin for
+/// Lower bound on the committed policy's held-out success (of 10): measured 10/10 for the weights
+/// of 3efe181 (the run is deterministic: simulated time, seeded noise; one episode of margin for
 /// floating-point differences between thread counts and build profiles).
 const MIN_SUCCESS: usize = 9;
 
@@ -478,15 +478,15 @@ fn committed_policy_reproduces_expert_chunks_open_loop() {
     let (e0, elast) = (e0 / n as f64, elast / n as f64);
     eprintln!("open loop, mean |error| per arm joint: first action {e0:.3} rad, last action {elast:.3} rad");
     // measured for the committed weights: 0.004 / 0.054 rad (the first action is the current
-    // position: with actions relative to the state it is predicted as a delta of ~0); the session-3
-    // weights, which ignored image and prompt, gave 0.011 / 0.314
+    // position: with actions relative to the state it is predicted as a delta of ~0); the earlier
+    // weights of 9ca3c32, which ignored image and prompt, gave 0.011 / 0.314
     assert!(e0 < 0.02 && elast < 0.12, "first {e0:.3} last {elast:.3}");
 }
 
 /// The committed policy acts on what it sees and what it is told (`task::probe`): swapping the
 /// image for another scene's, or the prompt for the other target's, changes its chunks well
 /// beyond the spread of two samples of the same observation, and its moves point at the prompted
-/// target rather than the other one. The session-3 policy failed this: its image and prompt
+/// target rather than the other one. The policy of 9ca3c32 failed this: its image and prompt
 /// effects were at the noise floor.
 #[test]
 fn committed_policy_acts_on_its_image_and_prompt() {
@@ -521,7 +521,7 @@ fn committed_policy_acts_on_its_image_and_prompt() {
 
 /// Lower bounds of the probe test. Measured for the committed weights: image effect 0.354 and
 /// prompt effect 0.600 rad over a noise floor of 0.052 (6.8x and 11.5x); cos 0.900 to the prompted
-/// target vs 0.086 to the other (margin 0.81). The session-3 weights: 1.02x, 1.04x, margin 0.02.
+/// target vs 0.086 to the other (margin 0.81). The weights of 9ca3c32: 1.02x, 1.04x, margin 0.02.
 const PROBE_EFFECT_OVER_NOISE: f64 = 4.0;
 const PROBE_COS_MARGIN: f64 = 0.6;
 

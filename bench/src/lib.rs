@@ -10,6 +10,10 @@
 //!   ([`periodic`]), idle and under a candle matmul load ([`load`]), against `cyclictest`
 //!   ([`cyclictest`]) in the same run.
 //!
+//! - [`remote`]: what a policy behind `chunkrt serve` adds to a chunk's latency, against the same
+//!   policy in process, on loopback and through an emulated network, with openpi's own server
+//!   and client as the reference.
+//!
 //! Every bench writes its histograms under [`output_root`] (`target/chunkrt-bench/<bench>/`):
 //! an HdrHistogram interval log (`.hlog`), a PNG plot and a Markdown table, through
 //! [`chunkrt::report`].
@@ -20,6 +24,7 @@ pub mod end_to_end;
 pub mod ipc_latency;
 pub mod load;
 pub mod periodic;
+pub mod remote;
 pub mod ws;
 pub mod ws_baseline;
 pub mod ws_rust;

@@ -17,7 +17,7 @@
 //!   (JSON list indexed by colour).
 //! - `targets` f32 [N, 4]: where the red and the blue target are at the sample's time (x, y
 //!   each, m), and `target_velocity` f32 [N, 4] their velocities (m/s; 0 unless they drift).
-//!   Files without them (before session 13) had static targets only: they are derived from the
+//!   Files without them (before 96eef33) had static targets only: they are derived from the
 //!   scene seeds.
 //! - with a frame history (`history_steps` > 0 in the metadata): `image_prev` u8 [N, H, W, 3],
 //!   the frame the camera took `history_steps` policy steps before each sample's (before the
@@ -127,8 +127,8 @@ pub struct Dataset {
     pub targets: Vec<f32>,
     /// Per sample, the targets' velocities (same layout; m/s).
     pub target_velocity: Vec<f32>,
-    /// The expert's speed profile the chunks follow (metadata `expert`; files without it were
-    /// recorded with the minimum-jerk expert, the only one before session 4).
+    /// The expert's speed profile the chunks follow (metadata `expert`; files without it, written
+    /// before a925468, were recorded with the minimum-jerk expert).
     pub expert: super::expert::Profile,
     /// Share of the episodes recorded with drifting targets (metadata `drift_share`; 0 without).
     pub drift_share: f64,

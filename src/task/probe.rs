@@ -11,7 +11,7 @@
 //! - the other prompt (same image): the **prompt effect**.
 //!
 //! A policy that ignores its image or prompt has effects at the noise floor, however small its
-//! training loss. This is how the session-4 diagnosis found that the earlier 3-layer policy
+//! training loss. This is how the 2026-11-22 diagnosis found that the earlier 3-layer policy
 //! sampled chunks from the state alone. Each effect is shown beside the expert's (fresh plans
 //! from the same joints in the other scene / for the other target): what it should be.
 //!

@@ -5,6 +5,9 @@
           the server keeps serving), and one request saved with its reply for a parity check.
   serve   openpi's own WebsocketPolicyServer (PyPI openpi-server) serving a small Python policy
           that replays a known chunk, for a chunkrt controller with policy.source = "remote".
+  serve-instant, bench-client
+          the remote bench's reference: openpi's server answering at once, openpi-client timing
+          the round trips of a 3 x 224x224 observation.
 
 Each check prints one line "ok NAME ..." or "FAIL NAME ..."; the exit code is 1 when any failed.
 """
@@ -182,6 +185,45 @@ def serve(args):
     server.serve_forever()
 
 
+class InstantPolicy:
+    """Answers at once with a fixed (50, 7) chunk: the reference exchange is all wire."""
+
+    chunk = np.zeros((50, 7), dtype=np.float32)
+
+    def infer(self, obs):
+        return {"actions": self.chunk.copy(), "policy_timing": {"infer_ms": 0.0}}
+
+
+def serve_instant(args):
+    from openpi_server import WebsocketPolicyServer
+
+    WebsocketPolicyServer(InstantPolicy(), host="127.0.0.1", port=args.port).serve_forever()
+
+
+def bench_client(args):
+    """Round trips (ns, one per line) of 3 + N requests' last N, openpi-client to a server."""
+    t0 = time.time()
+    while True:
+        try:
+            client = wcp.WebsocketClientPolicy(host=args.url)
+            break
+        except OSError:
+            if time.time() - t0 > 30:
+                raise
+            time.sleep(0.1)
+    rng = np.random.default_rng(7)
+    names = ["base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"][: args.cameras]
+    obs = {f"observation/{n}": rng.integers(0, 255, size=(224, 224, 3), dtype=np.uint8) for n in names}
+    obs["observation/state"] = np.zeros(7)
+    obs["prompt"] = "reach the red target"
+    for i in range(args.requests + 3):
+        t = time.perf_counter_ns()
+        client.infer(obs)
+        dt = time.perf_counter_ns() - t
+        if i >= 3:
+            print(dt)
+
+
 def main():
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -196,10 +238,21 @@ def main():
     s = sub.add_parser("serve")
     s.add_argument("--port", type=int, required=True)
     s.add_argument("--chunk", required=True, help="JSON [[...], ...]: the chunk to replay")
+    i = sub.add_parser("serve-instant")
+    i.add_argument("--port", type=int, required=True)
+    b = sub.add_parser("bench-client")
+    b.add_argument("--url", required=True)
+    b.add_argument("--cameras", type=int, default=3)
+    b.add_argument("--requests", type=int, default=40)
     args = ap.parse_args()
     if args.cmd == "check":
         sys.exit(check(args))
-    serve(args)
+    if args.cmd == "serve-instant":
+        serve_instant(args)
+    elif args.cmd == "bench-client":
+        bench_client(args)
+    else:
+        serve(args)
 
 
 if __name__ == "__main__":
