@@ -38,19 +38,19 @@ fn main() {
         .and_then(|i| args.get(i + 1).cloned());
     // `--openpi DIR` (or CHUNKRT_OPENPI): openpi's PyTorch model, run by the worker in
     // scripts/openpi_worker.py with CHUNKRT_OPENPI_PYTHON, interleaved with chunkrt's calls
-    let openpi = chunkrt::policy::openpi::OpenpiSetup::from_args_or_env(
+    let openpi = chunkrt_bench::openpi::OpenpiSetup::from_args_or_env(
         value("--openpi").map(std::path::PathBuf::from),
         candle_core::utils::get_num_threads(),
     );
     let res = match only {
-        Some(name) => chunkrt::policy::bench::run_named(&name, quick, openpi.as_ref()).map(|c| {
-            chunkrt::policy::bench::BenchReport {
+        Some(name) => chunkrt_bench::inference::run_named(&name, quick, openpi.as_ref()).map(|c| {
+            chunkrt_bench::inference::BenchReport {
                 configs: c,
                 threads: candle_core::utils::get_num_threads(),
-                cpu: chunkrt::policy::bench::cpu_model(),
+                cpu: chunkrt_bench::inference::cpu_model(),
             }
         }),
-        None => chunkrt::policy::bench::run(quick, openpi.as_ref()),
+        None => chunkrt_bench::inference::run(quick, openpi.as_ref()),
     };
     match res {
         Ok(r) => {

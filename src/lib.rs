@@ -29,8 +29,8 @@ pub mod train;
 
 pub use chunkrt_controller::config;
 pub use chunkrt_controller::{
-    chunk, conditioning, contract, control, control_loop, controller, edge, histlog, inference,
-    log_limit, remote, rt, shared, worker,
+    chunk, conditioning, contract, control, control_loop, controller, edge, inference, log_limit,
+    remote, rt, shared, worker,
 };
 pub use chunkrt_ipc as ipc;
 pub use chunkrt_policy as policy;

@@ -96,7 +96,7 @@ pub struct BenchArgs {
     pub profile: bool,
 }
 
-/// `chunkrt bench-inference`: [`crate::policy::bench::run_device`] for each preset.
+/// `chunkrt bench-inference`: [`chunkrt_bench::inference::run_device`] for each preset.
 pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
     let device = args.device.open()?;
     crate::policy::kernels::set_enabled(!args.unfused);
@@ -115,7 +115,7 @@ pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
         None => vec!["pi05".to_string(), "pi0".to_string()],
     };
     for preset in presets {
-        let opts = crate::policy::bench::DeviceBenchOptions {
+        let opts = chunkrt_bench::inference::DeviceBenchOptions {
             preset,
             dtype: model_dtype(&device, args.precision),
             device: device.clone(),
@@ -124,7 +124,7 @@ pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
             check_f32: args.check_f32,
             profile: args.profile,
         };
-        println!("{}", crate::policy::bench::run_device(&opts)?);
+        println!("{}", chunkrt_bench::inference::run_device(&opts)?);
     }
     Ok(())
 }

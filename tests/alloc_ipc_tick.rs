@@ -8,11 +8,12 @@ use std::sync::atomic::Ordering;
 
 use chunkrt::config::Config;
 use chunkrt::contract::Observation;
-use chunkrt::control::{cxx_allocations, Executor, ScriptedChunkSource, ScriptedConfig, State};
+use chunkrt::control::{cxx_allocations, Executor, State};
 use chunkrt::controller::{ControlLoop, Shared};
 use chunkrt::ipc::services;
 use chunkrt::ipc::{monotonic_ns, JointState};
 use chunkrt::worker::{Delivery, InferenceWorker};
+use chunkrt_bench::scripted::{ScriptedChunkSource, ScriptedConfig};
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;

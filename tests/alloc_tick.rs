@@ -6,9 +6,10 @@
 
 use chunkrt::config::Config;
 use chunkrt::contract::Observation;
-use chunkrt::control::{cxx_allocations, Executor, ScriptedChunkSource, ScriptedConfig, State};
+use chunkrt::control::{cxx_allocations, Executor, State};
 use chunkrt::ipc::{ControllerStatus, JointCommand, JointState};
 use chunkrt::worker::{Delivery, InferenceWorker};
+use chunkrt_bench::scripted::{ScriptedChunkSource, ScriptedConfig};
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;

@@ -6,16 +6,17 @@
 //! smaller switch discontinuities in the target than `replace`.
 
 use chunkrt::config::Config;
-use chunkrt::control::{Executor, Trace};
+use chunkrt::control::Executor;
 use chunkrt::edge::Observation;
 use chunkrt::inference::PolicySource;
 use chunkrt::ipc::{JointCommand, JointState};
 use chunkrt::worker::{Delivery, InferenceWorker, Turn};
+use chunkrt_bench::metrics::Trace;
 
 const DELAY_STEPS: u64 = 3;
 const START_NS: u64 = 10_000_000_000;
 
-fn run(strategy: &str, seconds: f64) -> (chunkrt::control::Smoothness, usize) {
+fn run(strategy: &str, seconds: f64) -> (chunkrt_bench::metrics::Smoothness, usize) {
     run_with(strategy, seconds, false)
 }
 
@@ -23,7 +24,7 @@ fn run_with(
     strategy: &str,
     seconds: f64,
     future_state: bool,
-) -> (chunkrt::control::Smoothness, usize) {
+) -> (chunkrt_bench::metrics::Smoothness, usize) {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/pi05_tiny.toml");
     let mut cfg = Config::load(std::path::Path::new(path)).unwrap();
     cfg.execution.strategy = strategy.parse().expect("a strategy name");

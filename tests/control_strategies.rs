@@ -4,8 +4,10 @@
 //! show that `crossfade` and `rtc` switch with much smaller discontinuities than `replace`.
 
 use chunkrt::config::Config;
-use chunkrt::control::{ScriptedConfig, ScriptedSim, Smoothness, State, Trace};
+use chunkrt::control::State;
 use chunkrt::ipc::{COMMAND_MODE_POSITION, MAX_DOF};
+use chunkrt_bench::metrics::{Smoothness, Trace};
+use chunkrt_bench::scripted::{ScriptedConfig, ScriptedSim};
 
 const START_NS: u64 = 10_000_000_000;
 

@@ -4,8 +4,9 @@
 //! re-arm clears. Uses the scripted chunk source (a test double).
 
 use chunkrt::config::Config;
-use chunkrt::control::{Event, Rearm, Reason, ScriptedConfig, ScriptedSim, State};
+use chunkrt::control::{Event, Rearm, Reason, State};
 use chunkrt::ipc::{JointCommand, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD};
+use chunkrt_bench::scripted::{ScriptedConfig, ScriptedSim};
 
 const START_NS: u64 = 10_000_000_000;
 

@@ -7,7 +7,7 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
         std::env::set_var("RAYON_NUM_THREADS", "2");
     }
-    let r = chunkrt::policy::bench::run(true, None).expect("bench runs");
+    let r = chunkrt_bench::inference::run(true, None).expect("bench runs");
     let text = r.to_string();
     println!("{text}");
     // without a same-run openpi the summary says where its figures come from, and this CPU
@@ -105,13 +105,13 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
 /// worker runs with the system Python; it exits before importing torch).
 #[test]
 fn openpi_baseline_without_a_checkout_is_a_clear_error() {
-    let setup = chunkrt::policy::openpi::OpenpiSetup {
+    let setup = chunkrt_bench::openpi::OpenpiSetup {
         dir: std::path::PathBuf::from("/nonexistent/openpi"),
         python: std::path::PathBuf::from("python3"),
         threads: 1,
     };
-    let json = chunkrt::policy::bench::CONFIGS[0].1;
-    match chunkrt::policy::openpi::OpenpiWorker::spawn(&setup, "pi0_bench", json) {
+    let json = chunkrt_bench::inference::CONFIGS[0].1;
+    match chunkrt_bench::openpi::OpenpiWorker::spawn(&setup, "pi0_bench", json) {
         Ok(_) => panic!("a worker started without an openpi checkout"),
         Err(e) => {
             let msg = e.to_string();
@@ -129,12 +129,12 @@ fn openpi_baseline_without_a_checkout_is_a_clear_error() {
 #[test]
 #[ignore = "needs openpi and torch: CHUNKRT_OPENPI=DIR CHUNKRT_OPENPI_PYTHON=PY cargo test --test policy_bench -- --ignored"]
 fn openpi_worker_samples() {
-    let Some(setup) = chunkrt::policy::openpi::OpenpiSetup::from_args_or_env(None, 2) else {
+    let Some(setup) = chunkrt_bench::openpi::OpenpiSetup::from_args_or_env(None, 2) else {
         panic!("CHUNKRT_OPENPI is not set");
     };
-    for (name, json) in chunkrt::policy::bench::CONFIGS {
-        let mut w = chunkrt::policy::openpi::OpenpiWorker::spawn(&setup, name, json)
-            .expect("worker starts");
+    for (name, json) in chunkrt_bench::inference::CONFIGS {
+        let mut w =
+            chunkrt_bench::openpi::OpenpiWorker::spawn(&setup, name, json).expect("worker starts");
         // the sizes of the bench configuration (not openpi's full model): ~33-35 M parameters
         assert!(
             (20_000_000..60_000_000).contains(&w.info.params),

@@ -263,9 +263,9 @@ fn fixed_step_layout_equals_the_compact_one() {
 /// guided sampler's actions for a new observation and a new target every call. GPU only.
 #[test]
 fn cuda_guided_graph_replays_the_eager_guided_loop() {
-    use chunkrt::policy::bench::{device_bench_config, random_inputs_on, random_model_on};
     use chunkrt::policy::graph::SampleGraph;
     use chunkrt::policy::rtc::{sample_guided, weight_mask, GuidanceTarget, Jacobian};
+    use chunkrt_bench::inference::{device_bench_config, random_inputs_on, random_model_on};
     let Some(dev) = cuda() else { return };
     let (cfg, valid) = device_bench_config("pi05_bench").unwrap();
     let (steps, h, a) = (cfg.num_denoise_steps, cfg.action_horizon, cfg.action_dim);
@@ -315,8 +315,8 @@ fn cuda_guided_graph_replays_the_eager_guided_loop() {
 /// captured. GPU only.
 #[test]
 fn cuda_graph_replays_the_eager_loop_for_every_observation() {
-    use chunkrt::policy::bench::{device_bench_config, random_inputs_on, random_model_on};
     use chunkrt::policy::graph::SampleGraph;
+    use chunkrt_bench::inference::{device_bench_config, random_inputs_on, random_model_on};
     let Some(dev) = cuda() else { return };
     let (cfg, valid) = device_bench_config("pi05_bench").unwrap();
     let steps = cfg.num_denoise_steps;

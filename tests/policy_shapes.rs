@@ -2,9 +2,9 @@
 //! cached == uncached, batch rows == single runs, differentiable ops == fast ops, gradients flow.
 
 use candle_core::{Device, Tensor, Var};
-use chunkrt::policy::bench::{random_inference_model, random_model};
 use chunkrt::policy::model::{ModelInputs, PiModel};
 use chunkrt::policy::ModelConfig;
+use chunkrt_bench::inference::{random_inference_model, random_model};
 
 #[path = "common/fixture.rs"]
 mod fixture;

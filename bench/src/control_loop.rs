@@ -2,7 +2,7 @@
 //! 1 kHz, idle and with a candle matmul load saturating the other core, next to `cyclictest` on
 //! the same core under the same load (the platform's floor).
 //!
-//! The schedule is the controller's own ([`chunkrt::rt::run_periodic`]). The tick body is
+//! The schedule is the controller's own ([`chunkrt_controller::rt::run_periodic`]). The tick body is
 //! pluggable ([`TickFactory`]). By default it is the controller's real tick, [`ControllerTick`]:
 //! [`ControlLoop::step`] with its iceoryx2 ports and the executor (chunk timeline, rtc
 //! transitions, ruckig, safety state machine) of the embedded demo robot, a robot that follows
@@ -18,11 +18,12 @@ use super::cyclictest::{self, CyclictestConfig};
 use super::load::MatmulLoad;
 use super::periodic::{run_periodic, PeriodicConfig, SyntheticTick, TickBody};
 use super::{geomean, write_outputs, BenchError, BenchOpts, Outputs};
-use chunkrt::control::{Executor, ScriptedChunkSource, ScriptedConfig};
-use chunkrt::controller::{ControlLoop, Shared};
-use chunkrt::edge::Observation;
-use chunkrt::report::{fmt_us, LatencyRow, LatencyTable, Series};
-use chunkrt::worker::{Delivery, InferenceWorker};
+use crate::report::{fmt_us, LatencyRow, LatencyTable, Series};
+use crate::scripted::{ScriptedChunkSource, ScriptedConfig};
+use chunkrt_controller::control::Executor;
+use chunkrt_controller::controller::{ControlLoop, Shared};
+use chunkrt_controller::edge::Observation;
+use chunkrt_controller::worker::{Delivery, InferenceWorker};
 use chunkrt_ipc::services;
 use chunkrt_ipc::JointState;
 
@@ -115,7 +116,7 @@ impl ControllerTick {
     pub fn new(helper_core: Option<usize>) -> Result<Self, BenchError> {
         static INSTANCE: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let err = |e: &dyn std::fmt::Display| BenchError::Thread(format!("controller tick: {e}"));
-        let mut cfg = chunkrt::config::Config::embedded_default();
+        let mut cfg = chunkrt_controller::config::Config::embedded_default();
         cfg.robot.namespace = format!(
             "chunkrt/bench-{}-{}",
             std::process::id(),
@@ -135,7 +136,7 @@ impl ControllerTick {
             .name("bench-robot-chunks".into())
             .spawn(move || {
                 if let Some(c) = helper_core {
-                    let _ = chunkrt::rt::pin_current_thread(c);
+                    let _ = chunkrt_controller::rt::pin_current_thread(c);
                 }
                 let ns = cfg.namespace();
                 let ports = services::node("chunkrt-bench-robot").and_then(|node| {
@@ -214,7 +215,7 @@ impl TickBody for ControllerTick {
         let wake = chunkrt_ipc::monotonic_ns();
         self.lp
             .step(deadline_ns, wake, &self.shared, &mut self.exec);
-        self.was_running |= self.exec.state() == chunkrt::control::State::Running;
+        self.was_running |= self.exec.state() == chunkrt_controller::control::State::Running;
     }
 
     fn report(&self) -> String {

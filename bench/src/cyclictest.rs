@@ -6,7 +6,7 @@ use std::process::Command;
 use hdrhistogram::Histogram;
 
 use super::BenchError;
-use chunkrt::report::latency_histogram;
+use crate::report::latency_histogram;
 
 /// How to run cyclictest.
 #[derive(Debug, Clone)]

@@ -27,7 +27,7 @@ use chunkrt_ipc::{
 };
 
 use super::{write_outputs, BenchError, BenchOpts, Outputs};
-use chunkrt::report::{latency_histogram, LatencyTable, Series};
+use crate::report::{latency_histogram, LatencyTable, Series};
 
 /// Options of one run.
 #[derive(Debug, Clone)]
@@ -63,8 +63,8 @@ pub struct Summary {
     pub live_share: f64,
     pub hold_share: f64,
     pub chunks: u64,
-    pub observation_age: chunkrt::report::LatencyRow,
-    pub chunk_latency: chunkrt::report::LatencyRow,
+    pub observation_age: crate::report::LatencyRow,
+    pub chunk_latency: crate::report::LatencyRow,
     pub outputs: Outputs,
 }
 
@@ -108,16 +108,16 @@ fn prepare(opts: &Options) -> Result<(PathBuf, String), BenchError> {
         t["policy"]["checkpoint"] = toml::Value::String(ck.display().to_string());
         "reach_pi05 (committed, 1.4 M parameters)".to_string()
     } else {
-        let (_, json) = chunkrt::policy::bench::CONFIGS
+        let (_, json) = crate::inference::CONFIGS
             .iter()
             .find(|(n, _)| *n == "pi05_bench")
             .ok_or_else(|| perr("bench config", "pi05_bench missing"))?;
-        let cfg = chunkrt::policy::config::ModelConfig::from_json_str(json)
+        let cfg = chunkrt_policy::config::ModelConfig::from_json_str(json)
             .map_err(|e| perr("pi05_bench.json", e))?;
         let ck = dir.join("ckpt_pi05_bench");
         std::fs::create_dir_all(&ck).map_err(|e| perr("checkpoint dir", e))?;
         let (_, vm): (_, VarMap) =
-            chunkrt::policy::bench::random_model(&cfg).map_err(|e| perr("random model", e))?;
+            crate::inference::random_model(&cfg).map_err(|e| perr("random model", e))?;
         vm.save(ck.join("model.safetensors"))
             .map_err(|e| perr("model.safetensors", e))?;
         std::fs::write(ck.join("config.json"), json).map_err(|e| perr("config.json", e))?;
@@ -151,7 +151,7 @@ fn prepare(opts: &Options) -> Result<(PathBuf, String), BenchError> {
 /// Runs the bench.
 pub fn run(opts: &Options) -> Result<Summary, BenchError> {
     let (cfg_path, model) = prepare(opts)?;
-    let cfg = chunkrt::config::Config::load(&cfg_path).map_err(|e| perr("config", e))?;
+    let cfg = chunkrt_controller::config::Config::load(&cfg_path).map_err(|e| perr("config", e))?;
     let ns = format!("chunkrt/bench-e2e-{}", std::process::id());
     let exe = opts.exe.display().to_string();
     let cfg_arg = cfg_path.display().to_string();
@@ -283,8 +283,8 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
         live_share: live as f64 / received.max(1) as f64,
         hold_share: hold_samples as f64 / status_samples.max(1) as f64,
         chunks: chunks_seen,
-        observation_age: chunkrt::report::LatencyRow::from_hist("observation_age", &age),
-        chunk_latency: chunkrt::report::LatencyRow::from_hist("chunk_latency", &latency),
+        observation_age: crate::report::LatencyRow::from_hist("observation_age", &age),
+        chunk_latency: crate::report::LatencyRow::from_hist("chunk_latency", &latency),
         outputs,
     };
     println!("{}", summary.outputs);

@@ -34,7 +34,7 @@ use hdrhistogram::Histogram;
 
 use super::ws_baseline::{self, Case};
 use super::{geomean, write_outputs, BenchError, BenchOpts, Outputs};
-use chunkrt::report::{fmt_us, latency_histogram, LatencyRow, LatencyTable, Series};
+use crate::report::{fmt_us, latency_histogram, LatencyRow, LatencyTable, Series};
 
 mod peer;
 

@@ -1,7 +1,12 @@
 //! # chunkrt-bench
 //!
-//! Library code behind the `benches/` targets, so that the test suite can run each bench's quick
-//! mode in the dev profile and the benches themselves stay thin `main`s.
+//! Measurement, kept out of the runtime crates: the benches' library code (so that the test
+//! suite can run each bench's quick mode in the dev profile and the benches stay thin `main`s),
+//! latency histograms, interval logs and plots ([`histlog`], [`report`]: `chunkrt report`), the
+//! inference bench against openpi ([`inference`], [`openpi`]: `chunkrt bench-inference`), the
+//! closed-loop metrics of the evaluation ([`metrics`]) and the scripted chunk source, a test
+//! double of the policy ([`scripted`]). Depends on the controller and the policy crates, never
+//! on the `chunkrt` application.
 //!
 //! - [`ipc_latency`]: publish → receive latency between two processes over iceoryx2, against
 //!   openpi's websocket + msgpack-numpy transport ([`ws_baseline`]; Rust fallback [`ws_rust`])
@@ -10,10 +15,6 @@
 //!   ([`periodic`]), idle and under a candle matmul load ([`load`]), against `cyclictest`
 //!   ([`cyclictest`]) in the same run.
 //!
-//! - [`remote`]: what a policy behind `chunkrt serve` adds to a chunk's latency, against the same
-//!   policy in process, on loopback and through an emulated network, with openpi's own server
-//!   and client as the reference.
-//!
 //! Every bench writes its histograms under [`output_root`] (`target/chunkrt-bench/<bench>/`):
 //! an HdrHistogram interval log (`.hlog`), a PNG plot and a Markdown table, through
 //! [`chunkrt::report`].
@@ -21,10 +22,15 @@
 pub mod control_loop;
 pub mod cyclictest;
 pub mod end_to_end;
+pub mod histlog;
+pub mod inference;
 pub mod ipc_latency;
 pub mod load;
+pub mod metrics;
+pub mod openpi;
 pub mod periodic;
-pub mod remote;
+pub mod report;
+pub mod scripted;
 pub mod ws;
 pub mod ws_baseline;
 pub mod ws_rust;
@@ -32,7 +38,7 @@ pub mod ws_rust;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use chunkrt::report::{self, LatencyTable, Series};
+use crate::report::{LatencyTable, Series};
 
 /// Errors of the benchmark harness.
 #[derive(Debug, thiserror::Error)]
@@ -199,7 +205,7 @@ pub fn write_outputs(
 
 /// One line describing this machine: CPU model and core count (from `/proc/cpuinfo`).
 pub fn machine_line() -> String {
-    chunkrt::policy::bench::cpu_model()
+    crate::inference::cpu_model()
 }
 
 /// Geometric mean of positive ratios (1.0 for none).

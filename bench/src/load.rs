@@ -48,7 +48,7 @@ impl MatmulLoad {
             .name("chunkrt-load".into())
             .spawn(move || -> Result<(), String> {
                 if let Some(c) = core {
-                    let _ = chunkrt::rt::pin_current_thread(c);
+                    let _ = chunkrt_controller::rt::pin_current_thread(c);
                 }
                 let dev = Device::Cpu;
                 let a = Tensor::randn(0f32, 1.0, (size, size), &dev).map_err(|e| e.to_string())?;

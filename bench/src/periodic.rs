@@ -1,4 +1,4 @@
-//! The `control_loop` bench's harness: the controller's periodic loop ([`chunkrt::rt::run_periodic`],
+//! The `control_loop` bench's harness: the controller's periodic loop ([`chunkrt_controller::rt::run_periodic`],
 //! the one its control thread runs) on a thread of its own, measuring wake-up lateness (how long
 //! after its deadline the thread ran) and compute time (how long the tick body took) into
 //! histograms allocated before the loop starts. The tick body is pluggable ([`TickBody`]).
@@ -10,8 +10,8 @@ use chunkrt_ipc::monotonic_ns;
 use hdrhistogram::Histogram;
 
 use super::BenchError;
-use chunkrt::report::latency_histogram;
-use chunkrt::rt;
+use crate::report::latency_histogram;
+use chunkrt_controller::rt;
 
 /// The work done every tick. Must not allocate, lock or do I/O other than IPC (rule 2). Built
 /// on the ticking thread (iceoryx2 ports stay on the thread that made them), so not `Send`.
@@ -68,7 +68,7 @@ pub struct PeriodicStats {
 /// Builds a body with `make` in a new thread (pinned, SCHED_FIFO if allowed), runs it every
 /// `period_ns` on absolute deadlines for `duration_ns` and returns the measurements. `stop`
 /// ends it early. The
-/// schedule is the controller's own ([`chunkrt::rt::run_periodic`]), and so are the pinning and
+/// schedule is the controller's own ([`chunkrt_controller::rt::run_periodic`]), and so are the pinning and
 /// the SCHED_FIFO request ([`chunkrt::rt`]); this harness adds only the histograms.
 pub fn run_periodic<T: TickBody>(
     cfg: &PeriodicConfig,

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use hdrhistogram::Histogram;
 
 use super::BenchError;
-use chunkrt::report::latency_histogram;
+use crate::report::latency_histogram;
 
 pub use super::ws::{Baseline, Case, CaseResult};
 

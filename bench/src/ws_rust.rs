@@ -29,7 +29,7 @@ use tungstenite::{Message, WebSocket};
 
 use super::ws::{Baseline, Case, CaseResult};
 use super::BenchError;
-use chunkrt::report::latency_histogram;
+use crate::report::latency_histogram;
 
 /// What `server.py` sends on connect.
 pub const SERVER_NAME: &str = "chunkrt-openpi-baseline";

@@ -23,7 +23,6 @@
 //! - [`inference`]: the policy as a chunk source (`PolicySource`); [`remote`]: a policy behind
 //!   an openpi-protocol server (`RemoteSource`).
 //! - [`rt`]: real-time set-up (pinning, SCHED_FIFO, memory locking, the periodic loop).
-//! - [`histlog`]: latency histograms, tables and interval logs (no plots).
 //!
 //! Must not depend on: the reach task, training, evaluation, benches, plotting, the fake
 //! devices (the binary's composition root in the `chunkrt` crate wires those up).
@@ -36,7 +35,6 @@ pub mod control;
 pub mod control_loop;
 pub mod controller;
 pub mod edge;
-pub mod histlog;
 pub mod inference;
 pub mod log_limit;
 pub mod remote;

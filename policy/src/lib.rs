@@ -1,10 +1,11 @@
 //! π0 / π0.5 policies in candle: the model (exact to openpi), the prefix KV cache, checkpoints,
-//! pre/post-processing, the runtime API for the controller and the inference benchmark.
+//! pre/post-processing and the runtime API for the controller (the inference benchmark is the
+//! `chunkrt-bench` crate's).
 //!
 //! One file per part: [`config`] (dimensions, presets), [`siglip`] (vision tower + projector),
 //! [`gemma`] (the dual-expert transformer), [`model`] (embeddings, masks, cache, sampler, loss),
 //! [`checkpoint`] (safetensors loading and checks), [`preprocess`] (images, normalisation,
-//! prompts, tokenizer), [`runtime`] (`Policy::load` / `Policy::infer`), [`bench`].
+//! prompts, tokenizer), [`runtime`] (`Policy::load` / `Policy::infer`).
 //!
 //! Owns: the model, its sampler (written once, [`model::euler`]) and RTC guidance ([`rtc`]), the
 //! CPU kernels ([`packed`], [`amx`], [`fastops`]) and the CUDA ones ([`kernels`], [`graph`]).
@@ -14,7 +15,6 @@
 //! shows neither); thread pools are the caller's (`runtime::LoadOptions`).
 
 pub mod amx;
-pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod device;
@@ -25,7 +25,6 @@ pub mod gpu;
 pub mod graph;
 pub mod kernels;
 pub mod model;
-pub mod openpi;
 pub mod ops;
 pub mod packed;
 pub mod preprocess;

@@ -12,8 +12,9 @@ use chunkrt_ipc::{JointCommand, JointState};
 
 use super::{task_camera, ReachScene, TargetColor, TASK_DOF};
 use crate::contract::{ChunkSource, Observation};
-use crate::control::{Executor, InferenceRequest, Smoothness, State, Trace};
+use crate::control::{Executor, InferenceRequest, State};
 use crate::worker::{Delivery, InferenceWorker, Turn};
+use chunkrt_bench::metrics::{Smoothness, Trace};
 
 /// Simulated time starts here (ns), far from 0 so no timestamp saturates.
 const START_NS: u64 = 1_000_000_000;

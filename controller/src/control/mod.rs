@@ -2,7 +2,7 @@
 //! [`executor`] runs the stages in order — `timeline` (with one file per transition strategy
 //! under `strategy`), input checks, [`safety`], `shaping`, ruckig ([`otg`]), `request` — and
 //! [`interp`], [`rtc`] (guidance weights, delay estimate), [`handoff`] (the lock-free channels to
-//! the inference thread), [`timing`] and [`metrics`] serve them.
+//! the inference thread) and [`timing`] serve them.
 //!
 //! Owns: everything a tick does. Must not depend on: IPC services, threads, the policy (the
 //! inference thread reaches it only through [`InferenceLink`]).
@@ -44,12 +44,10 @@ pub(crate) fn ms_to_ns(ms: f64) -> u64 {
 pub mod executor;
 pub mod handoff;
 pub mod interp;
-pub mod metrics;
 pub mod otg;
 mod request;
 pub mod rtc;
 pub mod safety;
-pub mod scripted;
 mod shaping;
 mod strategy;
 mod timeline;
@@ -58,11 +56,9 @@ pub mod timing;
 pub use executor::{Executor, ExecutorError, InferenceLink, Rearm, Strategy, TickReport, Trigger};
 pub use handoff::{channel, request_channel, ChunkReceiver, ChunkSender, RequestReceiver};
 pub use interp::{Interpolation, Sample};
-pub use metrics::{Smoothness, Trace};
 pub use otg::{cxx_allocations, Otg, OtgInput, OtgOutput, OtgResult, OtgState};
 pub use rtc::{
     guidance_weights, Continuation, DelayEstimator, InferenceRequest, Schedule, MAX_HORIZON,
 };
 pub use safety::{Event, EventReader, Reason, State};
-pub use scripted::{ScriptedChunkSource, ScriptedConfig, ScriptedSim};
 pub use timing::{Quantiles, TickTiming};

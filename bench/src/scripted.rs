@@ -8,10 +8,14 @@
 
 use chunkrt_ipc::MAX_DOF;
 
-use super::rtc::{Continuation, InferenceRequest};
-use crate::chunk::ActionChunk;
-use crate::contract::{ChunkSource, Observation};
-use crate::worker::{Delivery, InferenceWorker};
+use chunkrt_controller::chunk::ActionChunk;
+use chunkrt_controller::contract::{ChunkSource, Observation};
+use chunkrt_controller::control::{
+    Continuation, Executor, ExecutorError, InferenceRequest, TickReport,
+};
+use chunkrt_controller::worker::{Delivery, InferenceWorker};
+
+use crate::metrics::Trace;
 
 /// Settings of the scripted source.
 #[derive(Debug, Clone)]
@@ -184,12 +188,12 @@ impl ChunkSource for ScriptedChunkSource {
     }
 }
 
-/// A closed-loop simulation around an [`Executor`](crate::control::Executor) (test harness, allocates freely): the
+/// A closed-loop simulation around an [`Executor`] (test harness, allocates freely): the
 /// [`ScriptedChunkSource`] plays the inference thread, a perfect robot reports the last command
-/// as its joint state, and every tick is recorded into a [`Trace`](crate::control::Trace) and a command log.
+/// as its joint state, and every tick is recorded into a [`Trace`] and a command log.
 pub struct ScriptedSim {
     /// The executor under test.
-    pub exec: super::Executor,
+    pub exec: Executor,
     /// The inference side of its hand-offs.
     pub worker: InferenceWorker,
     /// What the source is given (the scripted source does not look at it).
@@ -209,20 +213,20 @@ pub struct ScriptedSim {
     /// Every published command.
     pub commands: Vec<chunkrt_ipc::JointCommand>,
     /// Every tick's report.
-    pub reports: Vec<super::TickReport>,
+    pub reports: Vec<TickReport>,
     /// Target / command / reference per tick.
-    pub trace: super::Trace,
+    pub trace: Trace,
 }
 
 impl ScriptedSim {
     /// A simulation of `config` fed by a scripted source; the robot starts at its configured
     /// initial positions at time `start_ns`.
     pub fn new(
-        config: &crate::config::Config,
+        config: &chunkrt_controller::config::Config,
         source: ScriptedConfig,
         start_ns: u64,
-    ) -> Result<Self, super::ExecutorError> {
-        let exec = super::Executor::new(config)?;
+    ) -> Result<Self, ExecutorError> {
+        let exec = Executor::new(config)?;
         let worker = InferenceWorker::new(exec.connect(), Delivery::AtReady);
         let n = config.n_dof();
         let mut js = chunkrt_ipc::JointState {
@@ -234,7 +238,7 @@ impl ScriptedSim {
             js.position[j] = jc.initial_position;
         }
         let period_ns = config.control_period_ns();
-        let mut trace = super::Trace::new(period_ns as f64 * 1e-9, n);
+        let mut trace = Trace::new(period_ns as f64 * 1e-9, n);
         for (j, jc) in config.robot.joints.iter().enumerate().take(MAX_DOF) {
             trace.skip[j] = jc.step;
         }
@@ -255,7 +259,7 @@ impl ScriptedSim {
     }
 
     /// Runs one tick and returns its report.
-    pub fn step(&mut self) -> super::TickReport {
+    pub fn step(&mut self) -> TickReport {
         let now = self.now_ns;
         self.worker.step(now, &mut self.source, &self.observation);
         if self.robot_reports {

@@ -8,7 +8,7 @@ use std::io::{BufRead, BufReader, Write};
 use std::path::PathBuf;
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 
-use crate::error::PolicyError;
+use chunkrt_policy::PolicyError;
 
 /// The worker script (run with the Python the user names).
 pub const WORKER_PY: &str = include_str!("../../scripts/openpi_worker.py");

@@ -384,7 +384,7 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
     )?;
     dev.synchronize()?;
     let build_s = t0.elapsed().as_secs_f64();
-    let mem_model = crate::gpu::memory(dev);
+    let mem_model = chunkrt_policy::gpu::memory(dev);
     let steps = cfg.num_denoise_steps;
     let mut cache = None;
     model.fill_cache(&inp, &mut cache, false)?;
@@ -392,13 +392,13 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
     if opts.profile {
         model.sample(&inp, &noise, steps, Some(&mut cache))?;
         dev.synchronize()?;
-        crate::gpu::profiler(true);
+        chunkrt_policy::gpu::profiler(true);
         model.sample(&inp, &noise, steps, Some(&mut cache))?;
         dev.synchronize()?;
-        crate::gpu::profiler(false);
+        chunkrt_policy::gpu::profiler(false);
         return Ok(DeviceReport {
             name: format!("{} (profiled one sample)", opts.preset),
-            device: crate::DeviceSpec::of(dev).to_string(),
+            device: chunkrt_policy::DeviceSpec::of(dev).to_string(),
             dtype: opts.dtype,
             params: 0,
             phases,
@@ -420,7 +420,7 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         };
         for _ in 0..n {
             let w0 = Instant::now();
-            let ev = crate::gpu::EventTimer::start(dev);
+            let ev = chunkrt_policy::gpu::EventTimer::start(dev);
             f()?;
             let e = ev.stop_ms();
             dev.synchronize()?;
@@ -448,23 +448,23 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         })?;
         // a real-time-chunking guided step: a differentiable forward and one vector-Jacobian
         // product through the action expert (candle autograd, op by op)
-        let target = crate::rtc::GuidanceTarget {
+        let target = chunkrt_policy::rtc::GuidanceTarget {
             y: noise.zeros_like()?,
             w: Tensor::ones((1, cfg.action_horizon, cfg.action_dim), DType::F32, dev)?,
             beta: 5.0,
-            jacobian: crate::rtc::Jacobian::Vjp,
+            jacobian: chunkrt_policy::rtc::Jacobian::Vjp,
         };
         time("step_guided", opts.calls, &mut || {
-            crate::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
+            chunkrt_policy::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
             Ok(())
         })?;
         // the same with ∂Â/∂x_t ≈ I: one fast forward and a few element-wise ops
-        let target = crate::rtc::GuidanceTarget {
-            jacobian: crate::rtc::Jacobian::Identity,
+        let target = chunkrt_policy::rtc::GuidanceTarget {
+            jacobian: chunkrt_policy::rtc::Jacobian::Identity,
             ..target
         };
         time("step_guided_identity", opts.calls * 10, &mut || {
-            crate::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
+            chunkrt_policy::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
             Ok(())
         })?;
     }
@@ -496,7 +496,7 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
     let mut graph_note = None;
     let inp2 = random_inputs_on(&cfg, valid, 12, dev)?;
     let c = model.prepare_prefix(&inp, &mut scache, true)?;
-    match crate::graph::SampleGraph::capture(&model, c, &noise, steps) {
+    match chunkrt_policy::graph::SampleGraph::capture(&model, c, &noise, steps) {
         Ok((_, Some(g))) => {
             let mut flip = false;
             time("sample_graph", opts.calls, &mut || {
@@ -508,7 +508,7 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             })?;
             // the prefix pass alone as a graph: how the captured sample's time splits
             let c = model.prepare_prefix(&inp, &mut scache, true)?;
-            if let Some(pg) = crate::graph::PrefixGraph::capture(&model, c)? {
+            if let Some(pg) = chunkrt_policy::graph::PrefixGraph::capture(&model, c)? {
                 time("prefix_graph", opts.calls, &mut || pg.run())?;
             }
             model.prepare_prefix(&inp2, &mut scache, true)?;
@@ -532,14 +532,14 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
     for (i, w) in w.iter_mut().enumerate().take(cfg.action_horizon / 2) {
         *w = 1.0 - i as f32 / cfg.action_horizon as f32;
     }
-    let target = crate::rtc::GuidanceTarget {
+    let target = chunkrt_policy::rtc::GuidanceTarget {
         y: noise.zeros_like()?,
-        w: crate::rtc::weight_mask(&w, cfg.action_dim, cfg.action_dim, dev)?,
+        w: chunkrt_policy::rtc::weight_mask(&w, cfg.action_dim, cfg.action_dim, dev)?,
         beta: 10.0,
-        jacobian: crate::rtc::Jacobian::Identity,
+        jacobian: chunkrt_policy::rtc::Jacobian::Identity,
     };
     let c = model.prepare_prefix(&inp, &mut scache, true)?;
-    match crate::graph::SampleGraph::capture_guided(&model, c, &noise, steps, &target) {
+    match chunkrt_policy::graph::SampleGraph::capture_guided(&model, c, &noise, steps, &target) {
         Ok((_, Some(g))) => {
             let mut flip = false;
             time("sample_graph_guided", opts.calls, &mut || {
@@ -571,11 +571,14 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             100.0 * d / rms.max(1e-30)
         ));
     }
-    let params = crate::checkpoint::expected_tensors(&cfg)
+    let params = chunkrt_policy::checkpoint::expected_tensors(&cfg)
         .iter()
         .map(|(_, s)| s.iter().product::<usize>())
         .sum();
-    let device = match (crate::DeviceSpec::of(dev), crate::gpu::name(dev)) {
+    let device = match (
+        chunkrt_policy::DeviceSpec::of(dev),
+        chunkrt_policy::gpu::name(dev),
+    ) {
         (d, Some(n)) => format!("{d} ({n})"),
         (d, None) => d.to_string(),
     };
@@ -585,7 +588,7 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         dtype: opts.dtype,
         params,
         phases,
-        memory: match (mem_model, crate::gpu::memory(dev)) {
+        memory: match (mem_model, chunkrt_policy::gpu::memory(dev)) {
             (Some((m, _)), Some((e, t))) => Some((m, e, t)),
             _ => None,
         },

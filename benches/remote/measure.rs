@@ -23,16 +23,16 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use chunkrt::config::Config;
+use chunkrt::policy::Policy;
 use chunkrt::report::{fmt_us, latency_histogram, LatencyTable, Series};
 use chunkrt_openpi::{
     decode, Client, ClientConfig, ImageRef, Layout, Limits, Outgoing, Reply, Request, Server,
     ServerConfig, Value, Writer,
 };
-use chunkrt_policy::Policy;
 use hdrhistogram::Histogram;
 use rand::{Rng, SeedableRng};
 
-use super::{write_outputs, BenchError, BenchOpts};
+use chunkrt_bench::{write_outputs, BenchError, BenchOpts};
 
 /// Options of one run.
 pub struct Options {
@@ -78,14 +78,14 @@ struct Model {
 
 /// Writes a random-weight `pi05_bench` checkpoint (the byte stand-in tokenizer) into `dir`.
 fn pi05_bench_checkpoint(dir: &Path) -> Result<(), BenchError> {
-    let (_, json) = chunkrt_policy::bench::CONFIGS
+    let (_, json) = chunkrt_bench::inference::CONFIGS
         .iter()
         .find(|(n, _)| *n == "pi05_bench")
         .ok_or_else(|| err("pi05_bench", "no such preset"))?;
-    let cfg = chunkrt_policy::config::ModelConfig::from_json_str(json)
+    let cfg = chunkrt::policy::config::ModelConfig::from_json_str(json)
         .map_err(|e| err("pi05_bench config", e))?;
     let (_, vars) =
-        chunkrt_policy::bench::random_model(&cfg).map_err(|e| err("pi05_bench weights", e))?;
+        chunkrt_bench::inference::random_model(&cfg).map_err(|e| err("pi05_bench weights", e))?;
     std::fs::create_dir_all(dir).map_err(|e| err("checkpoint dir", e))?;
     vars.save(dir.join("model.safetensors"))
         .map_err(|e| err("pi05_bench save", e))?;
@@ -408,7 +408,7 @@ pub fn run(opts: &Options) -> Result<LatencyTable, BenchError> {
     let models = [
         Model {
             name: "reach",
-            dir: PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../models/reach_pi05")),
+            dir: PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/models/reach_pi05")),
             n_dof: 4,
         },
         Model {

@@ -9,10 +9,10 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use hdrhistogram::Histogram;
 
-use super::config::{GemmaDims, ModelConfig};
-use super::model::{ModelInputs, PiModel};
-use super::openpi::{OpenpiInfo, OpenpiSetup, OpenpiWorker};
-use crate::error::PolicyError;
+use crate::openpi::{OpenpiInfo, OpenpiSetup, OpenpiWorker};
+use chunkrt_policy::config::{GemmaDims, ModelConfig};
+use chunkrt_policy::model::{ModelInputs, PiModel};
+use chunkrt_policy::PolicyError;
 
 mod device;
 
@@ -85,7 +85,7 @@ pub struct ConfigReport {
     /// The interleaved full samples split into their parts, means over the same samples (ms):
     /// vision (image and token embeddings), prefix pass, denoising loop, whole sample.
     pub split_ms: Option<[f64; 4]>,
-    /// A cached step split by op kind ([`crate::ops::profile`]): (kind, ms per step), then the
+    /// A cached step split by op kind ([`chunkrt_policy::ops::profile`]): (kind, ms per step), then the
     /// profiled steps' mean (ms); the rest of the step runs outside the seam.
     pub step_split: Option<OpSplit>,
     /// The prefix pass (from the embeddings, as phase `prefix`) split the same way.
@@ -178,7 +178,7 @@ impl std::fmt::Display for BenchReport {
             f,
             "cpu: {}; f32 kernel: {}; threads: {}",
             self.cpu,
-            super::packed::support().f32_kernel(),
+            chunkrt_policy::packed::support().f32_kernel(),
             self.threads
         )?;
         for c in &self.configs {
@@ -275,7 +275,7 @@ impl std::fmt::Display for BenchReport {
                     .as_ref()
                     .is_some_and(|(_, i)| i.cpu_capability.starts_with("AVX512"))
             });
-            if torch_wider && super::packed::support().f32_kernel() == "avx2" {
+            if torch_wider && chunkrt_policy::packed::support().f32_kernel() == "avx2" {
                 writeln!(
                     f,
                     "note: chunkrt's kernels are capped to AVX2 but torch runs its AVX512 kernels; \
@@ -391,21 +391,21 @@ fn time_phase(
 /// A pass's time by op kind: (kind, ms per call), then the profiled calls' mean (ms).
 pub type OpSplit = (Vec<(&'static str, f64)>, f64);
 
-/// `n` calls of `f` with each op kind's time counted at the seam ([`crate::ops::profile`]):
+/// `n` calls of `f` with each op kind's time counted at the seam ([`chunkrt_policy::ops::profile`]):
 /// (kind, ms per call) and the profiled calls' mean (ms).
 fn split_by_kind(
     n: usize,
     mut f: impl FnMut() -> Result<(), PolicyError>,
 ) -> Result<OpSplit, PolicyError> {
     let n = n.max(1);
-    crate::ops::profile::reset();
-    crate::ops::profile::enable(true);
+    chunkrt_policy::ops::profile::reset();
+    chunkrt_policy::ops::profile::enable(true);
     let t0 = Instant::now();
     let run = (0..n).try_for_each(|_| f());
     let per_call = t0.elapsed().as_secs_f64() * 1e3 / n as f64;
-    crate::ops::profile::enable(false);
+    chunkrt_policy::ops::profile::enable(false);
     run?;
-    let kinds = crate::ops::profile::snapshot()
+    let kinds = chunkrt_policy::ops::profile::snapshot()
         .into_iter()
         .map(|(k, ns, _)| (k.name(), ns as f64 * 1e-6 / n as f64))
         .collect();
@@ -493,9 +493,9 @@ struct Variant<'a> {
 impl Variant<'_> {
     /// Runs `f` with this variant's kernels, restoring the packed kernels afterwards.
     fn with<R>(&self, f: impl FnOnce(&PiModel) -> R) -> R {
-        super::packed::set_enabled(self.packed);
+        chunkrt_policy::packed::set_enabled(self.packed);
         let r = f(self.model);
-        super::packed::set_enabled(true);
+        chunkrt_policy::packed::set_enabled(true);
         r
     }
 }
@@ -517,7 +517,7 @@ pub fn run_configs(
     let steps = cfg.num_denoise_steps;
     let m32 = random_inference_model(&cfg)?;
     let mut m16 = m32.clone();
-    let has_bf16 = super::packed::bf16_backend().is_some() && m16.use_bf16()?;
+    let has_bf16 = chunkrt_policy::packed::bf16_backend().is_some() && m16.use_bf16()?;
     let inp = random_inputs(&cfg, 1, valid, 1)?;
     let noise = Tensor::randn(
         0f32,
@@ -528,7 +528,7 @@ pub fn run_configs(
     let mut variants = vec![Variant {
         model: &m32,
         precision: "f32",
-        kernels: match super::packed::support().f32_kernel() {
+        kernels: match chunkrt_policy::packed::support().f32_kernel() {
             "avx-512" => "packed f32, avx-512",
             "avx2" => "packed f32, avx2",
             _ => "candle f32",
@@ -545,11 +545,11 @@ pub fn run_configs(
         variants.push(Variant {
             model: &m16,
             precision: "bf16",
-            kernels: super::packed::bf16_backend().unwrap_or("bf16"),
+            kernels: chunkrt_policy::packed::bf16_backend().unwrap_or("bf16"),
             packed: true,
         });
     }
-    if super::packed::support().f32_packed() {
+    if chunkrt_policy::packed::support().f32_packed() {
         variants.push(Variant {
             model: &m32,
             precision: "f32",
