@@ -131,7 +131,6 @@ pub struct ControlLoop {
     state: u32,
     ticks: u64,
     overruns: u64,
-    deadline_ns: u64,
     period_ns: u64,
     status_every: u64,
 }
@@ -143,7 +142,8 @@ impl ControlLoop {
         cfg: &Config,
     ) -> anyhow::Result<Self> {
         let ns = cfg.namespace();
-        let cmd_out = CommandOutput::new(node, &ns)?;
+        let cmd_out =
+            CommandOutput::new(node, &ns, (cfg.control.command_deadline_ms * 1e6) as u64)?;
         let mut status = ControllerStatus {
             n_dof: cfg.n_dof() as u32,
             ..Default::default()
@@ -160,7 +160,6 @@ impl ControlLoop {
             state: CONTROLLER_STATE_STARTING,
             ticks: 0,
             overruns: 0,
-            deadline_ns: (cfg.control.command_deadline_ms * 1e6) as u64,
             period_ns: cfg.control_period_ns(),
             status_every: ((cfg.control.rate_hz / cfg.control.status_rate_hz).round() as u64)
                 .max(1),
@@ -202,9 +201,7 @@ impl ControlLoop {
         let out = tick.tick(wake_ns, self.js.trusted(wake_ns), &mut self.cmd);
         self.status.state_reason = out.reason;
         if out.publish {
-            self.cmd.seq += 1;
-            self.cmd.deadline_ns = wake_ns + self.deadline_ns;
-            if self.cmd_out.publish(&self.cmd, monotonic_ns()) {
+            if self.cmd_out.publish(&self.cmd, wake_ns) {
                 shared.commands.fetch_add(1, Ordering::Relaxed);
             } else {
                 shared

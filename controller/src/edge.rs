@@ -492,15 +492,22 @@ impl RearmInput {
 /// Publishes joint commands.
 pub struct CommandOutput {
     publisher: Publisher<Ipc, JointCommand, ()>,
+    /// How long after its tick a command may still be applied (ns).
+    deadline_ns: u64,
+    /// The last sequence number stamped.
+    seq: u64,
 }
 
 impl CommandOutput {
-    /// Creates the publisher on `<ns>/joint_command`.
-    pub fn new(node: &Node<Ipc>, ns: &Namespace) -> Result<Self, IpcError> {
+    /// Creates the publisher on `<ns>/joint_command`; commands expire `deadline_ns` after
+    /// their tick.
+    pub fn new(node: &Node<Ipc>, ns: &Namespace, deadline_ns: u64) -> Result<Self, IpcError> {
         let name = ns.joint_command();
         let factory = services::joint_command_service(node, &name)?;
         Ok(Self {
             publisher: services::publisher(&factory, &name)?,
+            deadline_ns,
+            seq: 0,
         })
     }
 
@@ -510,13 +517,19 @@ impl CommandOutput {
         self.publisher.id().value()
     }
 
-    /// Publishes one command (stamping `publish_time_ns`); false if iceoryx2 refused.
-    /// The loan is the one allocation iceoryx2 0.10 makes per publish.
-    pub fn publish(&self, cmd: &JointCommand, now_ns: u64) -> bool {
+    /// Publishes the motion in `cmd` of the tick that woke at `tick_ns`, stamping the header —
+    /// the one place it is written: the next `seq`, `deadline_ns` = `tick_ns` + the configured
+    /// deadline (a tick preempted past it publishes a command the robot discards), and
+    /// `publish_time_ns` = now. False if iceoryx2 refused. The loan is the one allocation
+    /// iceoryx2 0.10 makes per publish.
+    pub fn publish(&mut self, cmd: &JointCommand, tick_ns: u64) -> bool {
         match self.publisher.loan_uninit() {
             Ok(sample) => {
+                self.seq += 1;
                 let mut c = *cmd;
-                c.publish_time_ns = now_ns;
+                c.seq = self.seq;
+                c.deadline_ns = tick_ns + self.deadline_ns;
+                c.publish_time_ns = monotonic_ns();
                 sample.write_payload(c).send().is_ok()
             }
             Err(_) => false,

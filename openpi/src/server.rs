@@ -515,13 +515,14 @@ fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
         reply.prev_total_ms = prev_total.map(|t| t.as_secs_f64() * 1e3);
         let mut w = crate::msgpack::Writer::new();
         reply.write(&mut w);
+        // counted before it is sent: a client that has its reply finds it counted
+        s.stats.replies.fetch_add(1, Ordering::Relaxed);
         if ws.send(Message::Binary(w.buf.into())).is_err() {
             return;
         }
         let total = start.elapsed();
         prev_total = Some(total);
         waiting_since = Instant::now();
-        s.stats.replies.fetch_add(1, Ordering::Relaxed);
         if let Ok(mut l) = s.stats.latency_us.lock() {
             if l.len() < 1 << 20 {
                 l.push((total.as_micros() as u64, infer.as_micros() as u64));

@@ -131,10 +131,8 @@ pub struct Executor {
     last_primary: u64,
     tracking_gain: f64,
     control_period_ns: u64,
-    deadline_ns: u64,
     js_max_age_ns: u64,
     overrun_streak: u32,
-    seq: u64,
     ticks: u64,
     joint_state_age_ns: u64,
     limit_warnings: u64,
@@ -185,10 +183,8 @@ impl Executor {
             last_primary: 0,
             tracking_gain: e.tracking_gain,
             control_period_ns,
-            deadline_ns: ms_to_ns(config.control.command_deadline_ms),
             js_max_age_ns: ms_to_ns(config.control.joint_state_max_age_ms),
             overrun_streak: e.overrun_streak.max(1),
-            seq: 0,
             ticks: 0,
             joint_state_age_ns: 0,
             limit_warnings: 0,
@@ -337,9 +333,9 @@ impl Executor {
         let mut report = self.report(primary);
         if self.initialized {
             let mode = self.step_generator(now_ns, &mut report);
-            self.write_command(now_ns, command, mode, &mut report, primary);
+            self.write_command(command, mode, &mut report, primary);
         } else {
-            self.write_idle_command(now_ns, command);
+            self.write_idle_command(command);
         }
         self.request(now_ns, &mut report);
         report
@@ -483,7 +479,6 @@ impl Executor {
     /// with the limit warnings).
     fn write_command(
         &mut self,
-        now_ns: u64,
         command: &mut JointCommand,
         mode: u32,
         report: &mut TickReport,
@@ -496,11 +491,8 @@ impl Executor {
         } else {
             (0, 0)
         };
-        self.seq += 1;
+        // the motion only: the header (seq, deadline, publish time) is the output's to stamp
         *command = JointCommand {
-            seq: self.seq,
-            publish_time_ns: now_ns,
-            deadline_ns: now_ns + self.deadline_ns,
             chunk_id: cid,
             observation_seq: oseq,
             n_dof: n as u32,
@@ -523,11 +515,8 @@ impl Executor {
     }
 
     /// Before the first fresh joint state: nothing to command (the caller does not publish).
-    fn write_idle_command(&self, now_ns: u64, command: &mut JointCommand) {
+    fn write_idle_command(&self, command: &mut JointCommand) {
         *command = JointCommand {
-            seq: self.seq,
-            publish_time_ns: now_ns,
-            deadline_ns: now_ns + self.deadline_ns,
             n_dof: self.limits.n as u32,
             ..JointCommand::default()
         };
