@@ -28,15 +28,12 @@ use crate::task::{ReachScene, TargetColor, REACH_TOLERANCE};
 /// `chunkrt demo`.
 #[derive(Debug, clap::Args)]
 pub struct DemoArgs {
-    /// Configuration file (default: the embedded demo robot).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
+    /// The processes: configuration, scene, namespace, logs, remote policy.
+    #[command(flatten)]
+    pub stack: StackArgs,
     /// Seconds to run without a task policy (Ctrl-C stops earlier).
     #[arg(long, default_value_t = 6.0)]
     pub duration: f64,
-    /// Scene seed: where the two targets are.
-    #[arg(long, default_value_t = 7)]
-    pub seed: u64,
     /// Prompts, one episode each (comma separated).
     #[arg(
         long,
@@ -50,8 +47,19 @@ pub struct DemoArgs {
     /// Where the report (demo.md) and plot (demo.png) go.
     #[arg(long, default_value = "target/chunkrt-demo")]
     pub out: PathBuf,
-    /// Service namespace (default: `<robot.namespace>-<pid>`, so a demo never collides with
-    /// another running chunkrt).
+}
+
+/// What `chunkrt demo` and `chunkrt soak` share: the stack of processes they start.
+#[derive(Debug, Clone, clap::Args)]
+pub struct StackArgs {
+    /// Configuration file (default: the embedded demo robot and its reach policy).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Scene seed of the reach task's camera: where the two targets are.
+    #[arg(long, default_value_t = 7)]
+    pub seed: u64,
+    /// Service namespace (default: `<robot.namespace>-<tag>-<pid>`, so the stack never collides
+    /// with another running chunkrt).
     #[arg(long)]
     pub namespace: Option<String>,
     /// Where the processes' logs go (default: a temporary folder).
@@ -62,6 +70,95 @@ pub struct DemoArgs {
     /// the controller (`chunkrt run --remote`).
     #[arg(long, value_name = "URL")]
     pub remote: Option<String>,
+}
+
+/// A prepared stack: its configuration (in its own namespace), the executable, where the logs
+/// go, and the arguments every process gets.
+pub(crate) struct Stack {
+    pub(crate) cfg: crate::config::Config,
+    pub(crate) ns: String,
+    pub(crate) exe: PathBuf,
+    pub(crate) log_dir: PathBuf,
+    /// Whether the configuration runs the reach task (a camera and a policy).
+    pub(crate) task: bool,
+    common: Vec<String>,
+    seed: u64,
+    remote: Option<String>,
+}
+
+impl StackArgs {
+    /// Loads the configuration into a namespace of its own (`tag` in its default name) and
+    /// makes the log folder; `exe` replaces this binary for the processes.
+    pub(crate) fn prepare(&self, tag: &str, exe: Option<&PathBuf>) -> anyhow::Result<Stack> {
+        let base = crate::run::load_config(self.config.as_ref(), None)?;
+        let ns = self
+            .namespace
+            .clone()
+            .unwrap_or_else(|| format!("{}-{tag}-{}", base.robot.namespace, std::process::id()));
+        let cfg = crate::run::load_config(self.config.as_ref(), Some(&ns))?;
+        let exe = match exe {
+            Some(p) => p.clone(),
+            None => std::env::current_exe().context("cannot find the chunkrt executable")?,
+        };
+        let log_dir = self.log_dir.clone().unwrap_or_else(|| {
+            std::env::temp_dir().join(format!("chunkrt-{tag}-{}", std::process::id()))
+        });
+        std::fs::create_dir_all(&log_dir)
+            .with_context(|| format!("cannot create {}", log_dir.display()))?;
+        let task = crate::task::task_camera(&cfg).is_ok() && cfg.policy.kind.is_some();
+        let mut common = vec!["--namespace".to_string(), ns.clone()];
+        if let Some(c) = &self.config {
+            common.extend(["--config".to_string(), c.display().to_string()]);
+        }
+        Ok(Stack {
+            cfg,
+            ns,
+            exe,
+            log_dir,
+            task,
+            common,
+            seed: self.seed,
+            remote: self.remote.clone(),
+        })
+    }
+}
+
+impl Stack {
+    /// The arguments of subcommand `sub` (namespace and configuration).
+    pub(crate) fn args(&self, sub: &str) -> Vec<String> {
+        let mut v = vec![sub.to_string()];
+        v.extend(self.common.iter().cloned());
+        v
+    }
+
+    /// The camera's arguments: the reach scene of the seed when the task runs.
+    pub(crate) fn camera_args(&self) -> Vec<String> {
+        let mut v = self.args("fake-camera");
+        if self.task {
+            v.extend([
+                "--scene".into(),
+                "reach".into(),
+                "--scene-seed".into(),
+                self.seed.to_string(),
+            ]);
+        }
+        v
+    }
+
+    /// The controller's arguments (no periodic log; the remote policy when one is given).
+    pub(crate) fn run_args(&self) -> Vec<String> {
+        let mut v = self.args("run");
+        v.extend(["--log-every".into(), "0".into()]);
+        if let Some(url) = &self.remote {
+            v.extend(["--remote".into(), url.clone()]);
+        }
+        v
+    }
+
+    /// The scene seed.
+    pub(crate) fn seed(&self) -> u64 {
+        self.seed
+    }
 }
 
 pub(crate) struct Proc {
@@ -380,30 +477,15 @@ fn quantiles_line(name: &str, values: &[u64]) -> String {
 /// Runs the demo.
 pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let stop_flag = chunkrt_tools::shutdown::flag();
-    let cfg = crate::run::load_config(args.config.as_ref(), None)?;
-    let ns = args
-        .namespace
-        .clone()
-        .unwrap_or_else(|| format!("{}-{}", cfg.robot.namespace, std::process::id()));
-    let cfg = crate::run::load_config(args.config.as_ref(), Some(&ns))?;
-    let exe = std::env::current_exe().context("cannot find the chunkrt executable")?;
-    let log_dir = args.log_dir.clone().unwrap_or_else(|| {
-        std::env::temp_dir().join(format!("chunkrt-demo-{}", std::process::id()))
-    });
-    std::fs::create_dir_all(&log_dir)
-        .with_context(|| format!("cannot create {}", log_dir.display()))?;
-    let task = crate::task::task_camera(&cfg).is_ok() && cfg.policy.kind.is_some();
-    let scene = task.then(|| ReachScene::from_seed(args.seed));
-
-    let mut common = vec!["--namespace".to_string(), ns.clone()];
-    if let Some(c) = &args.config {
-        common.extend(["--config".to_string(), c.display().to_string()]);
-    }
-    let with = |sub: &str| {
-        let mut v = vec![sub.to_string()];
-        v.extend(common.iter().cloned());
-        v
-    };
+    let stack = args.stack.prepare("demo", None)?;
+    let (cfg, ns, exe, log_dir, task) = (
+        &stack.cfg,
+        &stack.ns,
+        &stack.exe,
+        &stack.log_dir,
+        stack.task,
+    );
+    let scene = task.then(|| ReachScene::from_seed(stack.seed()));
     println!(
         "chunkrt demo: robot '{}' ({} joints), {} camera(s), policy '{}', namespace '{ns}', logs in {}",
         cfg.robot.name,
@@ -412,24 +494,19 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         cfg.policy.kind_name(),
         log_dir.display()
     );
-    let mut cam_args = with("fake-camera");
-    if task {
-        cam_args.extend([
-            "--scene".into(),
-            "reach".into(),
-            "--scene-seed".into(),
-            args.seed.to_string(),
-        ]);
-        if let Some(sc) = &scene {
-            println!(
-                "scene {}: red target at ({:+.2}, {:+.2}) m, blue target at ({:+.2}, {:+.2}) m",
-                args.seed, sc.targets[0][0], sc.targets[0][1], sc.targets[1][0], sc.targets[1][1]
-            );
-        }
+    if let Some(sc) = &scene {
+        println!(
+            "scene {}: red target at ({:+.2}, {:+.2}) m, blue target at ({:+.2}, {:+.2}) m",
+            stack.seed(),
+            sc.targets[0][0],
+            sc.targets[0][1],
+            sc.targets[1][0],
+            sc.targets[1][1]
+        );
     }
     let mut procs = [
-        spawn(&exe, "fake-robot", &with("fake-robot"), &log_dir)?,
-        spawn(&exe, "fake-camera", &cam_args, &log_dir)?,
+        spawn(exe, "fake-robot", &stack.args("fake-robot"), log_dir)?,
+        spawn(exe, "fake-camera", &stack.camera_args(), log_dir)?,
     ];
     let node = services::node(&format!("chunkrt-demo-{}", std::process::id()))?;
     let nsp = cfg.namespace();
@@ -447,11 +524,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
             &nsp.joint_command(),
         )?,
     };
-    let mut run_args = with("run");
-    run_args.extend(["--log-every".into(), "0".into()]);
-    if let Some(url) = &args.remote {
-        run_args.extend(["--remote".into(), url.clone()]);
-    }
+    let run_args = stack.run_args();
     let started = Instant::now();
     let prompts: Vec<String> = if task {
         args.prompts.clone()
@@ -474,9 +547,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         }
         let label = format!("{}/{}", i + 1, prompts.len());
         match episode(
-            &exe,
+            exe,
             &run_args,
-            &log_dir,
+            log_dir,
             &ports,
             scene.as_ref(),
             p,

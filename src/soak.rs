@@ -22,9 +22,9 @@ use crate::report::fmt_us;
 /// `chunkrt soak`.
 #[derive(Debug, clap::Args)]
 pub struct SoakArgs {
-    /// Configuration file (default: the embedded demo robot and its reach policy).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
+    /// The processes: configuration, scene, namespace, logs, remote policy.
+    #[command(flatten)]
+    pub stack: crate::demo::StackArgs,
     /// Seconds to run after the warm-up (Ctrl-C ends earlier and still prints the summary).
     #[arg(long, default_value_t = 600.0)]
     pub duration: f64,
@@ -35,18 +35,9 @@ pub struct SoakArgs {
     /// Prompt (default: the configuration's).
     #[arg(long)]
     pub prompt: Option<String>,
-    /// Scene seed of the reach task's camera.
-    #[arg(long, default_value_t = 7)]
-    pub seed: u64,
     /// Where the summary (soak.md) and the controller's histogram log go.
     #[arg(long, default_value = "target/chunkrt-soak")]
     pub out: PathBuf,
-    /// Service namespace (default: `<robot.namespace>-soak-<pid>`).
-    #[arg(long)]
-    pub namespace: Option<String>,
-    /// Where the processes' logs go (default: a temporary folder).
-    #[arg(long)]
-    pub log_dir: Option<PathBuf>,
     /// The chunkrt binary whose robot, camera and controller are soaked (default: this one),
     /// to compare two builds on the same machine with the same measurement.
     #[arg(long, value_name = "PATH")]
@@ -203,51 +194,14 @@ pub fn run(args: SoakArgs) -> anyhow::Result<()> {
         "--duration must be > 0 and --warmup >= 0 seconds"
     );
     let stop_flag = chunkrt_tools::shutdown::flag();
-    let base = crate::run::load_config(args.config.as_ref(), None)?;
-    let ns = args
-        .namespace
-        .clone()
-        .unwrap_or_else(|| format!("{}-soak-{}", base.robot.namespace, std::process::id()));
-    let cfg = crate::run::load_config(args.config.as_ref(), Some(&ns))?;
-    let exe = match &args.exe {
-        Some(p) => p.clone(),
-        None => std::env::current_exe().context("cannot find the chunkrt executable")?,
-    };
-    let log_dir = args.log_dir.clone().unwrap_or_else(|| {
-        std::env::temp_dir().join(format!("chunkrt-soak-{}", std::process::id()))
-    });
-    std::fs::create_dir_all(&log_dir)
-        .with_context(|| format!("cannot create {}", log_dir.display()))?;
+    let stack = args.stack.prepare("soak", args.exe.as_ref())?;
+    let (cfg, ns, exe, log_dir) = (&stack.cfg, &stack.ns, &stack.exe, &stack.log_dir);
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let hlog = args.out.join("soak.hlog");
-    let task = crate::task::task_camera(&cfg).is_ok() && cfg.policy.kind.is_some();
-
-    let mut common = vec!["--namespace".to_string(), ns.clone()];
-    if let Some(c) = &args.config {
-        common.extend(["--config".to_string(), c.display().to_string()]);
-    }
-    let with = |sub: &str| {
-        let mut v = vec![sub.to_string()];
-        v.extend(common.iter().cloned());
-        v
-    };
-    let mut cam_args = with("fake-camera");
-    if task {
-        cam_args.extend([
-            "--scene".into(),
-            "reach".into(),
-            "--scene-seed".into(),
-            args.seed.to_string(),
-        ]);
-    }
-    let mut run_args = with("run");
-    run_args.extend([
-        "--log-every".into(),
-        "0".into(),
-        "--histogram-log".into(),
-        hlog.display().to_string(),
-    ]);
+    let cam_args = stack.camera_args();
+    let mut run_args = stack.run_args();
+    run_args.extend(["--histogram-log".into(), hlog.display().to_string()]);
     if let Some(p) = &args.prompt {
         run_args.extend(["--prompt".into(), p.clone()]);
     }
@@ -262,11 +216,11 @@ pub fn run(args: SoakArgs) -> anyhow::Result<()> {
         log_dir.display()
     );
     let mut procs: Vec<Proc> = vec![
-        spawn(&exe, "fake-robot", &with("fake-robot"), &log_dir)?,
-        spawn(&exe, "fake-camera", &cam_args, &log_dir)?,
-        spawn(&exe, "controller", &run_args, &log_dir)?,
+        spawn(exe, "fake-robot", &stack.args("fake-robot"), log_dir)?,
+        spawn(exe, "fake-camera", &cam_args, log_dir)?,
+        spawn(exe, "controller", &run_args, log_dir)?,
     ];
-    let result = follow(&args, &cfg, &mut procs, stop_flag);
+    let result = follow(&args, cfg, &mut procs, stop_flag);
     let mut outcomes = Vec::new();
     // the controller first, so its summary and histogram log are complete
     for p in procs.iter_mut().rev() {
@@ -281,7 +235,7 @@ pub fn run(args: SoakArgs) -> anyhow::Result<()> {
             return Err(e);
         }
     };
-    let md = summary_markdown(&cfg, &figures, &stats, &outcomes);
+    let md = summary_markdown(cfg, &figures, &stats, &outcomes);
     println!("\n{md}");
     std::fs::write(args.out.join("soak.md"), &md)?;
     println!(

@@ -3,38 +3,22 @@
 //! that this Rust process receives and validates, and follows the commands this process
 //! publishes. Skipped loudly when `import iceoryx2` fails, a failure when `CI` is set.
 
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use chunkrt_ipc::services;
 use chunkrt_ipc::*;
 use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};
 
-fn in_ci() -> bool {
-    std::env::var("CI").is_ok_and(|v| !v.is_empty() && v != "0" && v != "false")
-}
+#[path = "common/python.rs"]
+mod python;
 
 /// True if `python3 -c "import iceoryx2"` works; otherwise shouts (and fails in CI).
 fn python_iceoryx2_available() -> bool {
-    let probe = Command::new("python3")
-        .args(["-c", "import iceoryx2"])
-        .output();
-    let why = match probe {
-        Ok(o) if o.status.success() => return true,
-        Ok(o) => String::from_utf8_lossy(&o.stderr).trim().to_string(),
-        Err(e) => format!("cannot run python3: {e}"),
-    };
-    let msg = format!(
-        "\n!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!\n\
-         !!! tools_python: the Python iceoryx2 package is not usable:\n!!! {why}\n\
-         !!! The Python round trip was NOT tested (pip install iceoryx2==0.10.0).\n\
-         !!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!\n"
-    );
-    if in_ci() {
-        panic!("{msg}(CI is set: this is a failure)");
-    }
-    eprintln!("{msg}");
-    false
+    python::python_can_import(
+        "import iceoryx2",
+        "tools_python",
+        "pip install iceoryx2==0.10.0",
+    )
 }
 
 #[test]

@@ -194,6 +194,22 @@ impl LatencyTable {
     }
 }
 
+/// One row of a plain-text table: `first` left-aligned in `w0` columns, then each cell
+/// right-aligned in its width, one space apart (the percentile tables of every bench).
+pub fn write_row(
+    f: &mut dyn std::fmt::Write,
+    first: &str,
+    w0: usize,
+    cells: &[String],
+    widths: &[usize],
+) -> std::fmt::Result {
+    write!(f, "{first:<w0$}")?;
+    for (c, w) in cells.iter().zip(widths) {
+        write!(f, " {c:>w$}")?;
+    }
+    writeln!(f)
+}
+
 impl std::fmt::Display for LatencyTable {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let w = self
@@ -206,23 +222,19 @@ impl std::fmt::Display for LatencyTable {
         if !self.title.is_empty() {
             writeln!(f, "{}", self.title)?;
         }
-        writeln!(
-            f,
-            "{:<w$} {:>9} {:>10} {:>10} {:>10} {:>10} {:>10}",
-            "series", "count", "p50 µs", "p90 µs", "p99 µs", "p99.9 µs", "max µs"
-        )?;
+        let widths = [9, 10, 10, 10, 10, 10];
+        let head = ["count", "p50 µs", "p90 µs", "p99 µs", "p99.9 µs", "max µs"];
+        write_row(f, "series", w, &head.map(String::from), &widths)?;
         for r in &self.rows {
-            writeln!(
-                f,
-                "{:<w$} {:>9} {:>10} {:>10} {:>10} {:>10} {:>10}",
-                r.name,
-                r.count,
+            let cells = [
+                r.count.to_string(),
                 fmt_us(r.p50_ns),
                 fmt_us(r.p90_ns),
                 fmt_us(r.p99_ns),
                 fmt_us(r.p999_ns),
-                fmt_us(r.max_ns)
-            )?;
+                fmt_us(r.max_ns),
+            ];
+            write_row(f, &r.name, w, &cells, &widths)?;
         }
         Ok(())
     }

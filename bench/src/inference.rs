@@ -9,6 +9,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use hdrhistogram::Histogram;
 
+use crate::histlog::write_row;
 use crate::openpi::{OpenpiInfo, OpenpiSetup, OpenpiWorker};
 use chunkrt_policy::config::{GemmaDims, ModelConfig};
 use chunkrt_policy::model::{ModelInputs, PiModel};
@@ -183,23 +184,19 @@ impl std::fmt::Display for BenchReport {
         )?;
         for c in &self.configs {
             writeln!(f, "== {} ({}, {}) ==", c.name, c.precision, c.kernels)?;
-            writeln!(
-                f,
-                "{:<16} {:>5} {:>10} {:>10} {:>9} {:>10} {:>12}",
-                "phase", "n", "p50 ms", "p99 ms", "GFLOP/s", "cpu ms", "GFLOP/cpu-s"
-            )?;
+            let widths = [5, 10, 10, 9, 10, 12];
+            let head = ["n", "p50 ms", "p99 ms", "GFLOP/s", "cpu ms", "GFLOP/cpu-s"];
+            write_row(f, "phase", 16, &head.map(String::from), &widths)?;
             for p in &c.phases {
-                writeln!(
-                    f,
-                    "{:<16} {:>5} {:>10.2} {:>10.2} {:>9.1} {:>10.2} {:>12.1}",
-                    p.name,
-                    p.n,
-                    p.p50_ms,
-                    p.p99_ms,
-                    p.gflops(),
-                    p.cpu_ms,
-                    p.flops / (p.cpu_ms * 1e-3) / 1e9
-                )?;
+                let cells = [
+                    p.n.to_string(),
+                    format!("{:.2}", p.p50_ms),
+                    format!("{:.2}", p.p99_ms),
+                    format!("{:.1}", p.gflops()),
+                    format!("{:.2}", p.cpu_ms),
+                    format!("{:.1}", p.flops / (p.cpu_ms * 1e-3) / 1e9),
+                ];
+                write_row(f, &p.name, 16, &cells, &widths)?;
             }
             for (what, split) in [
                 ("a cached step", &c.step_split),

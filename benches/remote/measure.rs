@@ -129,12 +129,11 @@ fn request(cameras: usize, n_dof: usize, rng: &mut impl Rng) -> Vec<u8> {
     w.buf
 }
 
-/// Round trips and the server's policy time for `n` requests (after 3 untimed).
-fn exchange(
-    client: &mut Client,
-    msg: &[u8],
-    n: usize,
-) -> Result<(Histogram<u64>, Histogram<u64>, Histogram<u64>), BenchError> {
+/// Round trips, the server's policy time, and their difference (what the wire adds).
+type Exchange = (Histogram<u64>, Histogram<u64>, Histogram<u64>);
+
+/// [`Exchange`] of `n` requests (after 3 untimed).
+fn exchange(client: &mut Client, msg: &[u8], n: usize) -> Result<Exchange, BenchError> {
     let (mut rtt, mut infer, mut wire) = (
         latency_histogram(),
         latency_histogram(),

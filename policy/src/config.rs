@@ -253,7 +253,7 @@ impl ModelConfig {
 
     /// Reads `dir/config.json`.
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
-        let s = crate::checkpoint::read_side_file(path)?;
+        let s = crate::files::read_side_file(path)?;
         Self::from_json_str(&s)
             .and_then(|c| c.validate().map(|()| c))
             .map_err(|e| PolicyError::Config(format!("{}: {e}", path.display())))

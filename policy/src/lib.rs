@@ -20,6 +20,7 @@ pub mod config;
 pub mod device;
 pub mod error;
 pub mod fastops;
+pub mod files;
 pub mod gemma;
 pub mod gpu;
 pub mod graph;

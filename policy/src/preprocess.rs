@@ -203,7 +203,7 @@ impl NormStats {
 
     /// Reads a `norm_stats.json`.
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
-        let s = crate::checkpoint::read_side_file(path)?;
+        let s = crate::files::read_side_file(path)?;
         let f: NormFile = serde_json::from_str(&s)
             .map_err(|e| PolicyError::Config(format!("{}: {e}", path.display())))?;
         for (n, st) in [
@@ -351,7 +351,7 @@ pub enum PromptTokenizer {
 impl PromptTokenizer {
     /// Loads `tokenizer.json`; BOS = the id of `<bos>` (2 when absent).
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
-        let bytes = crate::checkpoint::read_bounded(path, crate::checkpoint::MAX_SIDE_FILE_BYTES)?;
+        let bytes = crate::files::read_bounded(path, crate::files::MAX_SIDE_FILE_BYTES)?;
         let tok = tokenizers::Tokenizer::from_bytes(&bytes)
             .map_err(|e| PolicyError::Tokenizer(format!("{}: {e}", path.display())))?;
         let bos = tok.token_to_id("<bos>").unwrap_or(2);

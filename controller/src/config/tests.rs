@@ -4,9 +4,8 @@ use super::*;
 #[test]
 fn embedded_default_is_valid() {
     let c = Config::embedded_default();
-    assert!(c.n_dof() >= 2);
-    assert!(!c.cameras.is_empty());
-    assert_eq!(c.control_period_ns(), 1_000_000);
+    assert_eq!(c.policy.kind, Some(ModelKind::Pi05));
+    assert_eq!(c.shared().n_dof(), c.n_dof());
 }
 
 fn with(edit: impl Fn(&mut toml::Table)) -> Result<Config, ConfigError> {
@@ -17,22 +16,7 @@ fn with(edit: impl Fn(&mut toml::Table)) -> Result<Config, ConfigError> {
 
 #[test]
 fn errors_name_file_key_and_range() {
-    let e = with(|t| {
-        t["control"]["rate_hz"] = toml::Value::Float(-3.0);
-    })
-    .unwrap_err()
-    .to_string();
-    assert!(e.contains("test.toml"), "{e}");
-    assert!(e.contains("control.rate_hz"), "{e}");
-    assert!(e.contains("10..=10000"), "{e}");
-
-    let e = with(|t| {
-        t["robot"]["joints"][1]["max_velocity"] = toml::Value::Float(f64::NAN);
-    })
-    .unwrap_err()
-    .to_string();
-    assert!(e.contains("robot.joints[1].max_velocity"), "{e}");
-
+    // the shared sections' errors are chunkrt-ipc's (its tests); these are the owned sections'
     let e = with(|t| {
         t["execution"]
             .as_table_mut()
@@ -101,22 +85,44 @@ fn policy_threads_are_bounded_by_the_cores() {
 #[test]
 fn unknown_keys_are_rejected() {
     let e = with(|t| {
-        t["control"]
+        t["execution"]
             .as_table_mut()
             .unwrap()
-            .insert("rate_hzz".into(), toml::Value::Float(1.0));
+            .insert("strategyy".into(), toml::Value::String("rtc".into()));
     })
     .unwrap_err()
     .to_string();
-    assert!(e.contains("rate_hzz"), "{e}");
+    assert!(e.contains("strategyy"), "{e}");
+    let e = Config::parse("[nonsense]\n", "x.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("nonsense") || e.contains("missing"), "{e}");
 }
 
 #[test]
-fn position_limits_must_be_ordered() {
+fn a_remote_policy_needs_a_ws_url() {
+    let set = |k: &str, v: &str| {
+        with(|t| {
+            let p = t["policy"].as_table_mut().unwrap();
+            p.insert("source".into(), toml::Value::String("remote".into()));
+            if !k.is_empty() {
+                p.insert(k.into(), toml::Value::String(v.into()));
+            }
+        })
+    };
+    assert!(set("", "").unwrap_err().to_string().contains("policy.url"));
+    let e = set("url", "http://gpu:8000").unwrap_err().to_string();
+    assert!(e.contains("ws://host:port"), "{e}");
+    let c = set("url", "ws://gpu-box:8000").unwrap();
+    assert_eq!(c.policy.source, PolicySource::Remote);
     let e = with(|t| {
-        t["robot"]["joints"][0]["position_max"] = toml::Value::Float(-10.0);
+        t.insert("openpi".into(), toml::Value::Table(toml::Table::new()));
+        t["openpi"]
+            .as_table_mut()
+            .unwrap()
+            .insert("preset".into(), toml::Value::String("ur5".into()));
     })
     .unwrap_err()
     .to_string();
-    assert!(e.contains("position_max") && e.contains("greater"), "{e}");
+    assert!(e.contains("ur5") && e.contains("libero"), "{e}");
 }

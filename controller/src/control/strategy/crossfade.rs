@@ -4,7 +4,7 @@
 
 use std::collections::VecDeque;
 
-use super::{replace::first_due, sample_current, Sampling, Slot, Transition};
+use super::{first_due, sample_current, Sampling, Slot, Transition};
 use crate::chunk::ActionChunk;
 use crate::control::interp::{Coverage, Sample};
 

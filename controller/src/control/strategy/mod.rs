@@ -49,6 +49,13 @@ impl Sampling {
     }
 }
 
+/// Time of the first action of `chunk` due at or after `now` (where `replace` and `crossfade`
+/// switch).
+pub(super) fn first_due(chunk: &ActionChunk, now: i64, s: &Sampling) -> i64 {
+    let k = interp::first_due_at_or_after(chunk, now, s.offset_ns);
+    interp::start_ns(chunk, s.offset_ns) + k as i64 * chunk.period_ns as i64
+}
+
 /// One chunk-transition strategy. Called from the control tick: no allocation, no locks.
 pub(crate) trait Transition {
     /// From when a newly accepted chunk is in effect (`now`: the tick's time, ns).
