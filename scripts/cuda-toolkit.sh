@@ -134,8 +134,18 @@ if [ ! -x "$root/bin/nvcc" ]; then
 fi
 
 lib=$root/lib
-(cd "$lib" && for n in cublas cublasLt cudart nvrtc; do ln -sf "lib$n.so.13" "lib$n.so"; done \
+(cd "$lib" && for n in cublas cublasLt nvrtc; do ln -sf "lib$n.so.13" "lib$n.so"; done \
   && ln -sf libcurand.so.10 libcurand.so)
+# The CUDA runtime that candle-kernels links (`-lcudart`) is taken static: with no libcudart.so
+# beside it the linker uses libcudart.a, which reaches the driver itself when a GPU is first used,
+# so the binary needs no CUDA library to start (cudarc opens the others at run time).
+if [ -f "$lib/libcudart_static.a" ]; then
+  rm -f "$lib/libcudart.so"
+  ln -sf libcudart_static.a "$lib/libcudart.a"
+else
+  echo "cuda-toolkit: warning: no libcudart_static.a in $lib: the binary will need libcudart.so.13 to start" >&2
+  ln -sf libcudart.so.13 "$lib/libcudart.so"
+fi
 
 if [ ! -f "$lib/stubs/libcuda.so" ] \
    || [ "$(cat "$lib/stubs/cudarc-version" 2>/dev/null)" != "$cudarc_version" ]; then

@@ -395,3 +395,105 @@ fn stale_cameras_mask_from_frame_ages() {
         0
     );
 }
+
+/// A chunk source that never delivers a usable chunk (test doubles): it fails, it hands out
+/// non-finite chunks, or it has nothing.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Broken {
+    Fails,
+    NonFinite,
+    Nothing,
+}
+
+impl chunkrt::contract::ChunkSource for Broken {
+    fn name(&self) -> &str {
+        "broken (test double)"
+    }
+
+    fn compute(
+        &mut self,
+        _obs: &chunkrt::contract::Observation,
+        req: &chunkrt::contract::InferenceRequest,
+    ) -> anyhow::Result<Option<chunkrt::chunk::ActionChunk>> {
+        match self {
+            Broken::Fails => anyhow::bail!("inference failed (test double)"),
+            Broken::Nothing => Ok(None),
+            Broken::NonFinite => Ok(Some(chunkrt::chunk::ActionChunk {
+                id: req.id,
+                observation_seq: req.id,
+                t_obs_ns: req.t_ref_ns,
+                period_ns: 20_000_000,
+                n_dof: 4,
+                actions: vec![f64::NAN; 4 * 50],
+                ready_ns: req.t_ref_ns,
+                start_shift_ns: 0,
+            })),
+        }
+    }
+}
+
+/// Runs `source` for `ms` ticks of 1 ms with a fresh joint state; returns the state and the
+/// state reason at every tick.
+fn run_broken(
+    mut source: Broken,
+    hold_to_fault_ms: f64,
+    ms: u64,
+    without_source: bool,
+) -> Vec<(State, Option<Reason>)> {
+    use chunkrt::worker::{Delivery, InferenceWorker};
+    let mut cfg = Config::embedded_default();
+    cfg.execution.hold_to_fault_ms = hold_to_fault_ms;
+    let mut exec = chunkrt::control::Executor::new(&cfg).unwrap();
+    if without_source {
+        exec.without_chunk_source();
+    }
+    let mut worker = InferenceWorker::new(exec.connect(), Delivery::Immediate);
+    let obs = chunkrt::contract::Observation::new(&cfg);
+    let mut js = chunkrt::ipc::JointState {
+        n_dof: 4,
+        ..Default::default()
+    };
+    js.position[1] = 1.2;
+    js.position[2] = 0.6;
+    let mut cmd = JointCommand::default();
+    (0..ms)
+        .map(|k| {
+            let now = START_NS + k * 1_000_000;
+            worker.step(now, &mut source, &obs);
+            js.seq += 1;
+            js.measurement_time_ns = now;
+            exec.tick(now, Some(&js), &mut cmd);
+            (exec.state(), exec.state_reason())
+        })
+        .collect()
+}
+
+/// A policy that never produces a usable chunk does not leave the controller in STARTING: the
+/// status names the cause while it waits, and after `hold_to_fault_ms` it is a FAULT with that
+/// cause (issue: 14 s in STARTING with state reason 0 was observed).
+#[test]
+fn a_source_that_never_delivers_escalates_to_fault_with_its_cause() {
+    for (source, cause) in [
+        (Broken::Fails, Reason::InferenceError),
+        (Broken::NonFinite, Reason::NonFiniteAction),
+        (Broken::Nothing, Reason::NoChunk),
+    ] {
+        let trace = run_broken(source, 300.0, 600, false);
+        // waiting: STARTING, naming the cause
+        assert_eq!(trace[150], (State::Starting, Some(cause)), "{source:?}");
+        // escalated within hold_to_fault (plus the first request's tick)
+        let fault = trace
+            .iter()
+            .position(|(s, _)| *s == State::Fault)
+            .unwrap_or_else(|| panic!("{source:?}: never FAULT"));
+        assert!(
+            (299..=305).contains(&fault),
+            "{source:?}: FAULT at tick {fault}"
+        );
+        assert_eq!(trace[fault].1, Some(cause), "{source:?}");
+        assert!(trace[fault..].iter().all(|(s, _)| *s == State::Fault));
+    }
+    // without a chunk source (`policy.kind = "hold"`) STARTING is the plan: no escalation
+    let trace = run_broken(Broken::Nothing, 300.0, 900, true);
+    assert!(trace.iter().all(|(s, _)| *s == State::Starting));
+}

@@ -118,6 +118,11 @@ fn rust_constants() -> BTreeMap<String, u64> {
             STATE_REASON_GENERATOR_ERROR as u64,
         ),
         ("STATE_REASON_REARM", STATE_REASON_REARM as u64),
+        (
+            "STATE_REASON_INFERENCE_ERROR",
+            STATE_REASON_INFERENCE_ERROR as u64,
+        ),
+        ("STATE_REASON_NOT_OBEYED", STATE_REASON_NOT_OBEYED as u64),
         ("REARM_NONE", REARM_NONE as u64),
         ("REARM_ACCEPTED", REARM_ACCEPTED as u64),
         (

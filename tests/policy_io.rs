@@ -652,3 +652,111 @@ fn a_missing_tokenizer_is_an_error_unless_declared() {
     chunkrt::policy::Policy::load(&tmp, &opts).expect("declared stand-in loads");
     std::fs::remove_dir_all(&tmp).ok();
 }
+
+/// A copy of the committed reach checkpoint in a temporary folder of its own.
+fn reach_copy(tag: &str) -> std::path::PathBuf {
+    let src = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/reach_pi05");
+    let tmp = std::env::temp_dir().join(format!("chunkrt_{tag}_{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    for f in [
+        "config.json",
+        "model.safetensors",
+        "tokenizer.json",
+        "norm_stats.json",
+    ] {
+        std::fs::copy(src.join(f), tmp.join(f)).unwrap();
+    }
+    tmp
+}
+
+fn load_reach(dir: &std::path::Path) -> Option<String> {
+    let mut cfg = chunkrt::config::Config::embedded_default();
+    cfg.policy.checkpoint = Some(dir.to_path_buf());
+    chunkrt::inference::PolicySource::load(&cfg)
+        .err()
+        .map(|e| format!("{e:#}"))
+}
+
+/// Statistics without spread on a robot joint (q01 == q99, or std 0) divide by ~1e-6: they drove
+/// the arm to its limits. Refused at load, naming the joints.
+#[test]
+fn flat_norm_stats_are_refused_naming_the_joints() {
+    let tmp = reach_copy("flat");
+    let mut ns: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(tmp.join("norm_stats.json")).unwrap())
+            .unwrap();
+    let q01 = ns["norm_stats"]["actions"]["q01"][2].clone();
+    ns["norm_stats"]["actions"]["q99"][2] = q01;
+    std::fs::write(tmp.join("norm_stats.json"), ns.to_string()).unwrap();
+    let e = load_reach(&tmp).expect("flat statistics refused");
+    assert!(e.contains("joint(s) [2] have no spread"), "{e}");
+    std::fs::remove_dir_all(&tmp).ok();
+}
+
+/// A tokenizer whose ids run past the model's embedding table is refused at load (token ids
+/// beyond the vocabulary left the controller in STARTING for as long as it ran).
+#[test]
+fn a_tokenizer_beyond_the_vocabulary_is_refused() {
+    let tmp = reach_copy("vocab");
+    let mut tok: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(tmp.join("tokenizer.json")).unwrap())
+            .unwrap();
+    let vocab = tok["model"]["vocab"].as_object_mut().unwrap();
+    for i in 0..50 {
+        let n = vocab.len();
+        vocab.insert(format!("extra{i}"), serde_json::Value::from(n));
+    }
+    std::fs::write(tmp.join("tokenizer.json"), tok.to_string()).unwrap();
+    let e = load_reach(&tmp).expect("refused");
+    assert!(e.contains("embedding has 288 rows"), "{e}");
+    std::fs::remove_dir_all(&tmp).ok();
+}
+
+/// Non-finite weights: the first chunk, computed at load on a synthetic observation, is not
+/// finite, and the load says so (the controller stayed in STARTING with reason 0).
+#[test]
+fn non_finite_weights_fail_at_load() {
+    let tmp = reach_copy("nan");
+    let path = tmp.join("model.safetensors");
+    let mut m = candle_core::safetensors::load(&path, &candle_core::Device::Cpu).unwrap();
+    let (name, t) = m
+        .iter()
+        .find(|(k, _)| k.contains("action_out_proj.weight"))
+        .map(|(k, t)| (k.clone(), t.clone()))
+        .expect("the action head");
+    let nan = (t.ones_like().unwrap() * f64::NAN).unwrap();
+    m.insert(name, nan);
+    candle_core::safetensors::save(&m, &path).unwrap();
+    let e = load_reach(&tmp).expect("refused");
+    assert!(e.contains("first chunk") && e.contains("non-finite"), "{e}");
+    std::fs::remove_dir_all(&tmp).ok();
+}
+
+/// Side files are read only when regular and small: a FIFO as tokenizer.json hung `chunkrt
+/// run` forever; /dev/zero as config.json was read to 4.2 GB.
+#[test]
+fn a_fifo_or_a_huge_side_file_is_a_clear_error() {
+    let tmp = reach_copy("fifo");
+    let tok = tmp.join("tokenizer.json");
+    std::fs::remove_file(&tok).unwrap();
+    let c = std::ffi::CString::new(tok.to_str().unwrap()).unwrap();
+    // SAFETY: mkfifo(3) on a path we own
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    let t0 = std::time::Instant::now();
+    let e = load_reach(&tmp).expect("refused");
+    assert!(e.contains("not a regular file"), "{e}");
+    assert!(t0.elapsed() < std::time::Duration::from_secs(10));
+    std::fs::remove_file(&tok).unwrap();
+    let f = std::fs::File::create(tmp.join("config.json")).unwrap();
+    f.set_len(chunkrt::policy::files::MAX_SIDE_FILE_BYTES + 1)
+        .unwrap();
+    std::fs::copy(
+        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("models/reach_pi05/tokenizer.json"),
+        &tok,
+    )
+    .unwrap();
+    let e = load_reach(&tmp).expect("refused");
+    assert!(e.contains("at most"), "{e}");
+    std::fs::remove_dir_all(&tmp).ok();
+}

@@ -33,6 +33,11 @@ pub trait ChunkSource: Send {
     fn delayed_views(&self) -> &[chunkrt_policy::DelayedView] {
         &[]
     }
+    /// Whether the source produces chunks at all (`HoldSource` does not: the controller then
+    /// holds in STARTING by design instead of escalating to FAULT).
+    fn produces_chunks(&self) -> bool {
+        true
+    }
     /// Sets the prompt of the chunks from now on (a source without one ignores it).
     fn set_prompt(&mut self, _prompt: &str) {}
     /// Restarts the source's noise sequence from `seed`, where it has one it controls (the
@@ -48,6 +53,9 @@ pub struct HoldSource;
 impl ChunkSource for HoldSource {
     fn name(&self) -> &str {
         "hold"
+    }
+    fn produces_chunks(&self) -> bool {
+        false
     }
     fn compute(
         &mut self,

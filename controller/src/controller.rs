@@ -74,6 +74,9 @@ impl Controller {
     ) -> anyhow::Result<Self> {
         let link = executor.connect();
         let executor_events = executor.events();
+        if !source.produces_chunks() {
+            executor.without_chunk_source();
+        }
         // clean up shared memory of controllers that died without doing so
         {
             let node = services::node("chunkrt-cleanup")?;

@@ -91,13 +91,54 @@ impl PolicySource {
             cfg.execution.execute_horizon,
             policy.horizon()
         );
-        Ok(Self {
+        let mut me = Self {
             policy,
             pool,
             prompt: cfg.policy.prompt.clone(),
             period_ns: (1e9 / cfg.policy.action_rate_hz).round() as u64,
             conditioner: Conditioner::new(cfg),
-        })
+        };
+        me.warm_up(cfg)
+            .with_context(|| format!("{}: the policy's first chunk", dir.display()))?;
+        Ok(me)
+    }
+
+    /// One chunk on a synthetic observation (grey frames of every camera, the joints at their
+    /// initial positions) before the controller starts: a policy that cannot produce a usable
+    /// chunk (non-finite weights, a broken tokenizer) fails here, at load, with the reason —
+    /// not later as a controller that never leaves STARTING. (It also pays the first call's
+    /// one-off costs: packing, graph capture.) The noise sequence is restarted after it.
+    fn warm_up(&mut self, cfg: &Config) -> anyhow::Result<()> {
+        let pixels: Vec<(String, u32, u32, Vec<u8>)> = cfg
+            .cameras
+            .iter()
+            .map(|c| {
+                let n = 3 * c.width as usize * c.height as usize;
+                (c.name.clone(), c.width, c.height, vec![128u8; n])
+            })
+            .collect();
+        let frames: Vec<RawFrame<'_>> = pixels
+            .iter()
+            .map(|(name, w, h, data)| RawFrame {
+                camera: name,
+                width: *w,
+                height: *h,
+                stride: 3 * *w,
+                encoding: Encoding::Rgb8,
+                data,
+            })
+            .collect();
+        let mut js = chunkrt_ipc::JointState {
+            n_dof: cfg.n_dof() as u32,
+            ..Default::default()
+        };
+        for (i, j) in cfg.robot.joints.iter().enumerate() {
+            js.position[i] = j.initial_position;
+        }
+        let chunk = self.infer_chunk(&frames, &js, 0, &InferenceRequest::default())?;
+        anyhow::ensure!(chunk.horizon() > 0, "an empty chunk");
+        self.policy.reseed(crate::policy::runtime::DEFAULT_SEED);
+        Ok(())
     }
 
     /// Action horizon of the loaded model.

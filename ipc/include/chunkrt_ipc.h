@@ -166,6 +166,8 @@ typedef struct JointCommand {
 #define CHUNKRT_STATE_REASON_BAD_JOINT_STATE 10u
 #define CHUNKRT_STATE_REASON_GENERATOR_ERROR 11u
 #define CHUNKRT_STATE_REASON_REARM 12u
+#define CHUNKRT_STATE_REASON_INFERENCE_ERROR 13u
+#define CHUNKRT_STATE_REASON_NOT_OBEYED 14u
 
 /* The answer to re-arm request ControllerStatus.rearm_seq. */
 #define CHUNKRT_REARM_NONE 0u

@@ -90,6 +90,8 @@ STATE_REASON_HOLD_TIMEOUT = 9
 STATE_REASON_BAD_JOINT_STATE = 10
 STATE_REASON_GENERATOR_ERROR = 11
 STATE_REASON_REARM = 12
+STATE_REASON_INFERENCE_ERROR = 13
+STATE_REASON_NOT_OBEYED = 14
 
 # ---- re-arm answers (ControllerStatus.rearm_result for request rearm_seq) ---------------------
 

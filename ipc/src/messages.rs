@@ -238,6 +238,11 @@ pub const STATE_REASON_BAD_JOINT_STATE: u32 = 10;
 pub const STATE_REASON_GENERATOR_ERROR: u32 = 11;
 /// An operator re-armed the controller.
 pub const STATE_REASON_REARM: u32 = 12;
+/// The chunk source failed (an inference error, a remote server that does not answer).
+pub const STATE_REASON_INFERENCE_ERROR: u32 = 13;
+/// The robot obeys another command publisher (its joint state names the session it is bound
+/// to), or none yet: this controller's commands are not applied.
+pub const STATE_REASON_NOT_OBEYED: u32 = 14;
 
 /// Text of a `STATE_REASON_*` code.
 pub const fn state_reason_name(code: u32) -> &'static str {
@@ -255,6 +260,8 @@ pub const fn state_reason_name(code: u32) -> &'static str {
         STATE_REASON_BAD_JOINT_STATE => "joint state does not match the robot",
         STATE_REASON_GENERATOR_ERROR => "trajectory generator error",
         STATE_REASON_REARM => "re-armed",
+        STATE_REASON_INFERENCE_ERROR => "the chunk source failed",
+        STATE_REASON_NOT_OBEYED => "the robot does not obey this controller",
         _ => "unknown",
     }
 }

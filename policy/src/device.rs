@@ -38,6 +38,15 @@ impl DeviceSpec {
                          `cargo build --release --features cuda` (README, section GPU)"
                     )));
                 }
+                #[cfg(feature = "cuda")]
+                missing_cuda_libraries().map_err(|missing| {
+                    PolicyError::Config(format!(
+                        "device {self}: cannot load {missing}: install the NVIDIA driver (580 \
+                         series, CUDA 13.0; it brings libcuda.so.1) and put the CUDA 13 \
+                         libraries on the library path (a CUDA 13.0 toolkit, or the \
+                         nvidia-*-cu13 wheels; README, section GPU)"
+                    ))
+                })?;
                 let dev = Device::new_cuda(n).map_err(|e| {
                     // the driver's error on its first line (candle appends a backtrace)
                     let e = e.to_string();
@@ -135,6 +144,39 @@ impl FromStr for Precision {
                 "precision {s:?}: must be one of f32, bf16"
             ))),
         }
+    }
+}
+
+/// The CUDA libraries this build opens at run time (cudarc loads them dynamically: the binary
+/// starts without them) that cannot be loaded here, as one list; Ok when all can.
+#[cfg(feature = "cuda")]
+fn missing_cuda_libraries() -> Result<(), String> {
+    use candle_core::cuda_backend::cudarc;
+    // SAFETY: each call only tries to dlopen the library (and closes nothing it did not open)
+    let present = unsafe {
+        [
+            (
+                "libcuda.so.1 (the NVIDIA driver)",
+                cudarc::driver::sys::is_culib_present(),
+            ),
+            ("libcublas.so.13", cudarc::cublas::sys::is_culib_present()),
+            (
+                "libcublasLt.so.13",
+                cudarc::cublaslt::sys::is_culib_present(),
+            ),
+            ("libcurand.so.10", cudarc::curand::sys::is_culib_present()),
+            ("libnvrtc.so.13", cudarc::nvrtc::sys::is_culib_present()),
+        ]
+    };
+    let missing: Vec<&str> = present
+        .iter()
+        .filter(|(_, ok)| !ok)
+        .map(|(name, _)| *name)
+        .collect();
+    if missing.is_empty() {
+        Ok(())
+    } else {
+        Err(missing.join(", "))
     }
 }
 

@@ -247,10 +247,35 @@ impl NormStats {
                     return Err(err("q01 must be finite and at most q99".into()));
                 }
             }
+            // a robot joint whose statistics have no spread divides by ~1e-6: a state a
+            // hundredth off becomes 1e4, and the chunk drove the arm to its limits
+            let spread: Vec<f32> = match mode {
+                NormMode::Quantile => quantiles(st)
+                    .map(|(q01, q99)| q01.iter().zip(q99).map(|(a, b)| b - a).collect())
+                    .unwrap_or_default(),
+                NormMode::ZScore => st.std.clone(),
+            };
+            let flat: Vec<usize> = (0..n_dof.min(spread.len()))
+                .filter(|&i| spread[i] < MIN_SPREAD)
+                .collect();
+            if !flat.is_empty() {
+                return Err(err(format!(
+                    "joint(s) {flat:?} have no spread ({} below {MIN_SPREAD}): normalising by it \
+                     would turn a small offset into a full-scale action; fix the statistics \
+                     (recompute them on data where those joints move)",
+                    match mode {
+                        NormMode::Quantile => "q99 - q01",
+                        NormMode::ZScore => "std",
+                    }
+                )));
+            }
         }
         Ok(())
     }
 }
+
+/// The least spread (q99 − q01, or std) a robot joint's statistics may have (rad or m).
+pub const MIN_SPREAD: f32 = 1e-4;
 
 fn quantiles(s: &Stats) -> Result<(&[f32], &[f32]), PolicyError> {
     match (&s.q01, &s.q99) {
@@ -369,6 +394,14 @@ impl PromptTokenizer {
                 .get_ids()
                 .to_vec()),
             PromptTokenizer::ByteStandIn => Ok(text.bytes().map(|b| b as u32 + 3).collect()),
+        }
+    }
+
+    /// The largest id this tokenizer can produce, plus one.
+    pub fn id_bound(&self) -> usize {
+        match self {
+            PromptTokenizer::Hf { tok, .. } => tok.get_vocab_size(true),
+            PromptTokenizer::ByteStandIn => 256 + 3,
         }
     }
 

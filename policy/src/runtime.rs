@@ -81,6 +81,9 @@ enum Continue<'a> {
     Committed(&'a Tensor, usize),
 }
 
+/// The noise seed a freshly loaded policy starts from ([`Policy::reseed`] restarts it).
+pub const DEFAULT_SEED: u64 = 0x5eed;
+
 /// A loaded policy with its reusable buffers.
 pub struct Policy {
     model: PiModel,
@@ -191,6 +194,17 @@ impl Policy {
                 checkpoint_dir.display()
             )));
         };
+        // a token id beyond the embedding table is not an error candle reports: it reads past
+        // the table or yields NaN; refuse the pair at load
+        let (ids, vocab) = (tokenizer.id_bound(), model.cfg.vocab_size);
+        if ids > vocab {
+            return Err(PolicyError::Tokenizer(format!(
+                "{}: the tokenizer has ids up to {} but the model's embedding has {vocab} rows: \
+                 they do not belong together",
+                checkpoint_dir.display(),
+                ids - 1
+            )));
+        }
         let ns_path = checkpoint_dir.join("norm_stats.json");
         let norm = if ns_path.exists() {
             let ns = NormStats::from_file(&ns_path)?;
@@ -214,7 +228,7 @@ impl Policy {
             norm,
             steps: opts.num_steps.max(1),
             cache: None,
-            rng: rand_chacha::ChaCha8Rng::seed_from_u64(0x5eed),
+            rng: rand_chacha::ChaCha8Rng::seed_from_u64(DEFAULT_SEED),
             images: Vec::new(),
             noise: Vec::new(),
             offsets: Vec::new(),

@@ -118,6 +118,8 @@ pub struct Executor {
     /// See [`InferenceLink::failed_requests`], and its value at the last tick.
     failed_requests: std::sync::Arc<std::sync::atomic::AtomicU64>,
     failed_seen: u64,
+    /// The source failed since the last chunk arrived.
+    source_failing: bool,
     /// Its value at the last tick (for the status).
     stale_seen: u64,
     /// The joint state was missing or stale at some tick since the last fresh one (a robot
@@ -173,6 +175,7 @@ impl Executor {
             stale_cameras: Default::default(),
             failed_requests: Default::default(),
             failed_seen: 0,
+            source_failing: false,
             stale_seen: 0,
             js_gap: false,
             chunk_tx,
@@ -199,6 +202,12 @@ impl Executor {
             stale_cameras: self.stale_cameras.clone(),
             failed_requests: self.failed_requests.clone(),
         }
+    }
+
+    /// Runs without a chunk source (`policy.kind = "hold"`): waiting for a chunk in STARTING is
+    /// the plan, not a stuck state, so it does not escalate to FAULT.
+    pub fn without_chunk_source(&mut self) {
+        self.safety.set_escalation(false);
     }
 
     /// Reader of the state-transition events (drain and log them off the control thread).
@@ -296,6 +305,7 @@ impl Executor {
         self.ticks += 1;
         if self.timeline.receive(now_ns) {
             self.requests.landed();
+            self.source_failing = false;
         }
         let failed = self
             .failed_requests
@@ -303,6 +313,7 @@ impl Executor {
         if failed != self.failed_seen {
             // the request in flight came back without a chunk: ask again now
             self.failed_seen = failed;
+            self.source_failing = true;
             self.requests.landed();
         }
         let js = self.check_joint_state(now_ns, joint_state);
@@ -386,7 +397,9 @@ impl Executor {
         } else if let Some(r) = self.timeline.bad_input {
             Some(r)
         } else if primary.is_none() {
-            Some(if self.timeline.had_chunk {
+            Some(if self.source_failing {
+                Reason::InferenceError
+            } else if self.timeline.had_chunk {
                 Reason::ChunkExpired
             } else {
                 Reason::NoChunk

@@ -75,6 +75,27 @@ pub enum Reason {
     GeneratorError,
     /// Explicit re-arm.
     Rearm,
+    /// The chunk source failed (and no chunk came since).
+    InferenceError,
+    /// The robot obeys another command publisher, or none yet.
+    NotObeyed,
+}
+
+impl Reason {
+    /// A problem that waiting in STARTING does not cure by itself: the policy side or the robot's
+    /// session, not an input that is still coming up. After `hold_to_fault_ms` of it, STARTING
+    /// goes to FAULT with it as the reason.
+    pub fn stuck_in_starting(self) -> bool {
+        matches!(
+            self,
+            Self::NoChunk
+                | Self::NonFiniteAction
+                | Self::BadChunk
+                | Self::ChunkExpired
+                | Self::InferenceError
+                | Self::NotObeyed
+        )
+    }
 }
 
 impl Reason {
@@ -94,6 +115,8 @@ impl Reason {
             Self::BadJointState => STATE_REASON_BAD_JOINT_STATE,
             Self::GeneratorError => STATE_REASON_GENERATOR_ERROR,
             Self::Rearm => STATE_REASON_REARM,
+            Self::InferenceError => STATE_REASON_INFERENCE_ERROR,
+            Self::NotObeyed => STATE_REASON_NOT_OBEYED,
         }
     }
 }
@@ -147,6 +170,10 @@ pub(crate) struct Safety {
     /// Reason of the last transition.
     reason: Option<Reason>,
     hold_since_ns: u64,
+    /// Since when STARTING has had a problem that waiting does not cure (None: it has not).
+    stuck_since_ns: Option<u64>,
+    /// Whether STARTING escalates (off for a controller that runs without a chunk source).
+    escalate: bool,
     hold_to_fault_ns: u64,
     hold_entries: u64,
     events: EventWriter,
@@ -161,6 +188,8 @@ impl Safety {
             state: State::Starting,
             reason: None,
             hold_since_ns: 0,
+            stuck_since_ns: None,
+            escalate: true,
             hold_to_fault_ns,
             hold_entries: 0,
             events,
@@ -200,7 +229,20 @@ impl Safety {
             (State::Starting, None) if ready => {
                 self.transition(now_ns, State::Running, Reason::InputsGood)
             }
-            (State::Starting, _) => {}
+            (State::Starting, Some(r)) if r.stuck_in_starting() && ready && self.escalate => {
+                // the status says why it waits; it escalates after hold_to_fault
+                self.reason = Some(r);
+                let since = *self.stuck_since_ns.get_or_insert(now_ns);
+                if now_ns.saturating_sub(since) >= self.hold_to_fault_ns {
+                    self.transition(now_ns, State::Fault, r);
+                }
+            }
+            (State::Starting, r) => {
+                self.stuck_since_ns = None;
+                if r.is_some() {
+                    self.reason = r;
+                }
+            }
             (State::Running, Some(r)) => self.transition(now_ns, State::Hold, r),
             (State::Running, None) => {}
             (State::Hold, _)
@@ -212,6 +254,12 @@ impl Safety {
             (State::Hold, Some(_)) => {}
         }
         (self.state != from).then_some(from)
+    }
+
+    /// Whether STARTING escalates to FAULT (a controller without a chunk source waits in
+    /// STARTING by design, holding the robot).
+    pub fn set_escalation(&mut self, on: bool) {
+        self.escalate = on;
     }
 
     /// An unrecoverable problem outside the inputs (the generator failed): FAULT.
@@ -241,6 +289,9 @@ impl Safety {
         if to == State::Hold {
             self.hold_entries += 1;
             self.hold_since_ns = now_ns;
+        }
+        if to == State::Starting {
+            self.stuck_since_ns = None;
         }
         self.events.record(Event {
             t_ns: now_ns,
@@ -354,6 +405,37 @@ mod tests {
         let mut events = Vec::new();
         m.events().drain(|e| events.push((e.from, e.to)));
         assert_eq!(events.len(), 7, "{events:?}");
+    }
+
+    #[test]
+    fn starting_escalates_when_the_policy_never_delivers() {
+        let mut m = Safety::new(1_000);
+        // no joint state yet: waiting is normal, no escalation, the status says why
+        assert_eq!(m.step(0, Some(Reason::StaleJointState), false), None);
+        assert_eq!(m.step(5_000, Some(Reason::StaleJointState), false), None);
+        assert_eq!(m.reason(), Some(Reason::StaleJointState));
+        // the generator is ready but no chunk comes: FAULT after hold_to_fault, naming why
+        assert_eq!(m.step(6_000, Some(Reason::NoChunk), true), None);
+        assert_eq!(m.reason(), Some(Reason::NoChunk));
+        assert_eq!(m.step(6_500, Some(Reason::InferenceError), true), None);
+        assert_eq!(m.reason(), Some(Reason::InferenceError));
+        assert_eq!(
+            m.step(7_000, Some(Reason::InferenceError), true),
+            Some(State::Starting)
+        );
+        assert_eq!(
+            (m.state(), m.reason()),
+            (State::Fault, Some(Reason::InferenceError))
+        );
+        // re-armed, the clock starts again
+        assert_eq!(m.rearm(7_100, None), Rearm::Accepted);
+        assert_eq!(m.step(7_200, Some(Reason::NonFiniteAction), true), None);
+        assert_eq!(m.step(8_100, Some(Reason::NonFiniteAction), true), None);
+        assert_eq!(
+            m.step(8_200, Some(Reason::NonFiniteAction), true),
+            Some(State::Starting)
+        );
+        assert_eq!(m.reason(), Some(Reason::NonFiniteAction));
     }
 
     #[test]
