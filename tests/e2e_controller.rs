@@ -744,3 +744,74 @@ fn assert_only_stale(before: &[u64], after: &[u64]) {
         }
     }
 }
+
+/// Two controllers on one robot, then the first one stops (SIGINT) or dies (SIGKILL): while
+/// the session is ambiguous both hold and say the robot does not obey them (state reason), they
+/// command where the arm is, and when the robot binds the second one the hand-over is bumpless.
+/// The robot applies no command further than its bind tolerance from where the arm is, and
+/// refuses none as too far (the controller never asked for a jump: 1.06 rad were observed).
+fn two_controllers_hand_over(kill: bool) {
+    let _serial = serial();
+    let ns = unique_namespace(if kill { "handover-kill" } else { "handover" });
+    let robot = start("fake-robot", &ns, &[]);
+    let camera = start("fake-camera", &ns, &["--scene", "reach"]);
+    let first = start(
+        "run",
+        &ns,
+        &["--log-every", "0", "--prompt", "reach the red target"],
+    );
+    let mut w = Watch::new(&ns);
+    let running = |w: &Watch| w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING;
+    w.wait_for(
+        Duration::from_secs(30),
+        "the first controller RUNNING",
+        running,
+    );
+    w.pump(Duration::from_millis(800));
+    let second = start(
+        "run",
+        &ns,
+        &["--log-every", "0", "--prompt", "reach the blue target"],
+    );
+    w.wait_for(
+        Duration::from_secs(15),
+        "a controller saying the robot does not obey it",
+        |w| w.last_status.state_reason == chunkrt_ipc::STATE_REASON_NOT_OBEYED,
+    );
+    w.pump(Duration::from_secs(1));
+    if kill {
+        kill9(first);
+    } else {
+        let out = first.terminate(Duration::from_secs(10));
+        assert_eq!(out.code, Some(0), "{}", out.stderr);
+    }
+    w.wait_for(
+        Duration::from_secs(20),
+        "the second controller RUNNING",
+        running,
+    );
+    w.pump(Duration::from_secs(1));
+    let out = second.terminate(Duration::from_secs(10));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    let r = robot.terminate(Duration::from_secs(5));
+    let offset = summary_value(&r.stdout, "max_command_offset").expect(&r.stdout);
+    let far = summary_value(&r.stdout, "commands_far").expect(&r.stdout);
+    eprintln!("hand-over (kill: {kill}): {}", r.stdout.trim());
+    assert!(
+        offset <= 0.05,
+        "a command {offset} rad from the arm: {}",
+        r.stdout
+    );
+    assert_eq!(far, 0.0, "the robot had to refuse a jump: {}", r.stdout);
+    drop(camera);
+}
+
+#[test]
+fn a_second_controller_takes_over_bumplessly_after_a_clean_stop() {
+    two_controllers_hand_over(false);
+}
+
+#[test]
+fn a_second_controller_takes_over_bumplessly_after_a_crash() {
+    two_controllers_hand_over(true);
+}

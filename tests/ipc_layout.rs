@@ -73,6 +73,11 @@ fn rust_constants() -> BTreeMap<String, u64> {
             "JOINT_STATUS_LIMIT_CLAMPED",
             JOINT_STATUS_LIMIT_CLAMPED as u64,
         ),
+        (
+            "JOINT_STATUS_SESSION_REPORTED",
+            JOINT_STATUS_SESSION_REPORTED as u64,
+        ),
+        ("JOINT_STATUS_COMMAND_FAR", JOINT_STATUS_COMMAND_FAR as u64),
         ("COMMAND_MODE_POSITION", COMMAND_MODE_POSITION as u64),
         ("COMMAND_MODE_HOLD", COMMAND_MODE_HOLD as u64),
         (

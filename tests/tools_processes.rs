@@ -104,9 +104,12 @@ fn tools_fake_robot_follows_commands_and_holds() {
             "20",
             "--command-timeout-ms",
             "100",
-            // this test is the controller: obey the first command publisher
+            // this test is the controller: obey the first command publisher, and its first
+            // command is a deliberate step of 0.5 rad (no bumpless hand-over check)
             "--session",
             "first",
+            "--bind-tolerance",
+            "10",
         ],
     )
     .expect("spawn chunkrt fake-robot");

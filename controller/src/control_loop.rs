@@ -51,6 +51,10 @@ pub trait ControlTick: Send {
     fn rearm(&mut self, _now_ns: u64) -> RearmAnswer {
         (chunkrt_ipc::REARM_REFUSED_NOT_IN_FAULT, 0)
     }
+
+    /// The iceoryx2 id of the command publisher this tick's commands leave by: a robot that
+    /// reports the session it obeys tells the tick whether it is obeyed. Default: ignored.
+    fn set_command_publisher(&mut self, _id: u128) {}
 }
 
 impl ControlTick for Executor {
@@ -66,6 +70,10 @@ impl ControlTick for Executor {
             state: r.state.code(),
             reason: self.state_reason().map_or(0, |r| r.code()),
         }
+    }
+
+    fn set_command_publisher(&mut self, id: u128) {
+        Executor::set_command_publisher(self, id);
     }
 
     fn rearm(&mut self, now_ns: u64) -> RearmAnswer {
@@ -184,6 +192,7 @@ impl ControlLoop {
             // announce the command publisher before the first command, so the robot's
             // session is bound when that command arrives
             self.publish_status(wake_ns, shared);
+            tick.set_command_publisher(self.cmd_out.id());
         }
         let mut answered = false;
         if let Some(seq) = self.rearm_in.poll(&shared.counters, &shared.events) {

@@ -36,7 +36,7 @@ extern "C" {
 
 /* iceoryx2 type names (must equal the Rust #[type_name]s). */
 #define CHUNKRT_TYPE_NAME_CAMERA_FRAME_HEADER "chunkrt.CameraFrameHeader.v1"
-#define CHUNKRT_TYPE_NAME_JOINT_STATE "chunkrt.JointState.v1"
+#define CHUNKRT_TYPE_NAME_JOINT_STATE "chunkrt.JointState.v2"
 #define CHUNKRT_TYPE_NAME_JOINT_COMMAND "chunkrt.JointCommand.v1"
 #define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v4"
 #define CHUNKRT_TYPE_NAME_REARM_REQUEST "chunkrt.RearmRequest.v1"
@@ -99,6 +99,11 @@ typedef struct CameraFrameHeader {
 #define CHUNKRT_JOINT_STATUS_COMMAND_REJECTED (1u << 3)
 /** A commanded value was outside the robot's limits and was clamped. */
 #define CHUNKRT_JOINT_STATUS_LIMIT_CLAMPED (1u << 4)
+/** session_publisher_id is set: the command publisher the robot obeys (0: none). A robot that
+ *  sets it lets the controller hold and hand over bumplessly when it is not the one obeyed. */
+#define CHUNKRT_JOINT_STATUS_SESSION_REPORTED (1u << 5)
+/** The last command was refused: it started too far from the measured position. */
+#define CHUNKRT_JOINT_STATUS_COMMAND_FAR (1u << 6)
 
 /** Measured joint state published by the robot driver. */
 typedef struct JointState {
@@ -109,6 +114,7 @@ typedef struct JointState {
     double position[CHUNKRT_MAX_DOF];  /**< rad or m */
     double velocity[CHUNKRT_MAX_DOF];  /**< per second */
     double effort[CHUNKRT_MAX_DOF];    /**< N*m or N */
+    uint64_t session_publisher_id[2];  /**< with SESSION_REPORTED: the obeyed command publisher, low word first */
 } JointState;
 
 /* ---- joint command (controller -> robot) ----------------------------------------------- */
@@ -232,7 +238,7 @@ typedef struct RearmRequest {
 #define CHUNKRT_STATIC_ASSERT(c, m) _Static_assert(c, m)
 #endif
 CHUNKRT_STATIC_ASSERT(sizeof(CameraFrameHeader) == 48, "CameraFrameHeader size");
-CHUNKRT_STATIC_ASSERT(sizeof(JointState) == 24 + 3 * 8 * CHUNKRT_MAX_DOF, "JointState size");
+CHUNKRT_STATIC_ASSERT(sizeof(JointState) == 24 + 3 * 8 * CHUNKRT_MAX_DOF + 16, "JointState size");
 CHUNKRT_STATIC_ASSERT(sizeof(JointCommand) == 48 + 3 * 8 * CHUNKRT_MAX_DOF, "JointCommand size");
 CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 15 * 8,
                       "ControllerStatus size");

@@ -60,6 +60,8 @@ JOINT_STATUS_COMMAND_EXPIRED = 1 << 1
 JOINT_STATUS_COMMAND_TIMEOUT = 1 << 2
 JOINT_STATUS_COMMAND_REJECTED = 1 << 3
 JOINT_STATUS_LIMIT_CLAMPED = 1 << 4
+JOINT_STATUS_SESSION_REPORTED = 1 << 5
+JOINT_STATUS_COMMAND_FAR = 1 << 6
 
 # ---- command modes --------------------------------------------------------------------------
 
@@ -128,7 +130,7 @@ REJECT_REASON_NAMES = [
 # ---- iceoryx2 type names (must equal the Rust #[type_name]s) --------------------------------
 
 TYPE_NAME_CAMERA_FRAME_HEADER = "chunkrt.CameraFrameHeader.v1"
-TYPE_NAME_JOINT_STATE = "chunkrt.JointState.v1"
+TYPE_NAME_JOINT_STATE = "chunkrt.JointState.v2"
 TYPE_NAME_JOINT_COMMAND = "chunkrt.JointCommand.v1"
 TYPE_NAME_CONTROLLER_STATUS = "chunkrt.ControllerStatus.v4"
 TYPE_NAME_REARM_REQUEST = "chunkrt.RearmRequest.v1"
@@ -168,7 +170,15 @@ class JointState(ctypes.Structure):
         ("position", _F64xDOF),
         ("velocity", _F64xDOF),
         ("effort", _F64xDOF),
+        # with JOINT_STATUS_SESSION_REPORTED: the command publisher the robot obeys (0: none)
+        ("session_publisher_id", ctypes.c_uint64 * 2),
     ]
+
+    def set_obeyed_publisher(self, publisher_id: int) -> None:
+        """Reports the command publisher the robot obeys (0: none)."""
+        self.status_flags |= JOINT_STATUS_SESSION_REPORTED
+        self.session_publisher_id[0] = publisher_id & (2**64 - 1)
+        self.session_publisher_id[1] = publisher_id >> 64
 
     @staticmethod
     def type_name() -> str:

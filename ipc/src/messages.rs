@@ -94,10 +94,17 @@ pub const JOINT_STATUS_COMMAND_TIMEOUT: u32 = 1 << 2;
 pub const JOINT_STATUS_COMMAND_REJECTED: u32 = 1 << 3;
 /// A commanded value was outside the robot's limits and was clamped.
 pub const JOINT_STATUS_LIMIT_CLAMPED: u32 = 1 << 4;
+/// `session` is set: the robot says which command publisher it obeys (0: none). A controller
+/// that is not the one named holds and commands the measured position (bumpless hand-over). A
+/// driver without the flag is trusted to obey (no check possible).
+pub const JOINT_STATUS_SESSION_REPORTED: u32 = 1 << 5;
+/// The last command was refused because it started too far from the measured position (the
+/// first command of a session, or after the robot held): a bumpless hand-over was refused.
+pub const JOINT_STATUS_COMMAND_FAR: u32 = 1 << 6;
 
 /// Measured joint state published by the robot driver.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("chunkrt.JointState.v1")]
+#[type_name("chunkrt.JointState.v2")]
 #[repr(C)]
 pub struct JointState {
     /// Message counter of this publisher, increasing by one per message.
@@ -114,6 +121,31 @@ pub struct JointState {
     pub velocity: [f64; MAX_DOF],
     /// Joint efforts (N·m or N).
     pub effort: [f64; MAX_DOF],
+    /// With `JOINT_STATUS_SESSION_REPORTED`: iceoryx2's id of the command publisher the robot
+    /// obeys (the session it is bound to; 0: none, it holds), low word first. Since
+    /// `JointState.v2`.
+    pub session_publisher_id: [u64; 2],
+}
+
+impl JointState {
+    /// The command publisher the robot obeys, if it reports one (`None`: the driver does not
+    /// report sessions; `Some(0)`: it obeys nobody).
+    pub const fn obeyed_publisher(&self) -> Option<u128> {
+        if self.status_flags & JOINT_STATUS_SESSION_REPORTED == 0 {
+            None
+        } else {
+            Some(
+                (self.session_publisher_id[0] as u128)
+                    | ((self.session_publisher_id[1] as u128) << 64),
+            )
+        }
+    }
+
+    /// Reports that the robot obeys command publisher `id` (0: none).
+    pub fn set_obeyed_publisher(&mut self, id: u128) {
+        self.status_flags |= JOINT_STATUS_SESSION_REPORTED;
+        self.session_publisher_id = [id as u64, (id >> 64) as u64];
+    }
 }
 
 impl Default for JointState {
@@ -126,6 +158,7 @@ impl Default for JointState {
             position: [0.0; MAX_DOF],
             velocity: [0.0; MAX_DOF],
             effort: [0.0; MAX_DOF],
+            session_publisher_id: [0; 2],
         }
     }
 }
@@ -429,7 +462,7 @@ const _: () = {
     use core::mem::{align_of, size_of};
     assert!(size_of::<CameraFrameHeader>() == 48);
     assert!(align_of::<CameraFrameHeader>() == 8);
-    assert!(size_of::<JointState>() == 24 + 3 * 8 * MAX_DOF);
+    assert!(size_of::<JointState>() == 24 + 3 * 8 * MAX_DOF + 16);
     assert!(align_of::<JointState>() == 8);
     assert!(size_of::<JointCommand>() == 48 + 3 * 8 * MAX_DOF);
     assert!(align_of::<JointCommand>() == 8);
@@ -462,7 +495,7 @@ pub fn layouts() -> Vec<(&'static str, (usize, Vec<FieldOffset>))> {
         (
             "JointState",
             layout_of!(JointState; seq, measurement_time_ns, n_dof, status_flags, position,
-                velocity, effort),
+                velocity, effort, session_publisher_id),
         ),
         (
             "JointCommand",

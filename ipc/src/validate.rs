@@ -446,6 +446,9 @@ pub struct SessionGate {
     max_future_ns: u64,
     controller: Option<u128>,
     ambiguous_until_ns: u64,
+    /// After a clean stop nothing binds before this (the same settling time as after a
+    /// controller's death: a forged status right after a stop is not obeyed at once).
+    released_until_ns: u64,
 }
 
 impl SessionGate {
@@ -459,6 +462,7 @@ impl SessionGate {
             max_future_ns,
             controller: None,
             ambiguous_until_ns: 0,
+            released_until_ns: 0,
         }
     }
 
@@ -485,9 +489,11 @@ impl SessionGate {
                     self.ambiguous_until_ns = 0;
                 }
                 if status.state == CONTROLLER_STATE_STOPPED {
-                    // a clean stop releases the session: the next controller binds at once
+                    // a clean stop releases the session; the next controller binds after the
+                    // same settling time as after a crash
                     self.controller = None;
                     self.status = StreamGuard::with_rebind_after(self.timeout_ns);
+                    self.released_until_ns = now_ns.saturating_add(self.timeout_ns);
                     return Ok(());
                 }
                 let id = status.command_publisher();
@@ -509,6 +515,8 @@ impl SessionGate {
     pub fn state(&self, now_ns: u64) -> SessionState {
         if now_ns < self.ambiguous_until_ns {
             SessionState::Ambiguous
+        } else if now_ns < self.released_until_ns {
+            SessionState::None
         } else {
             match self.controller {
                 Some(id) => SessionState::Bound(id),
@@ -585,7 +593,8 @@ mod session_tests {
             .unwrap();
         assert!(g.admit(43, 651 * ms).is_ok());
         assert!(g.admit(42, 651 * ms).is_err());
-        // a clean stop releases the session; the next controller binds without waiting
+        // a clean stop releases the session; the next controller binds after the settling
+        // time, as after a crash (a status forged right after the stop is not obeyed at once)
         let mut stopped = status(3, 700 * ms, 43);
         stopped.state = CONTROLLER_STATE_STOPPED;
         g.on_status(&stopped, 300, 700 * ms).unwrap();
@@ -593,7 +602,8 @@ mod session_tests {
         assert!(g.admit(43, 701 * ms).is_err());
         g.on_status(&status(1, 710 * ms, 44), 400, 710 * ms)
             .unwrap();
-        assert!(g.admit(44, 711 * ms).is_ok());
+        assert!(g.admit(44, 711 * ms).is_err(), "still settling");
+        assert!(g.admit(44, 1_201 * ms).is_ok());
     }
 }
 

@@ -57,6 +57,11 @@ pub struct Args {
     /// (for a test or driver that commands the robot without a controller).
     #[arg(long, value_enum, default_value_t = Session::Controller)]
     pub session: Session,
+    /// Bumpless hand-over: the first command of a session, and the first after the robot held,
+    /// must start within this distance of the measured position (rad or m on every joint);
+    /// a command further away is refused (flag `COMMAND_FAR`) and the robot keeps holding.
+    #[arg(long, value_name = "RAD", default_value_t = 0.05)]
+    pub bind_tolerance: f64,
 }
 
 /// How the robot picks the command publisher it obeys (`--session`).
@@ -84,6 +89,7 @@ impl Default for Args {
             omega: 60.0,
             initial: None,
             session: Session::Controller,
+            bind_tolerance: 0.05,
         }
     }
 }
@@ -104,8 +110,14 @@ pub struct Summary {
     /// reached it (a controller's first commands can arrive before its status does), or while
     /// a second status publisher made the session ambiguous.
     pub commands_unbound: u64,
+    /// Commands refused because they started further than `--bind-tolerance` from the measured
+    /// position (the first of a session, or the first after a hold).
+    pub commands_far: u64,
     /// Controller statuses refused (a second status publisher, out of order).
     pub status_rejected: u64,
+    /// Largest distance between an applied command's position and the measured position when it
+    /// was applied (on any joint): what a hand-over or a resume asked the arm to jump.
+    pub max_command_offset: f64,
     /// Transitions into the watchdog hold.
     pub holds: u64,
     /// Ticks spent in the watchdog hold.
@@ -121,17 +133,19 @@ impl std::fmt::Display for Summary {
         write!(
             f,
             "fake-robot summary: states_published={} commands_applied={} commands_expired={} \
-             commands_rejected={} commands_unbound={} status_rejected={} holds={} \
-             hold_ticks={} max_tracking_error={:.6} max_lateness_us={:.1}",
+             commands_rejected={} commands_unbound={} commands_far={} status_rejected={} holds={} \
+             hold_ticks={} max_tracking_error={:.6} max_command_offset={:.6} max_lateness_us={:.1}",
             self.states_published,
             self.commands_applied,
             self.commands_expired,
             self.commands_rejected,
             self.commands_unbound,
+            self.commands_far,
             self.status_rejected,
             self.holds,
             self.hold_ticks,
             self.max_tracking_error,
+            self.max_command_offset,
             self.max_lateness_ns as f64 / 1e3
         )
     }
@@ -271,6 +285,9 @@ pub struct Robot {
     /// Session binding to one controller (None: `--session first`).
     session: Option<SessionGate>,
     session_id: Option<u128>,
+    /// The next command must start near the measured position (a new session, or after a hold).
+    armed: bool,
+    bind_tolerance: f64,
     active: Option<JointCommand>,
     last_command_ns: u64,
     holding: bool,
@@ -300,6 +317,8 @@ impl Robot {
             guard: StreamGuard::with_rebind_after(command_timeout_ns),
             session: None,
             session_id: None,
+            armed: false,
+            bind_tolerance: f64::INFINITY,
             active: None,
             last_command_ns: now_ns,
             holding: true,
@@ -313,6 +332,24 @@ impl Robot {
     /// Obeys only the command publisher announced by the controller's status from now on.
     pub fn bind_to_controller(&mut self, timeout_ns: u64) {
         self.session = Some(SessionGate::new(timeout_ns, self.max_future_ns));
+    }
+
+    /// Refuses the first command of a session, and the first after a hold, when it starts
+    /// further than `tolerance` from the measured position (bumpless hand-over).
+    pub fn set_bind_tolerance(&mut self, tolerance: f64) {
+        self.bind_tolerance = tolerance;
+    }
+
+    /// The command publisher the robot obeys, as its joint state reports it: the session's
+    /// controller (or, with `--session first`, the bound publisher); 0 while none.
+    pub fn obeyed_publisher(&self, now_ns: u64) -> u128 {
+        match &self.session {
+            Some(gate) => match gate.state(now_ns) {
+                SessionState::Bound(id) => id,
+                _ => 0,
+            },
+            None => self.guard.bound().unwrap_or(0),
+        }
     }
 
     /// Handles one controller status from publisher `origin` (session binding).
@@ -331,6 +368,7 @@ impl Robot {
                 // a new controller: its command stream starts afresh
                 tracing::info!("fake-robot: session bound to command publisher {id:#x}");
                 self.session_id = Some(id);
+                self.armed = false;
                 self.guard = StreamGuard::with_rebind_after(self.command_timeout_ns);
             }
         }
@@ -374,6 +412,20 @@ impl Robot {
             self.command_flags = JOINT_STATUS_COMMAND_EXPIRED;
             return;
         }
+        let n = self.arm.n_dof();
+        let offset = (0..n)
+            .map(|j| (cmd.position[j] - self.arm.position[j]).abs())
+            .fold(0.0, f64::max);
+        if !self.armed {
+            if offset > self.bind_tolerance {
+                // a session's first command, or the first after a hold, far from the arm
+                self.summary.commands_far += 1;
+                self.command_flags = JOINT_STATUS_COMMAND_FAR;
+                return;
+            }
+            self.armed = true;
+        }
+        self.summary.max_command_offset = self.summary.max_command_offset.max(offset);
         self.summary.commands_applied += 1;
         self.command_flags = 0;
         self.last_command_ns = now_ns;
@@ -420,6 +472,7 @@ impl Robot {
             None => {
                 if !self.holding {
                     self.holding = true;
+                    self.armed = false;
                     self.summary.holds += 1;
                     self.hold_target.position = self.arm.position;
                 }
@@ -513,6 +566,12 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
     if args.session == Session::Controller {
         robot.bind_to_controller(SESSION_TIMEOUT_NS);
     }
+    anyhow::ensure!(
+        args.bind_tolerance.is_finite() && args.bind_tolerance > 0.0,
+        "--bind-tolerance {}: must be > 0",
+        args.bind_tolerance
+    );
+    robot.set_bind_tolerance(args.bind_tolerance);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
     let mut seq = 0u64;
     let mut next = start;
@@ -554,7 +613,9 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
             position: robot.arm.position,
             velocity: robot.arm.velocity,
             effort: robot.arm.acceleration,
+            ..Default::default()
         };
+        msg.set_obeyed_publisher(robot.obeyed_publisher(now));
         if args.noise > 0.0 {
             for p in msg.position.iter_mut().take(n_dof) {
                 *p += rng.gen_range(-args.noise..=args.noise);

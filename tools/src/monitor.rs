@@ -231,6 +231,7 @@ fn joint_flags(flags: u32) -> String {
         (JOINT_STATUS_COMMAND_TIMEOUT, "TIMEOUT"),
         (JOINT_STATUS_COMMAND_REJECTED, "REJECTED"),
         (JOINT_STATUS_LIMIT_CLAMPED, "CLAMPED"),
+        (JOINT_STATUS_COMMAND_FAR, "FAR"),
     ];
     let set: Vec<&str> = names
         .iter()
@@ -289,8 +290,13 @@ impl Watched {
                         continue;
                     }
                     let n = m.n_dof as usize;
+                    let obeys = match m.obeyed_publisher() {
+                        None => String::new(),
+                        Some(0) => " obeys=nobody".to_string(),
+                        Some(id) => format!(" obeys={:#x}", id as u64),
+                    };
                     st.last_value = format!(
-                        "seq={} n_dof={n} flags={} pos={}",
+                        "seq={} n_dof={n} flags={}{obeys} pos={}",
                         m.seq,
                         joint_flags(m.status_flags),
                         fmt_joints(&m.position, n, wide)
@@ -493,7 +499,7 @@ mod tests {
     #[test]
     fn kinds_and_rates() {
         assert_eq!(
-            Kind::from_type_names("chunkrt.JointState.v1", "()"),
+            Kind::from_type_names("chunkrt.JointState.v2", "()"),
             Kind::JointState
         );
         assert_eq!(

@@ -98,6 +98,8 @@ struct JointCheck {
     bad: bool,
     /// Present, good and younger than `joint_state_max_age_ms`.
     fresh: bool,
+    /// The robot obeys this executor's commands (or does not report whom it obeys).
+    obeyed: bool,
 }
 
 /// The control tick. See the module documentation; built once with [`Executor::new`].
@@ -115,6 +117,8 @@ pub struct Executor {
     last_problem: Option<Reason>,
     /// See [`InferenceLink::stale_cameras`].
     stale_cameras: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    /// The id of the command publisher the commands leave by ([`Self::set_command_publisher`]).
+    command_publisher: Option<u128>,
     /// See [`InferenceLink::failed_requests`], and its value at the last tick.
     failed_requests: std::sync::Arc<std::sync::atomic::AtomicU64>,
     failed_seen: u64,
@@ -173,6 +177,7 @@ impl Executor {
             initialized: false,
             last_problem: None,
             stale_cameras: Default::default(),
+            command_publisher: None,
             failed_requests: Default::default(),
             failed_seen: 0,
             source_failing: false,
@@ -202,6 +207,15 @@ impl Executor {
             stale_cameras: self.stale_cameras.clone(),
             failed_requests: self.failed_requests.clone(),
         }
+    }
+
+    /// The iceoryx2 id of the publisher the commands leave by. From then on a robot that reports
+    /// the session it obeys (`JOINT_STATUS_SESSION_REPORTED`) is checked at every tick: when it
+    /// obeys another publisher or none, or refused the last command as too far from where it
+    /// is, the executor holds ([`Reason::NotObeyed`]) and commands the measured position, so the
+    /// hand-over is bumpless when the robot binds it. No allocation.
+    pub fn set_command_publisher(&mut self, id: u128) {
+        self.command_publisher = Some(id);
     }
 
     /// Runs without a chunk source (`policy.kind = "hold"`): waiting for a chunk in STARTING is
@@ -358,6 +372,7 @@ impl Executor {
         let mut check = JointCheck {
             bad: false,
             fresh: false,
+            obeyed: true,
         };
         if let Some(js) = joint_state {
             if js.n_dof as usize != self.limits.n {
@@ -365,6 +380,17 @@ impl Executor {
             } else {
                 self.joint_state_age_ns = now_ns.saturating_sub(js.measurement_time_ns);
                 check.fresh = self.joint_state_age_ns <= self.js_max_age_ns;
+            }
+        }
+        if let (true, Some(js), Some(me)) = (check.fresh, joint_state, self.command_publisher) {
+            // a robot that says whom it obeys: not us (another controller, nobody yet), or our
+            // last command refused as too far from where it is
+            check.obeyed = js.obeyed_publisher().is_none_or(|id| id == me)
+                && js.status_flags & chunkrt_ipc::JOINT_STATUS_COMMAND_FAR == 0;
+            if !check.obeyed {
+                // command where the robot is, so nothing accumulates and the hand-over, when
+                // the robot binds this controller, starts from its measured state
+                self.init_generator(js);
             }
         }
         if !check.fresh {
@@ -392,6 +418,8 @@ impl Executor {
             Some(Reason::BadJointState)
         } else if !js.fresh {
             Some(Reason::StaleJointState)
+        } else if !js.obeyed {
+            Some(Reason::NotObeyed)
         } else if self.stale_seen != 0 {
             Some(Reason::StaleCamera)
         } else if let Some(r) = self.timeline.bad_input {
