@@ -64,6 +64,48 @@ pub fn load_config(config: Option<&PathBuf>, namespace: Option<&str>) -> anyhow:
     Ok(cfg)
 }
 
+/// The chunk source the configuration names, loaded on a thread of its own so that SIGINT /
+/// SIGTERM during a long load (a large checkpoint, a server that does not answer) stops the
+/// command at once (`None`) instead of when the load ends.
+pub fn load_source(
+    cfg: &Config,
+    stop: &std::sync::atomic::AtomicBool,
+) -> anyhow::Result<Option<Box<dyn ChunkSource>>> {
+    if cfg.policy.kind.is_none() {
+        return Ok(Some(Box::new(HoldSource)));
+    }
+    let (tx, rx) = crossbeam::channel::bounded(1);
+    let c = cfg.clone();
+    std::thread::Builder::new()
+        .name("chunkrt-load".into())
+        .spawn(move || {
+            let source: anyhow::Result<Box<dyn ChunkSource>> = match c.policy.source {
+                PolicySource::Local => {
+                    crate::inference::PolicySource::load(&c).map(|s| Box::new(s) as _)
+                }
+                PolicySource::Remote => {
+                    crate::remote::RemoteSource::connect(&c).map(|s| Box::new(s) as _)
+                }
+            };
+            let _ = tx.send(source);
+        })
+        .context("cannot start the loading thread")?;
+    loop {
+        match rx.recv_timeout(Duration::from_millis(50)) {
+            Ok(source) => return source.map(Some),
+            Err(crossbeam::channel::RecvTimeoutError::Timeout) => {
+                if stop.load(Ordering::Relaxed) {
+                    // the loading thread is left behind: the process ends with this command
+                    return Ok(None);
+                }
+            }
+            Err(crossbeam::channel::RecvTimeoutError::Disconnected) => {
+                anyhow::bail!("the loading thread panicked")
+            }
+        }
+    }
+}
+
 /// `chunkrt run`: the controller until SIGINT / SIGTERM or `--duration`.
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut cfg = load_config(args.config.as_ref(), args.namespace.as_deref())?;
@@ -100,10 +142,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         cfg.policy.kind_name()
     );
     let executor = Executor::new(&cfg).context("invalid execution settings")?;
-    let source: Box<dyn ChunkSource> = match (cfg.policy.kind, cfg.policy.source) {
-        (None, _) => Box::new(HoldSource),
-        (Some(_), PolicySource::Local) => Box::new(crate::inference::PolicySource::load(&cfg)?),
-        (Some(_), PolicySource::Remote) => Box::new(crate::remote::RemoteSource::connect(&cfg)?),
+    let Some(source) = load_source(&cfg, stop_flag)? else {
+        println!("chunkrt run: stopped while the policy was loading");
+        return Ok(());
     };
     tracing::info!("chunk source: {}", source.name());
     let mut controller = Controller::start(cfg.clone(), executor, source)?;

@@ -815,3 +815,126 @@ fn a_second_controller_takes_over_bumplessly_after_a_clean_stop() {
 fn a_second_controller_takes_over_bumplessly_after_a_crash() {
     two_controllers_hand_over(true);
 }
+
+/// A flood of re-arm requests (2,000 a second, alternating two sequence numbers, which defeated
+/// the duplicate check) is answered at most once per status period: the status keeps its rate
+/// and the log its bounds; what was not answered is counted.
+#[test]
+fn a_rearm_flood_is_answered_at_the_status_rate() {
+    let _serial = serial();
+    let ns = unique_namespace("rearm-flood");
+    let robot = start("fake-robot", &ns, &[]);
+    let ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
+    let mut w = Watch::new(&ns);
+    w.wait_for(Duration::from_secs(15), "the controller", |w| {
+        holding(&w.last_status)
+    });
+    let node = services::node("rearm-flooder").unwrap();
+    let nsp = Namespace::new(&ns).unwrap();
+    let rearm = services::rearm_service(&node, &nsp.rearm()).unwrap();
+    let publ = services::publisher(&rearm, &nsp.rearm()).unwrap();
+    // count the statuses over the flood
+    let statuses = {
+        let status = services::status_service(&node, &nsp.status()).unwrap();
+        services::subscriber(&status, &nsp.status()).unwrap()
+    };
+    while let Ok(Some(_)) = statuses.receive() {}
+    let t0 = std::time::Instant::now();
+    let mut sent = 0u64;
+    let mut seen = 0u64;
+    let mut next = monotonic_ns();
+    while t0.elapsed() < Duration::from_secs(2) {
+        let req = chunkrt_ipc::RearmRequest {
+            seq: 1 + sent % 2,
+            publish_time_ns: monotonic_ns(),
+            reserved: 0,
+        };
+        let _ = publ.send_copy(req);
+        sent += 1;
+        next += 500_000;
+        chunkrt_ipc::sleep_until_ns(next);
+        while let Ok(Some(_)) = statuses.receive() {
+            seen += 1;
+        }
+    }
+    let secs = t0.elapsed().as_secs_f64();
+    let rate = seen as f64 / secs;
+    eprintln!("re-arm flood: {sent} requests in {secs:.1} s, {seen} statuses ({rate:.0} / s)");
+    // 10 Hz status plus at most one answer per status period: well under 30 a second
+    assert!(rate < 30.0, "{rate:.0} statuses a second during the flood");
+    let out = ctl.terminate(Duration::from_secs(10));
+    let throttled = out
+        .stdout
+        .lines()
+        .find_map(|l| summary_value(l, "rearm_throttled"))
+        .expect("the summary counts throttled re-arms");
+    assert!(
+        throttled > 100.0,
+        "only {throttled} throttled: {}",
+        out.stdout
+    );
+    // the log: a few lines per second, not one per request
+    let warns = out.stderr.lines().filter(|l| l.contains("re-arm")).count();
+    assert!(warns < 20, "{warns} re-arm log lines:\n{}", out.stderr);
+    drop(robot);
+}
+
+/// A process that holds every publisher slot of the command service (a squatter) makes the
+/// controller fail at start with an error that names the service and says what to do.
+#[test]
+fn a_squatted_command_service_is_a_clear_error_at_start() {
+    let _serial = serial();
+    let ns = unique_namespace("squat");
+    let nsp = Namespace::new(&ns).unwrap();
+    let node = services::node("squatter").unwrap();
+    let svc = services::joint_command_service(&node, &nsp.joint_command()).unwrap();
+    let _held: Vec<_> = (0..services::MAX_PUBLISHERS)
+        .map(|_| services::publisher(&svc, &nsp.joint_command()).unwrap())
+        .collect();
+    let out = start("run", &ns, &["--log-every", "0", "--policy", "hold"])
+        .finish(Duration::from_secs(20));
+    assert_ne!(out.code, Some(0));
+    assert!(
+        out.stderr.contains("joint_command") && out.stderr.contains("maximum of 4 publishers"),
+        "{}",
+        out.stderr
+    );
+}
+
+/// SIGINT while the policy loads stops `chunkrt run` at once (it exited only when the load
+/// ended: 5 s observed; a server that never answers would hold it for the whole timeout).
+#[test]
+fn sigint_during_a_slow_load_stops_at_once() {
+    let _serial = serial();
+    let ns = unique_namespace("slow-load");
+    // a "server" that accepts TCP and never answers the handshake
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let mut t: toml::Table = toml::from_str(chunkrt::config::DEFAULT_TOML).unwrap();
+    let p = t["policy"].as_table_mut().unwrap();
+    p.insert("source".into(), "remote".into());
+    p.insert("url".into(), format!("ws://127.0.0.1:{port}").into());
+    p.insert("connect_timeout_ms".into(), 60_000.0.into());
+    let path = std::env::temp_dir().join(format!("chunkrt-slow-load-{}.toml", std::process::id()));
+    std::fs::write(&path, toml::to_string(&t).unwrap()).unwrap();
+    let ctl = start(
+        "run",
+        &ns,
+        &["--log-every", "0", "--config", path.to_str().unwrap()],
+    );
+    std::thread::sleep(Duration::from_secs(1));
+    let t0 = Instant::now();
+    // SAFETY: kill(2) on our own child
+    unsafe { libc::kill(ctl.id() as libc::pid_t, libc::SIGINT) };
+    let out = ctl.finish(Duration::from_secs(10));
+    let took = t0.elapsed();
+    assert!(took < Duration::from_secs(2), "stopped after {took:?}");
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    assert!(
+        out.stdout.contains("stopped while the policy was loading"),
+        "{}",
+        out.stdout
+    );
+    std::fs::remove_file(&path).ok();
+    drop(listener);
+}

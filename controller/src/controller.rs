@@ -174,15 +174,21 @@ impl Controller {
                     if result == chunkrt_ipc::REARM_ACCEPTED {
                         tracing::info!("re-arm request {seq}: accepted");
                     } else {
-                        tracing::warn!(
-                            "re-arm request {seq}: {}{}",
-                            chunkrt_ipc::rearm_result_name(result),
-                            if reason != 0 {
-                                format!(" ({})", chunkrt_ipc::state_reason_name(reason))
-                            } else {
-                                String::new()
-                            }
-                        );
+                        let line = || {
+                            format!(
+                                "re-arm request {seq}: {}{}",
+                                chunkrt_ipc::rearm_result_name(result),
+                                if reason != 0 {
+                                    format!(" ({})", chunkrt_ipc::state_reason_name(reason))
+                                } else {
+                                    String::new()
+                                }
+                            )
+                        };
+                        // refusals are rate-limited like rejections (a flood of requests)
+                        if self.log_limit.admit("re-arm refused", line, now) {
+                            tracing::warn!("{}", line());
+                        }
                     }
                 }
                 EdgeEvent::PortError { source: s, publish } => {
@@ -375,7 +381,8 @@ pub fn status_line(shared: &Shared) -> String {
         .collect();
     format!(
         "state={} ticks={} overruns={} commands={} joint_states={} frames={} chunks={} \
-         lateness p50/p99/max={:.0}/{:.0}/{:.0} us tick p50/p99/max={:.1}/{:.1}/{:.1} us rejected=[{}]",
+         lateness p50/p99/max={:.0}/{:.0}/{:.0} us tick p50/p99/max={:.1}/{:.1}/{:.1} us rejected=[{}] \
+         rearm_throttled={}",
         controller_state_name(shared.state.load(Ordering::Relaxed)),
         shared.ticks.load(Ordering::Relaxed),
         shared.overruns.load(Ordering::Relaxed),
@@ -390,6 +397,7 @@ pub fn status_line(shared: &Shared) -> String {
         us(shared.compute_p99_ns.load(Ordering::Relaxed)),
         us(shared.compute_max_ns.load(Ordering::Relaxed)),
         rejected.join(" "),
+        shared.counters.rearm_throttled.load(Ordering::Relaxed),
     )
 }
 

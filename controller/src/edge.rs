@@ -41,6 +41,9 @@ pub struct Counters {
     pub receive_errors: AtomicU64,
     /// Publish errors reported by iceoryx2 itself.
     pub publish_errors: AtomicU64,
+    /// Valid re-arm requests not answered because they came faster than one per status period
+    /// (a flood: the answers and their log lines are bounded; the newest is answered later).
+    pub rearm_throttled: AtomicU64,
 }
 
 impl Counters {
@@ -449,6 +452,11 @@ pub struct RearmInput {
     sub: Subscriber<Ipc, RearmRequest, ()>,
     max_future_ns: u64,
     last_seq: u64,
+    /// A request waiting for the next answer slot, and when the last answer was given.
+    pending: Option<u64>,
+    last_answer_ns: Option<u64>,
+    /// The least time between two answers (one status period).
+    min_interval_ns: u64,
 }
 
 impl RearmInput {
@@ -460,20 +468,28 @@ impl RearmInput {
             sub: services::subscriber(&factory, &name)?,
             max_future_ns: (cfg.control.max_future_ms * 1e6) as u64,
             last_seq: 0,
+            pending: None,
+            last_answer_ns: None,
+            min_interval_ns: (1e9 / cfg.control.status_rate_hz) as u64,
         })
     }
 
     /// Drains the subscriber; returns the seq of the newest valid request with a seq not seen
-    /// before (a client repeats its request until answered). Invalid ones are counted and
-    /// reported. No allocation.
+    /// before (a client repeats its request until answered), at most one per status period: a
+    /// request that comes sooner waits for the next slot (the newest wins) and the ones it
+    /// replaces are counted in `rearm_throttled`, so a flood costs at most one answer, one
+    /// status and one log line per period. Invalid ones are counted and reported. No
+    /// allocation.
     pub fn poll(&mut self, counters: &Counters, events: &EventRing) -> Option<u64> {
-        let mut newest = None;
+        let now = monotonic_ns();
         while let Some(sample) = next_sample(&self.sub, counters, events, Source::Rearm) {
             let msg: &RearmRequest = sample.payload();
             match validate_rearm(msg, monotonic_ns(), self.max_future_ns) {
                 Ok(()) if msg.seq != self.last_seq => {
                     self.last_seq = msg.seq;
-                    newest = Some(msg.seq);
+                    if self.pending.replace(msg.seq).is_some() {
+                        counters.rearm_throttled.fetch_add(1, Ordering::Relaxed);
+                    }
                 }
                 Ok(()) => {}
                 Err(error) => {
@@ -485,7 +501,14 @@ impl RearmInput {
                 }
             }
         }
-        newest
+        let due = self
+            .last_answer_ns
+            .is_none_or(|t| now.saturating_sub(t) >= self.min_interval_ns);
+        if due && self.pending.is_some() {
+            self.last_answer_ns = Some(now);
+            return self.pending.take();
+        }
+        None
     }
 }
 

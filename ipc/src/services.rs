@@ -215,10 +215,23 @@ pub fn publisher<T: core::fmt::Debug + ZeroCopySend>(
         .publisher_builder()
         .max_loaned_samples(MAX_LOANED_SAMPLES)
         .create()
-        .map_err(|e| IpcError::Port {
-            what: "publisher",
-            name: name.to_string(),
-            reason: format!("{e:?}"),
+        .map_err(|e| {
+            let raw = format!("{e:?}");
+            let reason = if raw.contains("ExceedsMaxSupportedPublishers") {
+                format!(
+                    "the service already has its maximum of {MAX_PUBLISHERS} publishers ({raw}): \
+                     other processes hold them — another controller or driver on this \
+                     namespace, or a process of this user squatting it; find them with \
+                     `chunkrt monitor --namespace ...`, stop them, or use another namespace"
+                )
+            } else {
+                raw
+            };
+            IpcError::Port {
+                what: "publisher",
+                name: name.to_string(),
+                reason,
+            }
         })
 }
 
