@@ -938,3 +938,52 @@ fn sigint_during_a_slow_load_stops_at_once() {
     std::fs::remove_file(&path).ok();
     drop(listener);
 }
+
+/// SIGSTOP / SIGCONT of the robot, then of the controller, while the reach policy runs: the
+/// robot never applies a command far from where the arm is (a robot stall made the command jump
+/// 0.28 rad and the robot obey a buffered target 0.29 rad away; before the robot re-armed its
+/// check after a stall this test saw 0.12 rad), and the controller runs again.
+#[test]
+fn stalls_of_the_robot_and_the_controller_resume_without_a_jump() {
+    let _serial = serial();
+    let ns = unique_namespace("stall");
+    let robot = start("fake-robot", &ns, &[]);
+    let camera = start("fake-camera", &ns, &["--scene", "reach"]);
+    let ctl = start(
+        "run",
+        &ns,
+        &["--log-every", "0", "--prompt", "reach the blue target"],
+    );
+    let mut w = Watch::new(&ns);
+    let running = |w: &Watch| w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING;
+    w.wait_for(Duration::from_secs(30), "RUNNING", running);
+    w.pump(Duration::from_millis(300));
+    for (who, pid, stall) in [
+        ("robot", robot.id(), 1_000),
+        ("controller", ctl.id(), 2_000),
+    ] {
+        // SAFETY: kill(2) on our own children
+        unsafe { libc::kill(pid as libc::pid_t, libc::SIGSTOP) };
+        w.pump(Duration::from_millis(stall));
+        unsafe { libc::kill(pid as libc::pid_t, libc::SIGCONT) };
+        w.wait_for(
+            Duration::from_secs(20),
+            &format!("RUNNING after the {who}'s stall"),
+            running,
+        );
+        w.pump(Duration::from_millis(500));
+    }
+    let out = ctl.terminate(Duration::from_secs(10));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    let r = robot.terminate(Duration::from_secs(5));
+    eprintln!("stalls: {}", r.stdout.trim());
+    // (a command the controller published while the robot was stalled may be refused as too
+    // far when the robot wakes: that is the robot's half of the hand-over doing its job)
+    let offset = summary_value(&r.stdout, "max_command_offset").expect(&r.stdout);
+    assert!(
+        offset <= 0.05,
+        "a command {offset} rad from the arm: {}",
+        r.stdout
+    );
+    drop(camera);
+}

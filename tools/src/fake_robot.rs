@@ -416,6 +416,11 @@ impl Robot {
         let offset = (0..n)
             .map(|j| (cmd.position[j] - self.arm.position[j]).abs())
             .fold(0.0, f64::max);
+        if now_ns.saturating_sub(self.last_command_ns) > self.command_timeout_ns {
+            // no command applied for longer than the timeout (the robot held, or this process
+            // was stalled and its hold not yet noticed): the next one must start near the arm
+            self.armed = false;
+        }
         if !self.armed {
             if offset > self.bind_tolerance {
                 // a session's first command, or the first after a hold, far from the arm
