@@ -761,7 +761,6 @@ fn two_controllers_hand_over(kill: bool) {
         &["--log-every", "0", "--prompt", "reach the red target"],
     );
     let mut w = Watch::new(&ns);
-    let running = |w: &Watch| w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING;
     w.wait_for(
         Duration::from_secs(30),
         "the first controller RUNNING",
@@ -955,7 +954,6 @@ fn stalls_of_the_robot_and_the_controller_resume_without_a_jump() {
         &["--log-every", "0", "--prompt", "reach the blue target"],
     );
     let mut w = Watch::new(&ns);
-    let running = |w: &Watch| w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING;
     w.wait_for(Duration::from_secs(30), "RUNNING", running);
     w.pump(Duration::from_millis(300));
     for (who, pid, stall) in [

@@ -207,6 +207,17 @@ fn remote_policy_drives_the_demo_to_both_targets() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A robot, the reach camera and a controller taking its chunks from `url` (plus `extra`
+/// arguments), in namespace `ns`.
+fn remote_stack(ns: &str, url: &str, extra: &[&str]) -> (ChildGuard, ChildGuard, ChildGuard) {
+    let robot = start("fake-robot", ns, &[]);
+    let camera = start("fake-camera", ns, &["--scene", "reach"]);
+    let mut args = vec!["--log-every", "0", "--remote", url];
+    args.extend_from_slice(extra);
+    let ctl = start("run", ns, &args);
+    (robot, camera, ctl)
+}
+
 /// Largest change of any joint's command between two consecutive commands (rad).
 fn largest_step(cmds: &[chunkrt_ipc::JointCommand], n: usize) -> f64 {
     cmds.windows(2)
@@ -230,22 +241,8 @@ fn a_dead_server_holds_the_robot_and_a_restarted_one_resumes_it() {
     let ckpt = format!("{ROOT}/models/reach_pi05");
     let server = serve(&ckpt, port, &[]);
     let url = format!("ws://127.0.0.1:{port}");
-    let robot = start("fake-robot", &ns, &[]);
-    let camera = start("fake-camera", &ns, &["--scene", "reach"]);
-    let ctl = start(
-        "run",
-        &ns,
-        &[
-            "--log-every",
-            "0",
-            "--remote",
-            &url,
-            "--prompt",
-            "reach the red target",
-        ],
-    );
+    let (robot, camera, ctl) = remote_stack(&ns, &url, &["--prompt", "reach the red target"]);
     let mut w = Watch::new(&ns);
-    let running = |w: &Watch| w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING;
     w.wait_for(
         Duration::from_secs(30),
         "RUNNING with the remote policy",
@@ -331,18 +328,7 @@ fn controller_takes_chunks_from_openpi_s_own_server() {
     )
     .expect("start openpi's server");
     wait_healthy(port, Duration::from_secs(30), &mut py);
-    let robot = start("fake-robot", &ns, &[]);
-    let camera = start("fake-camera", &ns, &["--scene", "reach"]);
-    let ctl = start(
-        "run",
-        &ns,
-        &[
-            "--log-every",
-            "0",
-            "--remote",
-            &format!("ws://127.0.0.1:{port}"),
-        ],
-    );
+    let (robot, camera, ctl) = remote_stack(&ns, &format!("ws://127.0.0.1:{port}"), &[]);
     let mut w = Watch::new(&ns);
     w.wait_for(
         Duration::from_secs(30),

@@ -156,6 +156,38 @@ fn exchange(client: &mut Client, msg: &[u8], n: usize) -> Result<Exchange, Bench
     Ok((rtt, infer, wire))
 }
 
+/// The 1- and 3-camera cases of `model` through `client` over `link`: prints each and keeps its
+/// remote round trip and what the link adds (and the in-process time, `in_process`).
+fn measure_cases(
+    client: &mut Client,
+    model: &Model,
+    link: &str,
+    in_process: bool,
+    requests: usize,
+    rng: &mut impl Rng,
+    series: &mut Vec<Series>,
+) -> Result<(), BenchError> {
+    for cams in [1usize, 3] {
+        let msg = request(cams, model.n_dof, rng);
+        let (rtt, infer, wire) = exchange(client, &msg, requests)?;
+        let tag = format!("{}_cam{cams}_{link}", model.name);
+        println!(
+            "{tag}: in process {} µs, remote {} µs (p50), the link adds p50 {} / p99 {} µs ({} kB a request)",
+            fmt_us(infer.value_at_quantile(0.5)),
+            fmt_us(rtt.value_at_quantile(0.5)),
+            fmt_us(wire.value_at_quantile(0.5)),
+            fmt_us(wire.value_at_quantile(0.99)),
+            msg.len() / 1000
+        );
+        if in_process {
+            series.push(Series::new(format!("{tag}_in_process"), infer));
+        }
+        series.push(Series::new(format!("{tag}_remote"), rtt));
+        series.push(Series::new(format!("{tag}_added"), wire));
+    }
+    Ok(())
+}
+
 /// The in-process server for `model`.
 fn local_server(model: &Model) -> Result<Server, BenchError> {
     let cfg = Config::embedded_default();
@@ -423,22 +455,15 @@ pub fn run(opts: &Options) -> Result<LatencyTable, BenchError> {
         let server = local_server(m)?;
         let url = format!("ws://{}", server.local_addr());
         let mut client = connect_retry(&url, Duration::from_secs(10))?;
-        for cams in [1usize, 3] {
-            let msg = request(cams, m.n_dof, &mut rng);
-            let (rtt, infer, wire) = exchange(&mut client, &msg, opts.requests)?;
-            let tag = format!("{}_cam{cams}_loopback", m.name);
-            println!(
-                "{tag}: in process {} µs, remote {} µs (p50), the wire adds p50 {} / p99 {} µs ({} kB a request)",
-                fmt_us(infer.value_at_quantile(0.5)),
-                fmt_us(rtt.value_at_quantile(0.5)),
-                fmt_us(wire.value_at_quantile(0.5)),
-                fmt_us(wire.value_at_quantile(0.99)),
-                msg.len() / 1000
-            );
-            series.push(Series::new(format!("{tag}_in_process"), infer));
-            series.push(Series::new(format!("{tag}_remote"), rtt));
-            series.push(Series::new(format!("{tag}_added"), wire));
-        }
+        measure_cases(
+            &mut client,
+            m,
+            "loopback",
+            true,
+            opts.requests,
+            &mut rng,
+            &mut series,
+        )?;
         server.stop();
         for &d in &opts.netem_ms {
             // the kernel's netem in a network namespace when there is one; else a user-space
@@ -483,20 +508,16 @@ pub fn run(opts: &Options) -> Result<LatencyTable, BenchError> {
                 }
             };
             let mut client = connect_retry(&url, Duration::from_secs(60))?;
-            for cams in [1usize, 3] {
-                let msg = request(cams, m.n_dof, &mut rng);
-                let (rtt, infer, wire) = exchange(&mut client, &msg, opts.requests)?;
-                let tag = format!("{}_cam{cams}_{link}{d}ms", m.name);
-                println!(
-                    "{tag}: in process {} µs, remote {} µs (p50), the link adds p50 {} / p99 {} µs",
-                    fmt_us(infer.value_at_quantile(0.5)),
-                    fmt_us(rtt.value_at_quantile(0.5)),
-                    fmt_us(wire.value_at_quantile(0.5)),
-                    fmt_us(wire.value_at_quantile(0.99)),
-                );
-                series.push(Series::new(format!("{tag}_remote"), rtt));
-                series.push(Series::new(format!("{tag}_added"), wire));
-            }
+            let link = format!("{link}{d}ms");
+            measure_cases(
+                &mut client,
+                m,
+                &link,
+                false,
+                opts.requests,
+                &mut rng,
+                &mut series,
+            )?;
         }
     }
     if opts.python {

@@ -423,10 +423,7 @@ impl ChunkSource for RemoteSource {
                 ""
             }
         );
-        anyhow::ensure!(
-            reply.horizon >= self.execute_horizon.min(reply.horizon.max(1)) && reply.horizon > 0,
-            "the server's chunk is empty"
-        );
+        anyhow::ensure!(reply.horizon > 0, "the server's chunk is empty");
         if self.horizon != reply.horizon {
             if self.horizon != 0 && self.server.is_some() {
                 tracing::warn!(

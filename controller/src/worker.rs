@@ -137,9 +137,7 @@ impl InferenceWorker {
         if let Delivery::After(delay_ns) = self.delivery {
             chunk.ready_ns = now_ns + delay_ns;
         }
-        self.stats.chunks += 1;
-        self.stats.last_latency_ns = chunk.ready_ns.saturating_sub(chunk.t_obs_ns);
-        let latency_ns = self.stats.last_latency_ns;
+        let latency_ns = self.count(&chunk);
         match self.delivery {
             // a displaced, never-executed chunk comes back here and is dropped here
             Delivery::Immediate => drop(self.link.chunks.send(chunk)),
@@ -155,9 +153,15 @@ impl InferenceWorker {
 
     /// Queues `chunk` for delivery at its own `ready_ns` (a driver that sets the time itself).
     pub fn deliver_at_ready(&mut self, chunk: ActionChunk) {
+        self.count(&chunk);
+        self.pending.push(chunk);
+    }
+
+    /// Counts a chunk handed over; returns its latency (observation → ready, ns).
+    fn count(&mut self, chunk: &ActionChunk) -> u64 {
         self.stats.chunks += 1;
         self.stats.last_latency_ns = chunk.ready_ns.saturating_sub(chunk.t_obs_ns);
-        self.pending.push(chunk);
+        self.stats.last_latency_ns
     }
 
     /// Hands over the queued chunks that are due at `now_ns`, in the order they were queued,

@@ -34,6 +34,11 @@ pub fn holding(s: &ControllerStatus) -> bool {
             || s.state == chunkrt_ipc::CONTROLLER_STATE_HOLD)
 }
 
+/// The newest status says RUNNING.
+pub fn running(w: &Watch) -> bool {
+    w.last_status.state == chunkrt_ipc::CONTROLLER_STATE_RUNNING
+}
+
 /// SIGKILL: the process gets no chance to clean up its iceoryx2 resources.
 pub fn kill9(g: ChildGuard) {
     // SAFETY: kill(2) on our own child.
