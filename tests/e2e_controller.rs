@@ -10,6 +10,7 @@ use chunkrt_ipc::{
     JOINT_STATUS_LIMIT_CLAMPED,
 };
 use chunkrt_tools::testing::{summary_value, unique_namespace};
+use iceoryx2::prelude::Node;
 
 #[path = "common/stack.rs"]
 mod stack;
@@ -938,7 +939,7 @@ fn sigint_during_a_slow_load_stops_at_once() {
     drop(listener);
 }
 
-/// SIGSTOP / SIGCONT of the robot, then of the controller, while the reach policy runs: the
+/// SIGSTOP / SIGCONT of the robot, then of the controller, then of the camera, while the reach policy runs: the
 /// robot never applies a command far from where the arm is (a robot stall made the command jump
 /// 0.28 rad and the robot obey a buffered target 0.29 rad away; before the robot re-armed its
 /// check after a stall this test saw 0.12 rad), and the controller runs again.
@@ -959,6 +960,7 @@ fn stalls_of_the_robot_and_the_controller_resume_without_a_jump() {
     for (who, pid, stall) in [
         ("robot", robot.id(), 1_000),
         ("controller", ctl.id(), 2_000),
+        ("camera", camera.id(), 1_500),
     ] {
         // SAFETY: kill(2) on our own children
         unsafe { libc::kill(pid as libc::pid_t, libc::SIGSTOP) };
@@ -984,4 +986,206 @@ fn stalls_of_the_robot_and_the_controller_resume_without_a_jump() {
         r.stdout
     );
     drop(camera);
+}
+
+/// A process of the same user that publishes controller statuses and commands: the forger of
+/// the two tests below. Its statuses announce its own command publisher and say RUNNING.
+struct StatusForger {
+    _node: Node<services::Ipc>,
+    status: iceoryx2::port::publisher::Publisher<services::Ipc, chunkrt_ipc::ControllerStatus, ()>,
+    cmd: iceoryx2::port::publisher::Publisher<services::Ipc, chunkrt_ipc::JointCommand, ()>,
+    seq: u64,
+    cmd_seq: u64,
+    n_dof: u32,
+    next_status: Option<Instant>,
+}
+
+impl StatusForger {
+    fn new(ns: &str, n_dof: u32) -> Self {
+        let nsp = Namespace::new(ns).unwrap();
+        let node = services::node("test-status-forger").unwrap();
+        let status = services::publisher(
+            &services::status_service(&node, &nsp.status()).unwrap(),
+            "forged-status",
+        )
+        .unwrap();
+        let cmd = services::publisher(
+            &services::joint_command_service(&node, &nsp.joint_command()).unwrap(),
+            "forged-cmd",
+        )
+        .unwrap();
+        Self {
+            _node: node,
+            status,
+            cmd,
+            seq: 0,
+            cmd_seq: 0,
+            n_dof,
+            next_status: None,
+        }
+    }
+
+    fn status_id(&self) -> u128 {
+        self.status.id().value()
+    }
+
+    fn send_status(&mut self) {
+        self.seq += 1;
+        let mut st = chunkrt_ipc::ControllerStatus {
+            seq: self.seq,
+            publish_time_ns: monotonic_ns(),
+            state: chunkrt_ipc::CONTROLLER_STATE_RUNNING,
+            n_dof: self.n_dof,
+            ..Default::default()
+        };
+        st.set_command_publisher(self.cmd.id().value());
+        self.status.send_copy(st).unwrap();
+    }
+
+    fn send_command(&mut self) {
+        self.cmd_seq += 1;
+        self.cmd
+            .send_copy(rogue_command(self.cmd_seq, self.n_dof))
+            .unwrap();
+    }
+
+    /// Forges for `d`: a status every `status_every` (on one schedule across calls), a command
+    /// every millisecond.
+    fn run(&mut self, w: &mut Watch, d: Duration, status_every: Duration) {
+        let t0 = Instant::now();
+        while t0.elapsed() < d {
+            let due = self.next_status.get_or_insert(t0);
+            if Instant::now() >= *due {
+                *due += status_every;
+                self.send_status();
+            }
+            self.send_command();
+            w.pump(Duration::from_millis(1));
+        }
+    }
+}
+
+/// The controller holds and the robot says it obeys it (the session is bound).
+fn obeyed(w: &Watch) -> bool {
+    holding(&w.last_status)
+        && w.last_status.command_publisher() != 0
+        && w.last_js.obeyed_publisher() == Some(w.last_status.command_publisher())
+}
+
+fn assert_unmoved(w: &Watch, start: &[f64], n: usize, what: &str) {
+    for (j, (now, before)) in w.last_js.position[..n].iter().zip(start).enumerate() {
+        assert!(
+            (now - before).abs() < 0.05,
+            "{what}: joint {j} moved from {before} to {now}"
+        );
+    }
+}
+
+/// Two forged statuses a second next to a running controller: the robot holds (its session is
+/// ambiguous), and the hold is visible on the controller's side: its state reason says the
+/// robot does not obey it, its status counts the foreign statuses, and its log names the
+/// forger's publisher. The arm does not move, and the controller is obeyed again once the
+/// forger is quiet.
+#[test]
+fn a_status_forger_holds_the_robot_and_is_named() {
+    let _serial = serial();
+    let ns = unique_namespace("status-forger");
+    let n = Config::embedded_default().n_dof();
+    let robot = start("fake-robot", &ns, &[]);
+    let ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
+    let mut w = Watch::new(&ns);
+    w.wait_for(
+        Duration::from_secs(15),
+        "the robot to obey the controller",
+        obeyed,
+    );
+    let start_pos = w.last_js.position;
+    let mut forger = StatusForger::new(&ns, n as u32);
+    w.ignore_status_from = forger.status_id();
+    let mut not_obeyed = false;
+    let t0 = Instant::now();
+    while t0.elapsed() < Duration::from_secs(3) {
+        forger.run(
+            &mut w,
+            Duration::from_millis(100),
+            Duration::from_millis(500),
+        );
+        not_obeyed |= w.last_status.state_reason == chunkrt_ipc::STATE_REASON_NOT_OBEYED;
+    }
+    assert!(
+        not_obeyed,
+        "the controller never said the robot does not obey it"
+    );
+    let foreign = w.last_status.foreign_statuses;
+    assert!(foreign >= 3, "{foreign} foreign statuses counted in 3 s");
+    assert_unmoved(&w, &start_pos, n, "while the status forger spoke");
+    // quiet again: the robot obeys the controller after its settling time
+    w.wait_for(
+        Duration::from_secs(10),
+        "the robot to obey the controller again",
+        |w| w.last_status.state_reason != chunkrt_ipc::STATE_REASON_NOT_OBEYED,
+    );
+    let out = ctl.terminate(Duration::from_secs(10));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    let id = format!("{:#x}", forger.status_id());
+    assert!(
+        out.stderr.contains(&id) && out.stderr.contains("second status publisher"),
+        "the log does not name the forger {id}:\n{}",
+        out.stderr
+    );
+    let r = robot.terminate(Duration::from_secs(5));
+    eprintln!("status forger: {}", r.stdout.trim());
+    let rejected = summary_value(&r.stdout, "status_rejected").expect(&r.stdout);
+    assert!(rejected >= 3.0, "{}", r.stdout);
+    let offset = summary_value(&r.stdout, "max_command_offset").expect(&r.stdout);
+    assert!(
+        offset <= 0.05,
+        "a command {offset} rad from the arm: {}",
+        r.stdout
+    );
+}
+
+/// A forged status and commands right after a clean stop: the robot binds no one for its
+/// settling time, and then refuses the forger's commands because they do not start where the
+/// arm is. (The session was released at once and the forgery obeyed with no delay.)
+#[test]
+fn a_status_forged_after_a_clean_stop_moves_nothing() {
+    let _serial = serial();
+    let ns = unique_namespace("forged-after-stop");
+    let n = Config::embedded_default().n_dof();
+    let robot = start("fake-robot", &ns, &[]);
+    let ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
+    let mut w = Watch::new(&ns);
+    w.wait_for(
+        Duration::from_secs(15),
+        "the robot to obey the controller",
+        obeyed,
+    );
+    let mut forger = StatusForger::new(&ns, n as u32);
+    w.ignore_status_from = forger.status_id();
+    let out = ctl.terminate(Duration::from_secs(10));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    let start_pos = w.last_js.position;
+    forger.run(&mut w, Duration::from_secs(2), Duration::from_millis(100));
+    w.pump(Duration::from_millis(200));
+    assert_unmoved(&w, &start_pos, n, "after a forged status");
+    let r = robot.terminate(Duration::from_secs(5));
+    eprintln!("forged after stop: {}", r.stdout.trim());
+    let value = |k: &str| summary_value(&r.stdout, k).expect(&r.stdout);
+    assert!(
+        value("commands_unbound") > 0.0,
+        "no command waited out the settling time: {}",
+        r.stdout
+    );
+    assert!(
+        value("commands_far") > 0.0,
+        "the forger's far commands were not refused: {}",
+        r.stdout
+    );
+    let offset = value("max_command_offset");
+    assert!(
+        offset <= 0.05,
+        "a command {offset} rad from the arm: {}",
+        r.stdout
+    );
 }

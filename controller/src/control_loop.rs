@@ -191,6 +191,7 @@ impl ControlLoop {
         if self.ticks == 0 {
             // announce the command publisher before the first command, so the robot's
             // session is bound when that command arrives
+            shared.set_status_publisher(self.status_out.id());
             self.publish_status(wake_ns, shared);
             tick.set_command_publisher(self.cmd_out.id());
         }
@@ -245,7 +246,8 @@ impl ControlLoop {
     }
 
     /// The last status of a clean stop (`CONTROLLER_STATE_STOPPED`): the robot's session with
-    /// this controller ends at once, so the next controller is obeyed without a pause.
+    /// this controller ends, and the next controller is obeyed after the robot's settling time
+    /// (`SessionGate`).
     pub fn publish_stopped(&mut self, shared: &Shared) {
         self.state = CONTROLLER_STATE_STOPPED;
         self.publish_status(monotonic_ns(), shared);
@@ -276,6 +278,11 @@ impl ControlLoop {
             .unwrap_or(u64::MAX);
         st.hold_entries = shared.hold_entries.load(Ordering::Relaxed);
         st.stale_cameras = shared.stale_cameras.load(Ordering::Relaxed);
+        st.foreign_statuses = shared
+            .counters
+            .foreign_statuses
+            .load(Ordering::Relaxed)
+            .min(u32::MAX as u64) as u32;
         st.publish_time_ns = monotonic_ns();
         self.status_out.publish(st);
         let store = |a: &AtomicU64, v: u64| a.store(v, Ordering::Relaxed);

@@ -28,7 +28,7 @@ pub use crate::control_loop::Summary;
 pub use crate::control_loop::{ControlLoop, ControlTick, RearmAnswer, TickHistograms, TickOutcome};
 use crate::edge::history::FrameHistory;
 use crate::edge::{
-    event_ring, CameraInput, Counters, EdgeEvent, JointStateInput, Observation, Source,
+    event_ring, CameraInput, Counters, EdgeEvent, JointStateInput, Observation, Source, StatusWatch,
 };
 use crate::rt;
 pub use crate::shared::Shared;
@@ -265,9 +265,10 @@ fn observation_thread(
         let cams = CameraInput::new(&node, &ns, cfg)?;
         let js = JointStateInput::new(&node, &ns, cfg)?;
         let history = FrameHistory::new(cfg, source.delayed_views())?;
-        Ok((node, cams, js, history))
+        let statuses = StatusWatch::new(&node, &ns)?;
+        Ok((node, cams, js, history, statuses))
     };
-    let (_node, mut cams, mut js, mut history) = match setup() {
+    let (_node, mut cams, mut js, mut history, statuses) = match setup() {
         Ok(v) => {
             let _ = ready.send(Ok(()));
             v
@@ -296,6 +297,7 @@ fn observation_thread(
     let frame_max_age_ns = (cfg.control.frame_max_age_ms * 1e6) as u64;
     let watch_cameras = source.uses_cameras();
     let mut stale_before = 0u64;
+    let mut foreign = ForeignStatusLog::default();
     while !shared.stop.load(Ordering::Relaxed) {
         next += poll_period_ns;
         sleep_until_ns(next);
@@ -328,6 +330,9 @@ fn observation_thread(
         }
         js.poll(&private, &private_events);
         while private_events.pop().is_some() {}
+        if let Some(id) = statuses.poll(shared.status_publisher(), &shared.counters) {
+            foreign.name(id, &ns, &shared.counters);
+        }
         worker.poll(now);
         // a second joint-state publisher: nothing trusted, no observation from a forged state
         let Some(state) = js.trusted(now) else {
@@ -370,6 +375,33 @@ fn us(ns: u64) -> f64 {
     ns as f64 / 1e3
 }
 
+/// Names a second status publisher in the log: at once for a new one, then once every 10 s
+/// while it keeps speaking (a forger cannot flood the log).
+#[derive(Default)]
+struct ForeignStatusLog {
+    last: Option<(u128, std::time::Instant)>,
+}
+
+impl ForeignStatusLog {
+    fn name(&mut self, id: u128, ns: &chunkrt_ipc::Namespace, counters: &Counters) {
+        let now = std::time::Instant::now();
+        let due = match self.last {
+            Some((last, at)) => last != id || now.duration_since(at) >= Duration::from_secs(10),
+            None => true,
+        };
+        if due {
+            self.last = Some((id, now));
+            tracing::warn!(
+                "a second status publisher {id:#x} on '{}' (another controller in this \
+                 namespace, or a forger): a robot that binds sessions holds while it speaks; \
+                 {} foreign statuses so far",
+                ns.status(),
+                counters.foreign_statuses.load(Ordering::Relaxed)
+            );
+        }
+    }
+}
+
 /// One line for the periodic log.
 pub fn status_line(shared: &Shared) -> String {
     let rejected: Vec<String> = RejectReason::ALL
@@ -382,7 +414,7 @@ pub fn status_line(shared: &Shared) -> String {
     format!(
         "state={} ticks={} overruns={} commands={} joint_states={} frames={} chunks={} \
          lateness p50/p99/max={:.0}/{:.0}/{:.0} us tick p50/p99/max={:.1}/{:.1}/{:.1} us rejected=[{}] \
-         rearm_throttled={}",
+         rearm_throttled={} foreign_statuses={}",
         controller_state_name(shared.state.load(Ordering::Relaxed)),
         shared.ticks.load(Ordering::Relaxed),
         shared.overruns.load(Ordering::Relaxed),
@@ -398,6 +430,7 @@ pub fn status_line(shared: &Shared) -> String {
         us(shared.compute_max_ns.load(Ordering::Relaxed)),
         rejected.join(" "),
         shared.counters.rearm_throttled.load(Ordering::Relaxed),
+        shared.counters.foreign_statuses.load(Ordering::Relaxed),
     )
 }
 

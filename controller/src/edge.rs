@@ -44,6 +44,11 @@ pub struct Counters {
     /// Valid re-arm requests not answered because they came faster than one per status period
     /// (a flood: the answers and their log lines are bounded; the newest is answered later).
     pub rearm_throttled: AtomicU64,
+    /// Statuses received on this controller's own status service from another publisher
+    /// ([`StatusWatch`]): a second controller in the namespace, or a forger.
+    pub foreign_statuses: AtomicU64,
+    /// The newest such publisher's id, low and high word (0: none seen).
+    pub foreign_status_publisher: [AtomicU64; 2],
 }
 
 impl Counters {
@@ -560,6 +565,43 @@ impl CommandOutput {
     }
 }
 
+/// Watches this controller's own status service for statuses from another publisher: a second
+/// controller in the namespace, or a forger. A robot that binds sessions holds while one speaks
+/// (its session is ambiguous, [`chunkrt_ipc::SessionGate`]); this makes the reason visible on
+/// the controller's side: counted in the status and named in the log.
+pub struct StatusWatch {
+    subscriber: Subscriber<Ipc, ControllerStatus, ()>,
+}
+
+impl StatusWatch {
+    /// Subscribes to `<ns>/status`.
+    pub fn new(node: &Node<Ipc>, ns: &Namespace) -> Result<Self, IpcError> {
+        let name = ns.status();
+        let factory = services::status_service(node, &name)?;
+        Ok(Self {
+            subscriber: services::subscriber(&factory, &name)?,
+        })
+    }
+
+    /// Drains the subscriber and counts the statuses whose publisher is not `own` (this
+    /// controller's status publisher; 0 while it is not known yet, and nothing is counted).
+    /// Returns the newest foreign publisher seen in this poll.
+    pub fn poll(&self, own: u128, counters: &Counters) -> Option<u128> {
+        let mut newest = None;
+        while let Ok(Some(sample)) = self.subscriber.receive() {
+            let origin = sample.origin().value();
+            if own == 0 || origin == own {
+                continue;
+            }
+            counters.foreign_statuses.fetch_add(1, Ordering::Relaxed);
+            counters.foreign_status_publisher[0].store(origin as u64, Ordering::Relaxed);
+            counters.foreign_status_publisher[1].store((origin >> 64) as u64, Ordering::Relaxed);
+            newest = Some(origin);
+        }
+        newest
+    }
+}
+
 /// Publishes the controller status.
 pub struct StatusOutput {
     publisher: Publisher<Ipc, ControllerStatus, ()>,
@@ -573,6 +615,11 @@ impl StatusOutput {
         Ok(Self {
             publisher: services::publisher(&factory, &name)?,
         })
+    }
+
+    /// This publisher's iceoryx2 id (the origin of its samples).
+    pub fn id(&self) -> u128 {
+        self.publisher.id().value()
     }
 
     /// Publishes one status message; false if iceoryx2 refused.

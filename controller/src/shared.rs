@@ -3,7 +3,7 @@
 //!
 //! Owns: nothing but the shared cells. Must not depend on: the threads that use it.
 
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 
 use chunkrt_ipc::CONTROLLER_STATE_STARTING;
 
@@ -41,6 +41,9 @@ pub struct Shared {
     pub compute_p50_ns: AtomicU64,
     pub compute_p99_ns: AtomicU64,
     pub compute_max_ns: AtomicU64,
+    /// This controller's status publisher id, low and high word (0: not created yet), so the
+    /// observation thread can tell its own statuses from another publisher's.
+    pub status_publisher: [AtomicU64; 2],
 }
 
 impl Default for Shared {
@@ -70,6 +73,21 @@ impl Shared {
             compute_p50_ns: AtomicU64::new(0),
             compute_p99_ns: AtomicU64::new(0),
             compute_max_ns: AtomicU64::new(0),
+            status_publisher: Default::default(),
         }
+    }
+}
+
+impl Shared {
+    /// Records this controller's status publisher id.
+    pub fn set_status_publisher(&self, id: u128) {
+        self.status_publisher[0].store(id as u64, Ordering::Relaxed);
+        self.status_publisher[1].store((id >> 64) as u64, Ordering::Relaxed);
+    }
+
+    /// This controller's status publisher id (0: not created yet).
+    pub fn status_publisher(&self) -> u128 {
+        (self.status_publisher[0].load(Ordering::Relaxed) as u128)
+            | ((self.status_publisher[1].load(Ordering::Relaxed) as u128) << 64)
     }
 }

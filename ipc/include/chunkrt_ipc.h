@@ -217,7 +217,7 @@ typedef struct ControllerStatus {
     uint32_t state_reason;  /**< CHUNKRT_STATE_REASON_*: why in this state */
     uint32_t rearm_result;  /**< CHUNKRT_REARM_* answer to rearm_seq */
     uint32_t rearm_reason;  /**< with CHUNKRT_REARM_REFUSED_INPUTS: CHUNKRT_STATE_REASON_* */
-    uint32_t reserved;      /**< zero */
+    uint32_t foreign_statuses; /**< statuses from another status publisher seen (saturating) */
 } ControllerStatus;
 
 /* ---- re-arm request (operator -> controller, `chunkrt rearm`) ---------------------------- */

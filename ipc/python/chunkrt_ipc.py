@@ -237,13 +237,13 @@ class ControllerStatus(ctypes.Structure):
         # chunkrt_ipc::SessionGate): a robot obeys only commands whose sample publisher id is
         # the one announced by the status publisher it is bound to; nothing before the first
         # status, nothing while a second status publisher speaks, and a status with state
-        # CONTROLLER_STATE_STOPPED ends the session at once.
+        # CONTROLLER_STATE_STOPPED ends the session (the next binds after a settling time).
         ("command_publisher_id", ctypes.c_uint64 * 2),
         ("rearm_seq", ctypes.c_uint64),  # seq of the last re-arm request answered (0: none)
         ("state_reason", ctypes.c_uint32),  # STATE_REASON_*: why in this state
         ("rearm_result", ctypes.c_uint32),  # REARM_* answer to rearm_seq
         ("rearm_reason", ctypes.c_uint32),  # with REARM_REFUSED_INPUTS: STATE_REASON_*
-        ("reserved", ctypes.c_uint32),
+        ("foreign_statuses", ctypes.c_uint32),  # statuses from another publisher seen
     ]
 
     def command_publisher(self) -> int:

@@ -405,8 +405,10 @@ pub struct ControllerStatus {
     pub rearm_result: u32,
     /// With `REARM_REFUSED_INPUTS`: the input still bad, a `STATE_REASON_*` code (else 0).
     pub rearm_reason: u32,
-    /// Zero.
-    pub reserved: u32,
+    /// Statuses this controller received on its own status service from another publisher
+    /// (another controller, or a forger), saturating. While one speaks, a robot that binds
+    /// sessions holds (`SessionGate`: the session is ambiguous). Was `reserved` (zero) before.
+    pub foreign_statuses: u32,
 }
 
 impl ControllerStatus {
@@ -449,7 +451,7 @@ impl Default for ControllerStatus {
             state_reason: STATE_REASON_NONE,
             rearm_result: REARM_NONE,
             rearm_reason: STATE_REASON_NONE,
-            reserved: 0,
+            foreign_statuses: 0,
         }
     }
 }
@@ -509,7 +511,7 @@ pub fn layouts() -> Vec<(&'static str, (usize, Vec<FieldOffset>))> {
                 lateness_p50_ns, lateness_p99_ns, lateness_max_ns, compute_p50_ns,
                 compute_p99_ns, compute_max_ns, joint_state_age_ns, hold_entries, stale_cameras,
                 command_publisher_id, rearm_seq, state_reason, rearm_result, rearm_reason,
-                reserved),
+                foreign_statuses),
         ),
         (
             "RearmRequest",

@@ -433,7 +433,8 @@ impl StreamGuard {
 /// - A second status publisher while the bound one is alive makes the session ambiguous for
 ///   `timeout_ns` after its last sample: no command is obeyed (the robot holds).
 /// - Before the first status, no command is obeyed; a status with state
-///   `CONTROLLER_STATE_STOPPED` (a clean stop) ends the session at once.
+///   `CONTROLLER_STATE_STOPPED` (a clean stop) ends the session, and the next controller
+///   binds only after the same settling time (`timeout_ns`) as after a crash.
 ///
 /// So a rogue that publishes commands before the controller starts, or interleaves with it,
 /// moves nothing; a rogue would have to forge the status too, and a forged status next to the

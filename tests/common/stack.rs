@@ -72,6 +72,8 @@ pub struct Watch {
     pub js_seq_at_status: u64,
     pub last_js: JointState,
     pub commands: Vec<JointCommand>,
+    /// Statuses from this publisher are not the controller's (a forger the test runs itself).
+    pub ignore_status_from: u128,
 }
 
 impl Watch {
@@ -102,6 +104,7 @@ impl Watch {
             js_seq_at_status: 0,
             last_js: JointState::default(),
             commands: Vec::new(),
+            ignore_status_from: 0,
         }
     }
 
@@ -113,6 +116,9 @@ impl Watch {
                 self.last_js = *s.payload();
             }
             while let Ok(Some(s)) = self.status.receive() {
+                if s.origin().value() == self.ignore_status_from {
+                    continue;
+                }
                 self.last_status = *s.payload();
                 self.js_seq_at_status = self.last_js.seq;
             }

@@ -360,7 +360,9 @@ impl Robot {
         if let Err(e) = gate.on_status(status, origin, now_ns) {
             self.summary.status_rejected += 1;
             if self.summary.status_rejected <= 10 {
-                tracing::warn!("fake-robot: controller status rejected: {e}");
+                tracing::warn!(
+                    "fake-robot: controller status from publisher {origin:#x} rejected: {e}"
+                );
             }
         }
         if let SessionState::Bound(id) = gate.state(now_ns) {

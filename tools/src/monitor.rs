@@ -155,7 +155,15 @@ pub struct Stats {
     pub invalid: u64,
     /// Last values, formatted.
     pub last_value: String,
+    /// The distinct publishers of the window (at most [`MAX_NAMED_PUBLISHERS`] named): more
+    /// than one on a status or command service is a second controller or a forger.
+    pub publishers: Vec<u128>,
+    /// Samples of the window from publishers beyond the named ones.
+    pub unnamed_samples: u64,
 }
+
+/// Publishers named per service and window.
+pub const MAX_NAMED_PUBLISHERS: usize = 4;
 
 impl Stats {
     fn record(&mut self, origin: u128, seq: u64, time_ns: u64, now_ns: u64, since_ns: u64) {
@@ -164,6 +172,13 @@ impl Stats {
             return;
         }
         self.received += 1;
+        if !self.publishers.contains(&origin) {
+            if self.publishers.len() < MAX_NAMED_PUBLISHERS {
+                self.publishers.push(origin);
+            } else {
+                self.unnamed_samples += 1;
+            }
+        }
         let lat = now_ns.saturating_sub(time_ns);
         self.latency_sum_ns += lat as f64;
         self.latency_max_ns = self.latency_max_ns.max(lat);
@@ -182,6 +197,28 @@ impl Stats {
             return None;
         }
         Some((s1 - s0) as f64 / ((t1 - t0) as f64 * 1e-9))
+    }
+
+    /// "publishers=N (ids)" when more than one publisher spoke in the window, else empty.
+    pub fn publishers_note(&self) -> String {
+        if self.publishers.len() < 2 {
+            return String::new();
+        }
+        let ids: Vec<String> = self
+            .publishers
+            .iter()
+            .map(|id| format!("{:#x}", *id as u64))
+            .collect();
+        if self.unnamed_samples > 0 {
+            format!(
+                " PUBLISHERS>{} ({}; {} samples from others)",
+                self.publishers.len(),
+                ids.join(", "),
+                self.unnamed_samples
+            )
+        } else {
+            format!(" PUBLISHERS={} ({})", self.publishers.len(), ids.join(", "))
+        }
     }
 
     /// Mean latency in µs.
@@ -335,12 +372,14 @@ impl Watched {
                     let rejected: u64 = m.rejected.iter().sum();
                     st.last_value = format!(
                         "state={} ({}) ticks={} overruns={} chunks={} rejected={rejected} \
-                         late_p99_us={:.1} compute_p99_us={:.1} inference_ms={:.1}",
+                         foreign_statuses={} late_p99_us={:.1} compute_p99_us={:.1} \
+                         inference_ms={:.1}",
                         controller_state_name(m.state),
                         chunkrt_ipc::state_reason_name(m.state_reason),
                         m.ticks,
                         m.overruns,
                         m.chunks,
+                        m.foreign_statuses,
                         m.lateness_p99_ns as f64 / 1e3,
                         m.compute_p99_ns as f64 / 1e3,
                         m.last_inference_latency_ns as f64 / 1e6
@@ -396,11 +435,12 @@ impl Watched {
         }
         format!(
             "{}  {}  rate_hz={rate} received={} latency_avg_us={lat} latency_max_us={lat_max} \
-             invalid={}  {}",
+             invalid={}{}  {}",
             self.listed.name,
             self.listed.kind.label(),
             s.received,
             s.invalid,
+            s.publishers_note(),
             if s.last_value.is_empty() {
                 "(no data)"
             } else {
@@ -532,5 +572,16 @@ mod tests {
         s.record(2, 2, 5, 1_031_000_000, 1_000_000_000);
         assert_eq!(s.received, 2);
         assert_eq!(s.rate_hz(), None);
+        // two publishers in one window are named
+        assert_eq!(s.publishers_note(), " PUBLISHERS=2 (0x1, 0x2)");
+        for id in [3, 4, 5, 6, 7, 7] {
+            s.record(id, 1, 1_040_000_000, 1_040_000_000, 0);
+        }
+        assert_eq!(
+            s.publishers_note(),
+            " PUBLISHERS>4 (0x1, 0x2, 0x3, 0x4; 4 samples from others)"
+        );
+        s.reset_window();
+        assert_eq!(s.publishers_note(), "");
     }
 }
