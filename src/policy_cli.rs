@@ -51,6 +51,48 @@ pub struct SampleArgs {
     /// Run candle's op-by-op path instead of chunkrt's fused CUDA kernels (to compare them).
     #[arg(long)]
     pub unfused: bool,
+    #[command(flatten)]
+    pub layout: LayoutArgs,
+}
+
+/// Where a checkpoint's tokenizer and statistics are when its directory does not say
+/// (`chunkrt run`, `serve`, `sample`, `inspect`).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct LayoutArgs {
+    /// The prompt tokenizer when the checkpoint directory has none: openpi's
+    /// `paligemma_tokenizer.model` (SentencePiece; openpi keeps it in
+    /// ~/.cache/openpi/big_vision/, where it is also looked for) or a Hugging Face
+    /// `tokenizer.json` (google/paligemma-3b-pt-224's, as LeRobot uses).
+    #[arg(long, value_name = "FILE")]
+    pub tokenizer: Option<PathBuf>,
+    /// openpi checkpoints: which `assets/<ID>/norm_stats.json` to use when there are several
+    /// (one per robot the model was trained on).
+    #[arg(long, value_name = "ID")]
+    pub asset_id: Option<String>,
+}
+
+impl LayoutArgs {
+    /// Sets `policy.tokenizer` (made absolute: a path on the command line is relative to the
+    /// current directory, not to the configuration) and `policy.asset_id`.
+    pub fn apply(&self, p: &mut crate::config::PolicyConfig) -> anyhow::Result<()> {
+        if let Some(t) = &self.tokenizer {
+            p.tokenizer = Some(
+                std::path::absolute(t).with_context(|| format!("--tokenizer {}", t.display()))?,
+            );
+        }
+        if let Some(id) = &self.asset_id {
+            p.asset_id = Some(id.clone());
+        }
+        Ok(())
+    }
+
+    /// The policy crate's layout options.
+    pub fn options(&self) -> crate::policy::layout::LayoutOptions {
+        crate::policy::layout::LayoutOptions {
+            tokenizer: self.tokenizer.clone(),
+            asset_id: self.asset_id.clone(),
+        }
+    }
 }
 
 /// `chunkrt inspect`: describe a checkpoint.
@@ -58,6 +100,8 @@ pub struct SampleArgs {
 pub struct InspectArgs {
     /// Checkpoint directory.
     pub dir: PathBuf,
+    #[command(flatten)]
+    pub layout: LayoutArgs,
     /// Also say whether the model fits on this device (cpu, cuda, cuda:N) in `--precision`.
     #[arg(long)]
     pub device: Option<DeviceSpec>,
@@ -147,6 +191,7 @@ fn sample_request(args: &SampleArgs, path: &std::path::Path) -> anyhow::Result<(
     if let Some(s) = args.steps {
         cfg.policy.num_steps = s;
     }
+    args.layout.apply(&mut cfg.policy)?;
     let layout = crate::serve::layout_of(&cfg, None)?;
     let pool = crate::inference::policy_pool(&cfg.policy)?;
     let mut opts = cfg.policy.load_options();
@@ -280,9 +325,10 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
     let device = args.device.open()?;
     crate::policy::kernels::set_enabled(!args.unfused);
     let dtype = model_dtype(&device, args.precision);
-    let loaded = checkpoint::load_on(
+    let loaded = checkpoint::load_with(
         &args.checkpoint,
         &ConfigOverrides::default(),
+        &args.layout.options(),
         &device,
         dtype,
     )?;
@@ -353,7 +399,10 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
 
 /// `chunkrt inspect`.
 pub fn inspect(args: InspectArgs) -> anyhow::Result<()> {
-    print!("{}", checkpoint::inspect(&args.dir)?);
+    print!(
+        "{}",
+        checkpoint::inspect(&args.dir, &args.layout.options())?
+    );
     if let Some(spec) = args.device {
         let device = spec.open()?;
         let need = checkpoint::model_bytes(&args.dir, model_dtype(&device, args.precision))?;

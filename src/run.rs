@@ -47,6 +47,13 @@ pub struct RunArgs {
     /// the policy here (sets `policy.source = "remote"` and `policy.url`).
     #[arg(long, value_name = "URL")]
     pub remote: Option<String>,
+    /// Run this checkpoint (chunkrt's, openpi's converted to PyTorch, or LeRobot's pi0 / pi05
+    /// directory as shipped) instead of `policy.checkpoint`; the kind is the checkpoint's
+    /// unless `--policy` says otherwise. `chunkrt inspect DIR` shows what it finds there.
+    #[arg(long, value_name = "DIR", conflicts_with = "remote")]
+    pub checkpoint: Option<PathBuf>,
+    #[command(flatten)]
+    pub files: crate::policy_cli::LayoutArgs,
 }
 
 /// Loads the configuration named by `--config` (or the embedded default) and applies
@@ -121,6 +128,21 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     }
     if let Some(d) = args.device {
         cfg.policy.device = d;
+    }
+    args.files.apply(&mut cfg.policy)?;
+    if let Some(dir) = &args.checkpoint {
+        let dir = std::path::absolute(dir)?;
+        if args.policy.is_none() {
+            let opts = cfg.policy.load_options().layout;
+            cfg.policy.kind = Some(
+                crate::policy::checkpoint::kind_of(&dir, &opts)
+                    .with_context(|| format!("--checkpoint {}", dir.display()))?,
+            );
+        }
+        cfg.policy.checkpoint = Some(dir);
+        cfg.policy.source = PolicySource::Local;
+        let file = cfg.source.display().to_string();
+        cfg.validate(&format!("{file} (with --checkpoint)"))?;
     }
     if let Some(url) = &args.remote {
         cfg.policy.source = PolicySource::Remote;

@@ -56,6 +56,8 @@ pub struct ServeArgs {
     /// The largest request (MiB; default: 4 × one 640×480 RGB frame per image input, + 1).
     #[arg(long)]
     pub max_message_mb: Option<f64>,
+    #[command(flatten)]
+    pub files: crate::policy_cli::LayoutArgs,
     /// Connections served at once (more are refused with HTTP 503).
     #[arg(long, default_value_t = 16)]
     pub max_connections: usize,
@@ -193,6 +195,7 @@ pub fn start(args: &ServeArgs) -> anyhow::Result<Serving> {
     if let Some(p) = args.precision {
         cfg.policy.precision = p;
     }
+    args.files.apply(&mut cfg.policy)?;
     let layout = layout_of(&cfg, args.layout.as_deref())?;
     let pool = crate::inference::policy_pool(&cfg.policy)?;
     let mut opts = cfg.policy.load_options();

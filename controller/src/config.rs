@@ -104,6 +104,14 @@ pub struct PolicyConfig {
     /// Overrides of the checkpoint's model dimensions (`[policy.model]`).
     #[serde(default)]
     pub model: ConfigOverrides,
+    /// The prompt tokenizer when the checkpoint directory has none: openpi's
+    /// `paligemma_tokenizer.model` (SentencePiece) or a Hugging Face `tokenizer.json`; relative
+    /// to the config.
+    #[serde(default)]
+    pub tokenizer: Option<PathBuf>,
+    /// openpi checkpoints: which `assets/<asset_id>/norm_stats.json` (when there are several).
+    #[serde(default)]
+    pub asset_id: Option<String>,
     /// `source = "remote"`: the server, `ws://host:port[/path]`.
     #[serde(default)]
     pub url: Option<String>,
@@ -146,6 +154,8 @@ impl Default for PolicyConfig {
             precision: default_precision(),
             device: DeviceSpec::Cpu,
             model: ConfigOverrides::default(),
+            tokenizer: None,
+            asset_id: None,
             url: None,
             api_key: None,
             connect_timeout_ms: default_connect_timeout_ms(),
@@ -155,7 +165,8 @@ impl Default for PolicyConfig {
 }
 
 impl PolicyConfig {
-    /// The policy crate's load options for this section.
+    /// The policy crate's load options for this section (`tokenizer` as given: resolve it
+    /// against the configuration first, [`Config::resolve`]).
     pub fn load_options(&self) -> LoadOptions {
         let mut overrides = self.model.clone();
         overrides.num_denoise_steps = Some(self.num_steps);
@@ -166,6 +177,10 @@ impl PolicyConfig {
             device: self.device,
             overrides,
             cuda_graph: true,
+            layout: chunkrt_policy::layout::LayoutOptions {
+                tokenizer: self.tokenizer.clone(),
+                asset_id: self.asset_id.clone(),
+            },
         }
     }
 

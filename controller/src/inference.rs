@@ -72,7 +72,9 @@ impl PolicySource {
             .map(|p| cfg.resolve(p))
             .context("policy.checkpoint is not set")?;
         let pool = policy_pool(&cfg.policy)?;
-        let policy = pool.install(|| load_policy(&dir, &cfg.policy))?;
+        let mut pc = cfg.policy.clone();
+        pc.tokenizer = pc.tokenizer.map(|t| cfg.resolve(&t));
+        let policy = pool.install(|| load_policy(&dir, &pc))?;
         policy
             .check_dof(cfg.n_dof())
             .with_context(|| format!("{}: norm_stats.json", dir.display()))?;

@@ -1,6 +1,7 @@
 //! Checkpoints: `model.safetensors` with openpi PyTorch key names or LeRobot's (`model.` prefix),
-//! f32 or bf16 (computed in f32), dimensions from `config.json` or a named preset, every tensor
-//! checked by name and shape before the model is built.
+//! f32 or bf16 (computed in f32), dimensions from the directory's layout ([`crate::layout`]:
+//! chunkrt's, openpi's or LeRobot's), every tensor checked by name and shape before the model is
+//! built.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -11,6 +12,7 @@ use candle_nn::VarBuilder;
 use super::config::{ConfigOverrides, ModelConfig, ModelKind};
 use super::model::PiModel;
 use crate::error::PolicyError;
+use crate::layout::{Layout, LayoutOptions};
 
 const PG: &str = "paligemma_with_expert.paligemma";
 /// The token embedding's key, and the LM head's (which holds it when the embedding is absent).
@@ -303,24 +305,25 @@ pub fn check_tensors(
     }
 }
 
-/// Dimensions of a checkpoint directory: `config.json` when present, else the preset of the
-/// detected kind; then `overrides`; the vocabulary comes from the embedding's shape.
+/// Dimensions of a checkpoint directory with the default [`LayoutOptions`]: see [`resolve`].
 pub fn resolve_config(
     dir: &Path,
     tensors: &HashMap<String, Vec<usize>>,
     overrides: &ConfigOverrides,
 ) -> Result<ModelConfig, PolicyError> {
-    let cfg_path = dir.join("config.json");
-    let mut cfg = if cfg_path.exists() {
-        ModelConfig::from_file(&cfg_path)?
-    } else {
-        let kind = detect_kind(tensors).ok_or_else(|| {
-            PolicyError::Checkpoint(
-                "no config.json and neither state_proj (pi0) nor time_mlp_in (pi05) found".into(),
-            )
-        })?;
-        ModelConfig::preset(kind.name())?
-    };
+    resolve(dir, tensors, overrides, &LayoutOptions::default()).map(|(cfg, _)| cfg)
+}
+
+/// Reads the directory's layout ([`Layout::read`]: chunkrt's, openpi's or LeRobot's), applies
+/// `overrides`, and takes the vocabulary from the embedding's shape.
+pub fn resolve(
+    dir: &Path,
+    tensors: &HashMap<String, Vec<usize>>,
+    overrides: &ConfigOverrides,
+    opts: &LayoutOptions,
+) -> Result<(ModelConfig, Layout), PolicyError> {
+    let layout = Layout::read(dir, tensors, opts)?;
+    let mut cfg = layout.config.clone();
     overrides.apply(&mut cfg)?;
     if let Some(dims) = tensors.get(LM_HEAD) {
         if dims.len() == 2 {
@@ -335,7 +338,15 @@ pub fn resolve_config(
     }
     // before anything is sized from it (the expected tensor list, the model)
     cfg.validate()?;
-    Ok(cfg)
+    Ok((cfg, layout))
+}
+
+/// The kind (π0 or π0.5) of the checkpoint in `dir`, from its layout (only the weights' index
+/// is read).
+pub fn kind_of(dir: &Path, opts: &LayoutOptions) -> Result<ModelKind, PolicyError> {
+    let file = WeightFile::open(&dir.join("model.safetensors"))?;
+    let (cfg, _) = resolve(dir, file.shapes(), &ConfigOverrides::default(), opts)?;
+    Ok(cfg.kind)
 }
 
 /// A loaded checkpoint.
@@ -344,6 +355,8 @@ pub struct Loaded {
     pub model: PiModel,
     /// Dtypes stored in the file.
     pub stored_dtypes: Vec<DType>,
+    /// Where its configuration, tokenizer and statistics came from.
+    pub layout: Layout,
 }
 
 /// Loads `dir/model.safetensors` (+ `config.json`) and builds the model in f32 on the CPU.
@@ -360,8 +373,19 @@ pub fn load_on(
     device: &Device,
     dtype: DType,
 ) -> Result<Loaded, PolicyError> {
+    load_with(dir, overrides, &LayoutOptions::default(), device, dtype)
+}
+
+/// [`load_on`] with the user's choices for the layout (tokenizer path, openpi asset id).
+pub fn load_with(
+    dir: &Path,
+    overrides: &ConfigOverrides,
+    opts: &LayoutOptions,
+    device: &Device,
+    dtype: DType,
+) -> Result<Loaded, PolicyError> {
     let file = WeightFile::open(&dir.join("model.safetensors"))?;
-    let cfg = resolve_config(dir, file.shapes(), overrides)?;
+    let (cfg, layout) = resolve(dir, file.shapes(), overrides, opts)?;
     check_tensors(&cfg, file.shapes())?;
     let stored_dtypes = file.dtypes().to_vec();
     let vb = VarBuilder::from_backend(Box::new(file), dtype, device.clone());
@@ -369,6 +393,7 @@ pub fn load_on(
     Ok(Loaded {
         model,
         stored_dtypes,
+        layout,
     })
 }
 
@@ -386,20 +411,16 @@ pub fn model_bytes(dir: &Path, dtype: DType) -> Result<u64, PolicyError> {
 
 /// Human-readable description of a checkpoint directory: architecture, parameter counts, dtypes,
 /// and what is missing or mismatched.
-pub fn inspect(dir: &Path) -> Result<String, PolicyError> {
+pub fn inspect(dir: &Path, opts: &LayoutOptions) -> Result<String, PolicyError> {
     use std::fmt::Write;
     // shapes and dtypes from the file's index: no tensor data is read
     let file = WeightFile::open(&dir.join("model.safetensors"))?;
     let (tensors, dtypes) = (file.shapes(), file.dtypes());
-    let cfg = resolve_config(dir, tensors, &ConfigOverrides::default())?;
+    let (cfg, layout) = resolve(dir, tensors, &ConfigOverrides::default(), opts)?;
     let mut s = String::new();
-    let src = if dir.join("config.json").exists() {
-        "config.json"
-    } else {
-        "preset"
-    };
     let _ = writeln!(s, "checkpoint: {}", dir.display());
-    let _ = writeln!(s, "kind: {} (dimensions from {src})", cfg.kind.name());
+    s.push_str(&layout.report());
+    let _ = writeln!(s, "kind: {}", cfg.kind.name());
     let v = &cfg.vision;
     let _ = writeln!(
         s,

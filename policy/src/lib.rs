@@ -25,12 +25,14 @@ pub mod gemma;
 pub mod gpu;
 pub mod graph;
 pub mod kernels;
+pub mod layout;
 pub mod model;
 pub mod ops;
 pub mod packed;
 pub mod preprocess;
 pub mod rtc;
 pub mod runtime;
+pub mod sentencepiece;
 pub mod siglip;
 
 pub use config::{ConfigOverrides, DelayedView, ModelConfig, ModelKind};

@@ -368,12 +368,40 @@ pub enum PromptTokenizer {
         /// BOS id.
         bos: u32,
     },
+    /// A SentencePiece `.model` (openpi's `paligemma_tokenizer.model`), read by
+    /// [`crate::sentencepiece`]; its BOS is prepended.
+    SentencePiece(Box<crate::sentencepiece::SentencePiece>),
     /// Test double named as such: the fixtures' stand-in byte tokenizer
     /// (`[2] + [byte + 3 ...]`), used when a checkpoint ships no `tokenizer.json`.
     ByteStandIn,
 }
 
 impl PromptTokenizer {
+    /// Loads a SentencePiece `.model` (it must have a BOS piece).
+    pub fn from_sentencepiece(path: &Path) -> Result<Self, PolicyError> {
+        let sp = crate::sentencepiece::SentencePiece::from_file(path)?;
+        if sp.bos_id().is_none() {
+            return Err(PolicyError::Tokenizer(format!(
+                "{}: the model has no BOS piece, which openpi's prompts begin with",
+                path.display()
+            )));
+        }
+        Ok(PromptTokenizer::SentencePiece(Box::new(sp)))
+    }
+
+    /// Which kind of tokenizer this is, for logs and `inspect`.
+    pub fn describe(&self) -> String {
+        match self {
+            PromptTokenizer::Hf { tok, .. } => {
+                format!("tokenizer.json, {} ids", tok.get_vocab_size(true))
+            }
+            PromptTokenizer::SentencePiece(sp) => {
+                format!("SentencePiece BPE, {} pieces", sp.vocab_size())
+            }
+            PromptTokenizer::ByteStandIn => "the byte stand-in (a test double)".into(),
+        }
+    }
+
     /// Loads `tokenizer.json`; BOS = the id of `<bos>` (2 when absent).
     pub fn from_file(path: &Path) -> Result<Self, PolicyError> {
         let bytes = crate::files::read_bounded(path, crate::files::MAX_SIDE_FILE_BYTES)?;
@@ -393,6 +421,7 @@ impl PromptTokenizer {
                 .map_err(|e| PolicyError::Tokenizer(e.to_string()))?
                 .get_ids()
                 .to_vec()),
+            PromptTokenizer::SentencePiece(sp) => Ok(sp.encode(text)),
             PromptTokenizer::ByteStandIn => Ok(text.bytes().map(|b| b as u32 + 3).collect()),
         }
     }
@@ -401,6 +430,7 @@ impl PromptTokenizer {
     pub fn id_bound(&self) -> usize {
         match self {
             PromptTokenizer::Hf { tok, .. } => tok.get_vocab_size(true),
+            PromptTokenizer::SentencePiece(sp) => sp.vocab_size(),
             PromptTokenizer::ByteStandIn => 256 + 3,
         }
     }
@@ -408,18 +438,33 @@ impl PromptTokenizer {
     fn bos(&self) -> u32 {
         match self {
             PromptTokenizer::Hf { bos, .. } => *bos,
+            // checked at load (from_sentencepiece)
+            PromptTokenizer::SentencePiece(sp) => sp.bos_id().unwrap_or(2),
             PromptTokenizer::ByteStandIn => 2,
         }
     }
 
     /// π0: BOS + cleaned prompt, then `"\n"` tokenized separately; π0.5 (`state_bins` given):
-    /// BOS + the π0.5 prompt. Padded with 0 / truncated to `max_len`; returns ids and mask.
+    /// BOS + the π0.5 prompt. Padded with 0 / truncated to `max_len`; returns ids and mask
+    /// (openpi's `PaligemmaTokenizer.tokenize`). [`Self::tokenize_counted`] also says how long
+    /// the prompt was before truncation.
     pub fn tokenize(
         &self,
         prompt: &str,
         state_bins: Option<&[i64]>,
         max_len: usize,
     ) -> Result<(Vec<u32>, Vec<bool>), PolicyError> {
+        let (ids, mask, _) = self.tokenize_counted(prompt, state_bins, max_len)?;
+        Ok((ids, mask))
+    }
+
+    /// [`Self::tokenize`], with the untruncated length as the third value.
+    pub fn tokenize_counted(
+        &self,
+        prompt: &str,
+        state_bins: Option<&[i64]>,
+        max_len: usize,
+    ) -> Result<(Vec<u32>, Vec<bool>, usize), PolicyError> {
         let mut ids = vec![self.bos()];
         match state_bins {
             Some(b) => ids.extend(self.encode(&pi05_prompt(prompt, b))?),
@@ -428,10 +473,11 @@ impl PromptTokenizer {
                 ids.extend(self.encode("\n")?);
             }
         }
+        let full = ids.len();
         ids.truncate(max_len);
         let n = ids.len();
         ids.resize(max_len, 0);
         let mask = (0..max_len).map(|i| i < n).collect();
-        Ok((ids, mask))
+        Ok((ids, mask, full))
     }
 }

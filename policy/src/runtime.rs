@@ -11,6 +11,7 @@ use super::checkpoint;
 use super::config::{ConfigOverrides, ModelKind};
 use super::device::{DeviceSpec, Precision};
 use super::graph::SampleGraph;
+use super::layout::{LayoutOptions, TokenizerFile};
 use super::model::{ModelInputs, PiModel, PrefixCache};
 use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
@@ -100,6 +101,10 @@ pub struct Policy {
     /// The captured samples (GPU): [plain, RTC-guided], and whether to (still) try each.
     graph: [Option<SampleGraph>; 2],
     graph_on: [bool; 2],
+    /// The last prompt warned about as truncated (one warning per prompt, not per inference).
+    truncated_prompt: Option<String>,
+    /// π0.5: the state's length in the prompt (LeRobot pads it; `None`: the robot's values).
+    state_prompt_dim: Option<usize>,
 }
 
 /// How to load a policy (the controller builds this from its `[policy]` configuration).
@@ -118,6 +123,8 @@ pub struct LoadOptions {
     /// On a GPU, replay each sample (prefix pass and denoising loop) as one captured CUDA graph
     /// ([`super::graph`]); it falls back to eager by itself if capture fails or disagrees.
     pub cuda_graph: bool,
+    /// Where the tokenizer is when not in the checkpoint, and which openpi asset id.
+    pub layout: LayoutOptions,
 }
 
 impl Default for LoadOptions {
@@ -129,6 +136,7 @@ impl Default for LoadOptions {
             device: DeviceSpec::Cpu,
             overrides: ConfigOverrides::default(),
             cuda_graph: true,
+            layout: LayoutOptions::default(),
         }
     }
 }
@@ -159,7 +167,9 @@ impl Policy {
                 )));
             }
         }
-        let loaded = checkpoint::load_on(checkpoint_dir, &overrides, &device, dtype)?;
+        let loaded =
+            checkpoint::load_with(checkpoint_dir, &overrides, &opts.layout, &device, dtype)?;
+        let layout = loaded.layout;
         let mut model = loaded.model;
         if device.is_cpu() && opts.precision == Precision::Bf16 && !model.use_bf16()? {
             tracing::warn!("policy.precision = bf16 needs Intel AMX or AVX512-BF16, which this CPU does not offer: running f32");
@@ -176,23 +186,25 @@ impl Policy {
         // Every upload of the weights has landed before another thread (the controller's
         // inference thread, with its own per-thread CUDA stream) uses them.
         device.synchronize()?;
-        let tok_path = checkpoint_dir.join("tokenizer.json");
-        let tokenizer = if tok_path.exists() {
-            PromptTokenizer::from_file(&tok_path)?
-        } else if model.cfg.byte_tokenizer {
-            tracing::info!(
-                "{}: the byte stand-in tokenizer, as config.json declares",
-                checkpoint_dir.display()
-            );
-            PromptTokenizer::ByteStandIn
-        } else {
+        tracing::info!(
+            "{}: {} layout",
+            checkpoint_dir.display(),
+            layout.kind.name()
+        );
+        for n in &layout.notes {
+            tracing::info!("  {n}");
+        }
+        let tokenizer = match &layout.tokenizer {
+            TokenizerFile::Json(p) => PromptTokenizer::from_file(p)?,
+            TokenizerFile::SentencePiece(p) => PromptTokenizer::from_sentencepiece(p)?,
+            TokenizerFile::ByteStandIn => PromptTokenizer::ByteStandIn,
             // a silent stand-in sent a real policy's arm to its joint limit
-            return Err(PolicyError::Tokenizer(format!(
-                "no tokenizer.json in {}: the prompt would be tokenized by a byte stand-in the \
-                 policy was not trained with; put the model's tokenizer.json there (HF tokenizers \
-                 format), or declare \"tokenizer\": \"byte_stand_in\" in its config.json",
-                checkpoint_dir.display()
-            )));
+            TokenizerFile::Missing(msg) => {
+                return Err(PolicyError::Tokenizer(format!(
+                    "{}: {msg}",
+                    checkpoint_dir.display()
+                )))
+            }
         };
         // a token id beyond the embedding table is not an error candle reports: it reads past
         // the table or yields NaN; refuse the pair at load
@@ -205,22 +217,26 @@ impl Policy {
                 ids - 1
             )));
         }
-        let ns_path = checkpoint_dir.join("norm_stats.json");
-        let norm = if ns_path.exists() {
-            let ns = NormStats::from_file(&ns_path)?;
-            let mode = match model.cfg.kind {
-                ModelKind::Pi0 => NormMode::ZScore,
-                ModelKind::Pi05 => NormMode::Quantile,
-            };
-            ns.check(mode, 0)
-                .map_err(|e| PolicyError::Config(format!("{}: {e}", ns_path.display())))?;
-            Some(ns)
-        } else {
-            tracing::warn!(
-                "no norm_stats.json in {}: state/actions are not normalised",
-                checkpoint_dir.display()
-            );
-            None
+        if let Some(problem) = &layout.norm_problem {
+            return Err(PolicyError::Config(problem.clone()));
+        }
+        let norm = match layout.norm {
+            Some(ns) => {
+                let mode = match model.cfg.kind {
+                    ModelKind::Pi0 => NormMode::ZScore,
+                    ModelKind::Pi05 => NormMode::Quantile,
+                };
+                ns.check(mode, 0).map_err(|e| {
+                    PolicyError::Config(format!("{}: {e}", checkpoint_dir.display()))
+                })?;
+                Some(ns)
+            }
+            None => {
+                for m in &layout.missing {
+                    tracing::warn!("{}: {m}", checkpoint_dir.display());
+                }
+                None
+            }
         };
         Ok(Policy {
             model,
@@ -234,6 +250,8 @@ impl Policy {
             offsets: Vec::new(),
             graph: [None, None],
             graph_on: [opts.cuda_graph && opts.device.is_cuda(); 2],
+            truncated_prompt: None,
+            state_prompt_dim: layout.state_prompt_dim,
         })
     }
 
@@ -431,7 +449,15 @@ impl Policy {
         if let Some(ns) = &self.norm {
             normalize(&mut state, &ns.state, mode)?;
         }
-        let bins = (cfg.kind == ModelKind::Pi05).then(|| discretize_state(&state));
+        let bins = (cfg.kind == ModelKind::Pi05).then(|| match self.state_prompt_dim {
+            // LeRobot's pi05 processor pads the normalised state before discretising it
+            Some(n) if n > state.len() => {
+                let mut padded = state.clone();
+                padded.resize(n, 0.0);
+                discretize_state(&padded)
+            }
+            _ => discretize_state(&state),
+        });
         state.resize(cfg.action_dim, 0.0);
         // images in camera order; absent cameras black and masked
         let s = cfg.vision.image_size;
@@ -455,9 +481,20 @@ impl Policy {
             }
             images.push(Tensor::from_slice(&self.images, (1, 3, s, s), &dev)?);
         }
-        let (ids, tmask) =
+        let (ids, tmask, full) =
             self.tokenizer
-                .tokenize(obs.prompt, bins.as_deref(), cfg.max_token_len)?;
+                .tokenize_counted(obs.prompt, bins.as_deref(), cfg.max_token_len)?;
+        if full > cfg.max_token_len && self.truncated_prompt.as_deref() != Some(obs.prompt) {
+            // once per prompt: a π0.5 prompt's length changes with the state
+            self.truncated_prompt = Some(obs.prompt.to_string());
+            tracing::warn!(
+                "the prompt {:?} is {full} tokens with its state, more than the model's {}: \
+                 truncated, so the policy does not see its end (shorten it, or raise \
+                 max_token_len if the checkpoint was trained with more)",
+                obs.prompt,
+                cfg.max_token_len
+            );
+        }
         let inputs = ModelInputs {
             images,
             image_masks: masks,

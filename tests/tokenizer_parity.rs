@@ -1,0 +1,93 @@
+//! Token parity with openpi: chunkrt's SentencePiece reader and prompt builder against the ids
+//! openpi's own `PaligemmaTokenizer` (openpi commit 15a9616, the `sentencepiece` package) gave
+//! for the same prompts, states and lengths (`tests/data/tokenizer/`, made by
+//! `scripts/fixtures/make_tokenizer_fixture.py` with a tiny model trained like PaliGemma's: BPE,
+//! byte fallback, identity normalisation, digits split).
+
+use chunkrt::policy::preprocess::{discretize_state, PromptTokenizer};
+use chunkrt::policy::sentencepiece::SentencePiece;
+use serde::Deserialize;
+
+#[derive(Deserialize)]
+struct Case {
+    prompt: String,
+    state: Option<Vec<f64>>,
+    max_len: usize,
+    ids: Vec<u32>,
+    mask: Vec<bool>,
+}
+
+#[derive(Deserialize)]
+struct Encode {
+    text: String,
+    ids: Vec<u32>,
+}
+
+#[derive(Deserialize)]
+struct Fixture {
+    vocab_size: usize,
+    bos_id: u32,
+    cases: Vec<Case>,
+    encode: Vec<Encode>,
+}
+
+fn data() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/tokenizer")
+}
+
+fn fixture() -> Fixture {
+    let text = std::fs::read_to_string(data().join("openpi_tokens.json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+#[test]
+fn sentencepiece_encodes_as_the_sentencepiece_package() {
+    let f = fixture();
+    let sp = SentencePiece::from_file(&data().join("paligemma_tiny.model")).unwrap();
+    assert_eq!(sp.vocab_size(), f.vocab_size);
+    assert_eq!(sp.bos_id(), Some(f.bos_id));
+    let mut byte_fallbacks = 0;
+    for e in &f.encode {
+        let ids = sp.encode(&e.text);
+        assert_eq!(ids, e.ids, "encode({:?})", e.text);
+        byte_fallbacks += ids.iter().filter(|&&i| (4..260).contains(&i)).count();
+    }
+    // the fixture exercises byte fallback (non-ASCII text has no pieces in the tiny model)
+    assert!(byte_fallbacks > 10, "{byte_fallbacks} byte pieces");
+    eprintln!(
+        "{} raw encodings equal, {byte_fallbacks} byte-fallback ids",
+        f.encode.len()
+    );
+}
+
+#[test]
+fn prompts_and_states_tokenize_as_openpi() {
+    let f = fixture();
+    let tok = PromptTokenizer::from_sentencepiece(&data().join("paligemma_tiny.model")).unwrap();
+    let (mut pi0, mut pi05, mut truncated) = (0, 0, 0);
+    for c in &f.cases {
+        let bins = c.state.as_ref().map(|s| {
+            let s: Vec<f32> = s.iter().map(|&x| x as f32).collect();
+            discretize_state(&s)
+        });
+        let (ids, mask, full) = tok
+            .tokenize_counted(&c.prompt, bins.as_deref(), c.max_len)
+            .unwrap();
+        assert_eq!(
+            ids, c.ids,
+            "prompt {:?} state {:?} max_len {}",
+            c.prompt, c.state, c.max_len
+        );
+        assert_eq!(mask, c.mask, "mask of {:?}", c.prompt);
+        if bins.is_some() {
+            pi05 += 1;
+        } else {
+            pi0 += 1;
+        }
+        truncated += usize::from(full > c.max_len);
+    }
+    eprintln!(
+        "{pi0} pi0 and {pi05} pi0.5 prompts equal openpi's ids ({truncated} truncated to the limit)"
+    );
+    assert!(pi0 >= 10 && pi05 >= 10 && truncated >= 5);
+}
