@@ -1,0 +1,201 @@
+//! Checkpoints as openpi and LeRobot ship them: the same tiny π0.5 (`tests/data/pi05_tiny`'s
+//! weights) in openpi's converted layout and in LeRobot's (`tests/data/lerobot_pi05_tiny`, its
+//! config and processor files written by LeRobot's own classes), sampled against the same model
+//! in chunkrt's layout, with the tiny SentencePiece tokenizer of `tests/data/tokenizer`.
+
+use std::path::{Path, PathBuf};
+
+use chunkrt::policy::layout::LayoutOptions;
+use chunkrt::policy::{Conditioning, LoadOptions, Policy, RawObservation};
+
+#[path = "common/fixture.rs"]
+mod fixture;
+
+const TOKENIZER: &str = "tokenizer/paligemma_tiny.model";
+const PROMPT: &str = "pick up the red block";
+
+/// A fresh temporary directory for one test.
+fn tmp(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("chunkrt_layout_{tag}_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Normalisation statistics for the tiny model: state of the fixture's 6 joints, actions of 8.
+fn norm_stats_json() -> String {
+    let stats = |n: usize, scale: f32| {
+        let v = |f: &dyn Fn(usize) -> f32| (0..n).map(f).collect::<Vec<f32>>();
+        serde_json::json!({
+            "mean": v(&|i| 0.05 * i as f32),
+            "std": v(&|i| scale * (0.5 + 0.1 * i as f32)),
+            "q01": v(&|i| -scale * (1.0 + 0.1 * i as f32)),
+            "q99": v(&|i| scale * (1.2 + 0.05 * i as f32)),
+        })
+    };
+    serde_json::json!({"norm_stats": {"state": stats(6, 1.0), "actions": stats(8, 0.5)}})
+        .to_string()
+}
+
+/// pi05_tiny's `config.json` without its byte stand-in declaration: the dimensions only.
+fn tiny_dimensions() -> String {
+    let src = fixture::data("pi05_tiny");
+    let mut cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(src.join("config.json")).unwrap()).unwrap();
+    cfg.as_object_mut().unwrap().remove("tokenizer");
+    cfg.to_string()
+}
+
+/// pi05_tiny in chunkrt's layout with the SentencePiece tokenizer and statistics.
+fn chunkrt_layout() -> PathBuf {
+    let src = fixture::data("pi05_tiny");
+    let d = tmp("chunkrt");
+    std::fs::copy(src.join("model.safetensors"), d.join("model.safetensors")).unwrap();
+    std::fs::write(d.join("config.json"), tiny_dimensions()).unwrap();
+    std::fs::write(d.join("norm_stats.json"), norm_stats_json()).unwrap();
+    std::fs::copy(
+        fixture::data(TOKENIZER),
+        d.join("paligemma_tokenizer.model"),
+    )
+    .unwrap();
+    d
+}
+
+/// The same model as openpi's converter writes it: `config.json` with the variant names,
+/// `assets/<asset_id>/norm_stats.json`, no tokenizer (openpi downloads it separately). The tiny
+/// model's dimensions, which openpi's variant names cannot express, are in `chunkrt.json`.
+fn openpi_layout(asset_ids: &[&str]) -> PathBuf {
+    let src = fixture::data("pi05_tiny");
+    let d = tmp(&format!("openpi{}", asset_ids.len()));
+    std::fs::copy(src.join("model.safetensors"), d.join("model.safetensors")).unwrap();
+    let openpi = serde_json::json!({
+        "action_dim": 8,
+        "action_horizon": 10,
+        "paligemma_variant": "gemma_2b",
+        "action_expert_variant": "gemma_300m",
+        "precision": "float32",
+    });
+    std::fs::write(d.join("config.json"), openpi.to_string()).unwrap();
+    std::fs::write(d.join("chunkrt.json"), tiny_dimensions()).unwrap();
+    for id in asset_ids {
+        let a = d.join("assets").join(id);
+        std::fs::create_dir_all(&a).unwrap();
+        std::fs::write(a.join("norm_stats.json"), norm_stats_json()).unwrap();
+    }
+    d
+}
+
+fn load(dir: &Path, layout: LayoutOptions) -> Result<Policy, String> {
+    let opts = LoadOptions {
+        layout,
+        ..Default::default()
+    };
+    Policy::load(dir, &opts).map_err(|e| e.to_string())
+}
+
+fn with_tokenizer() -> LayoutOptions {
+    LayoutOptions {
+        tokenizer: Some(fixture::data(TOKENIZER)),
+        asset_id: None,
+    }
+}
+
+/// One chunk from the fixture's observation (two of its three cameras, its 6-joint state).
+fn sample(p: &mut Policy) -> Vec<f64> {
+    let (frames, state) =
+        fixture::raw_observation("pi05_tiny", &["base_0_rgb", "left_wrist_0_rgb"]);
+    let raw = fixture::raw_frames(&frames);
+    let obs = RawObservation {
+        frames: &raw,
+        joint_positions: &state,
+        prompt: PROMPT,
+    };
+    p.infer(&obs, &Conditioning::Fresh).unwrap()
+}
+
+fn max_diff(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn an_openpi_checkpoint_samples_as_the_same_model_in_chunkrts_layout() {
+    let reference = chunkrt_layout();
+    let mut want = load(&reference, LayoutOptions::default()).unwrap();
+    let a = sample(&mut want);
+    let dir = openpi_layout(&["tiny_robot"]);
+    let mut got = load(&dir, with_tokenizer()).unwrap();
+    let b = sample(&mut got);
+    let d = max_diff(&a, &b);
+    eprintln!(
+        "openpi layout vs chunkrt layout: {} actions, max diff {d:.2e}",
+        a.len()
+    );
+    assert!(d <= 1e-6, "max diff {d}");
+    // it is not the same as without the statistics (they are used)
+    let bare = tmp("bare");
+    for f in [
+        "model.safetensors",
+        "config.json",
+        "paligemma_tokenizer.model",
+    ] {
+        std::fs::copy(reference.join(f), bare.join(f)).unwrap();
+    }
+    let c = sample(&mut load(&bare, LayoutOptions::default()).unwrap());
+    assert!(max_diff(&a, &c) > 1e-3, "the statistics changed nothing");
+    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    eprintln!("{report}");
+    for want in [
+        "layout: openpi",
+        "assets/tiny_robot/norm_stats.json",
+        "chunkrt.json",
+        "paligemma_tiny.model",
+        "action_dim 8, action_horizon 10: openpi's config.json",
+    ] {
+        assert!(report.contains(want), "{want:?} not in\n{report}");
+    }
+    for d in [reference, dir, bare] {
+        std::fs::remove_dir_all(d).ok();
+    }
+}
+
+#[test]
+fn an_openpi_checkpoint_with_several_robots_needs_an_asset_id() {
+    let dir = openpi_layout(&["aloha", "droid"]);
+    let e = load(&dir, with_tokenizer()).err().expect("refused");
+    assert!(
+        e.contains("--asset-id") && e.contains("aloha, droid"),
+        "{e}"
+    );
+    let mut opts = with_tokenizer();
+    opts.asset_id = Some("droid".into());
+    load(&dir, opts.clone()).expect("loads with an asset id");
+    let report = chunkrt::policy::checkpoint::inspect(&dir, &opts).unwrap();
+    assert!(report.contains("assets/droid/norm_stats.json"), "{report}");
+    opts.asset_id = Some("libero".into());
+    let e = load(&dir, opts).err().expect("refused");
+    assert!(e.contains("aloha, droid"), "{e}");
+    // no tokenizer: the error says where it looked and what to pass
+    let no_tokenizer = LayoutOptions {
+        tokenizer: None,
+        asset_id: Some("droid".into()),
+    };
+    let e = load(&dir, no_tokenizer).err().expect("refused");
+    assert!(
+        e.contains("--tokenizer") && e.contains("paligemma_tokenizer.model"),
+        "{e}"
+    );
+    // the real variant names without chunkrt.json: the preset, which these weights do not fit
+    std::fs::remove_file(dir.join("chunkrt.json")).unwrap();
+    let mut opts = with_tokenizer();
+    opts.asset_id = Some("droid".into());
+    let e = load(&dir, opts).err().expect("refused");
+    assert!(
+        e.contains("width is 2048") || e.contains("problem(s)"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(dir).ok();
+}
