@@ -14,9 +14,11 @@ mod fixture;
 const TOKENIZER: &str = "tokenizer/paligemma_tiny.model";
 const PROMPT: &str = "pick up the red block";
 
-/// A fresh temporary directory for one test.
+/// A fresh temporary directory (tests run in parallel: each call gets its own).
 fn tmp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("chunkrt_layout_{tag}_{}", std::process::id()));
+    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let d = std::env::temp_dir().join(format!("chunkrt_layout_{tag}_{}_{n}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d
@@ -196,6 +198,117 @@ fn an_openpi_checkpoint_with_several_robots_needs_an_asset_id() {
     assert!(
         e.contains("width is 2048") || e.contains("problem(s)"),
         "{e}"
+    );
+    std::fs::remove_dir_all(dir).ok();
+}
+
+/// A copy of the LeRobot fixture, its pre-processor's prompt step given `max_state_dim` (as a
+/// LeRobot user may set it) when `prompt_state_dim` is some.
+fn lerobot_copy(tag: &str, prompt_state_dim: Option<usize>) -> PathBuf {
+    let src = fixture::data("lerobot_pi05_tiny");
+    let d = tmp(tag);
+    for e in std::fs::read_dir(&src).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, d.join(p.file_name().unwrap())).unwrap();
+    }
+    if let Some(n) = prompt_state_dim {
+        let path = d.join("policy_preprocessor.json");
+        let mut pre: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        let step = pre["steps"]
+            .as_array_mut()
+            .unwrap()
+            .iter_mut()
+            .find(|s| s["registry_name"] == "pi05_prepare_state_tokenizer_processor_step")
+            .expect("LeRobot's pi05 prompt step");
+        step["config"]["max_state_dim"] = n.into();
+        std::fs::write(&path, pre.to_string()).unwrap();
+    }
+    d
+}
+
+#[test]
+fn a_lerobot_checkpoint_samples_as_the_same_model_in_chunkrts_layout() {
+    let reference = chunkrt_layout();
+    let a = sample(&mut load(&reference, LayoutOptions::default()).unwrap());
+    // the prompt step padding to the robot's 6 values: the same prompt as openpi's
+    let dir = lerobot_copy("lerobot6", Some(6));
+    let b = sample(&mut load(&dir, with_tokenizer()).unwrap());
+    let d = max_diff(&a, &b);
+    eprintln!(
+        "LeRobot layout vs chunkrt layout: {} actions, max diff {d:.2e}",
+        a.len()
+    );
+    assert!(d <= 1e-6, "max diff {d}");
+    for d in [reference, dir] {
+        std::fs::remove_dir_all(d).ok();
+    }
+}
+
+#[test]
+fn a_lerobot_checkpoint_as_written_pads_the_state_in_the_prompt_and_says_where_things_came_from() {
+    use chunkrt::policy::preprocess::{
+        discretize_state, normalize, NormMode, NormStats, PromptTokenizer,
+    };
+    let dir = lerobot_copy("lerobot", None);
+    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    eprintln!("{report}");
+    for want in [
+        "layout: LeRobot",
+        "action_horizon 10 (chunk_size)",
+        "action_dim 8 (max_action_dim)",
+        "max_token_len 200 (tokenizer_max_length)",
+        "cameras [\"base_0_rgb\", \"left_wrist_0_rgb\", \"right_wrist_0_rgb\"]",
+        "padded to 32 values",
+        "observation.state from policy_preprocessor_step_2_normalizer_processor.safetensors",
+        "action from policy_postprocessor_step_0_unnormalizer_processor.safetensors",
+        "chunkrt.json",
+    ] {
+        assert!(report.contains(want), "{want:?} not in\n{report}");
+    }
+    // the tokens: LeRobot's prompt, the normalised state padded with zeros to 32 before binning
+    let mut policy = load(&dir, with_tokenizer()).unwrap();
+    let (frames, state) =
+        fixture::raw_observation("pi05_tiny", &["base_0_rgb", "left_wrist_0_rgb"]);
+    let raw = fixture::raw_frames(&frames);
+    let obs = RawObservation {
+        frames: &raw,
+        joint_positions: &state,
+        prompt: PROMPT,
+    };
+    let got: Vec<u32> = policy
+        .prepare(&obs)
+        .unwrap()
+        .tokens
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
+    let stats: serde_json::Value = serde_json::from_str(&norm_stats_json()).unwrap();
+    let stats: NormStats = serde_json::from_value(stats["norm_stats"].clone()).unwrap();
+    let mut s: Vec<f32> = state.iter().map(|&x| x as f32).collect();
+    normalize(&mut s, &stats.state, NormMode::Quantile).unwrap();
+    s.resize(32, 0.0);
+    let tok = PromptTokenizer::from_sentencepiece(&fixture::data(TOKENIZER)).unwrap();
+    let (want, _) = tok
+        .tokenize(PROMPT, Some(&discretize_state(&s)), 200)
+        .unwrap();
+    assert_eq!(got, want);
+    // and differs from openpi's prompt of the 6 values
+    let mut s6 = s.clone();
+    s6.truncate(6);
+    let (openpi, _) = tok
+        .tokenize(PROMPT, Some(&discretize_state(&s6)), 200)
+        .unwrap();
+    assert_ne!(got, openpi);
+    // a LeRobot checkpoint without its processor files loads with a warning, not normalised
+    for f in ["policy_preprocessor.json", "policy_postprocessor.json"] {
+        std::fs::remove_file(dir.join(f)).unwrap();
+    }
+    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    assert!(
+        report.contains("MISSING: policy_preprocessor.json"),
+        "{report}"
     );
     std::fs::remove_dir_all(dir).ok();
 }

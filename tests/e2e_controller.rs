@@ -1189,3 +1189,42 @@ fn a_status_forged_after_a_clean_stop_moves_nothing() {
         r.stdout
     );
 }
+
+/// A LeRobot checkpoint as shipped (its config and processor files, LeRobot's key names), run by
+/// the one command the README gives: `chunkrt run --checkpoint DIR --tokenizer FILE`; the
+/// controller runs the policy and the robot follows its commands.
+#[test]
+fn run_takes_a_lerobot_checkpoint_as_shipped() {
+    let _serial = serial();
+    let ns = unique_namespace("lerobot-run");
+    let root = env!("CARGO_MANIFEST_DIR");
+    let cfg = format!("{root}/config/pi05_tiny.toml");
+    let robot = start("fake-robot", &ns, &["--config", &cfg]);
+    let camera = start("fake-camera", &ns, &["--config", &cfg]);
+    let ctl = start(
+        "run",
+        &ns,
+        &[
+            "--config",
+            &cfg,
+            "--log-every",
+            "0",
+            "--checkpoint",
+            &format!("{root}/tests/data/lerobot_pi05_tiny"),
+            "--tokenizer",
+            &format!("{root}/tests/data/tokenizer/paligemma_tiny.model"),
+        ],
+    );
+    let mut w = Watch::new(&ns);
+    w.wait_for(Duration::from_secs(30), "RUNNING", running);
+    w.wait_for(Duration::from_secs(10), "three chunks", |w| {
+        w.last_status.chunks >= 3
+    });
+    let out = ctl.terminate(Duration::from_secs(10));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    assert!(out.stderr.contains("LeRobot layout"), "{}", out.stderr);
+    let r = robot.terminate(Duration::from_secs(5));
+    let applied = summary_value(&r.stdout, "commands_applied").expect(&r.stdout);
+    assert!(applied > 100.0, "{}", r.stdout);
+    drop(camera);
+}

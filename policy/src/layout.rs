@@ -168,7 +168,15 @@ struct LeRobotConfig {
 struct LeRobotStep {
     registry_name: Option<String>,
     state_file: Option<String>,
+    #[serde(default)]
+    config: serde_json::Value,
 }
+
+/// The registry name of LeRobot's pi05 state-into-prompt step, and the `max_state_dim` it pads
+/// to when its saved configuration does not say (LeRobot 0.4 saves it as `{}`: the step's
+/// default is what runs).
+const LEROBOT_PI05_PROMPT_STEP: &str = "pi05_prepare_state_tokenizer_processor_step";
+const LEROBOT_PI05_PROMPT_STEP_DEFAULT_DIM: usize = 32;
 
 #[derive(Deserialize)]
 struct LeRobotPipeline {
@@ -478,7 +486,9 @@ impl Layout {
         }
         if let Some(v) = lc.num_inference_steps {
             cfg.num_denoise_steps = v;
-            took.push(format!("steps {v} (num_inference_steps)"));
+            took.push(format!(
+                "num_inference_steps {v} (chunkrt runs policy.num_steps)"
+            ));
         }
         let cameras: Vec<String> = lc
             .input_features
@@ -494,11 +504,39 @@ impl Layout {
             cfg.cameras = cameras;
         }
         if kind == ModelKind::Pi05 {
-            let n = lc.max_state_dim.unwrap_or(32);
+            // what LeRobot's pre-processor, loaded from its file, pads the state to
+            let pre = dir.join("policy_preprocessor.json");
+            let step = if pre.exists() {
+                let pl: LeRobotPipeline = serde_json::from_str(&read_side_file(&pre)?)
+                    .map_err(|e| config_err(&pre, e))?;
+                pl.steps
+                    .into_iter()
+                    .find(|s| s.registry_name.as_deref() == Some(LEROBOT_PI05_PROMPT_STEP))
+            } else {
+                None
+            };
+            let (n, from) = match &step {
+                Some(s) => match s.config.get("max_state_dim").and_then(|v| v.as_u64()) {
+                    Some(n) => (n as usize, "its pre-processor's prompt step".to_string()),
+                    None => (
+                        LEROBOT_PI05_PROMPT_STEP_DEFAULT_DIM,
+                        "the default of its pre-processor's prompt step, whose saved \
+                         configuration is empty"
+                            .to_string(),
+                    ),
+                },
+                None => (
+                    lc.max_state_dim
+                        .unwrap_or(LEROBOT_PI05_PROMPT_STEP_DEFAULT_DIM),
+                    "max_state_dim".to_string(),
+                ),
+            };
+            if n > 1024 {
+                return Err(config_err(&cfg_path, format!("max_state_dim {n}")));
+            }
             self.state_prompt_dim = Some(n);
             took.push(format!(
-                "the state padded to {n} values in the prompt (max_state_dim, as LeRobot's \
-                 pi05 processor does)"
+                "the state padded to {n} values in the prompt ({from}, as LeRobot does)"
             ));
         }
         if let Some(n) = lc.n_action_steps {
