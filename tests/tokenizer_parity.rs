@@ -91,3 +91,23 @@ fn prompts_and_states_tokenize_as_openpi() {
     );
     assert!(pi0 >= 10 && pi05 >= 10 && truncated >= 5);
 }
+
+/// The same model as a Hugging Face `tokenizer.json` (what LeRobot uses: transformers'
+/// conversion of the SentencePiece model, made by `scripts/fixtures/make_lerobot_fixture.py`)
+/// gives the same ids through chunkrt's `tokenizer.json` path.
+#[test]
+fn the_hugging_face_conversion_tokenizes_as_openpi() {
+    let f = fixture();
+    let tok = PromptTokenizer::from_file(&data().join("paligemma_tiny.tokenizer.json")).unwrap();
+    assert_eq!(tok.id_bound(), f.vocab_size);
+    for c in &f.cases {
+        let bins = c.state.as_ref().map(|s| {
+            let s: Vec<f32> = s.iter().map(|&x| x as f32).collect();
+            discretize_state(&s)
+        });
+        let (ids, mask) = tok.tokenize(&c.prompt, bins.as_deref(), c.max_len).unwrap();
+        assert_eq!(ids, c.ids, "prompt {:?} state {:?}", c.prompt, c.state);
+        assert_eq!(mask, c.mask);
+    }
+    eprintln!("{} cases equal through tokenizer.json", f.cases.len());
+}
