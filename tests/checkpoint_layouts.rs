@@ -39,21 +39,21 @@ fn norm_stats_json() -> String {
         .to_string()
 }
 
-/// pi05_tiny's `config.json` without its byte stand-in declaration: the dimensions only.
-fn tiny_dimensions() -> String {
-    let src = fixture::data("pi05_tiny");
+/// A tiny fixture's `config.json` without its byte stand-in declaration: the dimensions only.
+fn tiny_dimensions(name: &str) -> String {
+    let src = fixture::data(name);
     let mut cfg: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(src.join("config.json")).unwrap()).unwrap();
     cfg.as_object_mut().unwrap().remove("tokenizer");
     cfg.to_string()
 }
 
-/// pi05_tiny in chunkrt's layout with the SentencePiece tokenizer and statistics.
-fn chunkrt_layout() -> PathBuf {
-    let src = fixture::data("pi05_tiny");
+/// A tiny fixture in chunkrt's layout with the SentencePiece tokenizer and statistics.
+fn chunkrt_layout_of(name: &str) -> PathBuf {
+    let src = fixture::data(name);
     let d = tmp("chunkrt");
     std::fs::copy(src.join("model.safetensors"), d.join("model.safetensors")).unwrap();
-    std::fs::write(d.join("config.json"), tiny_dimensions()).unwrap();
+    std::fs::write(d.join("config.json"), tiny_dimensions(name)).unwrap();
     std::fs::write(d.join("norm_stats.json"), norm_stats_json()).unwrap();
     std::fs::copy(
         fixture::data(TOKENIZER),
@@ -67,7 +67,15 @@ fn chunkrt_layout() -> PathBuf {
 /// `assets/<asset_id>/norm_stats.json`, no tokenizer (openpi downloads it separately). The tiny
 /// model's dimensions, which openpi's variant names cannot express, are in `chunkrt.json`.
 fn openpi_layout(asset_ids: &[&str]) -> PathBuf {
-    let src = fixture::data("pi05_tiny");
+    openpi_layout_of("pi05_tiny", asset_ids)
+}
+
+fn chunkrt_layout() -> PathBuf {
+    chunkrt_layout_of("pi05_tiny")
+}
+
+fn openpi_layout_of(name: &str, asset_ids: &[&str]) -> PathBuf {
+    let src = fixture::data(name);
     let d = tmp(&format!("openpi{}", asset_ids.len()));
     std::fs::copy(src.join("model.safetensors"), d.join("model.safetensors")).unwrap();
     let openpi = serde_json::json!({
@@ -78,7 +86,7 @@ fn openpi_layout(asset_ids: &[&str]) -> PathBuf {
         "precision": "float32",
     });
     std::fs::write(d.join("config.json"), openpi.to_string()).unwrap();
-    std::fs::write(d.join("chunkrt.json"), tiny_dimensions()).unwrap();
+    std::fs::write(d.join("chunkrt.json"), tiny_dimensions(name)).unwrap();
     for id in asset_ids {
         let a = d.join("assets").join(id);
         std::fs::create_dir_all(&a).unwrap();
@@ -104,8 +112,11 @@ fn with_tokenizer() -> LayoutOptions {
 
 /// One chunk from the fixture's observation (two of its three cameras, its 6-joint state).
 fn sample(p: &mut Policy) -> Vec<f64> {
-    let (frames, state) =
-        fixture::raw_observation("pi05_tiny", &["base_0_rgb", "left_wrist_0_rgb"]);
+    sample_of("pi05_tiny", p)
+}
+
+fn sample_of(name: &str, p: &mut Policy) -> Vec<f64> {
+    let (frames, state) = fixture::raw_observation(name, &["base_0_rgb", "left_wrist_0_rgb"]);
     let raw = fixture::raw_frames(&frames);
     let obs = RawObservation {
         frames: &raw,
@@ -311,4 +322,28 @@ fn a_lerobot_checkpoint_as_written_pads_the_state_in_the_prompt_and_says_where_t
         "{report}"
     );
     std::fs::remove_dir_all(dir).ok();
+}
+
+/// π0 (z-score statistics, the state as a token of the action expert) in openpi's layout.
+#[test]
+fn an_openpi_pi0_checkpoint_samples_as_the_same_model_in_chunkrts_layout() {
+    let reference = chunkrt_layout_of("pi0_tiny");
+    let a = sample_of(
+        "pi0_tiny",
+        &mut load(&reference, LayoutOptions::default()).unwrap(),
+    );
+    let dir = openpi_layout_of("pi0_tiny", &["tiny_robot"]);
+    let mut got = load(&dir, with_tokenizer()).unwrap();
+    let b = sample_of("pi0_tiny", &mut got);
+    let d = max_diff(&a, &b);
+    eprintln!("pi0, openpi layout vs chunkrt layout: max diff {d:.2e}");
+    assert!(d <= 1e-6, "max diff {d}");
+    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    assert!(
+        report.contains("kind: pi0 (openpi's config.json does not say"),
+        "{report}"
+    );
+    for d in [reference, dir] {
+        std::fs::remove_dir_all(d).ok();
+    }
 }

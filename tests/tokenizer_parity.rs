@@ -111,3 +111,29 @@ fn the_hugging_face_conversion_tokenizes_as_openpi() {
     }
     eprintln!("{} cases equal through tokenizer.json", f.cases.len());
 }
+
+/// LeRobot's pi0 prompt: the task as given with a newline, tokenised whole (its pre-processor
+/// appends the newline, its tokenizer step adds BOS); openpi cleans the prompt and tokenises
+/// the newline apart. The two agree on a clean prompt and differ on an underscored one.
+#[test]
+fn lerobot_pi0_prompts_keep_the_task_as_given() {
+    use chunkrt::policy::preprocess::PromptStyle;
+    let sp = SentencePiece::from_file(&data().join("paligemma_tiny.model")).unwrap();
+    let tok = PromptTokenizer::from_sentencepiece(&data().join("paligemma_tiny.model")).unwrap();
+    let styled = |p: &str, s| tok.tokenize_styled(p, None, 48, s).unwrap().0;
+    let task = "put_the_cup on the plate";
+    let mut want = vec![2];
+    want.extend(sp.encode(&format!("{task}\n")));
+    want.resize(48, 0);
+    assert_eq!(styled(task, PromptStyle::LeRobot), want);
+    assert_eq!(styled(&format!("{task}\n"), PromptStyle::LeRobot), want);
+    assert_ne!(
+        styled(task, PromptStyle::LeRobot),
+        styled(task, PromptStyle::Openpi)
+    );
+    let clean = "pick up the red block";
+    assert_eq!(
+        styled(clean, PromptStyle::LeRobot),
+        styled(clean, PromptStyle::Openpi)
+    );
+}

@@ -29,7 +29,7 @@ use crate::checkpoint::detect_kind;
 use crate::config::{ModelConfig, ModelKind};
 use crate::error::PolicyError;
 use crate::files::read_side_file;
-use crate::preprocess::{NormStats, Stats};
+use crate::preprocess::{NormStats, PromptStyle, Stats};
 
 /// Which layout a checkpoint directory has.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -96,6 +96,8 @@ pub struct Layout {
     pub missing: Vec<String>,
     /// A choice the statistics need before the policy can load (several openpi asset ids).
     pub norm_problem: Option<String>,
+    /// How π0 prompts are built (LeRobot's pi0 differs from openpi's).
+    pub prompt_style: PromptStyle,
 }
 
 /// The variant names of the real checkpoints (openpi's `gemma_2b` / `gemma_300m`, LoRA or not).
@@ -232,6 +234,7 @@ impl Layout {
             notes: Vec::new(),
             missing: Vec::new(),
             norm_problem: None,
+            prompt_style: PromptStyle::Openpi,
         };
         match kind {
             LayoutKind::Chunkrt => me.read_chunkrt(dir, tensors, raw.as_deref())?,
@@ -538,6 +541,13 @@ impl Layout {
             took.push(format!(
                 "the state padded to {n} values in the prompt ({from}, as LeRobot does)"
             ));
+        }
+        if kind == ModelKind::Pi0 {
+            self.prompt_style = PromptStyle::LeRobot;
+            took.push(
+                "the prompt as LeRobot's pi0 builds it (the task with a newline, tokenised whole)"
+                    .into(),
+            );
         }
         if let Some(n) = lc.n_action_steps {
             took.push(format!(

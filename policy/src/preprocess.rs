@@ -359,6 +359,17 @@ pub fn pi05_prompt(prompt: &str, bins: &[i64]) -> String {
     )
 }
 
+/// How a checkpoint's training code built π0 prompts (π0.5 prompts are built alike by both).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PromptStyle {
+    /// openpi's `PaligemmaTokenizer`: the prompt cleaned (stripped, `_` and newlines as
+    /// spaces), then `"\n"` tokenised separately.
+    #[default]
+    Openpi,
+    /// LeRobot's pi0 processor: the task as given with a newline appended, tokenised whole.
+    LeRobot,
+}
+
 /// Tokenizer of prompts.
 pub enum PromptTokenizer {
     /// A `tokenizer.json` (the `tokenizers` crate); `bos` is prepended.
@@ -465,12 +476,32 @@ impl PromptTokenizer {
         state_bins: Option<&[i64]>,
         max_len: usize,
     ) -> Result<(Vec<u32>, Vec<bool>, usize), PolicyError> {
+        self.tokenize_styled(prompt, state_bins, max_len, PromptStyle::Openpi)
+    }
+
+    /// [`Self::tokenize_counted`] in a checkpoint's own prompt style.
+    pub fn tokenize_styled(
+        &self,
+        prompt: &str,
+        state_bins: Option<&[i64]>,
+        max_len: usize,
+        style: PromptStyle,
+    ) -> Result<(Vec<u32>, Vec<bool>, usize), PolicyError> {
         let mut ids = vec![self.bos()];
-        match state_bins {
-            Some(b) => ids.extend(self.encode(&pi05_prompt(prompt, b))?),
-            None => {
+        match (state_bins, style) {
+            (Some(b), _) => ids.extend(self.encode(&pi05_prompt(prompt, b))?),
+            (None, PromptStyle::Openpi) => {
                 ids.extend(self.encode(&clean_prompt(prompt))?);
                 ids.extend(self.encode("\n")?);
+            }
+            (None, PromptStyle::LeRobot) => {
+                // LeRobot's pi0 pre-processor: the task as given, a newline appended unless it
+                // ends with one, tokenised in one piece
+                if prompt.ends_with('\n') {
+                    ids.extend(self.encode(prompt)?);
+                } else {
+                    ids.extend(self.encode(&format!("{prompt}\n"))?);
+                }
             }
         }
         let full = ids.len();

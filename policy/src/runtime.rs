@@ -15,7 +15,7 @@ use super::layout::{LayoutOptions, TokenizerFile};
 use super::model::{ModelInputs, PiModel, PrefixCache};
 use super::preprocess::{
     discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
-    NormMode, NormStats, PromptTokenizer,
+    NormMode, NormStats, PromptStyle, PromptTokenizer,
 };
 pub use super::rtc::Guidance;
 use super::rtc::{check_target, denoise_guided, model_space_actions, GuidanceTarget, Jacobian};
@@ -105,6 +105,8 @@ pub struct Policy {
     truncated_prompt: Option<String>,
     /// π0.5: the state's length in the prompt (LeRobot pads it; `None`: the robot's values).
     state_prompt_dim: Option<usize>,
+    /// How π0 prompts are built.
+    prompt_style: PromptStyle,
 }
 
 /// How to load a policy (the controller builds this from its `[policy]` configuration).
@@ -252,6 +254,7 @@ impl Policy {
             graph_on: [opts.cuda_graph && opts.device.is_cuda(); 2],
             truncated_prompt: None,
             state_prompt_dim: layout.state_prompt_dim,
+            prompt_style: layout.prompt_style,
         })
     }
 
@@ -481,9 +484,12 @@ impl Policy {
             }
             images.push(Tensor::from_slice(&self.images, (1, 3, s, s), &dev)?);
         }
-        let (ids, tmask, full) =
-            self.tokenizer
-                .tokenize_counted(obs.prompt, bins.as_deref(), cfg.max_token_len)?;
+        let (ids, tmask, full) = self.tokenizer.tokenize_styled(
+            obs.prompt,
+            bins.as_deref(),
+            cfg.max_token_len,
+            self.prompt_style,
+        )?;
         if full > cfg.max_token_len && self.truncated_prompt.as_deref() != Some(obs.prompt) {
             // once per prompt: a π0.5 prompt's length changes with the state
             self.truncated_prompt = Some(obs.prompt.to_string());
