@@ -37,7 +37,10 @@ fn wait_listening(port: u16, server: &mut ChildGuard) {
     let t0 = Instant::now();
     while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
         assert!(server.running(), "the plan server exited");
-        assert!(t0.elapsed() < Duration::from_secs(30), "no server on {port}");
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "no server on {port}"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
 }
@@ -132,7 +135,10 @@ fn the_controller_drives_the_simulated_so101() {
     assert!(v("commands_applied") > 500.0, "{s}");
     assert!(v("frames_published") >= 40.0, "{s}");
     assert_eq!(v("commands_rejected"), 0.0, "{s}");
-    assert!(v("gripper_closes") >= 1.0 && v("gripper_opens") >= 1.0, "{s}");
+    assert!(
+        v("gripper_closes") >= 1.0 && v("gripper_opens") >= 1.0,
+        "{s}"
+    );
     // position servos under gravity sag a few hundredths of a radian and lag a moving target;
     // (a stall of this Python process on a loaded machine makes it hold and then refuse the
     // commands that ran ahead of its arm, `commands_far`: its safety rule, not a failure)
