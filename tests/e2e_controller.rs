@@ -9,7 +9,7 @@ use chunkrt_ipc::{
     monotonic_ns, CameraFrameHeader, JointState, Namespace, RejectReason, ENCODING_RGB8,
     JOINT_STATUS_LIMIT_CLAMPED,
 };
-use chunkrt_tools::testing::{summary_value, unique_namespace};
+use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};
 use iceoryx2::prelude::Node;
 
 #[path = "common/stack.rs"]
@@ -1072,6 +1072,21 @@ fn obeyed(w: &Watch) -> bool {
         && w.last_js.obeyed_publisher() == Some(w.last_status.command_publisher())
 }
 
+/// The simulated robot and a controller without a policy in `ns`, once the robot obeys the
+/// controller: (joints, robot, controller, watch).
+fn obeyed_hold_stack(ns: &str) -> (usize, ChildGuard, ChildGuard, Watch) {
+    let n = Config::embedded_default().n_dof();
+    let robot = start("fake-robot", ns, &[]);
+    let ctl = start("run", ns, &["--log-every", "0", "--policy", "hold"]);
+    let mut w = Watch::new(ns);
+    w.wait_for(
+        Duration::from_secs(15),
+        "the robot to obey the controller",
+        obeyed,
+    );
+    (n, robot, ctl, w)
+}
+
 fn assert_unmoved(w: &Watch, start: &[f64], n: usize, what: &str) {
     for (j, (now, before)) in w.last_js.position[..n].iter().zip(start).enumerate() {
         assert!(
@@ -1090,15 +1105,7 @@ fn assert_unmoved(w: &Watch, start: &[f64], n: usize, what: &str) {
 fn a_status_forger_holds_the_robot_and_is_named() {
     let _serial = serial();
     let ns = unique_namespace("status-forger");
-    let n = Config::embedded_default().n_dof();
-    let robot = start("fake-robot", &ns, &[]);
-    let ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
-    let mut w = Watch::new(&ns);
-    w.wait_for(
-        Duration::from_secs(15),
-        "the robot to obey the controller",
-        obeyed,
-    );
+    let (n, robot, ctl, mut w) = obeyed_hold_stack(&ns);
     let start_pos = w.last_js.position;
     let mut forger = StatusForger::new(&ns, n as u32);
     w.ignore_status_from = forger.status_id();
@@ -1152,15 +1159,7 @@ fn a_status_forger_holds_the_robot_and_is_named() {
 fn a_status_forged_after_a_clean_stop_moves_nothing() {
     let _serial = serial();
     let ns = unique_namespace("forged-after-stop");
-    let n = Config::embedded_default().n_dof();
-    let robot = start("fake-robot", &ns, &[]);
-    let ctl = start("run", &ns, &["--log-every", "0", "--policy", "hold"]);
-    let mut w = Watch::new(&ns);
-    w.wait_for(
-        Duration::from_secs(15),
-        "the robot to obey the controller",
-        obeyed,
-    );
+    let (n, robot, ctl, mut w) = obeyed_hold_stack(&ns);
     let mut forger = StatusForger::new(&ns, n as u32);
     w.ignore_status_from = forger.status_id();
     let out = ctl.terminate(Duration::from_secs(10));
