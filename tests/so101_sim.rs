@@ -164,14 +164,14 @@ fn the_experts_plan_replayed_through_the_controller_succeeds() {
             &format!("{ROOT}/tools/python/so101_plan.py"),
             "record",
             "--seed",
-            "3",
+            "0",
             "--out",
             plan_s,
         ])
         .status()
         .expect("python3");
     assert!(status.success(), "the expert failed in simulated time");
-    let s = closed_loop(plan_s, 3, 9.0);
+    let s = closed_loop(plan_s, 0, 9.0);
     assert_eq!(summary_value(&s, "success"), Some(1.0), "{s}");
     std::fs::remove_file(&plan).ok();
 }

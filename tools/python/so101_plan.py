@@ -13,7 +13,7 @@ simulated arm before a learned policy exists.
             next --horizon rows, indexed by the time since its first request at the plan's
             step (a replay by the clock; `chunkrt run --remote ws://127.0.0.1:PORT`).
 
-    python3 tools/python/so101_plan.py record --seed 3 --out /tmp/plan.json
+    python3 tools/python/so101_plan.py record --seed 0 --out /tmp/plan.json
     python3 tools/python/so101_plan.py serve --plan /tmp/plan.json --port 8765
 """
 
