@@ -116,14 +116,18 @@ fn sample(p: &mut Policy) -> Vec<f64> {
 }
 
 fn sample_of(name: &str, p: &mut Policy) -> Vec<f64> {
+    with_observation(name, |obs| p.infer(obs, &Conditioning::Fresh).unwrap())
+}
+
+/// `f` on fixture `name`'s observation: two of its three cameras, its state, [`PROMPT`].
+fn with_observation<R>(name: &str, f: impl FnOnce(&RawObservation) -> R) -> R {
     let (frames, state) = fixture::raw_observation(name, &["base_0_rgb", "left_wrist_0_rgb"]);
     let raw = fixture::raw_frames(&frames);
-    let obs = RawObservation {
+    f(&RawObservation {
         frames: &raw,
         joint_positions: &state,
         prompt: PROMPT,
-    };
-    p.infer(&obs, &Conditioning::Fresh).unwrap()
+    })
 }
 
 fn max_diff(a: &[f64], b: &[f64]) -> f64 {
@@ -279,22 +283,11 @@ fn a_lerobot_checkpoint_as_written_pads_the_state_in_the_prompt_and_says_where_t
     }
     // the tokens: LeRobot's prompt, the normalised state padded with zeros to 32 before binning
     let mut policy = load(&dir, with_tokenizer()).unwrap();
-    let (frames, state) =
-        fixture::raw_observation("pi05_tiny", &["base_0_rgb", "left_wrist_0_rgb"]);
-    let raw = fixture::raw_frames(&frames);
-    let obs = RawObservation {
-        frames: &raw,
-        joint_positions: &state,
-        prompt: PROMPT,
-    };
-    let got: Vec<u32> = policy
-        .prepare(&obs)
-        .unwrap()
-        .tokens
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
+    let (got, state): (Vec<u32>, Vec<f64>) = with_observation("pi05_tiny", |obs| {
+        let tokens = policy.prepare(obs).unwrap().tokens;
+        let ids = tokens.flatten_all().unwrap().to_vec1().unwrap();
+        (ids, obs.joint_positions.to_vec())
+    });
     let stats: serde_json::Value = serde_json::from_str(&norm_stats_json()).unwrap();
     let stats: NormStats = serde_json::from_value(stats["norm_stats"].clone()).unwrap();
     let mut s: Vec<f32> = state.iter().map(|&x| x as f32).collect();

@@ -45,6 +45,21 @@ fn wait_listening(port: u16, server: &mut ChildGuard) {
     }
 }
 
+/// A joint plan written by `so101_plan.py <args> --out <tmp>/so101_<tag>_<pid>.json`.
+fn make_plan(tag: &str, args: &[&str]) -> std::path::PathBuf {
+    let plan = std::env::temp_dir().join(format!("so101_{tag}_{}.json", std::process::id()));
+    let script = format!("{ROOT}/tools/python/so101_plan.py");
+    let mut all = vec![script.as_str()];
+    all.extend_from_slice(args);
+    all.extend_from_slice(&["--out", plan.to_str().unwrap()]);
+    let status = std::process::Command::new("python3")
+        .args(&all)
+        .status()
+        .expect("python3");
+    assert!(status.success(), "so101_plan.py {args:?} failed");
+    plan
+}
+
 /// Runs the robot process, the plan server and the controller for `seconds`; the robot's summary.
 fn closed_loop(plan: &str, seed: u64, seconds: f64) -> String {
     let ns = unique_namespace("so101");
@@ -118,18 +133,8 @@ fn the_controller_drives_the_simulated_so101() {
         return;
     }
     let _serial = serial();
-    let plan = std::env::temp_dir().join(format!("so101_wiggle_{}.json", std::process::id()));
+    let plan = make_plan("wiggle", &["wiggle"]);
     let plan_s = plan.to_str().unwrap();
-    let status = std::process::Command::new("python3")
-        .args([
-            &format!("{ROOT}/tools/python/so101_plan.py"),
-            "wiggle",
-            "--out",
-            plan_s,
-        ])
-        .status()
-        .expect("python3");
-    assert!(status.success());
     let s = closed_loop(plan_s, 0, 7.0);
     let v = |k: &str| summary_value(&s, k).unwrap_or_else(|| panic!("{k} in {s}"));
     assert!(v("commands_applied") > 500.0, "{s}");
@@ -157,20 +162,8 @@ fn the_experts_plan_replayed_through_the_controller_succeeds() {
         return;
     }
     let _serial = serial();
-    let plan = std::env::temp_dir().join(format!("so101_expert_{}.json", std::process::id()));
+    let plan = make_plan("expert", &["record", "--seed", "0"]);
     let plan_s = plan.to_str().unwrap();
-    let status = std::process::Command::new("python3")
-        .args([
-            &format!("{ROOT}/tools/python/so101_plan.py"),
-            "record",
-            "--seed",
-            "0",
-            "--out",
-            plan_s,
-        ])
-        .status()
-        .expect("python3");
-    assert!(status.success(), "the expert failed in simulated time");
     let s = closed_loop(plan_s, 0, 9.0);
     assert_eq!(summary_value(&s, "success"), Some(1.0), "{s}");
     std::fs::remove_file(&plan).ok();

@@ -185,6 +185,25 @@ struct LeRobotPipeline {
     steps: Vec<LeRobotStep>,
 }
 
+impl LeRobotPipeline {
+    /// `dir/name` if it exists (read once, used for the prompt step and the statistics).
+    fn read(dir: &Path, name: &str) -> Result<Option<(PathBuf, Self)>, PolicyError> {
+        let p = dir.join(name);
+        if !p.exists() {
+            return Ok(None);
+        }
+        let pl = serde_json::from_str(&read_side_file(&p)?).map_err(|e| config_err(&p, e))?;
+        Ok(Some((p, pl)))
+    }
+
+    /// The step registered as `name`.
+    fn step(&self, name: &str) -> Option<&LeRobotStep> {
+        self.steps
+            .iter()
+            .find(|s| s.registry_name.as_deref() == Some(name))
+    }
+}
+
 fn config_err(path: &Path, e: impl std::fmt::Display) -> PolicyError {
     PolicyError::Config(format!("{}: {e}", path.display()))
 }
@@ -447,6 +466,7 @@ impl Layout {
             ))
         })?;
         let lc: LeRobotConfig = serde_json::from_str(raw).map_err(|e| config_err(&cfg_path, e))?;
+        let pre = LeRobotPipeline::read(dir, "policy_preprocessor.json")?;
         let kind = match lc.kind.as_str() {
             "pi0" => ModelKind::Pi0,
             "pi05" => ModelKind::Pi05,
@@ -508,17 +528,10 @@ impl Layout {
         }
         if kind == ModelKind::Pi05 {
             // what LeRobot's pre-processor, loaded from its file, pads the state to
-            let pre = dir.join("policy_preprocessor.json");
-            let step = if pre.exists() {
-                let pl: LeRobotPipeline = serde_json::from_str(&read_side_file(&pre)?)
-                    .map_err(|e| config_err(&pre, e))?;
-                pl.steps
-                    .into_iter()
-                    .find(|s| s.registry_name.as_deref() == Some(LEROBOT_PI05_PROMPT_STEP))
-            } else {
-                None
-            };
-            let (n, from) = match &step {
+            let step = pre
+                .as_ref()
+                .and_then(|(_, pl)| pl.step(LEROBOT_PI05_PROMPT_STEP));
+            let (n, from) = match step {
                 Some(s) => match s.config.get("max_state_dim").and_then(|v| v.as_u64()) {
                     Some(n) => (n as usize, "its pre-processor's prompt step".to_string()),
                     None => (
@@ -558,38 +571,39 @@ impl Layout {
             .push(format!("LeRobot's config.json: {}", took.join(", ")));
         cfg.validate()?;
         self.config = cfg;
-        self.read_lerobot_stats(dir, kind)
+        let post = LeRobotPipeline::read(dir, "policy_postprocessor.json")?;
+        self.read_lerobot_stats(dir, kind, pre, post)
     }
 
     /// The normaliser's statistics from the pre-processor (state) and the post-processor's
     /// un-normaliser (actions).
-    fn read_lerobot_stats(&mut self, dir: &Path, kind: ModelKind) -> Result<(), PolicyError> {
-        let state_file = |pipeline: &str, step: &str| -> Result<Option<PathBuf>, PolicyError> {
-            let p = dir.join(pipeline);
-            if !p.exists() {
+    fn read_lerobot_stats(
+        &mut self,
+        dir: &Path,
+        kind: ModelKind,
+        pre: Option<(PathBuf, LeRobotPipeline)>,
+        post: Option<(PathBuf, LeRobotPipeline)>,
+    ) -> Result<(), PolicyError> {
+        let state_file = |pipeline: &Option<(PathBuf, LeRobotPipeline)>,
+                          step: &str|
+         -> Result<Option<PathBuf>, PolicyError> {
+            let Some((p, pl)) = pipeline else {
                 return Ok(None);
-            }
-            let pl: LeRobotPipeline =
-                serde_json::from_str(&read_side_file(&p)?).map_err(|e| config_err(&p, e))?;
-            let file = pl
-                .steps
-                .iter()
-                .find(|s| s.registry_name.as_deref() == Some(step))
-                .and_then(|s| s.state_file.clone());
-            match file {
+            };
+            match pl.step(step).and_then(|s| s.state_file.clone()) {
                 // a file name beside the pipeline, nothing else
                 Some(f) if !f.contains('/') && !f.contains('\\') && f != ".." => {
                     Ok(Some(dir.join(f)))
                 }
                 Some(f) => Err(config_err(
-                    &p,
+                    p,
                     format!("state file {f:?} is not a file name"),
                 )),
                 None => Ok(None),
             }
         };
-        let pre = state_file("policy_preprocessor.json", "normalizer_processor")?;
-        let post = state_file("policy_postprocessor.json", "unnormalizer_processor")?;
+        let pre = state_file(&pre, "normalizer_processor")?;
+        let post = state_file(&post, "unnormalizer_processor")?;
         let (Some(pre), Some(post)) = (pre, post) else {
             self.missing.push(
                 "policy_preprocessor.json / policy_postprocessor.json with their normaliser \

@@ -79,6 +79,18 @@ def parse_args(argv):
     return p.parse_args(argv)
 
 
+def drain(subscriber, payload_type):
+    """Every sample waiting on `subscriber`, copied out: (payload, publisher id)."""
+    while True:
+        sample = subscriber.receive()
+        if sample is None:
+            return
+        msg = payload_type.from_buffer_copy(sample.payload().contents)
+        origin = sample.header.publisher_id.value
+        sample.delete()
+        yield msg, origin
+
+
 class SessionGate:
     """The session rule of chunkrt_ipc::SessionGate (README, "Session binding")."""
 
@@ -240,21 +252,9 @@ def main(argv):
         now = c.monotonic_ns()
         if end is not None and now >= end:
             break
-        while True:
-            sample = status_sub.receive()
-            if sample is None:
-                break
-            st = c.ControllerStatus.from_buffer_copy(sample.payload().contents)
-            origin = sample.header.publisher_id.value
-            sample.delete()
+        for st, origin in drain(status_sub, c.ControllerStatus):
             gate.on_status(st, origin, c.monotonic_ns())
-        while True:
-            sample = cmd_sub.receive()
-            if sample is None:
-                break
-            cmd = c.JointCommand.from_buffer_copy(sample.payload().contents)
-            origin = sample.header.publisher_id.value
-            sample.delete()
+        for cmd, origin in drain(cmd_sub, c.JointCommand):
             t = c.monotonic_ns()
             if c.validate_joint_command(cmd, n) is not None:
                 s["commands_rejected"] += 1
