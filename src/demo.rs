@@ -7,7 +7,8 @@
 //! percentiles, and a PNG of the joint trajectories with chunk boundaries marked.
 //!
 //! With `policy.kind = "hold"` (or a configuration that is not the reach task) the processes
-//! simply run for `--duration` and the summary shows what the controller did.
+//! simply run for `--duration` and the summary shows what the controller did. With the SO-101's
+//! configuration (`config/so101.toml`) the robot is the MuJoCo arm ([`so101`]).
 
 use std::fs::File;
 use std::io::Write;
@@ -24,6 +25,8 @@ use chunkrt_ipc::{
 
 use crate::report::{fmt_us, latency_histogram};
 use crate::task::{ReachScene, TargetColor, REACH_TOLERANCE};
+
+pub mod so101;
 
 /// `chunkrt demo`.
 #[derive(Debug, clap::Args)]
@@ -44,6 +47,10 @@ pub struct DemoArgs {
     /// Time limit of an episode (s).
     #[arg(long, default_value_t = 10.0)]
     pub episode_seconds: f64,
+    /// SO-101 episodes (`--config config/so101.toml`), seeds `--seed` onwards: where the
+    /// package puts the block and the goal.
+    #[arg(long, default_value_t = 3)]
+    pub episodes: usize,
     /// Where the report (demo.md) and plot (demo.png) go.
     #[arg(long, default_value = "target/chunkrt-demo")]
     pub out: PathBuf,
@@ -476,8 +483,11 @@ fn quantiles_line(name: &str, values: &[u64]) -> String {
 
 /// Runs the demo.
 pub fn run(args: DemoArgs) -> anyhow::Result<()> {
-    let stop_flag = chunkrt_tools::shutdown::flag();
     let stack = args.stack.prepare("demo", None)?;
+    if so101::is_so101(&stack.cfg) {
+        return so101::run(&args, &stack);
+    }
+    let stop_flag = chunkrt_tools::shutdown::flag();
     let (cfg, ns, exe, log_dir, task) = (
         &stack.cfg,
         &stack.ns,

@@ -44,6 +44,12 @@ pub const EVAL_SCENE_BASE: u64 = 2_000;
 /// `chunkrt eval`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct EvalArgs {
+    /// The task: `reach` (the embedded demo's planar arm) or `so101` (the SO-101 pick-and-place
+    /// in MuJoCo, scored by the package's own success check; episodes from seed 10 000, the
+    /// physics in `tools/python/so101_sim.py`; defaults to `--config config/so101.toml`,
+    /// `--checkpoint models/so101_pi05`, 12-s episodes, and strategies without sync).
+    #[arg(long, value_enum, default_value_t = crate::task::TaskKind::Reach)]
+    pub task: crate::task::TaskKind,
     /// Robot / execution configuration (default: the embedded demo robot).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -57,25 +63,22 @@ pub struct EvalArgs {
     /// `--delays 0,4,8 --episodes 100` for tighter intervals where they matter.
     #[arg(long, value_delimiter = ',', value_name = "D,D,..")]
     pub delays: Vec<u64>,
-    /// Strategies, comma separated (sync, replace, crossfade, temporal_ensemble, rtc, and
+    /// Strategies, comma separated (default: sync, replace, crossfade, temporal_ensemble, rtc;
+    /// without sync for the SO-101) (sync, replace, crossfade, temporal_ensemble, rtc, and
     /// rtc_trained with a checkpoint trained for it, e.g. `models/reach_pi05_rtc`); any but sync
     /// with `/measured` appended runs without future-state inference (e.g. `rtc/measured`;
     /// rtc_trained observes the measured state while its committed rows cover the delay, and a
     /// future state beyond: `InferenceRequest::committed_rows`); `rtc/vjp` and `rtc/identity` pick
     /// the guidance's Jacobian (`execution.rtc_jacobian`; the default `identity` has no backward
     /// pass; also `rtc/vjp/measured`).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "sync,replace,crossfade,temporal_ensemble,rtc"
-    )]
+    #[arg(long, value_delimiter = ',')]
     pub strategies: Vec<String>,
     /// Episodes per cell.
     #[arg(long, default_value_t = 30)]
     pub episodes: usize,
-    /// Episode time limit (s).
-    #[arg(long, default_value_t = 8.0)]
-    pub max_seconds: f64,
+    /// Episode time limit (s; default 8, 12 for the SO-101).
+    #[arg(long)]
+    pub max_seconds: Option<f64>,
     /// Output folder (eval.md, eval.csv, episodes.csv: one row per episode, eval.png).
     #[arg(long, default_value = "target/chunkrt-eval")]
     pub out: PathBuf,
@@ -211,6 +214,8 @@ pub struct World {
     pub retarget_at: Option<f64>,
     /// The targets swing about the base.
     pub drift: Option<crate::task::sim::Drift>,
+    /// The SO-101 pick-and-place instead of the reach task.
+    pub so101: bool,
 }
 
 /// The configuration of a cell: strategy `s` (a sweep name, `sync` keeping the configured one
@@ -256,7 +261,35 @@ pub fn sweep(
             STRATEGIES.join(", ")
         );
     }
-    let specs = held_out_episodes(cfg, EVAL_SCENE_BASE, episodes, 0xe7a1);
+    let specs = if world.so101 {
+        anyhow::ensure!(
+            world.retarget_at.is_none() && world.drift.is_none(),
+            "the SO-101 has no retarget or drift variant"
+        );
+        anyhow::ensure!(
+            !strategies.iter().any(|s| split_variant(s).base == "sync"),
+            "the SO-101 sweep does not model the synchronous broker: leave out sync"
+        );
+        // (the episode's seed is the scene seed; color and start are the reach task's)
+        (0..episodes as u64)
+            .map(|i| crate::task::sim::EpisodeSpec {
+                scene_seed: crate::task::so101::EVAL_SEED_BASE + i,
+                color: crate::task::TargetColor::Red,
+                start: [0.0; crate::task::TASK_DOF],
+            })
+            .collect()
+    } else {
+        held_out_episodes(cfg, EVAL_SCENE_BASE, episodes, 0xe7a1)
+    };
+    let mut plant = if world.so101 {
+        let cam = crate::task::so101::task_camera(cfg)?;
+        Some(crate::task::so101::So101Plant::spawn(
+            cam.width as usize,
+            cam.height as usize,
+        )?)
+    } else {
+        None
+    };
     let (mut policy, committed_max): (Box<dyn ChunkSource>, usize) = match cfg.policy.source {
         PolicySource::Local => {
             let p = LocalPolicy::load(cfg)?;
@@ -300,29 +333,79 @@ pub fn sweep(
                 drift: world.drift,
             };
             let mut outs = Vec::with_capacity(episodes);
+            let mut physics = Vec::with_capacity(episodes);
             for e in &specs {
-                outs.push(run_episode(&c, policy.as_mut(), e, &settings)?);
+                match plant.as_mut() {
+                    Some(plant) => {
+                        let (o, p) = crate::task::so101::run_episode(
+                            &c,
+                            policy.as_mut(),
+                            plant,
+                            e.scene_seed,
+                            &settings,
+                        )?;
+                        outs.push(o);
+                        physics.push(Some(p));
+                    }
+                    None => {
+                        outs.push(run_episode(&c, policy.as_mut(), e, &settings)?);
+                        physics.push(None);
+                    }
+                }
                 done += 1;
                 progress(done, total, s, d);
             }
             cells.push(summarise(s, d, &outs, world.retarget_at.is_some()));
-            rows.extend(specs.iter().zip(outs).map(|(e, o)| EpisodeRow {
-                strategy: s.clone(),
-                delay: d,
-                spec: *e,
-                outcome: o,
-            }));
+            rows.extend(
+                specs
+                    .iter()
+                    .zip(outs)
+                    .zip(physics)
+                    .map(|((e, o), p)| EpisodeRow {
+                        strategy: s.clone(),
+                        delay: d,
+                        spec: *e,
+                        outcome: o,
+                        physics: p,
+                    }),
+            );
         }
     }
     Ok((cells, rows))
 }
 
 /// Runs `chunkrt eval`.
-pub fn run(args: EvalArgs) -> anyhow::Result<()> {
+pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
+    let so101 = args.task == crate::task::TaskKind::So101;
     let mut cfg = match &args.config {
         Some(p) => Config::load(p)?,
+        None if so101 => Config::load(std::path::Path::new("config/so101.toml")).context(
+            "--task so101 runs the SO-101's configuration: pass --config config/so101.toml",
+        )?,
         None => Config::embedded_default(),
     };
+    if so101
+        && args.checkpoint.is_none()
+        && args.remote.is_none()
+        && cfg.policy.checkpoint.is_none()
+    {
+        args.checkpoint = Some(PathBuf::from("models/so101_pi05"));
+    }
+    if args.strategies.is_empty() {
+        args.strategies = if so101 {
+            vec!["replace", "crossfade", "temporal_ensemble", "rtc"]
+        } else {
+            vec!["sync", "replace", "crossfade", "temporal_ensemble", "rtc"]
+        }
+        .into_iter()
+        .map(String::from)
+        .collect();
+    }
+    let max_seconds_arg = args.max_seconds.unwrap_or(if so101 {
+        crate::task::so101::MAX_SECONDS
+    } else {
+        8.0
+    });
     if let Some(c) = &args.checkpoint {
         cfg.policy.checkpoint = Some(
             std::fs::canonicalize(c)
@@ -340,6 +423,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         }
     }
     if args.open_loop {
+        anyhow::ensure!(!so101, "--open-loop probes the reach task");
         anyhow::ensure!(
             args.remote.is_none(),
             "--open-loop probes the policy in process; it does not take --remote"
@@ -347,7 +431,11 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         return run_probe(&cfg, &args);
     }
     let (delays, episodes, max_seconds): (Vec<u64>, usize, f64) = if args.quick {
-        (vec![0, 2.min(args.max_delay)], 2, 3.0)
+        (
+            vec![0, 2.min(args.max_delay)],
+            2,
+            if so101 { 1.0 } else { 3.0 },
+        )
     } else {
         (
             if args.delays.is_empty() {
@@ -356,7 +444,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 args.delays.clone()
             },
             args.episodes,
-            args.max_seconds,
+            max_seconds_arg,
         )
     };
     anyhow::ensure!(episodes > 0, "--episodes must be > 0");
@@ -403,6 +491,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         World {
             retarget_at: args.retarget_at,
             drift,
+            so101,
         },
         |done, total, s, d| {
             let now = t0.elapsed().as_secs_f64();
@@ -459,21 +548,25 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     )?;
     for r in &rows {
         let o = &r.outcome;
-        // how long the scripted expert's motion from the same start takes
-        let expert = crate::task::expert::Reach::plan(
-            &r.spec.start,
-            &crate::task::ReachScene::from_seed(r.spec.scene_seed),
-            r.spec.color,
-            0.0,
-        )
-        .map_or(f64::NAN, |p| p.duration);
+        // how long the scripted expert's motion from the same start takes (reach)
+        let expert = if so101 {
+            f64::NAN
+        } else {
+            crate::task::expert::Reach::plan(
+                &r.spec.start,
+                &crate::task::ReachScene::from_seed(r.spec.scene_seed),
+                r.spec.color,
+                0.0,
+            )
+            .map_or(f64::NAN, |p| p.duration)
+        };
         writeln!(
             csv,
             "{},{},{},{},{},{},{:.4},{},{:.3},{},{:.4},{}",
             r.strategy,
             r.delay,
             r.spec.scene_seed,
-            r.spec.color.name(),
+            if so101 { "-" } else { r.spec.color.name() },
             o.success as u8,
             o.wrong_target as u8,
             o.min_distance,
@@ -485,7 +578,42 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             o.reaction_time.map_or(String::new(), |t| format!("{t:.3}"))
         )?;
     }
+    if so101 {
+        let text = report::so101_physics(&cells, &rows);
+        println!("{text}");
+        std::fs::write(args.out.join("so101_physics.md"), &text)?;
+        let mut csv = std::fs::File::create(args.out.join("so101_episodes.csv"))?;
+        writeln!(
+            csv,
+            "strategy,delay_steps,seed,success,time_to_success_s,carried,min_goal_distance_m,tracking_p50_rad,tracking_p99_rad,tracking_max_rad,jaw_closes,jaw_opens,jaw_flips_at_switch,max_switch_jump_rad,rms_jerk,hold_ticks"
+        )?;
+        for r in &rows {
+            let (o, p) = (&r.outcome, r.physics.unwrap_or_default());
+            writeln!(
+                csv,
+                "{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{:.4},{:.1},{}",
+                r.strategy,
+                r.delay,
+                r.spec.scene_seed,
+                o.success as u8,
+                o.time_to_target
+                    .map_or(String::new(), |t| format!("{t:.3}")),
+                p.carried as u8,
+                o.min_distance,
+                p.tracking_p50,
+                p.tracking_p99,
+                p.tracking_max,
+                p.jaw_closes,
+                p.jaw_opens,
+                p.jaw_flips_at_switch,
+                o.smoothness.max_switch_jump_target,
+                o.smoothness.rms_jerk,
+                o.hold_ticks
+            )?;
+        }
+    }
     if let Some(d) = args.switch_plot {
+        anyhow::ensure!(!so101, "--switch-plot draws the reach task");
         let png = args.out.join("switch.png");
         for line in switch::switch_plot(&cfg, d, &args.strategies, &png)? {
             println!("{line}");

@@ -47,13 +47,19 @@ use crate::task::{home_pose, task_camera, vocab, TargetColor, TASK_DOF};
 mod args;
 mod data;
 
-pub use args::{BinInit, Keep, TrainArgs};
+pub use args::{BinInit, Keep, TaskKind, TrainArgs};
 
 use data::*;
 pub use data::{column_stats, model_space_actions, AUX_OUTPUTS, GOAL_OUTPUTS};
 
 /// The model configuration of the embedded default policy.
 pub const MODEL_CONFIG: &str = include_str!("../config/reach_model.json");
+/// The model configuration of the SO-101 policy (`chunkrt train --task so101`).
+pub const SO101_MODEL_CONFIG: &str = include_str!("../config/so101_model.json");
+/// Episode seeds of the SO-101's held-out loss data (training records from 100, validation
+/// runs from [`crate::task::so101::VAL_SEED_BASE`], `chunkrt eval` from
+/// [`crate::task::so101::EVAL_SEED_BASE`]).
+pub const SO101_LOSS_SEED_BASE: u64 = 5_000;
 
 /// Writes Fourier features of the bin value into the embedding rows of the 256 state-bin
 /// tokens (ids `SPECIALS.len()..+256`, `task::vocab`): row k holds sin / cos(π·2^(7j/(W/2))·k/255),
@@ -280,6 +286,68 @@ pub fn validate(
     Ok((ok, if ok > 0 { t / ok as f64 } else { f64::NAN }))
 }
 
+/// Closed-loop success of the SO-101 checkpoint in `dir` over episodes `seeds` in the package's
+/// physics (strategy `replace`, no delay).
+pub fn validate_so101(
+    cfg: &Config,
+    dir: &Path,
+    seeds: std::ops::Range<u64>,
+    max_seconds: f64,
+) -> anyhow::Result<(usize, f64)> {
+    let mut c = cfg.clone();
+    c.policy.checkpoint = Some(std::fs::canonicalize(dir)?);
+    c.policy.kind = Some(crate::config::ModelKind::Pi05);
+    c.execution.strategy = crate::config::Strategy::Replace;
+    let mut policy = PolicySource::load(&c)?;
+    crate::task::so101::success_rate(&c, &mut policy, seeds, max_seconds)
+}
+
+/// The recorded state of every step channel (a gripper, the SO-101's jaw) snapped to the nearer
+/// end of its range, as the controller shows it to the policy (`Conditioner::ask`): the jaw
+/// closed on a block reads as closed, not as the in-between angle the block leaves it at.
+pub fn snap_step_channels(ds: &mut Dataset, cfg: &Config) {
+    let d = ds.n_dof;
+    for (j, joint) in cfg.robot.joints.iter().enumerate().take(d) {
+        if !joint.step {
+            continue;
+        }
+        let (lo, hi) = (joint.position_min as f32, joint.position_max as f32);
+        let mid = 0.5 * (lo + hi);
+        for v in ds.state.iter_mut().skip(j).step_by(d) {
+            *v = if *v >= mid { hi } else { lo };
+        }
+    }
+}
+
+/// An SO-101 dataset fits the configuration: its task, joints, frame size and rate.
+fn check_so101_dataset(
+    ds: &Dataset,
+    path: &Path,
+    cam: &crate::config::CameraConfig,
+    cfg: &Config,
+) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        ds.task == "so101",
+        "{} holds the {} task's episodes, not the SO-101's",
+        path.display(),
+        ds.task
+    );
+    anyhow::ensure!(
+        ds.n_dof == cfg.n_dof()
+            && (ds.width, ds.height) == (cam.width as usize, cam.height as usize),
+        "{}: {} joints and {}x{} frames; the configuration has {} joints and a {}x{} camera: \
+         delete it to record it anew",
+        path.display(),
+        ds.n_dof,
+        ds.width,
+        ds.height,
+        cfg.n_dof(),
+        cam.width,
+        cam.height
+    );
+    Ok(())
+}
+
 /// The model configuration `json` with `rtc_prefix_max` set to `n` (left out when 0).
 pub fn with_rtc_prefix(json: &str, n: usize) -> anyhow::Result<String> {
     if n == 0 {
@@ -300,21 +368,54 @@ fn fmt_min(s: f64) -> String {
 }
 
 /// Runs `chunkrt train`.
-pub fn run(args: TrainArgs) -> anyhow::Result<()> {
+pub fn run(mut args: TrainArgs) -> anyhow::Result<()> {
     // Data parallel over `--threads` workers, each running candle single-threaded: the model's
     // matrices are too small for candle's spinning thread pool to pay (5x slower per step with
     // 2 pool threads than with 1 on this 2-core machine under load).
     std::env::set_var("RAYON_NUM_THREADS", "1");
     let workers = args.threads.max(1);
+    let so101 = args.task == TaskKind::So101;
     let cfg = match &args.config {
         Some(p) => Config::load(p)?,
+        None if so101 => Config::load(Path::new("config/so101.toml")).context(
+            "--task so101 trains for the SO-101's configuration: pass --config config/so101.toml",
+        )?,
         None => Config::embedded_default(),
     };
-    let cam = task_camera(&cfg)?.clone();
+    let cam = if so101 {
+        crate::task::so101::task_camera(&cfg)?.clone()
+    } else {
+        task_camera(&cfg)?.clone()
+    };
+    let out_dir = args.out.clone().unwrap_or_else(|| {
+        PathBuf::from(if so101 {
+            "models/so101_pi05"
+        } else {
+            "models/reach_pi05"
+        })
+    });
+    let dataset_path = args.dataset.clone().unwrap_or_else(|| {
+        PathBuf::from(if so101 {
+            "target/chunkrt-train/so101_dataset.safetensors"
+        } else {
+            "target/chunkrt-train/dataset.safetensors"
+        })
+    });
+    if so101 {
+        anyhow::ensure!(
+            args.history_ms == 0.0 && args.drift_share == 0.0,
+            "--history-ms and --drift-share are the reach task's"
+        );
+        if args.goal_weight != 0.0 {
+            eprintln!("[train] the goal head is the reach task's: off for the SO-101");
+            args.goal_weight = 0.0;
+        }
+    }
     let model_json = match &args.model_config {
         Some(p) => {
             std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?
         }
+        None if so101 => SO101_MODEL_CONFIG.to_string(),
         None => MODEL_CONFIG.to_string(),
     };
     let model_json = with_rtc_prefix(&model_json, args.rtc_prefix)?;
@@ -332,11 +433,18 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         mcfg.cameras.first(),
         cam.name
     );
+    let default_scenes = if so101 { 300 } else { 20_000 };
     let (scenes, budget_s, max_steps, batch, val_n) = if args.quick {
-        (3, 0.0, 6.min(args.max_steps), args.batch.min(4), 1)
+        (
+            if so101 { 2 } else { 3 },
+            0.0,
+            6.min(args.max_steps),
+            args.batch.min(4),
+            1,
+        )
     } else {
         (
-            args.scenes,
+            args.scenes.unwrap_or(default_scenes),
             args.minutes * 60.0,
             args.max_steps,
             args.batch,
@@ -352,14 +460,50 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     let drift = (args.drift_share > 0.0).then(|| DriftMix::with_share(args.drift_share));
 
     // 1. data
-    let ds = if args.dataset.exists() && !args.quick {
-        eprintln!("[train] dataset {}", args.dataset.display());
-        let ds = Dataset::load(&args.dataset)?;
+    let ds = if so101 {
+        let path = if args.quick {
+            std::env::temp_dir().join(format!(
+                "chunkrt-so101-quick-{}.safetensors",
+                std::process::id()
+            ))
+        } else {
+            dataset_path.clone()
+        };
+        if args.quick || !path.exists() {
+            eprintln!(
+                "[train] recording the SO-101 expert: {scenes} episodes (seeds 100..) -> {}",
+                path.display()
+            );
+            crate::task::so101::record(
+                &path,
+                100..100 + scenes as u64,
+                mcfg.action_horizon,
+                cam.width as usize,
+                workers,
+            )?;
+        }
+        eprintln!("[train] dataset {}", path.display());
+        let ds = Dataset::load(&path)?;
+        if args.quick {
+            std::fs::remove_file(&path).ok();
+        }
+        check_so101_dataset(&ds, &path, &cam, &cfg)?;
+        ds
+    } else if dataset_path.exists() && !args.quick {
+        eprintln!("[train] dataset {}", dataset_path.display());
+        let ds = Dataset::load(&dataset_path)?;
+        anyhow::ensure!(
+            ds.is_reach(),
+            "{} holds the {} task's episodes; pass --task {}",
+            dataset_path.display(),
+            ds.task,
+            ds.task
+        );
         anyhow::ensure!(
             ds.expert == args.expert,
             "{} was recorded with the {} expert, training asks for {}: delete the file to record \
              it anew, or pass --expert {}",
-            args.dataset.display(),
+            dataset_path.display(),
             ds.expert.name(),
             args.expert.name(),
             ds.expert.name()
@@ -368,7 +512,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             ds.drift_share == args.drift_share,
             "{} was recorded with --drift-share {}, training asks for {}: delete the file to \
              record it anew, or pass --drift-share {}",
-            args.dataset.display(),
+            dataset_path.display(),
             ds.drift_share,
             args.drift_share,
             ds.drift_share
@@ -378,7 +522,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             ds.history_steps == steps,
             "{} was recorded with a frame history of {} policy steps, the model takes {steps}: \
              delete the file to record it anew",
-            args.dataset.display(),
+            dataset_path.display(),
             ds.history_steps
         );
         ds
@@ -405,10 +549,12 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             ds.episodes(),
             t0.elapsed().as_secs_f64()
         );
-        ds.save(&args.dataset)?;
-        eprintln!("[train] dataset written to {}", args.dataset.display());
+        ds.save(&dataset_path)?;
+        eprintln!("[train] dataset written to {}", dataset_path.display());
         ds
     };
+    let mut ds = ds;
+    snap_step_channels(&mut ds, &cfg);
     anyhow::ensure!(!ds.is_empty(), "the dataset is empty");
     anyhow::ensure!(
         (ds.action_rate_hz - cfg.policy.action_rate_hz).abs() < 1e-9,
@@ -460,7 +606,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     let n_params: usize = vm.all_vars().iter().map(|v| v.elem_count()).sum();
     eprintln!(
         "[train] π0.5 {}: {n_params} parameters ({:.1} MB f32), batch {batch}, lr {}, budget {}",
-        args.out.display(),
+        out_dir.display(),
         n_params as f64 * 4.0 / 1e6,
         args.lr,
         fmt_min(budget_s)
@@ -485,14 +631,46 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         },
     )?;
 
-    let val_eps = held_out_episodes(&cfg, 1_000, val_n, args.seed ^ 0xbeef);
+    let val_eps = if so101 {
+        Vec::new()
+    } else {
+        held_out_episodes(&cfg, 1_000, val_n, args.seed ^ 0xbeef)
+    };
+    let so101_val =
+        crate::task::so101::VAL_SEED_BASE..crate::task::so101::VAL_SEED_BASE + val_n as u64;
+    let val_count = if so101 { val_n } else { val_eps.len() };
     // held-out loss data: scenes no training sample comes from, normalised like the training data
-    let held = held_out_dataset(&cfg, &mcfg, if args.quick { 1 } else { 60 }, args.expert)?;
+    let held = if so101 {
+        let path = dataset_path.with_extension("heldout.safetensors");
+        let n = if args.quick { 1 } else { 10 };
+        if args.quick || !path.exists() {
+            crate::task::so101::record(
+                &path,
+                SO101_LOSS_SEED_BASE..SO101_LOSS_SEED_BASE + n,
+                mcfg.action_horizon,
+                cam.width as usize,
+                1,
+            )?;
+        }
+        let held = Dataset::load(&path)?;
+        if args.quick {
+            std::fs::remove_file(&path).ok();
+        }
+        check_so101_dataset(&held, &path, &cam, &cfg)?;
+        held
+    } else {
+        held_out_dataset(&cfg, &mcfg, if args.quick { 1 } else { 60 }, args.expert)?
+    };
+    let mut held = held;
+    snap_step_channels(&mut held, &cfg);
     let held_actions = model_space_actions(&held, &mcfg.delta_action_mask);
     let held_batcher = Batcher::new(&held, &held_actions, &mcfg, &norm, &tok)?;
-    let val_seconds = if args.quick { 0.5 } else { 6.0 };
-    let log_dir = args
-        .dataset
+    let val_seconds = match (args.quick, so101) {
+        (true, _) => 0.5,
+        (false, false) => 6.0,
+        (false, true) => crate::task::so101::MAX_SECONDS,
+    };
+    let log_dir = dataset_path
         .parent()
         .map(Path::to_path_buf)
         .unwrap_or_else(|| PathBuf::from("."));
@@ -500,7 +678,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     let log_path = log_dir.join("train_log.csv");
     let mut log = std::fs::File::create(&log_path)?;
     writeln!(log, "step,elapsed_s,loss,lr,val_success,val_episodes,loc_loss,goal_loss,held_loss_t0.1,held_loss_t0.4,held_loss_t0.7,held_loss_t0.95")?;
-    let candidate = args.out.with_extension("candidate");
+    let candidate = out_dir.with_extension("candidate");
     let tty = std::io::stderr().is_terminal();
 
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
@@ -520,10 +698,14 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         if done || elapsed >= next_val {
             // validation + checkpoint
             write_checkpoint(&candidate, &vm, &model_json, &norm)?;
-            let (ok, ttt) = validate(&cfg, &candidate, &val_eps, val_seconds)?;
+            let (ok, ttt) = if so101 {
+                validate_so101(&cfg, &candidate, so101_val.clone(), val_seconds)?
+            } else {
+                validate(&cfg, &candidate, &val_eps, val_seconds)?
+            };
             let held_loss = loss_by_time(&model, &held_batcher, &LOSS_TIMES, 7)?;
             let hl: Vec<String> = held_loss.iter().map(|v| format!("{v:.4}")).collect();
-            last_val = format!("{ok}/{} (t {:.2} s)", val_eps.len(), ttt);
+            last_val = format!("{ok}/{} (t {:.2} s)", val_count, ttt);
             eprintln!(
                 "{}[train] held-out loss at t = {:?}: {} ({} samples)",
                 if tty { "\n" } else { "" },
@@ -534,7 +716,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             writeln!(
                 log,
                 "{step},{elapsed:.1},{ema:.5},,{ok},{},,,{}",
-                val_eps.len(),
+                val_count,
                 hl.join(",")
             )?;
             let better = best.is_none_or(|b| ok >= b);
@@ -542,7 +724,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
                 best = Some(ok);
             }
             if better || args.keep == Keep::Last {
-                write_checkpoint(&args.out, &vm, &model_json, &norm)?;
+                write_checkpoint(&out_dir, &vm, &model_json, &norm)?;
             }
             eprintln!(
                 "{}[train] step {step}  {}  loss {ema:.4}  validation: {last_val} success{}",
@@ -577,7 +759,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         let aug: Vec<Augment> = (0..batch)
             .map(|_| {
                 let mut a = Augment {
-                    flip_gripper: rng.gen_bool(0.3),
+                    // (the SO-101's jaw tells the task's phase: holding the block or not)
+                    flip_gripper: !so101 && rng.gen_bool(0.3),
                     ..Default::default()
                 };
                 for v in a.noise.iter_mut() {
@@ -748,8 +931,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         "[train] done: {step} steps in {}, best validation {}/{} episodes; checkpoint {}; log {}",
         fmt_min(t0.elapsed().as_secs_f64()),
         best.unwrap_or(0),
-        val_eps.len(),
-        args.out.display(),
+        val_count,
+        out_dir.display(),
         log_path.display()
     );
     Ok(())

@@ -168,3 +168,97 @@ fn the_experts_plan_replayed_through_the_controller_succeeds() {
     assert_eq!(summary_value(&s, "success"), Some(1.0), "{s}");
     std::fs::remove_file(&plan).ok();
 }
+
+/// `chunkrt train --task so101 --quick`: the package's expert recorded through the env's IK into
+/// chunkrt's dataset schema (frames as the robot process renders them, joint targets as the
+/// chunks, the block's / goal's / jaw's image positions for the localisation head), a few
+/// optimiser steps on it, a closed-loop validation episode in the package's physics, and a
+/// checkpoint of the SO-101's dimensions.
+#[test]
+fn the_trainer_records_the_experts_episodes_and_trains_on_them() {
+    if !so101_python() {
+        return;
+    }
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("so101_train_{}", std::process::id()));
+    let out = std::process::Command::new(EXE)
+        .args(["train", "--task", "so101", "--quick", "--out"])
+        .arg(dir.join("model"))
+        .arg("--dataset")
+        .arg(dir.join("ds.safetensors"))
+        .current_dir(ROOT)
+        .output()
+        .expect("chunkrt train");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    // 2 episodes of ~50 policy steps each, the expert succeeding on both
+    let line = err
+        .lines()
+        .find(|l| l.contains("samples from 2 of 2 episodes"))
+        .unwrap_or_else(|| panic!("no recording summary:\n{err}"));
+    let samples: usize = line
+        .split_whitespace()
+        .nth(1)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
+    assert!((60..200).contains(&samples), "{line}");
+    assert!(
+        err.contains("validation: 0/1") || err.contains("validation: 1/1"),
+        "{err}"
+    );
+    let cfg = std::fs::read_to_string(dir.join("model/config.json")).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&cfg).unwrap();
+    assert_eq!(v["action_dim"], 6, "{cfg}");
+    assert_eq!(v["image_keys_in_order"][0], "front", "{cfg}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `chunkrt eval --task so101`: the executor at 1 kHz in lock-step with the package's physics
+/// (simulated time), the committed SO-101 policy computing every chunk from the rendered frame:
+/// the servos follow the commands within a bound and the sweep's files have a row per episode.
+#[test]
+fn eval_drives_the_so101_physics_in_simulated_time() {
+    if !so101_python() {
+        return;
+    }
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("so101_eval_{}", std::process::id()));
+    let out = std::process::Command::new(EXE)
+        .args([
+            "eval",
+            "--task",
+            "so101",
+            "--strategies",
+            "replace,rtc",
+            "--delays",
+            "0,3",
+            "--episodes",
+            "1",
+            "--max-seconds",
+            "2",
+            "--out",
+        ])
+        .arg(&dir)
+        .current_dir(ROOT)
+        .output()
+        .expect("chunkrt eval");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("| rtc | 3 |"), "{text}");
+    let csv = std::fs::read_to_string(dir.join("so101_episodes.csv")).unwrap();
+    let rows: Vec<&str> = csv.lines().skip(1).collect();
+    assert_eq!(rows.len(), 4, "{csv}");
+    for r in rows {
+        let f: Vec<&str> = r.split(',').collect();
+        let p99: f64 = f[8].parse().unwrap();
+        let hold: u64 = f[15].parse().unwrap();
+        // 2 s of motion from the home pose: the servos trail the command by a few hundredths
+        assert!(p99 > 0.0 && p99 < 0.2, "tracking p99 {p99}: {r}");
+        assert!(hold < 200, "{r}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

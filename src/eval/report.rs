@@ -113,6 +113,50 @@ pub struct EpisodeRow {
     pub delay: u64,
     pub spec: EpisodeSpec,
     pub outcome: EpisodeOutcome,
+    /// What the SO-101's physics showed (None: the reach task).
+    pub physics: Option<crate::task::so101::Physics>,
+}
+
+/// The SO-101 sweep's physics per cell, as Markdown: how far the servos trail the command,
+/// how the jaw behaves through chunk switches, how often the block was lifted, and the block's
+/// closest approach to the goal once lifted.
+pub fn so101_physics(cells: &[Cell], rows: &[EpisodeRow]) -> String {
+    let mut s = String::from(
+        "| strategy | delay (steps) | lifted | tracking p50 / p99 / max (rad) | jaw closes / opens per episode | jaw flips ≤ 100 ms after a switch | closest to goal once lifted, median (m) |\n|---|---|---|---|---|---|---|\n",
+    );
+    for c in cells {
+        let ps: Vec<(&EpisodeOutcome, crate::task::so101::Physics)> = rows
+            .iter()
+            .filter(|r| r.strategy == c.strategy && r.delay == c.delay)
+            .filter_map(|r| r.physics.map(|p| (&r.outcome, p)))
+            .collect();
+        let n = ps.len().max(1) as f64;
+        let avg = |f: &dyn Fn(&crate::task::so101::Physics) -> f64| {
+            ps.iter().map(|(_, p)| f(p)).sum::<f64>() / n
+        };
+        let mut close: Vec<f64> = ps
+            .iter()
+            .map(|(o, _)| o.min_distance)
+            .filter(|d| d.is_finite())
+            .collect();
+        close.sort_by(f64::total_cmp);
+        let median = close.get(close.len() / 2).copied().unwrap_or(f64::NAN);
+        s.push_str(&format!(
+            "| {} | {} | {}/{} | {:.3} / {:.3} / {:.3} | {:.1} / {:.1} | {} | {:.3} |\n",
+            c.strategy,
+            c.delay,
+            ps.iter().filter(|(_, p)| p.carried).count(),
+            ps.len(),
+            avg(&|p| p.tracking_p50),
+            avg(&|p| p.tracking_p99),
+            ps.iter().map(|(_, p)| p.tracking_max).fold(0.0, f64::max),
+            avg(&|p| p.jaw_closes as f64),
+            avg(&|p| p.jaw_opens as f64),
+            ps.iter().map(|(_, p)| p.jaw_flips_at_switch).sum::<usize>(),
+            median
+        ));
+    }
+    s
 }
 
 /// The Markdown table of a sweep.

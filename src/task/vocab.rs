@@ -1,15 +1,19 @@
 //! The task's `tokenizer.json`: a word-level vocabulary (the `tokenizers` crate's `WordLevel`
 //! model with its `Whitespace` pre-tokenizer) covering the π0.5 prompt of the reach task —
-//! `Task: reach the red target, State: 12 255 -1 3;\nAction: ` — with one token per state bin.
+//! `Task: reach the red target, State: 12 255 -1 3;\nAction: ` — and the SO-101's pick-and-place
+//! prompt, with one token per state bin.
 //! The real PaliGemma tokenizer has 257k entries; a vocabulary this small keeps the embedding
 //! (and the committed checkpoint) tiny.
 
 /// Special tokens, at ids 0..4 (the padding id 0 and BOS id 2 are what openpi uses).
 pub const SPECIALS: [&str; 4] = ["<pad>", "<eos>", "<bos>", "<unk>"];
 /// Words and punctuation of the prompts.
-pub const WORDS: [&str; 20] = [
+pub const WORDS: [&str; 28] = [
     "-", "Task", ":", "reach", "the", "red", "blue", "green", "yellow", "target", ",", "State",
     ";", "Action", "go", "to", "move", "touch", "a", ".",
+    // the SO-101's `pick up the block and place it on the goal` (appended: the reach task's
+    // ids stay where its checkpoints have them)
+    "pick", "up", "block", "and", "place", "it", "on", "goal",
 ];
 
 /// Vocabulary size (specials, the 256 state bins "0".."255", words).

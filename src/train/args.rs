@@ -2,9 +2,18 @@
 
 use std::path::PathBuf;
 
+pub use crate::task::TaskKind;
+
 /// `chunkrt train`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct TrainArgs {
+    /// The task: `reach` (the embedded demo's planar arm, recorded in process) or `so101` (the
+    /// SO-101 pick-and-place in MuJoCo: demonstrations of the package's expert recorded by
+    /// `tools/python/so101_sim.py`, validation closed-loop in its physics; defaults to
+    /// `--config config/so101.toml`, `--model-config config/so101_model.json`, `--out
+    /// models/so101_pi05`).
+    #[arg(long, value_enum, default_value_t = TaskKind::Reach)]
+    pub task: TaskKind,
     /// Robot / control configuration (default: the embedded demo robot).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -12,15 +21,17 @@ pub struct TrainArgs {
     /// `config/reach_model.json`, embedded).
     #[arg(long, value_name = "FILE")]
     pub model_config: Option<PathBuf>,
-    /// Where the checkpoint goes (the best one by validation).
-    #[arg(long, default_value = "models/reach_pi05")]
-    pub out: PathBuf,
-    /// Dataset file; recorded with `--scenes` scenes when missing.
-    #[arg(long, default_value = "target/chunkrt-train/dataset.safetensors")]
-    pub dataset: PathBuf,
-    /// Scenes to record when the dataset is missing (two episodes each).
-    #[arg(long, default_value_t = 20_000)]
-    pub scenes: usize,
+    /// Where the checkpoint goes (default: `models/reach_pi05`, `models/so101_pi05` for the SO-101).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Dataset file; recorded with `--scenes` scenes when missing (default:
+    /// `target/chunkrt-train/dataset.safetensors`, `so101_dataset.safetensors` for the SO-101).
+    #[arg(long)]
+    pub dataset: Option<PathBuf>,
+    /// Scenes to record when the dataset is missing (reach: two episodes each, default 20 000;
+    /// SO-101: episodes, default 300).
+    #[arg(long)]
+    pub scenes: Option<usize>,
     /// Share of each episode's policy steps recorded (first and last always): 20 000 scenes at
     /// 0.05 give 150 k samples from 40 000 start poses and 20 000 target layouts (recorded in
     /// about 80 s; 1.8 GB in memory).

@@ -202,14 +202,24 @@ impl<'a> Batcher<'a> {
                 targets: ds.targets_of(i),
             };
             let q: Vec<f64> = ds.state_of(i).iter().map(|&v| v as f64).collect();
-            b.aux.extend(localisation_targets(&sc, &q));
-            b.goal
-                .extend(goal_targets(&sc, &ds.target_velocity_of(i), ds.color(i)));
+            if ds.aux.is_empty() {
+                b.aux.extend(localisation_targets(&sc, &q));
+            } else {
+                b.aux
+                    .extend_from_slice(&ds.aux[i * AUX_OUTPUTS..(i + 1) * AUX_OUTPUTS]);
+            }
+            if ds.is_reach() {
+                b.goal
+                    .extend(goal_targets(&sc, &ds.target_velocity_of(i), ds.color(i)));
+            } else {
+                // (the goal head is the reach task's: `chunkrt train` turns it off for others)
+                b.goal.extend([0.0; GOAL_OUTPUTS]);
+            }
             let mut s = ds.state_of(i).to_vec();
             normalize(&mut s, &norm.state, NormMode::Quantile)?;
             b.norm_state.extend_from_slice(&s);
             let bins = discretize_state(&s);
-            let (ids, mask) = tok.tokenize(ds.color(i).prompt(), Some(&bins), l)?;
+            let (ids, mask) = tok.tokenize(ds.prompt(i), Some(&bins), l)?;
             b.tokens.extend(ids);
             b.token_mask.extend(mask);
             s.resize(a, 0.0);
@@ -287,11 +297,9 @@ impl<'a> Batcher<'a> {
                             *v += g.noise[j.min(TASK_DOF - 1)];
                         }
                     }
-                    let (t, m) = self.tok.tokenize(
-                        self.ds.color(i).prompt(),
-                        Some(&discretize_state(&s)),
-                        l,
-                    )?;
+                    let (t, m) =
+                        self.tok
+                            .tokenize(self.ds.prompt(i), Some(&discretize_state(&s)), l)?;
                     ids.extend(t);
                     masks.push(m);
                     s.resize(a, 0.0);

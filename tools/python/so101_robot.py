@@ -15,7 +15,8 @@ joint commands over iceoryx2 (``ipc/python/chunkrt_ipc.py``):
   speaks, 0.5 s of settling after a ``stopped`` status or a controller's silence) and refuses the
   first command of a session, or the first after a hold, when it starts further than
   ``--bind-tolerance`` from the measured position;
-- renders the scene's ``front`` camera at the configured size and rate and publishes it as RGB8;
+- renders the scene's ``front`` camera at the configured size and rate and publishes it as RGB8,
+  with the goal drawn on the table as a green disc (visual only: the package's goal has none);
   to make that affordable on a CPU (the package's meshes have 730 k faces; software OpenGL drew a
   96 x 96 frame in ~0.6 s) the camera draws each link's convex hull and no shadows, reflections
   or skybox;
@@ -130,14 +131,22 @@ class SessionGate:
         return self.controller or 0
 
 
+# The goal drawn on the table (a visual marker, no physics): the package's goal has no geometry,
+# so a policy that only sees the camera could not know where to place the block. Its radius is
+# the package's PLACE_SUCCESS_DISTANCE.
+GOAL_MARKER_RADIUS = 0.03
+GOAL_MARKER_RGBA = (0.1, 0.85, 0.2, 1.0)
+
+
 class Camera:
-    """The scene's `front` camera: convex hulls, no shadows / reflections / skybox.
+    """The scene's `front` camera: convex hulls, no shadows / reflections / skybox, and the
+    goal drawn on the table.
 
     Rendered in the physics loop: a thread of its own made the loop's lateness worse (Python's
     GIL: MuJoCo's renderer holds it; measured max lateness 0.56-0.63 s against 0.13 s), and the
     loop catches the physics up after each frame (simulated time follows the clock)."""
 
-    def __init__(self, model, name, width, height):
+    def __init__(self, model, name, width, height, goal=None):
         self.renderer = mujoco.Renderer(model, height=height, width=width)
         self.camera = model.camera("front").id
         self.option = mujoco.MjvOption()
@@ -146,19 +155,33 @@ class Camera:
         self.option.flags[mujoco.mjtVisFlag.mjVIS_CONVEXHULL] = 1
         self.name = name
         self.width, self.height = width, height
+        self.goal = None if goal is None else np.asarray(goal, dtype=np.float64)
         self.done = None
 
-    def capture(self, data, now_ns):
-        """Renders the state in `data` as the frame of `now_ns`."""
-        t0 = time.perf_counter()
+    def draw(self, data):
+        """The state in `data` as an RGB array (height x width x 3)."""
         self.renderer.update_scene(data, camera=self.camera, scene_option=self.option)
+        scene = self.renderer.scene
         for f in (
             mujoco.mjtRndFlag.mjRND_SHADOW,
             mujoco.mjtRndFlag.mjRND_REFLECTION,
             mujoco.mjtRndFlag.mjRND_SKYBOX,
         ):
-            self.renderer.scene.flags[f] = 0
-        rgb = np.ascontiguousarray(self.renderer.render())
+            scene.flags[f] = 0
+        if self.goal is not None and scene.ngeom < scene.maxgeom:
+            mujoco.mjv_initGeom(
+                scene.geoms[scene.ngeom], mujoco.mjtGeom.mjGEOM_CYLINDER,
+                np.array([GOAL_MARKER_RADIUS, GOAL_MARKER_RADIUS, 0.0005]),
+                np.array([self.goal[0], self.goal[1], 0.0006]), np.eye(3).flatten(),
+                np.array(GOAL_MARKER_RGBA, dtype=np.float32),
+            )
+            scene.ngeom += 1
+        return np.ascontiguousarray(self.renderer.render())
+
+    def capture(self, data, now_ns):
+        """Renders the state in `data` as the frame of `now_ns`."""
+        t0 = time.perf_counter()
+        rgb = self.draw(data)
         self.done = (now_ns, rgb, (time.perf_counter() - t0) * 1e3)
         return True
 
@@ -202,7 +225,7 @@ def main(argv):
     hi = model.actuator_ctrlrange[act, 1].copy()
     block = data.sensor("block_pos").data
     z0 = float(block[2])
-    camera = Camera(model, cam_cfg["name"], cam_cfg["width"], cam_cfg["height"])
+    camera = Camera(model, cam_cfg["name"], cam_cfg["width"], cam_cfg["height"], env.goal_pos)
     frame_period_ns = int(1e9 / cam_cfg["fps"])
     dt = model.opt.timestep
     period_ns = int(round(dt * 1e9))
