@@ -261,19 +261,8 @@ pub fn validate(
     episodes: &[EpisodeSpec],
     max_seconds: f64,
 ) -> anyhow::Result<(usize, f64)> {
-    let mut c = cfg.clone();
-    c.policy.checkpoint = Some(std::fs::canonicalize(dir)?);
-    c.policy.kind = Some(crate::config::ModelKind::Pi05);
-    c.execution.strategy = crate::config::Strategy::Replace;
-    let mut policy = PolicySource::load(&c)?;
-    let settings = SimSettings {
-        delay_steps: 0,
-        max_seconds,
-        synchronous: false,
-        record: false,
-        retarget_at: None,
-        drift: None,
-    };
+    let (c, mut policy) = validation_policy(cfg, dir)?;
+    let settings = SimSettings::validation(max_seconds);
     let mut ok = 0;
     let mut t = 0.0;
     for e in episodes {
@@ -294,12 +283,19 @@ pub fn validate_so101(
     seeds: std::ops::Range<u64>,
     max_seconds: f64,
 ) -> anyhow::Result<(usize, f64)> {
+    let (c, mut policy) = validation_policy(cfg, dir)?;
+    crate::task::so101::success_rate(&c, &mut policy, seeds, max_seconds)
+}
+
+/// The configuration a validation runs (the π0.5 checkpoint in `dir`, strategy `replace`) and
+/// its policy, loaded.
+fn validation_policy(cfg: &Config, dir: &Path) -> anyhow::Result<(Config, PolicySource)> {
     let mut c = cfg.clone();
     c.policy.checkpoint = Some(std::fs::canonicalize(dir)?);
     c.policy.kind = Some(crate::config::ModelKind::Pi05);
     c.execution.strategy = crate::config::Strategy::Replace;
-    let mut policy = PolicySource::load(&c)?;
-    crate::task::so101::success_rate(&c, &mut policy, seeds, max_seconds)
+    let policy = PolicySource::load(&c)?;
+    Ok((c, policy))
 }
 
 /// The recorded state of every step channel (a gripper, the SO-101's jaw) snapped to the nearer

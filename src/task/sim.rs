@@ -125,6 +125,38 @@ pub struct EpisodeOutcome {
     pub recording: Option<Recording>,
 }
 
+impl EpisodeOutcome {
+    /// Nothing happened yet (with a recording when `record`).
+    pub fn start(record: bool) -> Self {
+        EpisodeOutcome {
+            success: false,
+            time_to_target: None,
+            wrong_target: false,
+            min_distance: f64::INFINITY,
+            smoothness: Smoothness::default(),
+            chunks: 0,
+            hold_ticks: 0,
+            reaction_time: None,
+            recording: record.then(Recording::default),
+        }
+    }
+}
+
+impl SimSettings {
+    /// A training validation's episodes: the configured strategy, no delay, nothing recorded,
+    /// nothing moving, at most `max_seconds` each.
+    pub fn validation(max_seconds: f64) -> Self {
+        SimSettings {
+            delay_steps: 0,
+            max_seconds,
+            synchronous: false,
+            record: false,
+            retarget_at: None,
+            drift: None,
+        }
+    }
+}
+
 /// Runs one episode with `policy` under `cfg` (its `execution.strategy` unless synchronous).
 /// The policy is any chunk source: the in-process one, or a server behind the openpi protocol
 /// (`chunkrt eval --remote`); it answers through the controller's [`InferenceWorker`], which
@@ -190,17 +222,7 @@ pub fn run_episode(
     let mut obs = Observation::with_views(&cfg, policy.delayed_views());
     let mut past: Vec<[f64; TASK_DOF]> = Vec::new();
     let mut next_sync_obs = START_NS;
-    let mut out = EpisodeOutcome {
-        success: false,
-        time_to_target: None,
-        wrong_target: false,
-        min_distance: f64::INFINITY,
-        smoothness: Smoothness::default(),
-        chunks: 0,
-        hold_ticks: 0,
-        reaction_time: None,
-        recording: settings.record.then(Recording::default),
-    };
+    let mut out = EpisodeOutcome::start(settings.record);
     let ticks = (settings.max_seconds * 1e9 / control_ns as f64).ceil() as u64;
     for k in 0..ticks {
         let now = START_NS + k * control_ns;

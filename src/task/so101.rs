@@ -19,7 +19,7 @@ use crate::config::Config;
 use crate::contract::{ChunkSource, Observation};
 use crate::control::{Executor, State};
 use crate::worker::{Delivery, InferenceWorker, Turn};
-use chunkrt_bench::metrics::{Smoothness, Trace};
+use chunkrt_bench::metrics::Trace;
 
 /// Joints of the SO-101: five arm joints and the jaw.
 pub const SO101_DOF: usize = 6;
@@ -296,17 +296,7 @@ pub fn run_episode(
     let mut jaw_closed = ps.position[jaw] < jaw_mid;
     let mut jaw_cmd_closed = jaw_closed;
     let mut last_switch: Option<u64> = None;
-    let mut out = EpisodeOutcome {
-        success: false,
-        time_to_target: None,
-        wrong_target: false,
-        min_distance: f64::INFINITY,
-        smoothness: Smoothness::default(),
-        chunks: 0,
-        hold_ticks: 0,
-        reaction_time: None,
-        recording: None,
-    };
+    let mut out = EpisodeOutcome::start(false);
     let ticks = (settings.max_seconds * 1e9 / control_ns as f64).ceil() as u64;
     for k in 0..ticks {
         let now = START_NS + k * control_ns;
@@ -469,14 +459,7 @@ pub fn success_rate(
 ) -> anyhow::Result<(usize, f64)> {
     let cam = task_camera(cfg)?;
     let mut plant = So101Plant::spawn(cam.width as usize, cam.height as usize)?;
-    let settings = SimSettings {
-        delay_steps: 0,
-        max_seconds,
-        synchronous: false,
-        record: false,
-        retarget_at: None,
-        drift: None,
-    };
+    let settings = SimSettings::validation(max_seconds);
     let (mut ok, mut t) = (0, 0.0);
     for seed in seeds {
         let (o, _) = run_episode(cfg, policy, &mut plant, seed, &settings)?;
