@@ -215,7 +215,8 @@ fn the_trainer_records_the_experts_episodes_and_trains_on_them() {
 
 /// `chunkrt eval --task so101`: the executor at 1 kHz in lock-step with the package's physics
 /// (simulated time), the committed SO-101 policy computing every chunk from the rendered frame:
-/// the servos follow the commands within a bound and the sweep's files have a row per episode.
+/// the servos follow the commands within a bound, the commands' jerk stays within the limits and
+/// the sweep's files have a row per episode.
 #[test]
 fn eval_drives_the_so101_physics_in_simulated_time() {
     if !so101_python() {
@@ -259,6 +260,11 @@ fn eval_drives_the_so101_physics_in_simulated_time() {
         // 2 s of motion from the home pose: the servos trail the command by a few hundredths
         assert!(p99 > 0.0 && p99 < 0.2, "tracking p99 {p99}: {r}");
         assert!(hold < 200, "{r}");
+        // every arm joint's command jerk within its limit (200–250 rad/s³), so the RMS too:
+        // before the stop guard in the limit rule, a command that ran into wrist_flex's limit
+        // was kinked by the backstop clamp (RMS 752 and 5883 here, spikes of 1e5)
+        let rms_jerk: f64 = f[14].parse().unwrap();
+        assert!(rms_jerk <= 250.0, "RMS jerk {rms_jerk}: {r}");
     }
     std::fs::remove_dir_all(&dir).ok();
 }
