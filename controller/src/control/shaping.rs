@@ -208,7 +208,7 @@ pub(crate) fn brake(n: usize, inp: &mut OtgInput) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::control::otg::{Otg, OtgOutput};
+    use crate::control::otg::{Otg, OtgOutput, OtgResult};
 
     const DT: f64 = 1e-3;
     const VMAX: f64 = 2.0;
@@ -291,8 +291,6 @@ mod tests {
         assert!(checked >= 20, "{checked}");
     }
 
-    use crate::control::otg::OtgResult;
-
     /// Runs `track` + ruckig for `ticks` against `target(k)`; returns the generator's positions.
     fn follow(
         l: &Limits,
@@ -316,6 +314,29 @@ mod tests {
             positions.push(out.state.position[0]);
         }
         positions
+    }
+
+    /// Asserts that the positions never cross `lo` or `hi` and that their jerk (third
+    /// differences) stays within the limit; returns the lowest and highest position.
+    fn assert_inside_and_smooth(pos: &[f64], lo: f64, hi: f64, gain: f64) -> (f64, f64) {
+        let top = pos.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let bottom = pos.iter().cloned().fold(f64::INFINITY, f64::min);
+        assert!(
+            top <= hi,
+            "gain {gain}: crossed the upper limit by {}",
+            top - hi
+        );
+        assert!(
+            bottom >= lo,
+            "gain {gain}: crossed the lower limit by {}",
+            lo - bottom
+        );
+        let worst = pos
+            .windows(4)
+            .map(|w| ((w[3] - 3.0 * w[2] + 3.0 * w[1] - w[0]) / (DT * DT * DT)).abs())
+            .fold(0.0, f64::max);
+        assert!(worst <= JMAX * 1.001, "gain {gain}: jerk {worst}");
+        (bottom, top)
     }
 
     /// A target that runs past a limit at speed (and one that sits past it, as the SO-101's
@@ -347,26 +368,10 @@ mod tests {
         };
         for gain in [10.0, 0.0] {
             let pos = follow(&l, gain, 0.0, ramp, 3500);
-            let top = pos.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-            let bottom = pos.iter().cloned().fold(f64::INFINITY, f64::min);
-            assert!(
-                top <= hi,
-                "gain {gain}: crossed the upper limit by {}",
-                top - hi
-            );
-            assert!(
-                bottom >= lo,
-                "gain {gain}: crossed the lower limit by {}",
-                lo - bottom
-            );
+            let (bottom, top) = assert_inside_and_smooth(&pos, lo, hi, gain);
             // it does reach the limits (the guard does not stop it short)
             assert!(top > hi - 2e-3, "gain {gain}: top {top}");
             assert!(bottom < lo + 2e-3, "gain {gain}: bottom {bottom}");
-            let worst = pos
-                .windows(4)
-                .map(|w| ((w[3] - 3.0 * w[2] + 3.0 * w[1] - w[0]) / (DT * DT * DT)).abs())
-                .fold(0.0, f64::max);
-            assert!(worst <= JMAX * 1.001, "gain {gain}: jerk {worst}");
         }
     }
 
@@ -397,23 +402,7 @@ mod tests {
         }
         for gain in [10.0, 0.0] {
             let pos = follow(&l, gain, 0.0, |k| targets[k / 20], 60_000);
-            let top = pos.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-            let bottom = pos.iter().cloned().fold(f64::INFINITY, f64::min);
-            assert!(
-                top <= hi,
-                "gain {gain}: crossed the upper limit by {}",
-                top - hi
-            );
-            assert!(
-                bottom >= lo,
-                "gain {gain}: crossed the lower limit by {}",
-                lo - bottom
-            );
-            let worst = pos
-                .windows(4)
-                .map(|w| ((w[3] - 3.0 * w[2] + 3.0 * w[1] - w[0]) / (DT * DT * DT)).abs())
-                .fold(0.0, f64::max);
-            assert!(worst <= JMAX * 1.001, "gain {gain}: jerk {worst}");
+            assert_inside_and_smooth(&pos, lo, hi, gain);
         }
     }
 }
