@@ -140,6 +140,25 @@ impl EpisodeOutcome {
             recording: record.then(Recording::default),
         }
     }
+
+    /// Counts the chunk of an answered request; an inference error ends the episode.
+    pub fn count_turn(&mut self, turn: Turn) -> anyhow::Result<()> {
+        match turn {
+            Turn::Chunk { .. } => self.chunks += 1,
+            Turn::Failed(e) => return Err(e),
+            Turn::Idle | Turn::Nothing => {}
+        }
+        Ok(())
+    }
+
+    /// A tick outside RUNNING: not recorded (the metrics must not difference across it), and
+    /// counted when it holds.
+    pub fn off_tick(&mut self, trace: &mut Trace, state: State) {
+        trace.gap();
+        if state == State::Hold {
+            self.hold_ticks += 1;
+        }
+    }
 }
 
 impl SimSettings {
@@ -293,11 +312,7 @@ pub fn run_episode(
         } else if let Some(req) = worker.next_request() {
             observe(&mut obs)?;
             // (a future-state chunk keeps its start shift: it was observed at `now` too)
-            match worker.answer(now, req, policy, &obs) {
-                Turn::Chunk { .. } => out.chunks += 1,
-                Turn::Failed(e) => return Err(e),
-                Turn::Idle | Turn::Nothing => {}
-            }
+            out.count_turn(worker.answer(now, req, policy, &obs))?;
         }
         worker.poll(now);
 
@@ -308,11 +323,7 @@ pub fn run_episode(
         if r.state == State::Running {
             trace.push(&r.target, &cmd.position, None, r.switched);
         } else {
-            // not recorded: the metrics must not difference across it
-            trace.gap();
-            if r.state == State::Hold {
-                out.hold_ticks += 1;
-            }
+            out.off_tick(&mut trace, r.state);
         }
         if let Some(rec) = out.recording.as_mut() {
             if k % 10 == 0 {

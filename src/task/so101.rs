@@ -18,7 +18,7 @@ use super::sim::{EpisodeOutcome, SimSettings};
 use crate::config::Config;
 use crate::contract::{ChunkSource, Observation};
 use crate::control::{Executor, State};
-use crate::worker::{Delivery, InferenceWorker, Turn};
+use crate::worker::{Delivery, InferenceWorker};
 use chunkrt_bench::metrics::Trace;
 
 /// Joints of the SO-101: five arm joints and the jaw.
@@ -315,11 +315,7 @@ pub fn run_episode(
             plant.frame(px)?;
             obs.joint_state = js;
             obs.assembled_ns = now;
-            match worker.answer(now, req, policy, &obs) {
-                Turn::Chunk { .. } => out.chunks += 1,
-                Turn::Failed(e) => return Err(e),
-                Turn::Idle | Turn::Nothing => {}
-            }
+            out.count_turn(worker.answer(now, req, policy, &obs))?;
         }
         worker.poll(now);
         let r = exec.tick(now, Some(&js), &mut cmd);
@@ -346,10 +342,7 @@ pub fn run_episode(
                 }
             }
         } else {
-            trace.gap();
-            if r.state == State::Hold {
-                out.hold_ticks += 1;
-            }
+            out.off_tick(&mut trace, r.state);
         }
         if (k + 1).is_multiple_of(ticks_per_step) {
             ps = plant.step(&target, 1)?;
