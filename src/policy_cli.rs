@@ -53,6 +53,17 @@ pub struct SampleArgs {
     pub unfused: bool,
     #[command(flatten)]
     pub layout: LayoutArgs,
+    /// Compare the output with these outputs (safetensors with `actions`, `v_t_step0`, e.g. a
+    /// fixture's openpi outputs): print each tensor's max difference relative to the expected
+    /// RMS and fail when one exceeds --rel-tol.
+    #[arg(long, value_name = "FILE")]
+    pub compare: Option<PathBuf>,
+    /// With --compare: the largest max |difference| / RMS accepted.
+    #[arg(long, default_value_t = 1e-4, requires = "compare")]
+    pub rel_tol: f64,
+    /// With --compare: hold only the actions to --rel-tol (v_t_step0 is printed).
+    #[arg(long, requires = "compare")]
+    pub actions_only: bool,
 }
 
 /// Where a checkpoint's tokenizer and statistics are when its directory does not say
@@ -138,10 +149,45 @@ pub struct BenchArgs {
     /// Profile one eager sample and stop: run under `ncu --profile-from-start off`.
     #[arg(long)]
     pub profile: bool,
+    /// The CUDA paths to time side by side after the standard phases, each a sample graph
+    /// captured anew on the same model (space-separated sets, e.g. "base lt direct lt+direct";
+    /// names: lt = cuBLASLt products tuned per shape, direct = attention output written in
+    /// place). The first is the reference the others' actions are compared with.
+    #[arg(long, value_delimiter = ' ', num_args = 1..)]
+    pub variants: Vec<String>,
+    /// Only the sample graphs, the variants and the accuracy check (skip the eager phases).
+    #[arg(long)]
+    pub graphs_only: bool,
+    /// Instead of benchmarking: write a checkpoint of --preset (pi0 or pi05) with random
+    /// weights in --precision to this directory (model.safetensors, config.json with the byte
+    /// stand-in tokenizer), to run `serve` or `run` at full size without a download.
+    #[arg(long, value_name = "DIR")]
+    pub write_checkpoint: Option<PathBuf>,
 }
 
 /// `chunkrt bench-inference`: [`chunkrt_bench::inference::run_device`] for each preset.
 pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
+    if let Some(dir) = &args.write_checkpoint {
+        let preset = args.preset.as_deref().unwrap_or("pi05");
+        let dtype = match args.precision {
+            Precision::Bf16 => DType::BF16,
+            Precision::F32 => DType::F32,
+        };
+        let t = std::time::Instant::now();
+        let (n, bytes) = chunkrt_bench::inference::write_random_checkpoint(preset, dir, dtype, 7)?;
+        println!(
+            "wrote {} ({preset}, random weights, {n} tensors, {:.2} GB, {dtype:?}) in {:.1} s",
+            dir.display(),
+            bytes as f64 / 1e9,
+            t.elapsed().as_secs_f64()
+        );
+        return Ok(());
+    }
+    let variants = args
+        .variants
+        .iter()
+        .map(|v| crate::policy::kernels::CudaPaths::parse(v).map_err(anyhow::Error::msg))
+        .collect::<anyhow::Result<Vec<_>>>()?;
     let device = args.device.open()?;
     crate::policy::kernels::set_enabled(!args.unfused);
     if !device.is_cpu() {
@@ -167,6 +213,8 @@ pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
             warmup: args.warmup as usize,
             check_f32: args.check_f32,
             profile: args.profile,
+            variants: variants.clone(),
+            graphs_only: args.graphs_only,
         };
         println!("{}", chunkrt_bench::inference::run_device(&opts)?);
     }
@@ -393,6 +441,61 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
             "prefix KV cache"
         },
         args.output.display()
+    );
+    if let Some(expected) = &args.compare {
+        compare_outputs(expected, &save, args.rel_tol, args.actions_only)?;
+    }
+    Ok(())
+}
+
+/// `sample --compare`: each tensor of `got` that `expected` holds too, as max |difference|
+/// relative to the expected tensor's RMS; an error when one held to `rel_tol` exceeds it (NaN
+/// fails).
+fn compare_outputs(
+    expected: &std::path::Path,
+    got: &HashMap<String, Tensor>,
+    rel_tol: f64,
+    actions_only: bool,
+) -> anyhow::Result<()> {
+    let exp = candle_core::safetensors::load(expected, &Device::Cpu)
+        .with_context(|| format!("reading {}", expected.display()))?;
+    let mut bad = Vec::new();
+    for key in ["actions", "v_t_step0"] {
+        let (Some(e), Some(g)) = (exp.get(key), got.get(key)) else {
+            continue;
+        };
+        if e.dims() != g.dims() {
+            bad.push(format!("{key}: shape {:?}, expected {:?}", g.dims(), e.dims()));
+            continue;
+        }
+        let e = e.to_dtype(DType::F64)?;
+        let d = (&e - &g.to_dtype(DType::F64)?)?
+            .abs()?
+            .max_all()?
+            .to_scalar::<f64>()?;
+        let rms = e.sqr()?.mean_all()?.to_scalar::<f64>()?.sqrt();
+        let rel = d / rms.max(1e-30);
+        let held = key == "actions" || !actions_only;
+        let ok = d.is_finite() && rel <= rel_tol;
+        let verdict = match (held, ok) {
+            (false, _) => "not held to the tolerance",
+            (true, true) => "ok",
+            (true, false) => "FAIL",
+        };
+        println!(
+            "{key}: max |diff| {d:.3e}, {:.4} % of the RMS {rms:.3e} ({verdict}, tolerance {:.4} %)",
+            100.0 * rel,
+            100.0 * rel_tol
+        );
+        if held && !ok {
+            bad.push(format!("{key}: {:.4} % of the RMS", 100.0 * rel));
+        }
+    }
+    anyhow::ensure!(
+        bad.is_empty(),
+        "the output differs from {}: {}",
+        expected.display(),
+        bad.join("; ")
     );
     Ok(())
 }

@@ -142,13 +142,14 @@ fn cuda_f32_matches_openpi_and_bf16_stays_within_3_percent() {
 /// exits non-zero and writes nothing (it used to write NaN actions and exit 0).
 #[test]
 fn sample_cli_device_errors_and_nan_weights() {
-    let exe = env!("CARGO_BIN_EXE_chunkrt");
+    // a test binary carried to a GPU machine finds the binary it was packed with there
+    let exe = std::env::var("CHUNKRT_EXE").unwrap_or_else(|_| env!("CARGO_BIN_EXE_chunkrt").into());
     let dir = fixture::data("pi0_tiny");
     let tmp = std::env::temp_dir().join(format!("chunkrt_device_cli_{}", std::process::id()));
     std::fs::create_dir_all(&tmp).unwrap();
     let out = tmp.join("out.safetensors");
     let sample = |ckpt: &std::path::Path, extra: &[&str]| {
-        std::process::Command::new(exe)
+        std::process::Command::new(&exe)
             .args(["sample", "--checkpoint"])
             .arg(ckpt)
             .arg("--inputs")

@@ -24,6 +24,98 @@ use candle_core::{Result, Tensor};
 
 static ENABLED: AtomicBool = AtomicBool::new(true);
 
+#[cfg(feature = "cuda")]
+mod lt;
+
+/// The alternative CUDA paths, switched per process (all off: the path measured in
+/// BENCHMARKS.md §3b). The bench measures them side by side (`chunkrt bench-inference
+/// --variants`); any binary takes them from `CHUNKRT_CUDA_PATHS` (comma-separated names,
+/// e.g. `lt,direct`), read at first use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct CudaPaths {
+    /// `lt`: the matrix products against weights through cuBLASLt with the algorithm tuned per
+    /// shape (`kernels/lt.rs`) instead of candle's cuBLAS call.
+    pub lt: bool,
+    /// `direct`: attention's value product writes its output straight in the `[B, L, nH·hd]`
+    /// layout the O projection reads (one strided batched product per kv head), instead of a
+    /// product and a transposing copy.
+    pub direct: bool,
+}
+
+impl CudaPaths {
+    /// Parses `lt,direct` (`base` or empty: all off).
+    pub fn parse(s: &str) -> std::result::Result<Self, String> {
+        let mut p = CudaPaths::default();
+        for name in s.split([',', '+']).map(str::trim).filter(|n| !n.is_empty()) {
+            match name {
+                "base" => {}
+                "lt" => p.lt = true,
+                "direct" => p.direct = true,
+                other => return Err(format!("unknown CUDA path {other:?} (lt, direct, base)")),
+            }
+        }
+        Ok(p)
+    }
+
+    /// `base`, `lt`, `direct` or `lt+direct`.
+    pub fn name(&self) -> String {
+        let mut v = Vec::new();
+        if self.lt {
+            v.push("lt");
+        }
+        if self.direct {
+            v.push("direct");
+        }
+        if v.is_empty() {
+            "base".into()
+        } else {
+            v.join("+")
+        }
+    }
+
+    fn bits(self) -> u8 {
+        self.lt as u8 | (self.direct as u8) << 1
+    }
+}
+
+/// Bit 7: set (the environment was read or a setter ran); bits 0–1: [`CudaPaths::bits`].
+static PATHS: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::new(0);
+
+/// Selects the CUDA paths from now on (for products launched later; a captured graph keeps
+/// the paths it was captured with).
+pub fn set_paths(p: CudaPaths) {
+    PATHS.store(0x80 | p.bits(), Ordering::Relaxed);
+}
+
+/// The CUDA paths in force: [`set_paths`], else `CHUNKRT_CUDA_PATHS` (an unknown name is
+/// reported once and ignored), else all off.
+pub fn paths() -> CudaPaths {
+    let mut b = PATHS.load(Ordering::Relaxed);
+    if b & 0x80 == 0 {
+        let p = match std::env::var("CHUNKRT_CUDA_PATHS") {
+            Ok(v) => CudaPaths::parse(&v).unwrap_or_else(|e| {
+                tracing::warn!("CHUNKRT_CUDA_PATHS: {e}; using the base paths");
+                CudaPaths::default()
+            }),
+            Err(_) => CudaPaths::default(),
+        };
+        b = 0x80 | p.bits();
+        PATHS.store(b, Ordering::Relaxed);
+    }
+    CudaPaths {
+        lt: b & 1 != 0,
+        direct: b & 2 != 0,
+    }
+}
+
+/// What the cuBLASLt tuning found so far, a line per shape (empty without the `cuda` feature).
+pub fn lt_tuning_report() -> Vec<String> {
+    #[cfg(feature = "cuda")]
+    return lt::tuning_report();
+    #[cfg(not(feature = "cuda"))]
+    Vec::new()
+}
+
 /// Turns the fused kernels on or off (on by default; off: candle's op-by-op path, for A/B
 /// benchmarks and for checking the kernels against it).
 pub fn set_enabled(on: bool) {
@@ -75,6 +167,21 @@ mod imp {
             DType::F32 => cs.as_cuda_slice::<f32>()?.device_ptr(&stream).0 + 4 * off,
             DType::BF16 => cs.as_cuda_slice::<half::bf16>()?.device_ptr(&stream).0 + 2 * off,
             d => bail!("fused kernels: unsupported dtype {d:?}"),
+        })
+    }
+
+    /// Device address of `t`'s first element whatever its strides (the caller checks them).
+    pub fn ptr_strided(t: &Tensor, dev: &CudaDevice) -> Result<u64> {
+        let (st, l) = t.storage_and_layout();
+        let Storage::Cuda(cs) = &*st else {
+            bail!("CUDA paths: a tensor that is not on a CUDA device");
+        };
+        let stream = dev.cuda_stream();
+        let off = l.start_offset() as u64;
+        Ok(match t.dtype() {
+            DType::F32 => cs.as_cuda_slice::<f32>()?.device_ptr(&stream).0 + 4 * off,
+            DType::BF16 => cs.as_cuda_slice::<half::bf16>()?.device_ptr(&stream).0 + 2 * off,
+            d => bail!("CUDA paths: unsupported dtype {d:?}"),
         })
     }
 
@@ -135,6 +242,151 @@ mod imp {
 
 #[cfg(feature = "cuda")]
 use imp::Arg;
+
+/// `x` [.., K] · `w` [K, N] (`w` row-major with any row stride, or the transpose of a row-major
+/// `[N, K]`) through cuBLASLt with a tuned algorithm ([`CudaPaths::lt`]); `None` where that path
+/// does not apply (off, not CUDA, another dtype or layout, or no algorithm for the shape).
+#[allow(unused_variables)]
+pub fn matmul_lt(x: &Tensor, w: &Tensor) -> Result<Option<Tensor>> {
+    if !enabled(x.device()) || !paths().lt {
+        return Ok(None);
+    }
+    #[cfg(feature = "cuda")]
+    {
+        use candle_core::DType;
+        let dt = x.dtype();
+        if !matches!(dt, DType::BF16 | DType::F32) || w.dtype() != dt || w.rank() != 2 {
+            return Ok(None);
+        }
+        let (kw, n) = w.dims2()?;
+        let k = x.dims().last().copied().unwrap_or(0);
+        if k != kw || k == 0 || n == 0 {
+            return Ok(None);
+        }
+        let rows = x.elem_count() / k;
+        let st = w.stride();
+        // row-major [K, N] with row stride lda >= N, or a transposed row-major [N, K]
+        let (transa, lda) = if st[1] == 1 && st[0] >= n {
+            (false, st[0])
+        } else if st[0] == 1 && st[1] >= k {
+            (true, st[1])
+        } else {
+            return Ok(None);
+        };
+        let dev = imp::device(x)?;
+        let x = x.contiguous()?;
+        let mut shape = x.dims().to_vec();
+        if let Some(last) = shape.last_mut() {
+            *last = n;
+        }
+        let out = imp::alloc(&dev, shape.into(), dt)?;
+        let s = lt::Shape {
+            m: n as u64,
+            n: rows as u64,
+            k: k as u64,
+            transa,
+            lda: lda as i64,
+            bf16: dt == DType::BF16,
+        };
+        let ptrs = (
+            imp::ptr_strided(w, &dev)?,
+            imp::ptr(&x, &dev)?,
+            imp::ptr(&out, &dev)?,
+        );
+        if lt::matmul(&dev, s, dt, ptrs)? {
+            return Ok(Some(out));
+        }
+        Ok(None)
+    }
+    #[cfg(not(feature = "cuda"))]
+    Ok(None)
+}
+
+/// Attention's value product written in the O projection's layout ([`CudaPaths::direct`]):
+/// `p` [B, nKV, g·L, T] (probabilities, rows kv-head-major then query), `v` [B, nKV, T, hd]
+/// (rows of stride hd, any stride between kv heads and batch rows, e.g. the first T keys of a
+/// cache) → [B, L, nH·hd] with head h = kv·g + i in columns h·hd… One strided batched product
+/// per (batch row, kv head) over its g query heads. `None` where the path does not apply.
+#[allow(unused_variables)]
+pub fn pv_heads(p: &Tensor, v: &Tensor, l: usize) -> Result<Option<Tensor>> {
+    if !enabled(p.device()) || !paths().direct {
+        return Ok(None);
+    }
+    #[cfg(feature = "cuda")]
+    {
+        use candle_core::cuda_backend::cudarc::cublas::{result as blas, sys};
+        use candle_core::DType;
+        let dt = p.dtype();
+        if !matches!(dt, DType::BF16 | DType::F32) || v.dtype() != dt {
+            return Ok(None);
+        }
+        let (b, nkv, gl, t) = p.dims4()?;
+        let (vb, vkv, vt, hd) = v.dims4()?;
+        let vs = v.stride();
+        if (vb, vkv, vt) != (b, nkv, t) || l == 0 || gl % l != 0 || vs[3] != 1 || vs[2] != hd {
+            return Ok(None);
+        }
+        let g = gl / l;
+        let nh = nkv * g;
+        let dev = imp::device(p)?;
+        let p = p.contiguous()?;
+        let out = imp::alloc(&dev, (b, l, nh * hd).into(), dt)?;
+        let (pp, vp, op) = (
+            imp::ptr(&p, &dev)?,
+            imp::ptr_strided(v, &dev)?,
+            imp::ptr(&out, &dev)?,
+        );
+        let es = if dt == DType::BF16 { 2u64 } else { 4 };
+        let ty = if dt == DType::BF16 {
+            sys::cudaDataType_t::CUDA_R_16BF
+        } else {
+            sys::cudaDataType_t::CUDA_R_32F
+        };
+        let (one, zero) = (1f32, 0f32);
+        let blas_handle = dev.cublas_handle();
+        for bi in 0..b {
+            for kv in 0..nkv {
+                let a = vp + es * (bi * vs[0] + kv * vs[1]) as u64;
+                let bm = pp + es * ((bi * nkv + kv) * gl * t) as u64;
+                let c = op + es * (bi * l * nh * hd + kv * g * hd) as u64;
+                // column-major: C_i [hd, L] (ld nH·hd) = V [hd, T] (ld hd) · P_i [T, L] (ld T)
+                // SAFETY: every address lies in a live allocation of the size these dims imply
+                // (checked above against the tensors' shapes and strides)
+                unsafe {
+                    blas::gemm_strided_batched_ex(
+                        *blas_handle.handle(),
+                        sys::cublasOperation_t::CUBLAS_OP_N,
+                        sys::cublasOperation_t::CUBLAS_OP_N,
+                        int(hd)?,
+                        int(l)?,
+                        int(t)?,
+                        (&one) as *const f32 as *const _,
+                        a as *const _,
+                        ty,
+                        int(hd)?,
+                        0,
+                        bm as *const _,
+                        ty,
+                        int(t)?,
+                        (l * t) as i64,
+                        (&zero) as *const f32 as *const _,
+                        c as *mut _,
+                        ty,
+                        int(nh * hd)?,
+                        hd as i64,
+                        int(g)?,
+                        sys::cublasComputeType_t::CUBLAS_COMPUTE_32F,
+                        sys::cublasGemmAlgo_t::CUBLAS_GEMM_DEFAULT_TENSOR_OP,
+                    )
+                }
+                .map_err(|e| candle_core::Error::Msg(format!("pv_heads: {e:?}")))?;
+            }
+        }
+        Ok(Some(out))
+    }
+    #[cfg(not(feature = "cuda"))]
+    Ok(None)
+}
 
 /// Checks and converts a dimension for a kernel's `int` parameter.
 #[cfg(feature = "cuda")]

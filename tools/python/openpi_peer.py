@@ -8,6 +8,9 @@
   serve-instant, bench-client
           the remote bench's reference: openpi's server answering at once, openpi-client timing
           the round trips of a 3 x 224x224 observation.
+  latency one openpi-client against a server with a real model (the GPU run's `chunkrt serve`):
+          waits for it to come up, then times round trips of new 3 x 224x224 observations and
+          prints their p50 / p99 / max beside the server's own `policy_timing` / `server_timing`.
 
 Each check prints one line "ok NAME ..." or "FAIL NAME ..."; the exit code is 1 when any failed.
 """
@@ -224,6 +227,53 @@ def bench_client(args):
             print(dt)
 
 
+def pct(v, p):
+    s = sorted(v)
+    return s[min(len(s) - 1, max(0, int(np.ceil(p * len(s))) - 1))]
+
+
+def latency(args):
+    """Round trips of `--requests` new observations after `--warmup`, with the server's timings."""
+    t0 = time.time()
+    while True:
+        try:
+            client = wcp.WebsocketClientPolicy(host=args.url)
+            break
+        except OSError:
+            if time.time() - t0 > args.wait:
+                raise
+            time.sleep(0.5)
+    print(f"connected after {time.time() - t0:.1f} s; metadata: {json.dumps(client.get_server_metadata())[:400]}",
+          flush=True)
+    rng = np.random.default_rng(7)
+    names = ["base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"][: args.cameras]
+    rt, infer, server = [], [], []
+    shape = None
+    for i in range(args.warmup + args.requests):
+        obs = {f"observation/{n}": rng.integers(0, 255, size=(args.size, args.size, 3), dtype=np.uint8)
+               for n in names}
+        obs["observation/state"] = rng.uniform(-0.5, 0.5, size=args.state_dim)
+        obs["prompt"] = "pick up the red block"
+        t = time.perf_counter()
+        reply = client.infer(obs)
+        dt = (time.perf_counter() - t) * 1e3
+        a = np.asarray(reply["actions"])
+        if not np.all(np.isfinite(a)):
+            report("latency", False, f"non-finite actions in reply {i}")
+            return 1
+        shape = a.shape
+        if i >= args.warmup:
+            rt.append(dt)
+            infer.append(reply.get("policy_timing", {}).get("infer_ms", float("nan")))
+            server.append(reply.get("server_timing", {}).get("infer_ms", float("nan")))
+    print(f"actions {shape}; {len(rt)} round trips after {args.warmup} warm-ups")
+    for name, v in (("round trip (openpi-client)", rt), ("policy_timing.infer_ms", infer),
+                    ("server_timing.infer_ms", server)):
+        print(f"{name:28} p50 {pct(v, 0.5):8.2f} ms  p99 {pct(v, 0.99):8.2f} ms  max {max(v):8.2f} ms")
+    report("latency", True, f"p50 {pct(rt, 0.5):.2f} ms p99 {pct(rt, 0.99):.2f} ms")
+    return 0
+
+
 def main():
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -244,7 +294,17 @@ def main():
     b.add_argument("--url", required=True)
     b.add_argument("--cameras", type=int, default=3)
     b.add_argument("--requests", type=int, default=40)
+    la = sub.add_parser("latency")
+    la.add_argument("--url", required=True)
+    la.add_argument("--cameras", type=int, default=3)
+    la.add_argument("--size", type=int, default=224)
+    la.add_argument("--state-dim", type=int, default=7)
+    la.add_argument("--warmup", type=int, default=5)
+    la.add_argument("--requests", type=int, default=50)
+    la.add_argument("--wait", type=float, default=120.0, help="seconds to wait for the server")
     args = ap.parse_args()
+    if args.cmd == "latency":
+        sys.exit(latency(args))
     if args.cmd == "check":
         sys.exit(check(args))
     if args.cmd == "serve-instant":

@@ -217,6 +217,8 @@ pub struct DeviceReport {
     pub graph: Option<String>,
     /// The model dtype's actions against an f32 model's ([`DeviceBenchOptions::check_f32`]).
     pub accuracy: Option<String>,
+    /// What the variants' checks and the cuBLASLt tuning said ([`DeviceBenchOptions::variants`]).
+    pub variants: Vec<String>,
 }
 
 impl DeviceReport {
@@ -309,6 +311,23 @@ impl std::fmt::Display for DeviceReport {
         if let Some(a) = &self.accuracy {
             writeln!(f, "accuracy: {a}")?;
         }
+        for v in &self.variants {
+            writeln!(f, "variants: {v}")?;
+        }
+        if let Some(base) = self.phases.iter().find(|p| p.name.starts_with("graph[")) {
+            let b50 = quantile(&base.wall_ms, 0.5);
+            for p in self.phases.iter().filter(|p| p.name.starts_with("graph[")) {
+                let p50 = quantile(&p.wall_ms, 0.5);
+                writeln!(
+                    f,
+                    "variants: {} p50 {p50:.2} ms, p99 {:.2} ms = {:.3}x {}",
+                    p.name,
+                    quantile(&p.wall_ms, 0.99),
+                    b50 / p50.max(1e-9),
+                    base.name
+                )?;
+            }
+        }
         for s in ["sample", "sample_graph"]
             .iter()
             .filter_map(|n| self.phase(n))
@@ -360,6 +379,13 @@ pub struct DeviceBenchOptions {
     /// Only run one eager sample between profiler start and stop, after one warm-up sample
     /// (`ncu --profile-from-start off`), and return an empty report.
     pub profile: bool,
+    /// The alternative CUDA paths to time side by side after the standard phases, each as a
+    /// freshly captured sample graph on the same model ([`chunkrt_policy::kernels::CudaPaths`]);
+    /// the first one is the reference the others' actions are compared with.
+    pub variants: Vec<chunkrt_policy::kernels::CudaPaths>,
+    /// Skip the eager phases (vision, prefix, steps, eager samples): only the graphs, the
+    /// variants and the accuracy check.
+    pub graphs_only: bool,
 }
 
 /// Builds a random model of `opts.preset` on the device and times the vision pass, the prefix
@@ -406,6 +432,7 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             build_s,
             graph: None,
             accuracy: None,
+            variants: Vec::new(),
         });
     }
     let mut time = |name: &str, n: usize, f: &mut dyn FnMut() -> Result<(), PolicyError>| {
@@ -430,6 +457,7 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         phases.push(p);
         Ok::<(), PolicyError>(())
     };
+    if !opts.graphs_only {
     time("vision", opts.calls, &mut || {
         model.vision(&inp)?;
         Ok(())
@@ -491,6 +519,8 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         out.actions.flatten_all()?.to_vec1::<f32>()?;
         Ok(())
     })?;
+    }
+    let mut scache = None;
     // the whole sample as one captured CUDA graph (GPU), a new observation every call: two
     // observations alternate, and the replay for the second is checked against the eager run
     let mut graph_note = None;
@@ -549,12 +579,72 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
                 out.actions.flatten_all()?.to_vec1::<f32>()?;
                 Ok(())
             })?;
+            // the guided graph against RTC's eager guided loop on another observation
+            let c = model.prepare_prefix(&inp2, &mut scache, true)?;
+            let replay = g.run_guided(&noise, &target)?.actions;
+            model.run_prefix(c, None, false)?;
+            let eager =
+                chunkrt_policy::rtc::denoise_guided(&model, c, &noise, steps, &target)?.actions;
+            let (d, rms) = diff_rms(&replay, &eager)?;
+            let note = graph_note.get_or_insert_with(String::new);
+            note.push_str(&format!(
+                "; guided graph vs the eager guided loop on another observation: max |diff| {d:.3e}, {:.4} % of the RMS",
+                100.0 * d / rms.max(1e-30)
+            ));
         }
         Ok((_, None)) => {}
         Err(e) => {
             let note = graph_note.get_or_insert_with(String::new);
             note.push_str(&format!("; guided capture failed: {e}"));
         }
+    }
+    // the alternative CUDA paths, each a graph captured anew on the same model and buffers,
+    // timed like `sample_graph` and compared with the first variant's actions
+    let mut variant_notes = Vec::new();
+    if !opts.variants.is_empty() {
+        let before = chunkrt_policy::kernels::paths();
+        let mut reference: Option<Tensor> = None;
+        for v in &opts.variants {
+            chunkrt_policy::kernels::set_paths(*v);
+            let name = format!("graph[{}]", v.name());
+            let c = model.prepare_prefix(&inp, &mut scache, true)?;
+            let g = match chunkrt_policy::graph::SampleGraph::capture(&model, c, &noise, steps) {
+                Ok((_, Some(g))) => g,
+                Ok((_, None)) => continue,
+                Err(e) => {
+                    variant_notes.push(format!("{name}: capture failed: {e}"));
+                    continue;
+                }
+            };
+            let mut flip = false;
+            time(&name, opts.calls, &mut || {
+                flip = !flip;
+                model.prepare_prefix(if flip { &inp2 } else { &inp }, &mut scache, true)?;
+                let out = g.run(&noise)?;
+                out.actions.flatten_all()?.to_vec1::<f32>()?;
+                Ok(())
+            })?;
+            model.prepare_prefix(&inp2, &mut scache, true)?;
+            let a = g.run(&noise)?.actions;
+            match &reference {
+                None => {
+                    variant_notes.push(format!("{name}: the reference of the variants"));
+                    reference = Some(a);
+                }
+                Some(r) => {
+                    let (d, rms) = diff_rms(&a, r)?;
+                    variant_notes.push(format!(
+                        "{name}: actions vs graph[{}]: max |diff| {d:.3e}, {:.4} % of the RMS",
+                        opts.variants[0].name(),
+                        100.0 * d / rms.max(1e-30)
+                    ));
+                }
+            }
+        }
+        for l in chunkrt_policy::kernels::lt_tuning_report() {
+            variant_notes.push(format!("cuBLASLt tuning: {l}"));
+        }
+        chunkrt_policy::kernels::set_paths(before);
     }
     // bf16 against an f32 model with the same weights (eager, same observation and noise)
     let mut accuracy = None;
@@ -595,6 +685,7 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         build_s,
         graph: graph_note,
         accuracy,
+        variants: variant_notes,
     })
 }
 
@@ -604,4 +695,75 @@ fn diff_rms(a: &Tensor, b: &Tensor) -> Result<(f32, f32), PolicyError> {
     let d = (&a - &b)?.abs()?.max_all()?.to_scalar::<f32>()?;
     let rms = b.sqr()?.mean_all()?.to_scalar::<f32>()?.sqrt();
     Ok((d, rms))
+}
+
+/// The initialisation a random checkpoint gives tensor `name` (openpi's key names): biases 0,
+/// SigLIP's LayerNorm weights 1, Gemma's RMSNorm weights 0 (the norm scales by `1 + w`), every
+/// other weight uniform with Kaiming's variance over its last dimension.
+fn checkpoint_init(name: &str) -> candle_nn::Init {
+    let layer_norm = name.contains("layer_norm") || name.contains("post_layernorm");
+    if name.ends_with(".bias") {
+        candle_nn::Init::Const(0.0)
+    } else if name.contains("vision_tower") && layer_norm && name.ends_with(".weight") {
+        candle_nn::Init::Const(1.0)
+    } else if name.ends_with("norm.weight") {
+        candle_nn::Init::Const(0.0)
+    } else {
+        candle_nn::init::DEFAULT_KAIMING_NORMAL
+    }
+}
+
+/// Writes a checkpoint directory of preset `preset` (`pi0`, `pi05`) with random weights in
+/// `dtype`: `model.safetensors` under openpi's key names, a `config.json` in the fixtures'
+/// schema with the byte stand-in tokenizer (no tokenizer file, no statistics: actions come back
+/// un-normalised). For running `chunkrt serve` and `run` at full size where no real checkpoint
+/// can be downloaded (the GPU machine has no network). Returns (tensors, bytes written).
+pub fn write_random_checkpoint(
+    preset: &str,
+    dir: &std::path::Path,
+    dtype: DType,
+    seed: u64,
+) -> Result<(usize, u64), PolicyError> {
+    let (cfg, _) = device_bench_config(preset)?;
+    std::fs::create_dir_all(dir)
+        .map_err(|e| PolicyError::Config(format!("cannot create {}: {e}", dir.display())))?;
+    let rw = RandomWeights::new(seed);
+    let mut tensors = std::collections::HashMap::new();
+    let mut bytes = 0u64;
+    for (name, shape) in chunkrt_policy::checkpoint::expected_tensors(&cfg) {
+        let v = rw.values(&name, &shape, checkpoint_init(&name));
+        let t = Tensor::from_vec(v, shape.as_slice(), &Device::Cpu)?.to_dtype(dtype)?;
+        bytes += (t.elem_count() * dtype.size_in_bytes()) as u64;
+        tensors.insert(name, t);
+    }
+    let n = tensors.len();
+    candle_core::safetensors::save(&tensors, dir.join("model.safetensors"))?;
+    let config = serde_json::json!({
+        "name": format!("{preset}_random"),
+        "about": "random weights written by `chunkrt bench-inference --write-checkpoint` (not a trained policy)",
+        "model_kind": if cfg.kind == chunkrt_policy::ModelKind::Pi05 { "pi05" } else { "pi0" },
+        "vision": {
+            "hidden_size": cfg.vision.hidden_size,
+            "num_hidden_layers": cfg.vision.num_hidden_layers,
+            "num_attention_heads": cfg.vision.num_attention_heads,
+            "intermediate_size": cfg.vision.intermediate_size,
+            "patch_size": cfg.vision.patch_size,
+            "image_size": cfg.vision.image_size,
+            "layer_norm_eps": cfg.vision.layer_norm_eps,
+        },
+        "paligemma": cfg.paligemma,
+        "action_expert": cfg.action_expert,
+        "vocab_size": cfg.vocab_size,
+        "action_dim": cfg.action_dim,
+        "action_horizon": cfg.action_horizon,
+        "max_token_len": cfg.max_token_len,
+        "image_keys_in_order": cfg.cameras,
+        "num_denoise_steps": cfg.num_denoise_steps,
+        "tokenizer": "byte_stand_in",
+    });
+    let text = serde_json::to_string_pretty(&config)
+        .map_err(|e| PolicyError::Config(format!("config.json: {e}")))?;
+    std::fs::write(dir.join("config.json"), text)
+        .map_err(|e| PolicyError::Config(format!("cannot write config.json: {e}")))?;
+    Ok((n, bytes))
 }
