@@ -8,12 +8,11 @@
 #   fixtures  `chunkrt sample --device cuda` on both openpi fixtures, f32 (within 1e-4 of the RMS)
 #             and bf16 (within 3 %), compared in the binary (`--compare`)
 #   tests     the GPU test binary (tests/policy_device.rs), if packed
-#   pi05      full-size π0.5 bf16: every phase, the f32 accuracy check, and the CUDA path variants
-#             side by side (CHUNKRT_GPU_VARIANTS, default "base lt direct lt+direct")
+#   pi05      full-size π0.5 bf16: every phase and the f32 accuracy check
 #   serve     `chunkrt serve --device cuda` with a full-size π0.5 (random weights, written here)
 #             answering one unmodified openpi-client (carried wheels in .whl/) on loopback
 #   demo      `chunkrt demo` with the policy on cuda (config/default.toml, device = "cuda")
-#   pi0       full-size π0 bf16 with the variants
+#   pi0       full-size π0 bf16
 #   configs   the bench configurations (pi05_bench, pi0_bench) in f32
 #   profile   ncu's kernel times of one eager π0.5 sample (CSV)
 #
@@ -25,7 +24,6 @@ here=$(cd "$(dirname "$0")" && pwd)
 out=${OUT:-/tmp/chunkrt-gpu}
 raw=/tmp/chunkrt-gpu-raw
 budget=${CHUNKRT_GPU_BUDGET:-330}
-variants=${CHUNKRT_GPU_VARIANTS:-base lt direct lt+direct}
 steps=("$@")
 [ ${#steps[@]} -gt 0 ] || steps=(fixtures tests pi05 serve demo pi0 configs profile)
 start=$SECONDS
@@ -44,6 +42,15 @@ for d in /usr/local/cuda/lib64 /usr/local/cuda-13.0/lib64 \
 done
 export LD_LIBRARY_PATH="$libs:$here/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 export CHUNKRT_EXE=$B RUST_BACKTRACE=1
+# the plots find their font through fontconfig; an image without a configuration still has
+# DejaVu Sans in matplotlib's package, if matplotlib is there
+if ! fc-match sans-serif >/dev/null 2>&1; then
+  ttf=$(python3 -c 'import matplotlib, os; print(os.path.join(os.path.dirname(matplotlib.__file__), "mpl-data", "fonts", "ttf"))' 2>/dev/null)
+  if [ -n "$ttf" ] && [ -d "$ttf" ]; then
+    printf '<?xml version="1.0"?><fontconfig><dir>%s</dir><cachedir>/tmp/fc-cache</cachedir><alias><family>sans-serif</family><prefer><family>DejaVu Sans</family></prefer></alias></fontconfig>\n' "$ttf" > /tmp/chunkrt-fonts.conf
+    export FONTCONFIG_FILE=/tmp/chunkrt-fonts.conf
+  fi
+fi
 { nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv; nproc; } | tee "$raw/gpu.txt"
 if ldd "$B" | grep "not found"; then
   echo "gpu-run: missing libraries (LD_LIBRARY_PATH=$LD_LIBRARY_PATH)" >&2; exit 1
@@ -86,13 +93,11 @@ bench() { # NAME PRESET LIMIT EXTRA...
 }
 
 pi05() {
-  # shellcheck disable=SC2086
-  bench bench_pi05 pi05 200 --precision bf16 --check-f32 --variants $variants
+  bench bench_pi05 pi05 200 --precision bf16 --check-f32
 }
 
 pi0() {
-  # shellcheck disable=SC2086
-  bench bench_pi0 pi0 150 --precision bf16 --variants $variants
+  bench bench_pi0 pi0 150 --precision bf16
 }
 
 configs() {
@@ -104,6 +109,8 @@ demo() {
   sed 's/^device = "cpu"/device = "cuda"/' config/default.toml > config/default_cuda.toml
   grep -q '^device = "cuda"' config/default_cuda.toml || { echo "== demo: could not set the device"; return; }
   TAIL=20 run demo 100 "$B" demo --config config/default_cuda.toml --episodes 1 --out /tmp/chunkrt-demo
+  cp /tmp/chunkrt-demo/demo.png "$raw/demo.png" 2>/dev/null
+  pack
 }
 
 serve() {
@@ -132,6 +139,28 @@ profile() {
     --log-file "$raw/profile_ncu.log" -o /tmp/prof "$B" bench-inference --device cuda --preset pi05 \
     --precision bf16 --profile
   "$ncu" --import /tmp/prof.ncu-rep --csv --page raw --metrics gpu__time_duration.sum > "$raw/profile_kernels.csv" 2>&1
+  # per kernel name: launches and total time, largest first
+  python3 - "$raw/profile_kernels.csv" > "$raw/profile_summary.txt" 2>&1 <<'PY'
+import csv, collections, sys
+rows = list(csv.reader(open(sys.argv[1])))
+head = next(i for i, r in enumerate(rows) if "Kernel Name" in r)
+cols = rows[head]
+name, dur = cols.index("Kernel Name"), cols.index("gpu__time_duration.sum")
+unit = rows[head + 1][dur] if len(rows) > head + 1 else ""
+tot, cnt = collections.Counter(), collections.Counter()
+for r in rows[head + 2:]:
+    try:
+        v = float(r[dur].replace(",", ""))
+    except (ValueError, IndexError):
+        continue
+    tot[r[name][:90]] += v
+    cnt[r[name][:90]] += 1
+all_ = sum(tot.values())
+print(f"{sum(cnt.values())} kernels, {all_:.0f} {unit} in all")
+for k, v in tot.most_common(45):
+    print(f"{v:12.0f} {unit} {100 * v / all_:5.1f} %  {cnt[k]:5d} x  {k}")
+PY
+  head -n 20 "$raw/profile_summary.txt"
   pack
 }
 

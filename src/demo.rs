@@ -662,7 +662,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
             args.out.join("demo.md").display(),
             png.display()
         ),
-        Err(e) => println!("no plot: {e}"),
+        Err(e) => println!("no plot: {}", chunkrt_bench::report::plot_error_text(&e)),
     }
     if let Some(e) = failure {
         return Err(e);

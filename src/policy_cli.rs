@@ -149,13 +149,7 @@ pub struct BenchArgs {
     /// Profile one eager sample and stop: run under `ncu --profile-from-start off`.
     #[arg(long)]
     pub profile: bool,
-    /// The CUDA paths to time side by side after the standard phases, each a sample graph
-    /// captured anew on the same model (space-separated sets, e.g. "base lt direct lt+direct";
-    /// names: lt = cuBLASLt products tuned per shape, direct = attention output written in
-    /// place). The first is the reference the others' actions are compared with.
-    #[arg(long, value_delimiter = ' ', num_args = 1..)]
-    pub variants: Vec<String>,
-    /// Only the sample graphs, the variants and the accuracy check (skip the eager phases).
+    /// Only the sample graphs and the accuracy check (skip the eager phases).
     #[arg(long)]
     pub graphs_only: bool,
     /// Instead of benchmarking: write a checkpoint of --preset (pi0 or pi05) with random
@@ -183,11 +177,6 @@ pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
         );
         return Ok(());
     }
-    let variants = args
-        .variants
-        .iter()
-        .map(|v| crate::policy::kernels::CudaPaths::parse(v).map_err(anyhow::Error::msg))
-        .collect::<anyhow::Result<Vec<_>>>()?;
     let device = args.device.open()?;
     crate::policy::kernels::set_enabled(!args.unfused);
     if !device.is_cpu() {
@@ -213,7 +202,6 @@ pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
             warmup: args.warmup as usize,
             check_f32: args.check_f32,
             profile: args.profile,
-            variants: variants.clone(),
             graphs_only: args.graphs_only,
         };
         println!("{}", chunkrt_bench::inference::run_device(&opts)?);

@@ -263,3 +263,17 @@ mod tests {
         assert!((percentile_x(0.99) - 2.0).abs() < 1e-9);
     }
 }
+
+/// A plot's error as a user reads it: a missing font (plotters finds fonts through fontconfig)
+/// gets what to install.
+pub fn plot_error_text(e: &dyn std::fmt::Display) -> String {
+    let text = e.to_string();
+    if text.contains("Font") || text.contains("font") {
+        format!(
+            "{text} (the plots need a sans-serif font found by fontconfig: install \
+             fonts-dejavu-core, or point FONTCONFIG_FILE at a fonts.conf naming a folder of .ttf files)"
+        )
+    } else {
+        text
+    }
+}

@@ -91,9 +91,6 @@ impl Gate {
 
 /// `x` [.., K] times `w` [K, N] (any strides) as one 2-D matmul: [.., N].
 pub fn matmul_2d(x: &Tensor, w: &Tensor) -> Result<Tensor> {
-    if let Some(y) = kernels::matmul_lt(x, w)? {
-        return Ok(y);
-    }
     let dims = x.dims();
     let k = dims.last().copied().unwrap_or(1);
     let rows = x.elem_count() / k.max(1);
@@ -366,9 +363,6 @@ pub fn attention_cached(
         // [B, nKV, g L, T]
         let scores = q.reshape((b, nkv, g * l, hd))?.matmul(&k.t()?)?;
         if let Some(p) = kernels::softmax_bias(&scores, bias, l, scale)? {
-            if let Some(o) = kernels::pv_heads(&p, v, l)? {
-                return Ok(o);
-            }
             // [B, nKV, g L, hd] -> [B, L, nH hd]
             return p
                 .matmul(v)?

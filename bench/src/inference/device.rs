@@ -217,8 +217,6 @@ pub struct DeviceReport {
     pub graph: Option<String>,
     /// The model dtype's actions against an f32 model's ([`DeviceBenchOptions::check_f32`]).
     pub accuracy: Option<String>,
-    /// What the variants' checks and the cuBLASLt tuning said ([`DeviceBenchOptions::variants`]).
-    pub variants: Vec<String>,
 }
 
 impl DeviceReport {
@@ -311,23 +309,6 @@ impl std::fmt::Display for DeviceReport {
         if let Some(a) = &self.accuracy {
             writeln!(f, "accuracy: {a}")?;
         }
-        for v in &self.variants {
-            writeln!(f, "variants: {v}")?;
-        }
-        if let Some(base) = self.phases.iter().find(|p| p.name.starts_with("graph[")) {
-            let b50 = quantile(&base.wall_ms, 0.5);
-            for p in self.phases.iter().filter(|p| p.name.starts_with("graph[")) {
-                let p50 = quantile(&p.wall_ms, 0.5);
-                writeln!(
-                    f,
-                    "variants: {} p50 {p50:.2} ms, p99 {:.2} ms = {:.3}x {}",
-                    p.name,
-                    quantile(&p.wall_ms, 0.99),
-                    b50 / p50.max(1e-9),
-                    base.name
-                )?;
-            }
-        }
         for s in ["sample", "sample_graph"]
             .iter()
             .filter_map(|n| self.phase(n))
@@ -379,12 +360,8 @@ pub struct DeviceBenchOptions {
     /// Only run one eager sample between profiler start and stop, after one warm-up sample
     /// (`ncu --profile-from-start off`), and return an empty report.
     pub profile: bool,
-    /// The alternative CUDA paths to time side by side after the standard phases, each as a
-    /// freshly captured sample graph on the same model ([`chunkrt_policy::kernels::CudaPaths`]);
-    /// the first one is the reference the others' actions are compared with.
-    pub variants: Vec<chunkrt_policy::kernels::CudaPaths>,
-    /// Skip the eager phases (vision, prefix, steps, eager samples): only the graphs, the
-    /// variants and the accuracy check.
+    /// Skip the eager phases (vision, prefix, steps, eager samples): only the graphs and the
+    /// accuracy check.
     pub graphs_only: bool,
 }
 
@@ -432,7 +409,6 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             build_s,
             graph: None,
             accuracy: None,
-            variants: Vec::new(),
         });
     }
     let mut time = |name: &str, n: usize, f: &mut dyn FnMut() -> Result<(), PolicyError>| {
@@ -598,54 +574,6 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
             note.push_str(&format!("; guided capture failed: {e}"));
         }
     }
-    // the alternative CUDA paths, each a graph captured anew on the same model and buffers,
-    // timed like `sample_graph` and compared with the first variant's actions
-    let mut variant_notes = Vec::new();
-    if !opts.variants.is_empty() {
-        let before = chunkrt_policy::kernels::paths();
-        let mut reference: Option<Tensor> = None;
-        for v in &opts.variants {
-            chunkrt_policy::kernels::set_paths(*v);
-            let name = format!("graph[{}]", v.name());
-            let c = model.prepare_prefix(&inp, &mut scache, true)?;
-            let g = match chunkrt_policy::graph::SampleGraph::capture(&model, c, &noise, steps) {
-                Ok((_, Some(g))) => g,
-                Ok((_, None)) => continue,
-                Err(e) => {
-                    variant_notes.push(format!("{name}: capture failed: {e}"));
-                    continue;
-                }
-            };
-            let mut flip = false;
-            time(&name, opts.calls, &mut || {
-                flip = !flip;
-                model.prepare_prefix(if flip { &inp2 } else { &inp }, &mut scache, true)?;
-                let out = g.run(&noise)?;
-                out.actions.flatten_all()?.to_vec1::<f32>()?;
-                Ok(())
-            })?;
-            model.prepare_prefix(&inp2, &mut scache, true)?;
-            let a = g.run(&noise)?.actions;
-            match &reference {
-                None => {
-                    variant_notes.push(format!("{name}: the reference of the variants"));
-                    reference = Some(a);
-                }
-                Some(r) => {
-                    let (d, rms) = diff_rms(&a, r)?;
-                    variant_notes.push(format!(
-                        "{name}: actions vs graph[{}]: max |diff| {d:.3e}, {:.4} % of the RMS",
-                        opts.variants[0].name(),
-                        100.0 * d / rms.max(1e-30)
-                    ));
-                }
-            }
-        }
-        for l in chunkrt_policy::kernels::lt_tuning_report() {
-            variant_notes.push(format!("cuBLASLt tuning: {l}"));
-        }
-        chunkrt_policy::kernels::set_paths(before);
-    }
     // bf16 against an f32 model with the same weights (eager, same observation and noise)
     let mut accuracy = None;
     if opts.check_f32 && opts.dtype != DType::F32 {
@@ -685,7 +613,6 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         build_s,
         graph: graph_note,
         accuracy,
-        variants: variant_notes,
     })
 }
 
