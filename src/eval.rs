@@ -623,7 +623,10 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
     let png = args.out.join("eval.png");
     match plot(&png, &cells) {
         Ok(()) => println!("plot: {}", png.display()),
-        Err(e) => eprintln!("[eval] no plot: {}", chunkrt_bench::report::plot_error_text(&e)),
+        Err(e) => eprintln!(
+            "[eval] no plot: {}",
+            chunkrt_bench::report::plot_error_text(&e)
+        ),
     }
     // one line: the best strategy at the largest delay vs synchronous execution
     let dmax = *delays.last().unwrap_or(&0);

@@ -23,6 +23,10 @@ enum Command {
     FakeCamera(chunkrt_tools::fake_camera::Args),
     /// Simulate an N-DoF arm (same as the `fake-robot` tool).
     FakeRobot(chunkrt_tools::fake_robot::Args),
+    /// Drive a Franka FR3 through FCI as a chunkrt robot (real arm or franka-sim): joint
+    /// states out at the robot's 1 kHz, the controller's commands in, every command kept within
+    /// the FR3's limits, a jerk-limited stop when the controller stops, stalls or dies.
+    Franka(chunkrt_franka::Args),
     /// List chunkrt services with live rate, latency and last values (same as `monitor`).
     Monitor(chunkrt_tools::monitor::Args),
     /// Ask the controller to leave FAULT without a restart; prints its answer (refused, with
@@ -58,6 +62,7 @@ fn main() {
         Command::Soak(a) => chunkrt::soak::run(a),
         Command::FakeCamera(a) => chunkrt_tools::fake_camera::run(a),
         Command::FakeRobot(a) => chunkrt_tools::fake_robot::run(a),
+        Command::Franka(a) => chunkrt_franka::run(a),
         Command::Monitor(a) => chunkrt_tools::monitor::run(a),
         Command::Rearm(a) => chunkrt_tools::rearm::run(a),
         Command::Serve(a) => chunkrt::serve::run(a),

@@ -453,7 +453,11 @@ fn compare_outputs(
             continue;
         };
         if e.dims() != g.dims() {
-            bad.push(format!("{key}: shape {:?}, expected {:?}", g.dims(), e.dims()));
+            bad.push(format!(
+                "{key}: shape {:?}, expected {:?}",
+                g.dims(),
+                e.dims()
+            ));
             continue;
         }
         let e = e.to_dtype(DType::F64)?;

@@ -1,6 +1,8 @@
 //! The control thread: its ports, one control tick over IPC ([`ControlLoop::step`]), and the
-//! periodic loop around it (`control_thread`, absolute deadlines through
-//! [`crate::rt::run_periodic`]).
+//! loop around it (`control_thread`): absolute deadlines of its own timer through
+//! [`crate::rt::run_periodic`] (`[control] clock = "timer"`), or one tick per robot state, woken
+//! by the robot's event, with the timer taking over while the robot is quiet
+//! ([`run_robot_clocked`], `clock = "robot"`).
 //!
 //! Owns: the command and status publishing, tick timing. Must not depend on: the policy, the
 //! observation thread.
@@ -10,6 +12,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use hdrhistogram::Histogram;
 
 use crate::config::Config;
+use chunkrt_ipc::config::ControlClock;
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
     monotonic_ns, ControllerStatus, JointCommand, JointState, CONTROLLER_STATE_HOLD,
@@ -55,6 +58,11 @@ pub trait ControlTick: Send {
     /// The iceoryx2 id of the command publisher this tick's commands leave by: a robot that
     /// reports the session it obeys tells the tick whether it is obeyed. Default: ignored.
     fn set_command_publisher(&mut self, _id: u128) {}
+
+    /// How many control periods the next tick advances the motion by (1 on the timer; with a
+    /// robot clock, the robot cycles since the last tick, so that the command stays on the
+    /// robot's time when a tick missed a cycle). Default: ignored.
+    fn set_cycles(&mut self, _cycles: u32) {}
 }
 
 impl ControlTick for Executor {
@@ -74,6 +82,10 @@ impl ControlTick for Executor {
 
     fn set_command_publisher(&mut self, id: u128) {
         Executor::set_command_publisher(self, id);
+    }
+
+    fn set_cycles(&mut self, cycles: u32) {
+        Executor::set_cycles(self, cycles);
     }
 
     fn rearm(&mut self, now_ns: u64) -> RearmAnswer {
@@ -141,6 +153,10 @@ pub struct ControlLoop {
     overruns: u64,
     period_ns: u64,
     status_every: u64,
+    /// With a robot clock: the command event the robot waits on, and the newest state seq the
+    /// last tick answered.
+    command_event: Option<iceoryx2::port::notifier::Notifier<services::Ipc>>,
+    answered_seq: u64,
 }
 
 impl ControlLoop {
@@ -171,6 +187,15 @@ impl ControlLoop {
             period_ns: cfg.control_period_ns(),
             status_every: ((cfg.control.rate_hz / cfg.control.status_rate_hz).round() as u64)
                 .max(1),
+            command_event: match cfg.control.clock {
+                ControlClock::Robot => {
+                    let name = ns.joint_command();
+                    let ev = services::event_service(node, &name)?;
+                    Some(services::notifier(&ev, &name)?)
+                }
+                ControlClock::Timer => None,
+            },
+            answered_seq: 0,
         })
     }
 
@@ -188,6 +213,18 @@ impl ControlLoop {
             .lateness
             .saturating_record(wake_ns.saturating_sub(scheduled_ns).max(1));
         self.js.poll(&shared.counters, &shared.events);
+        let newest_seq = self.js.latest().map_or(0, |s| s.seq);
+        if self.command_event.is_some() {
+            // on the robot's clock: advance by the robot cycles since the last tick (1 when
+            // every state got its tick; a new robot, whose seq restarts, counts 1)
+            let behind = newest_seq.wrapping_sub(self.answered_seq);
+            let cycles = if self.answered_seq == 0 || behind == 0 || behind > 50 {
+                1
+            } else {
+                behind as u32
+            };
+            tick.set_cycles(cycles);
+        }
         if self.ticks == 0 {
             // announce the command publisher before the first command, so the robot's
             // session is bound when that command arrives
@@ -211,8 +248,19 @@ impl ControlLoop {
         let out = tick.tick(wake_ns, self.js.trusted(wake_ns), &mut self.cmd);
         self.status.state_reason = out.reason;
         if out.publish {
+            self.cmd.state_seq = newest_seq;
             if self.cmd_out.publish(&self.cmd, wake_ns) {
                 shared.commands.fetch_add(1, Ordering::Relaxed);
+                if let Some(ev) = &self.command_event {
+                    // the robot waits for its answer on this event; a failed notify leaves it
+                    // to its own deadline, counted as a publish error
+                    if ev.notify().is_err() {
+                        shared
+                            .counters
+                            .publish_errors
+                            .fetch_add(1, Ordering::Relaxed);
+                    }
+                }
             } else {
                 shared
                     .counters
@@ -227,6 +275,7 @@ impl ControlLoop {
             self.state = out.state;
             shared.state.store(self.state, Ordering::Relaxed);
         }
+        self.answered_seq = newest_seq;
         self.ticks += 1;
         shared.ticks.store(self.ticks, Ordering::Relaxed);
         if answered || self.ticks.is_multiple_of(self.status_every) {
@@ -295,6 +344,49 @@ impl ControlLoop {
     }
 }
 
+/// The robot-clocked loop: waits for the robot's state event and runs `step(wake, wake)` at
+/// once; when no state came for `quiet_ns`, ticks on the timer (`step(deadline, wake)` every
+/// `period_ns`) until the robot speaks again, so that the watchdog, the hold and the status go
+/// on without it. Returns the ticks run on the robot's clock and on the timer. No allocation
+/// but what iceoryx2's wait makes (measured by the counting-allocator test).
+pub fn run_robot_clocked(
+    listener: &iceoryx2::port::listener::Listener<services::Ipc>,
+    period_ns: u64,
+    quiet_ns: u64,
+    running: impl Fn() -> bool,
+    mut step: impl FnMut(u64, u64) -> u64,
+) -> (u64, u64) {
+    let (mut on_robot, mut on_timer) = (0u64, 0u64);
+    let mut due = monotonic_ns() + quiet_ns.max(1);
+    while running() {
+        let now = monotonic_ns();
+        let mut woke = false;
+        if due > now {
+            // a failed wait counts as a timeout: the timer ticks
+            woke = services::wait_event(
+                listener,
+                std::time::Duration::from_nanos((due - now).min(50_000_000)),
+            )
+            .unwrap_or(false);
+        }
+        let wake = monotonic_ns();
+        if woke {
+            step(wake, wake);
+            on_robot += 1;
+            due = monotonic_ns() + quiet_ns.max(1);
+        } else if wake >= due {
+            step(due, wake);
+            on_timer += 1;
+            due += period_ns.max(1);
+            if due < wake {
+                // behind: from now, not a burst
+                due = wake + period_ns.max(1);
+            }
+        }
+    }
+    (on_robot, on_timer)
+}
+
 pub(crate) fn control_thread(
     cfg: &Config,
     shared: &Shared,
@@ -329,15 +421,43 @@ pub(crate) fn control_thread(
     };
     let period = cfg.control_period_ns();
     let start = monotonic_ns();
-    // absolute deadlines; a tick that ends after the next deadline is counted by `step` and
-    // the deadlines it passed are skipped, not burst (the same loop the control_loop bench times)
-    rt::run_periodic(
-        period,
-        start + period,
-        u64::MAX,
-        || !shared.stop.load(Ordering::Relaxed),
-        |deadline, wake| lp.step(deadline, wake, shared, tick),
-    );
+    let running = || !shared.stop.load(Ordering::Relaxed);
+    match cfg.control.clock {
+        ControlClock::Timer => {
+            // absolute deadlines; a tick that ends after the next deadline is counted by `step`
+            // and the deadlines it passed are skipped, not burst (the same loop the
+            // control_loop bench times)
+            rt::run_periodic(
+                period,
+                start + period,
+                u64::MAX,
+                running,
+                |deadline, wake| lp.step(deadline, wake, shared, tick),
+            );
+        }
+        ControlClock::Robot => {
+            let name = cfg.namespace().joint_state();
+            let states = services::event_service(&_node, &name)
+                .and_then(|ev| services::listener(&ev, &name));
+            match states {
+                Ok(listener) => {
+                    let quiet = (cfg.control.robot_clock_timeout_ms * 1e6) as u64;
+                    run_robot_clocked(&listener, period, quiet, running, |scheduled, wake| {
+                        lp.step(scheduled, wake, shared, tick)
+                    });
+                }
+                Err(e) => {
+                    tracing::error!(
+                        "control thread: cannot listen for the robot's states ({e}); \
+                         the timer clocks the tick"
+                    );
+                    rt::run_periodic(period, start + period, u64::MAX, running, |d, w| {
+                        lp.step(d, w, shared, tick)
+                    });
+                }
+            }
+        }
+    }
     lp.publish_stopped(shared);
     Ok(Summary {
         seconds: (monotonic_ns() - start) as f64 / 1e9,

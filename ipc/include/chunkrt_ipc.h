@@ -37,7 +37,7 @@ extern "C" {
 /* iceoryx2 type names (must equal the Rust #[type_name]s). */
 #define CHUNKRT_TYPE_NAME_CAMERA_FRAME_HEADER "chunkrt.CameraFrameHeader.v1"
 #define CHUNKRT_TYPE_NAME_JOINT_STATE "chunkrt.JointState.v2"
-#define CHUNKRT_TYPE_NAME_JOINT_COMMAND "chunkrt.JointCommand.v1"
+#define CHUNKRT_TYPE_NAME_JOINT_COMMAND "chunkrt.JointCommand.v2"
 #define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v4"
 #define CHUNKRT_TYPE_NAME_REARM_REQUEST "chunkrt.RearmRequest.v1"
 /** Element type name of the camera pixel slice. */
@@ -104,6 +104,8 @@ typedef struct CameraFrameHeader {
 #define CHUNKRT_JOINT_STATUS_SESSION_REPORTED (1u << 5)
 /** The last command was refused: it started too far from the measured position. */
 #define CHUNKRT_JOINT_STATUS_COMMAND_FAR (1u << 6)
+/** The robot itself reports an error or a reflex and follows no command until it clears. */
+#define CHUNKRT_JOINT_STATUS_ROBOT_ERROR (1u << 7)
 
 /** Measured joint state published by the robot driver. */
 typedef struct JointState {
@@ -131,6 +133,7 @@ typedef struct JointCommand {
     uint64_t deadline_ns;                 /**< must not be applied after this (monotonic ns) */
     uint64_t observation_seq;             /**< joint state seq behind the chunk (0: none) */
     uint64_t chunk_id;                    /**< action chunk id (0: none) */
+    uint64_t state_seq;                   /**< newest joint state seq the tick had (0: none) */
     uint32_t n_dof;                       /**< valid joints */
     uint32_t mode;                        /**< CHUNKRT_COMMAND_MODE_* */
     double position[CHUNKRT_MAX_DOF];     /**< target positions */
@@ -239,7 +242,7 @@ typedef struct RearmRequest {
 #endif
 CHUNKRT_STATIC_ASSERT(sizeof(CameraFrameHeader) == 48, "CameraFrameHeader size");
 CHUNKRT_STATIC_ASSERT(sizeof(JointState) == 24 + 3 * 8 * CHUNKRT_MAX_DOF + 16, "JointState size");
-CHUNKRT_STATIC_ASSERT(sizeof(JointCommand) == 48 + 3 * 8 * CHUNKRT_MAX_DOF, "JointCommand size");
+CHUNKRT_STATIC_ASSERT(sizeof(JointCommand) == 56 + 3 * 8 * CHUNKRT_MAX_DOF, "JointCommand size");
 CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 15 * 8,
                       "ControllerStatus size");
 CHUNKRT_STATIC_ASSERT(sizeof(RearmRequest) == 24, "RearmRequest size");

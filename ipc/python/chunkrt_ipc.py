@@ -62,6 +62,7 @@ JOINT_STATUS_COMMAND_REJECTED = 1 << 3
 JOINT_STATUS_LIMIT_CLAMPED = 1 << 4
 JOINT_STATUS_SESSION_REPORTED = 1 << 5
 JOINT_STATUS_COMMAND_FAR = 1 << 6
+JOINT_STATUS_ROBOT_ERROR = 1 << 7
 
 # ---- command modes --------------------------------------------------------------------------
 
@@ -131,7 +132,7 @@ REJECT_REASON_NAMES = [
 
 TYPE_NAME_CAMERA_FRAME_HEADER = "chunkrt.CameraFrameHeader.v1"
 TYPE_NAME_JOINT_STATE = "chunkrt.JointState.v2"
-TYPE_NAME_JOINT_COMMAND = "chunkrt.JointCommand.v1"
+TYPE_NAME_JOINT_COMMAND = "chunkrt.JointCommand.v2"
 TYPE_NAME_CONTROLLER_STATUS = "chunkrt.ControllerStatus.v4"
 TYPE_NAME_REARM_REQUEST = "chunkrt.RearmRequest.v1"
 
@@ -195,6 +196,7 @@ class JointCommand(ctypes.Structure):
         ("deadline_ns", ctypes.c_uint64),
         ("observation_seq", ctypes.c_uint64),
         ("chunk_id", ctypes.c_uint64),
+        ("state_seq", ctypes.c_uint64),
         ("n_dof", ctypes.c_uint32),
         ("mode", ctypes.c_uint32),
         ("position", _F64xDOF),

@@ -111,6 +111,30 @@ pub struct ControlConfig {
     /// Controller status publish rate (Hz).
     #[serde(default = "default_status_rate_hz")]
     pub status_rate_hz: f64,
+    /// What clocks the control tick: its own timer (default), or the robot's joint states
+    /// (`robot`: the tick runs when the robot's state arrives, woken by its event; the timer
+    /// takes over when the robot is quiet for `robot_clock_timeout_ms`).
+    #[serde(default)]
+    pub clock: ControlClock,
+    /// With `clock = "robot"`: after this long without a robot state the timer ticks (ms).
+    #[serde(default = "default_robot_clock_timeout_ms")]
+    pub robot_clock_timeout_ms: f64,
+}
+
+crate::config_enum! {
+    /// `control.clock`: what clocks the control tick.
+    pub enum ControlClock ("control clock") {
+        /// Absolute deadlines of the control thread's own timer, `control.rate_hz`.
+        #[default]
+        Timer = "timer",
+        /// The robot's joint states: one tick per state, woken by the robot's event on
+        /// `NS/joint_state` (a robot whose own clock sets the cycle, such as the Franka's FCI).
+        Robot = "robot",
+    }
+}
+
+fn default_robot_clock_timeout_ms() -> f64 {
+    3.0
 }
 
 fn default_rt_priority() -> i32 {
@@ -407,6 +431,24 @@ pub fn validate_shared(
     )?;
     c.range("control.max_future_ms", ctl.max_future_ms, 0.0, 1000.0)?;
     c.range("control.status_rate_hz", ctl.status_rate_hz, 0.1, 1000.0)?;
+    c.range(
+        "control.robot_clock_timeout_ms",
+        ctl.robot_clock_timeout_ms,
+        0.1,
+        1000.0,
+    )?;
+    if ctl.clock == ControlClock::Robot && (ctl.rate_hz - robot.joint_state_rate_hz).abs() > 1e-9 {
+        // the generator steps one control period per robot cycle
+        return Err(c.fail(
+            "control.rate_hz",
+            ctl.rate_hz,
+            &format!(
+                "must equal robot.joint_state_rate_hz ({}) with control.clock = \"robot\" (one \
+                 tick per robot state)",
+                robot.joint_state_rate_hz
+            ),
+        ));
+    }
     let mut names = std::collections::HashSet::new();
     for (i, cam) in cameras.iter().enumerate() {
         let k = |f: &str| format!("cameras[{i}].{f}");

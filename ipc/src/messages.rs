@@ -101,6 +101,9 @@ pub const JOINT_STATUS_SESSION_REPORTED: u32 = 1 << 5;
 /// The last command was refused because it started too far from the measured position (the
 /// first command of a session, or after the robot held): a bumpless hand-over was refused.
 pub const JOINT_STATUS_COMMAND_FAR: u32 = 1 << 6;
+/// The robot itself reports an error or a reflex (its own safety stopped the motion; e.g. the
+/// Franka's `robot_mode` Reflex): it is recovering and follows no command until it clears.
+pub const JOINT_STATUS_ROBOT_ERROR: u32 = 1 << 7;
 
 /// Measured joint state published by the robot driver.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
@@ -174,7 +177,7 @@ pub const COMMAND_MODE_HOLD: u32 = 2;
 
 /// Command published by the controller every control tick.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("chunkrt.JointCommand.v1")]
+#[type_name("chunkrt.JointCommand.v2")]
 #[repr(C)]
 pub struct JointCommand {
     /// Message counter, increasing by one per tick.
@@ -187,6 +190,9 @@ pub struct JointCommand {
     pub observation_seq: u64,
     /// Id of the action chunk this command was sampled from (0: none, e.g. hold).
     pub chunk_id: u64,
+    /// `seq` of the newest joint state the tick that made this command had received (0: none):
+    /// a robot that clocks the controller (`[control] clock = "robot"`) matches its answer by it.
+    pub state_seq: u64,
     /// Number of valid joints.
     pub n_dof: u32,
     /// One of the `COMMAND_MODE_*` codes.
@@ -207,6 +213,7 @@ impl Default for JointCommand {
             deadline_ns: 0,
             observation_seq: 0,
             chunk_id: 0,
+            state_seq: 0,
             n_dof: 0,
             mode: COMMAND_MODE_HOLD,
             position: [0.0; MAX_DOF],
@@ -466,7 +473,7 @@ const _: () = {
     assert!(align_of::<CameraFrameHeader>() == 8);
     assert!(size_of::<JointState>() == 24 + 3 * 8 * MAX_DOF + 16);
     assert!(align_of::<JointState>() == 8);
-    assert!(size_of::<JointCommand>() == 48 + 3 * 8 * MAX_DOF);
+    assert!(size_of::<JointCommand>() == 56 + 3 * 8 * MAX_DOF);
     assert!(align_of::<JointCommand>() == 8);
     assert!(size_of::<ControllerStatus>() == 24 + 5 * 8 + 8 * REJECT_REASON_COUNT + 15 * 8);
     assert!(size_of::<RearmRequest>() == 24);
@@ -502,7 +509,7 @@ pub fn layouts() -> Vec<(&'static str, (usize, Vec<FieldOffset>))> {
         (
             "JointCommand",
             layout_of!(JointCommand; seq, publish_time_ns, deadline_ns, observation_seq,
-                chunk_id, n_dof, mode, position, velocity, acceleration),
+                chunk_id, state_seq, n_dof, mode, position, velocity, acceleration),
         ),
         (
             "ControllerStatus",

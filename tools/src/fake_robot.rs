@@ -23,6 +23,7 @@ use chunkrt_ipc::*;
 use rand::{Rng, SeedableRng};
 
 use crate::common::{check_rate, end_time_ns, open_node, sleep_until_or_stop, CommonArgs};
+use crate::intake::CommandIntake;
 use crate::shutdown;
 
 /// Command-line arguments.
@@ -279,25 +280,14 @@ impl Arm {
 pub struct Robot {
     /// The simulated arm.
     pub arm: Arm,
-    command_timeout_ns: u64,
-    max_future_ns: u64,
-    guard: StreamGuard,
-    /// Session binding to one controller (None: `--session first`).
-    session: Option<SessionGate>,
-    session_id: Option<u128>,
-    /// The next command must start near the measured position (a new session, or after a hold).
-    armed: bool,
-    bind_tolerance: f64,
-    active: Option<JointCommand>,
-    last_command_ns: u64,
+    /// Which commands are obeyed ([`crate::intake`]).
+    pub intake: CommandIntake,
     holding: bool,
     hold_target: Target,
-    /// Sticky flags set by the last received command (`EXPIRED`, `REJECTED`).
-    command_flags: u32,
     /// Flags of the last step.
     pub status_flags: u32,
-    /// Counters.
-    pub summary: Summary,
+    /// The robot's own counters (the intake's are in [`Self::summary`]).
+    pub counts: Summary,
 }
 
 impl Robot {
@@ -308,157 +298,71 @@ impl Robot {
             velocity: [0.0; MAX_DOF],
             acceleration: [0.0; MAX_DOF],
         };
-        Self {
-            arm,
+        let intake = CommandIntake::new(
+            "fake-robot",
+            arm.n_dof(),
             command_timeout_ns,
             max_future_ns,
-            // one controller at a time: another command publisher is refused while the bound
-            // one is alive; after a command timeout of silence (the robot holds) one may bind
-            guard: StreamGuard::with_rebind_after(command_timeout_ns),
-            session: None,
-            session_id: None,
-            armed: false,
-            bind_tolerance: f64::INFINITY,
-            active: None,
-            last_command_ns: now_ns,
+            now_ns,
+        );
+        Self {
+            arm,
+            intake,
             holding: true,
             hold_target,
-            command_flags: 0,
             status_flags: JOINT_STATUS_HOLDING,
-            summary: Summary::default(),
+            counts: Summary::default(),
         }
     }
 
     /// Obeys only the command publisher announced by the controller's status from now on.
     pub fn bind_to_controller(&mut self, timeout_ns: u64) {
-        self.session = Some(SessionGate::new(timeout_ns, self.max_future_ns));
+        self.intake.bind_to_controller(timeout_ns);
     }
 
     /// Refuses the first command of a session, and the first after a hold, when it starts
     /// further than `tolerance` from the measured position (bumpless hand-over).
     pub fn set_bind_tolerance(&mut self, tolerance: f64) {
-        self.bind_tolerance = tolerance;
+        self.intake.set_bind_tolerance(tolerance);
     }
 
-    /// The command publisher the robot obeys, as its joint state reports it: the session's
-    /// controller (or, with `--session first`, the bound publisher); 0 while none.
+    /// The command publisher the robot obeys, as its joint state reports it; 0 while none.
     pub fn obeyed_publisher(&self, now_ns: u64) -> u128 {
-        match &self.session {
-            Some(gate) => match gate.state(now_ns) {
-                SessionState::Bound(id) => id,
-                _ => 0,
-            },
-            None => self.guard.bound().unwrap_or(0),
-        }
+        self.intake.obeyed_publisher(now_ns)
     }
 
     /// Handles one controller status from publisher `origin` (session binding).
     pub fn on_status(&mut self, status: &ControllerStatus, origin: u128, now_ns: u64) {
-        let Some(gate) = self.session.as_mut() else {
-            return;
-        };
-        if let Err(e) = gate.on_status(status, origin, now_ns) {
-            self.summary.status_rejected += 1;
-            if self.summary.status_rejected <= 10 {
-                tracing::warn!(
-                    "fake-robot: controller status from publisher {origin:#x} rejected: {e}"
-                );
-            }
-        }
-        if let SessionState::Bound(id) = gate.state(now_ns) {
-            if self.session_id != Some(id) {
-                // a new controller: its command stream starts afresh
-                tracing::info!("fake-robot: session bound to command publisher {id:#x}");
-                self.session_id = Some(id);
-                self.armed = false;
-                self.guard = StreamGuard::with_rebind_after(self.command_timeout_ns);
-            }
-        }
+        self.intake.on_status(status, origin, now_ns);
     }
 
     /// Handles one received command from publisher `origin`.
     pub fn on_command(&mut self, cmd: &JointCommand, origin: u128, now_ns: u64) {
-        if let Err(e) = validate_joint_command(cmd, Some(self.arm.n_dof() as u32)) {
-            self.reject(&e);
-            return;
-        }
-        if let Some(gate) = &self.session {
-            match gate.admit(origin, now_ns) {
-                Ok(()) => {}
-                Err(ValidationError::NotSessionPublisher {
-                    session: SessionState::None | SessionState::Ambiguous,
-                    ..
-                }) => {
-                    self.summary.commands_unbound += 1;
-                    return;
-                }
-                Err(e) => {
-                    self.reject(&e);
-                    return;
-                }
-            }
-        }
-        let limits = Freshness {
-            max_age_ns: u64::MAX,
-            max_future_ns: self.max_future_ns,
-        };
-        if let Err(e) = self
-            .guard
-            .check(origin, cmd.seq, cmd.publish_time_ns, now_ns, limits)
-        {
-            self.reject(&e);
-            return;
-        }
-        if cmd.deadline_ns < now_ns {
-            self.summary.commands_expired += 1;
-            self.command_flags = JOINT_STATUS_COMMAND_EXPIRED;
-            return;
-        }
         let n = self.arm.n_dof();
-        let offset = (0..n)
-            .map(|j| (cmd.position[j] - self.arm.position[j]).abs())
-            .fold(0.0, f64::max);
-        if now_ns.saturating_sub(self.last_command_ns) > self.command_timeout_ns {
-            // no command applied for longer than the timeout (the robot held, or this process
-            // was stalled and its hold not yet noticed): the next one must start near the arm
-            self.armed = false;
-        }
-        if !self.armed {
-            if offset > self.bind_tolerance {
-                // a session's first command, or the first after a hold, far from the arm
-                self.summary.commands_far += 1;
-                self.command_flags = JOINT_STATUS_COMMAND_FAR;
-                return;
-            }
-            self.armed = true;
-        }
-        self.summary.max_command_offset = self.summary.max_command_offset.max(offset);
-        self.summary.commands_applied += 1;
-        self.command_flags = 0;
-        self.last_command_ns = now_ns;
-        self.active = Some(*cmd);
+        self.intake
+            .on_command(cmd, origin, now_ns, &self.arm.position[..n]);
     }
 
-    fn reject(&mut self, e: &ValidationError) {
-        self.summary.commands_rejected += 1;
-        self.command_flags = JOINT_STATUS_COMMAND_REJECTED;
-        if self.summary.commands_rejected <= 10 {
-            tracing::warn!("fake-robot: command rejected: {e}");
+    /// Every counter: the robot's and its intake's.
+    pub fn summary(&self) -> Summary {
+        let c = &self.intake.counters;
+        Summary {
+            commands_applied: c.commands_applied,
+            commands_expired: c.commands_expired,
+            commands_rejected: c.commands_rejected,
+            commands_unbound: c.commands_unbound,
+            commands_far: c.commands_far,
+            status_rejected: c.status_rejected,
+            max_command_offset: c.max_command_offset,
+            ..self.counts
         }
     }
 
     /// Runs the watchdog and advances the arm by `dt` seconds at time `now_ns`; returns the
     /// status flags of this step.
     pub fn step(&mut self, now_ns: u64, dt: f64) -> u32 {
-        let mut flags = self.command_flags;
-        let timed_out = now_ns.saturating_sub(self.last_command_ns) > self.command_timeout_ns;
-        if timed_out {
-            flags |= JOINT_STATUS_COMMAND_TIMEOUT;
-        }
-        let live = match &self.active {
-            Some(c) if c.deadline_ns >= now_ns && !timed_out => Some(*c),
-            _ => None,
-        };
+        let mut flags = self.intake.flags(now_ns);
+        let live = self.intake.live(now_ns).copied();
         let target = match live {
             Some(cmd) => {
                 self.holding = false;
@@ -479,11 +383,11 @@ impl Robot {
             None => {
                 if !self.holding {
                     self.holding = true;
-                    self.armed = false;
-                    self.summary.holds += 1;
+                    self.intake.disarm();
+                    self.counts.holds += 1;
                     self.hold_target.position = self.arm.position;
                 }
-                self.summary.hold_ticks += 1;
+                self.counts.hold_ticks += 1;
                 flags |= JOINT_STATUS_HOLDING;
                 self.hold_target
             }
@@ -492,8 +396,8 @@ impl Robot {
         if live.is_some() {
             for i in 0..self.arm.n_dof() {
                 let e = (target.position[i] - self.arm.position[i]).abs();
-                if e > self.summary.max_tracking_error {
-                    self.summary.max_tracking_error = e;
+                if e > self.counts.max_tracking_error {
+                    self.counts.max_tracking_error = e;
                 }
             }
         }
@@ -630,7 +534,7 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
         }
         match state_pub.loan_uninit() {
             Ok(sample) => match sample.write_payload(msg).send() {
-                Ok(_) => robot.summary.states_published += 1,
+                Ok(_) => robot.counts.states_published += 1,
                 Err(e) => tracing::warn!("fake-robot: send failed: {e:?}"),
             },
             Err(e) => tracing::warn!("fake-robot: loan failed: {e:?}"),
@@ -640,7 +544,7 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
         let after = monotonic_ns();
         if after > next {
             let late = after - next;
-            robot.summary.max_lateness_ns = robot.summary.max_lateness_ns.max(late);
+            robot.counts.max_lateness_ns = robot.counts.max_lateness_ns.max(late);
             if late > 10 * period_ns {
                 // Far behind (suspended, overloaded): restart the schedule instead of bursting.
                 next = after;
@@ -652,7 +556,7 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
         }
     }
     tracing::info!("fake-robot: stopping");
-    Ok(robot.summary)
+    Ok(robot.summary())
 }
 
 #[cfg(test)]

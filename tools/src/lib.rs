@@ -9,6 +9,7 @@ pub mod cli;
 pub mod common;
 pub mod fake_camera;
 pub mod fake_robot;
+pub mod intake;
 pub mod monitor;
 pub mod rearm;
 pub mod scene;

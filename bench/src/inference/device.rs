@@ -434,67 +434,67 @@ pub fn run_device(opts: &DeviceBenchOptions) -> Result<DeviceReport, PolicyError
         Ok::<(), PolicyError>(())
     };
     if !opts.graphs_only {
-    time("vision", opts.calls, &mut || {
-        model.vision(&inp)?;
-        Ok(())
-    })?;
-    time("vision+prefix", opts.calls, &mut || {
-        model.fill_cache(&inp, &mut cache, false)?;
-        Ok(())
-    })?;
-    {
-        let c = cache
-            .as_ref()
-            .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
-        time("step_cached", opts.calls * 10, &mut || {
-            model.velocity_at(c, &noise, &[0.5], false)?;
+        time("vision", opts.calls, &mut || {
+            model.vision(&inp)?;
             Ok(())
         })?;
-        // a real-time-chunking guided step: a differentiable forward and one vector-Jacobian
-        // product through the action expert (candle autograd, op by op)
-        let target = chunkrt_policy::rtc::GuidanceTarget {
-            y: noise.zeros_like()?,
-            w: Tensor::ones((1, cfg.action_horizon, cfg.action_dim), DType::F32, dev)?,
-            beta: 5.0,
-            jacobian: chunkrt_policy::rtc::Jacobian::Vjp,
-        };
-        time("step_guided", opts.calls, &mut || {
-            chunkrt_policy::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
+        time("vision+prefix", opts.calls, &mut || {
+            model.fill_cache(&inp, &mut cache, false)?;
             Ok(())
         })?;
-        // the same with ∂Â/∂x_t ≈ I: one fast forward and a few element-wise ops
-        let target = chunkrt_policy::rtc::GuidanceTarget {
-            jacobian: chunkrt_policy::rtc::Jacobian::Identity,
-            ..target
-        };
-        time("step_guided_identity", opts.calls * 10, &mut || {
-            chunkrt_policy::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
+        {
+            let c = cache
+                .as_ref()
+                .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
+            time("step_cached", opts.calls * 10, &mut || {
+                model.velocity_at(c, &noise, &[0.5], false)?;
+                Ok(())
+            })?;
+            // a real-time-chunking guided step: a differentiable forward and one vector-Jacobian
+            // product through the action expert (candle autograd, op by op)
+            let target = chunkrt_policy::rtc::GuidanceTarget {
+                y: noise.zeros_like()?,
+                w: Tensor::ones((1, cfg.action_horizon, cfg.action_dim), DType::F32, dev)?,
+                beta: 5.0,
+                jacobian: chunkrt_policy::rtc::Jacobian::Vjp,
+            };
+            time("step_guided", opts.calls, &mut || {
+                chunkrt_policy::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
+                Ok(())
+            })?;
+            // the same with ∂Â/∂x_t ≈ I: one fast forward and a few element-wise ops
+            let target = chunkrt_policy::rtc::GuidanceTarget {
+                jacobian: chunkrt_policy::rtc::Jacobian::Identity,
+                ..target
+            };
+            time("step_guided_identity", opts.calls * 10, &mut || {
+                chunkrt_policy::rtc::guided_velocity(&model, c, &noise, 0.5, &target)?;
+                Ok(())
+            })?;
+        }
+        let mut scache = None;
+        time("sample", opts.calls, &mut || {
+            // a new observation every call: the prefix pass runs each time
+            let out = model.sample(&inp, &noise, steps, Some(&mut scache))?;
+            // the chunk's one device -> host copy, as the runtime makes it
+            out.actions
+                .to_dtype(DType::F32)?
+                .flatten_all()?
+                .to_vec1::<f32>()?;
             Ok(())
         })?;
-    }
-    let mut scache = None;
-    time("sample", opts.calls, &mut || {
-        // a new observation every call: the prefix pass runs each time
-        let out = model.sample(&inp, &noise, steps, Some(&mut scache))?;
-        // the chunk's one device -> host copy, as the runtime makes it
-        out.actions
-            .to_dtype(DType::F32)?
-            .flatten_all()?
-            .to_vec1::<f32>()?;
-        Ok(())
-    })?;
-    // training-time RTC: the same sample with a quarter of the chunk given as committed actions
-    // (per-token flow times; what `strategy = "rtc_trained"` runs)
-    let committed = (cfg.action_horizon / 4).max(1);
-    time("sample_committed", opts.calls, &mut || {
-        model.fill_cache(&inp, &mut scache, false)?;
-        let c = scache
-            .as_ref()
-            .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
-        let out = model.denoise_committed(c, &noise, steps, &noise, &[committed])?;
-        out.actions.flatten_all()?.to_vec1::<f32>()?;
-        Ok(())
-    })?;
+        // training-time RTC: the same sample with a quarter of the chunk given as committed actions
+        // (per-token flow times; what `strategy = "rtc_trained"` runs)
+        let committed = (cfg.action_horizon / 4).max(1);
+        time("sample_committed", opts.calls, &mut || {
+            model.fill_cache(&inp, &mut scache, false)?;
+            let c = scache
+                .as_ref()
+                .ok_or_else(|| PolicyError::Config("no cache after the prefix pass".into()))?;
+            let out = model.denoise_committed(c, &noise, steps, &noise, &[committed])?;
+            out.actions.flatten_all()?.to_vec1::<f32>()?;
+            Ok(())
+        })?;
     }
     let mut scache = None;
     // the whole sample as one captured CUDA graph (GPU), a new observation every call: two

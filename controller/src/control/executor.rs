@@ -142,6 +142,8 @@ pub struct Executor {
     ticks: u64,
     joint_state_age_ns: u64,
     limit_warnings: u64,
+    /// Generator steps of the next tick ([`Self::set_cycles`]).
+    cycles: u32,
 }
 
 impl Executor {
@@ -196,6 +198,7 @@ impl Executor {
             ticks: 0,
             joint_state_age_ns: 0,
             limit_warnings: 0,
+            cycles: 1,
         })
     }
 
@@ -216,6 +219,13 @@ impl Executor {
     /// hand-over is bumpless when the robot binds it. No allocation.
     pub fn set_command_publisher(&mut self, id: u128) {
         self.command_publisher = Some(id);
+    }
+
+    /// The next tick advances the generator by `cycles` control periods (1..=50): on a robot's
+    /// clock, the cycles the robot ran since the last tick, so that a tick that missed one
+    /// continues where the robot is in time instead of a period behind. No allocation.
+    pub fn set_cycles(&mut self, cycles: u32) {
+        self.cycles = cycles.clamp(1, 50);
     }
 
     /// Runs without a chunk source (`policy.kind = "hold"`): waiting for a chunk in STARTING is
@@ -465,17 +475,28 @@ impl Executor {
     fn step_generator(&mut self, now_ns: u64, report: &mut TickReport) -> u32 {
         let n = self.limits.n;
         let running = self.safety.state() == State::Running;
-        if running {
-            shaping::track(
-                &self.limits,
-                self.tracking_gain,
-                &self.target,
-                &mut self.otg_in,
-            );
-        } else {
-            shaping::brake(n, &mut self.otg_in);
+        let mut r = OtgResult::Working;
+        for _ in 0..std::mem::replace(&mut self.cycles, 1) {
+            if running {
+                shaping::track(
+                    &self.limits,
+                    self.tracking_gain,
+                    &self.target,
+                    &mut self.otg_in,
+                );
+            } else {
+                shaping::brake(n, &mut self.otg_in);
+            }
+            r = self.otg.update(&self.otg_in, &mut self.otg_out);
+            let out = &self.otg_out.state;
+            if !r.is_ok() || matches!(r, OtgResult::Error(-102)) {
+                break;
+            }
+            // the next period starts where this one ended
+            self.otg_in.current_position = out.position;
+            self.otg_in.current_velocity = out.velocity;
+            self.otg_in.current_acceleration = out.acceleration;
         }
-        let r = self.otg.update(&self.otg_in, &mut self.otg_out);
         report.generator = r;
         let ok = match r {
             OtgResult::Working | OtgResult::Finished => true,

@@ -70,17 +70,17 @@ fn watchdog_holds_on_deadline_timeout_and_rejects_bad_commands() {
 
     r.on_command(&cmd(1, t0, [0.3, 0.0]), 7, t0);
     assert_eq!(r.step(t0 + 1_000_000, 1e-3), 0);
-    assert_eq!(r.summary.commands_applied, 1);
+    assert_eq!(r.summary().commands_applied, 1);
 
     // past its deadline: hold
     let f = r.step(t0 + 6_000_000, 1e-3);
     assert_ne!(f & JOINT_STATUS_HOLDING, 0);
-    assert_eq!(r.summary.holds, 1);
+    assert_eq!(r.summary().holds, 1);
 
     // arrives expired
     let late = cmd(2, t0, [0.3, 0.0]);
     r.on_command(&late, 7, t0 + 10_000_000);
-    assert_eq!(r.summary.commands_expired, 1);
+    assert_eq!(r.summary().commands_expired, 1);
     assert_ne!(
         r.step(t0 + 10_000_000, 1e-3) & JOINT_STATUS_COMMAND_EXPIRED,
         0
@@ -91,7 +91,7 @@ fn watchdog_holds_on_deadline_timeout_and_rejects_bad_commands() {
     r.on_command(&bad, 7, t0 + 11_000_000);
     bad.n_dof = 3;
     r.on_command(&bad, 7, t0 + 11_000_000);
-    assert_eq!(r.summary.commands_rejected, 2);
+    assert_eq!(r.summary().commands_rejected, 2);
     assert_ne!(
         r.step(t0 + 11_000_000, 1e-3) & JOINT_STATUS_COMMAND_REJECTED,
         0
@@ -101,7 +101,7 @@ fn watchdog_holds_on_deadline_timeout_and_rejects_bad_commands() {
     r.on_command(&cmd(4, t0 + 12_000_000, [0.3, 0.0]), 7, t0 + 12_000_000);
     assert_eq!(r.step(t0 + 12_000_000, 1e-3), 0);
     r.on_command(&cmd(4, t0 + 12_000_000, [0.3, 0.0]), 7, t0 + 12_500_000);
-    assert_eq!(r.summary.commands_rejected, 3);
+    assert_eq!(r.summary().commands_rejected, 3);
 
     // a far deadline still ends with the command timeout
     let mut long = cmd(5, t0 + 13_000_000, [0.3, 0.0]);

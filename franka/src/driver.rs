@@ -1,0 +1,664 @@
+//! The driver process: FCI on one side, chunkrt's services on the other ([`crate`]).
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Context;
+use chunkrt_ipc::services::{self, Ipc};
+use chunkrt_ipc::*;
+use chunkrt_tools::common::{end_time_ns, open_node, CommonArgs};
+use chunkrt_tools::intake::CommandIntake;
+use chunkrt_tools::shutdown;
+use franka::{
+    ControllerMode, FrankaError, Gripper, JointPositions, RealtimeConfig, Robot, RobotMode,
+    RobotState, MAX_CUTOFF_FREQUENCY,
+};
+use hdrhistogram::Histogram;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+
+use crate::guard::{Guard, GuardLimits, Motion};
+use crate::limits::{CYCLE_S, JOINTS};
+
+/// Command-line arguments.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// The robot's FCI address: the control box's host name or IP (franka-sim: its loopback
+    /// address, 127.0.0.x).
+    #[arg(long, value_name = "HOST")]
+    pub robot: String,
+    /// The Franka Hand's address (default: the robot's); `none`: no hand (the gripper channel,
+    /// if configured, reports 0).
+    #[arg(long, value_name = "HOST")]
+    pub gripper: Option<String>,
+    /// How long a cycle waits for the controller's answer to its state (µs) before it answers
+    /// the robot without it. FCI allows a cycle about 300 µs of user time on a real arm.
+    #[arg(long, value_name = "US", default_value_t = 400.0)]
+    pub answer_budget_us: f64,
+    /// No accepted command for this long: stop to rest (ms).
+    #[arg(long, value_name = "MS", default_value_t = 20.0)]
+    pub command_timeout_ms: f64,
+    /// Bumpless hand-over: the first command of a session, and the first after a stop, must
+    /// start within this distance of the measured position (rad); a command further away is
+    /// refused (flag `COMMAND_FAR`) and the controller re-seeds from the arm.
+    #[arg(long, value_name = "RAD", default_value_t = 0.02)]
+    pub bind_tolerance: f64,
+    /// Late cycles continued at constant acceleration before the stop to rest begins.
+    #[arg(long, value_name = "N", default_value_t = 5)]
+    pub extrapolate_cycles: u32,
+    /// Fraction of the FR3's velocity, acceleration and jerk limits the guard keeps to.
+    #[arg(long, value_name = "F", default_value_t = 0.95)]
+    pub limit_margin: f64,
+    /// Send the controller's positions unchanged (no guard): what the robot's own checks make of
+    /// an unguarded command stream. For tests; never on a real arm.
+    #[arg(long)]
+    pub no_guard: bool,
+    /// Real-time scheduling of the FCI thread: `enforce` (a real arm: a PREEMPT_RT kernel and
+    /// SCHED_FIFO are required) or `ignore` (a simulator on an ordinary kernel).
+    #[arg(long, value_enum, default_value_t = Realtime::Enforce)]
+    pub realtime: Realtime,
+    /// Core to pin the FCI thread to.
+    #[arg(long)]
+    pub cpu: Option<usize>,
+    /// SCHED_FIFO priority of the FCI thread when permitted (0: none).
+    #[arg(long, default_value_t = 90)]
+    pub priority: i32,
+    /// Stop after this many seconds (default: until SIGINT / SIGTERM).
+    #[arg(long, value_name = "SECONDS")]
+    pub duration: Option<f64>,
+    /// Write every commanded position (a line of 7 per cycle) to this file at the end: the
+    /// command stream to replay through another client (tools/python/fr3_replay.py).
+    #[arg(long, value_name = "FILE")]
+    pub record: Option<PathBuf>,
+    /// End at the first reflex instead of recovering and starting a new motion.
+    #[arg(long)]
+    pub stop_on_reflex: bool,
+}
+
+/// `--realtime`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Realtime {
+    /// A real arm: real-time scheduling is required.
+    Enforce,
+    /// A simulator: run without it.
+    Ignore,
+}
+
+/// What the driver did, printed on exit (`franka summary: key=value ...`).
+#[derive(Debug, Clone, Default)]
+pub struct Summary {
+    /// Robot cycles answered.
+    pub cycles: u64,
+    /// Joint states published.
+    pub states_published: u64,
+    /// Cycles answered with a fresh command of the controller.
+    pub fresh: u64,
+    /// Of those, commands the guard had to change to keep within the limits.
+    pub clamped: u64,
+    /// Cycles whose answer was late: the motion continued at constant acceleration.
+    pub late: u64,
+    /// Cycles of a stop to rest (no live command).
+    pub braking: u64,
+    /// Cycles at rest without a command.
+    pub rest: u64,
+    /// Cycles whose command the controller answered within the budget.
+    pub answered: u64,
+    /// Motions started (one, plus one per recovery).
+    pub motions: u64,
+    /// Reflexes the robot reported (its motion aborted).
+    pub reflexes: u64,
+    /// The errors of the first reflexes.
+    pub reflex_errors: String,
+    /// Lowest `control_command_success_rate` the robot reported during a motion (after its
+    /// first 100 cycles).
+    pub success_rate_min: f64,
+    /// Round trip state published → answering command received (µs).
+    pub round_trip_us: [f64; 3],
+    /// Commands: accepted, expired, rejected, unbound, far.
+    pub commands: [u64; 5],
+    /// Hand moves commanded.
+    pub gripper_moves: u64,
+}
+
+impl std::fmt::Display for Summary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "franka summary: cycles={} states_published={} fresh={} clamped={} late={} \
+             braking={} rest={} answered={} motions={} reflexes={} success_rate_min={:.4} \
+             round_trip_p50_us={:.1} round_trip_p99_us={:.1} round_trip_max_us={:.1} \
+             commands_applied={} commands_expired={} commands_rejected={} commands_unbound={} \
+             commands_far={} gripper_moves={} reflex_errors={}",
+            self.cycles,
+            self.states_published,
+            self.fresh,
+            self.clamped,
+            self.late,
+            self.braking,
+            self.rest,
+            self.answered,
+            self.motions,
+            self.reflexes,
+            self.success_rate_min,
+            self.round_trip_us[0],
+            self.round_trip_us[1],
+            self.round_trip_us[2],
+            self.commands[0],
+            self.commands[1],
+            self.commands[2],
+            self.commands[3],
+            self.commands[4],
+            self.gripper_moves,
+            if self.reflex_errors.is_empty() {
+                "none"
+            } else {
+                &self.reflex_errors
+            },
+        )
+    }
+}
+
+/// Runs until SIGINT / SIGTERM or `--duration`; prints the [`Summary`] on stdout.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let summary = drive(&args)?;
+    println!("{summary}");
+    Ok(())
+}
+
+/// What the hand thread shares with the FCI thread: measured width, target width (f64 bits;
+/// NaN: none), moves made.
+struct Hand {
+    width: AtomicU64,
+    target: AtomicU64,
+    moves: AtomicU64,
+}
+
+/// The ports and state of one cycle. Everything is allocated before the first cycle.
+struct Core {
+    n_dof: usize,
+    intake: CommandIntake,
+    guard: Guard,
+    last: Motion,
+    seq: u64,
+    state_pub: Publisher<Ipc, JointState, ()>,
+    state_event: Notifier<Ipc>,
+    cmd_sub: Subscriber<Ipc, JointCommand, ()>,
+    cmd_event: Listener<Ipc>,
+    status_sub: Subscriber<Ipc, ControllerStatus, ()>,
+    budget_ns: u64,
+    last_cmd_seq: u64,
+    late_run: u32,
+    extrapolate_cycles: u32,
+    no_guard: bool,
+    clamped_last: bool,
+    motion_cycles: u64,
+    end_ns: u64,
+    stop: &'static AtomicBool,
+    hand: Arc<Hand>,
+    round_trip: Histogram<u64>,
+    record: Option<Vec<[f64; JOINTS]>>,
+    s: Summary,
+}
+
+impl Core {
+    /// A new motion starts from rest at the robot's position.
+    fn begin_motion(&mut self, q: [f64; JOINTS]) {
+        self.last = Motion::rest(q);
+        self.motion_cycles = 0;
+        self.late_run = 0;
+        self.intake.disarm();
+        self.s.motions += 1;
+    }
+
+    /// One FCI cycle: the state out, the controller's answer in, the command back.
+    fn cycle(&mut self, st: &RobotState) -> JointPositions {
+        let now = monotonic_ns();
+        self.s.cycles += 1;
+        self.motion_cycles += 1;
+        if self.motion_cycles > 100 {
+            self.s.success_rate_min = self.s.success_rate_min.min(st.control_command_success_rate);
+        }
+        let stopping = self.stop.load(Ordering::Relaxed) || now >= self.end_ns;
+        let width = f64::from_bits(self.hand.width.load(Ordering::Relaxed));
+        let mut measured = [0.0; MAX_DOF];
+        measured[..JOINTS].copy_from_slice(&st.q);
+        if self.n_dof > JOINTS {
+            measured[JOINTS] = if width.is_finite() { width } else { 0.0 };
+        }
+
+        // the state out, then the event the robot-clocked controller waits on
+        self.seq += 1;
+        let seq = self.seq;
+        let mut flags = self.intake.flags(now);
+        if st.robot_mode == RobotMode::Reflex || st.current_errors.any() {
+            flags |= JOINT_STATUS_ROBOT_ERROR;
+        }
+        if self.clamped_last {
+            flags |= JOINT_STATUS_LIMIT_CLAMPED;
+        }
+        let mut msg = JointState {
+            seq,
+            measurement_time_ns: now,
+            n_dof: self.n_dof as u32,
+            status_flags: flags,
+            position: measured,
+            ..Default::default()
+        };
+        msg.velocity[..JOINTS].copy_from_slice(&st.dq);
+        msg.effort[..JOINTS].copy_from_slice(&st.tau_J);
+        msg.set_obeyed_publisher(self.intake.obeyed_publisher(now));
+        if let Ok(sample) = self.state_pub.loan_uninit() {
+            if sample.write_payload(msg).send().is_ok() {
+                self.s.states_published += 1;
+            }
+        }
+        let _ = self.state_event.notify();
+
+        while let Ok(Some(sample)) = self.status_sub.receive() {
+            self.intake
+                .on_status(sample.payload(), sample.origin().value(), monotonic_ns());
+        }
+        // the controller's answer to this state, within the budget
+        let mut answered = false;
+        loop {
+            while let Ok(Some(sample)) = self.cmd_sub.receive() {
+                let t = monotonic_ns();
+                let c = *sample.payload();
+                let ok =
+                    self.intake
+                        .on_command(&c, sample.origin().value(), t, &measured[..self.n_dof]);
+                if ok && c.state_seq >= seq && !answered {
+                    answered = true;
+                    self.round_trip.saturating_record((t - now).max(1));
+                }
+            }
+            let elapsed = monotonic_ns().saturating_sub(now);
+            if answered || elapsed >= self.budget_ns {
+                break;
+            }
+            let _ = services::wait_event(
+                &self.cmd_event,
+                Duration::from_nanos(self.budget_ns - elapsed),
+            );
+        }
+        self.s.answered += answered as u64;
+
+        let t = monotonic_ns();
+        let live = if stopping {
+            None
+        } else {
+            self.intake.live(t).copied()
+        };
+        let mut clamped = false;
+        let next = match live {
+            Some(c) if c.seq != self.last_cmd_seq => {
+                self.last_cmd_seq = c.seq;
+                self.late_run = 0;
+                self.s.fresh += 1;
+                if self.n_dof > JOINTS {
+                    self.hand
+                        .target
+                        .store(c.position[JOINTS].to_bits(), Ordering::Relaxed);
+                }
+                let (mut q, mut v) = ([0.0; JOINTS], [0.0; JOINTS]);
+                q.copy_from_slice(&c.position[..JOINTS]);
+                v.copy_from_slice(&c.velocity[..JOINTS]);
+                if self.no_guard {
+                    Motion::after(&self.last, &q, CYCLE_S)
+                } else {
+                    let (m, c) = self.guard.follow(&self.last, &q, &v);
+                    clamped = c;
+                    m
+                }
+            }
+            Some(_) if self.late_run < self.extrapolate_cycles => {
+                self.late_run += 1;
+                self.s.late += 1;
+                self.guard.extrapolate(&self.last)
+            }
+            _ => {
+                if self.last.at_rest() {
+                    self.s.rest += 1;
+                    Motion::rest(self.last.q)
+                } else {
+                    self.s.braking += 1;
+                    self.guard.brake(&self.last).0
+                }
+            }
+        };
+        self.s.clamped += clamped as u64;
+        self.clamped_last = clamped;
+        self.last = next;
+        if let Some(r) = &mut self.record {
+            if r.len() < r.capacity() {
+                r.push(next.q);
+            }
+        }
+        let mut out = JointPositions::new(next.q);
+        if stopping && next.at_rest() {
+            out.motion_finished = true;
+        }
+        out
+    }
+}
+
+/// The whole process; returns the counters instead of printing them.
+pub fn drive(args: &Args) -> anyhow::Result<Summary> {
+    let stop = shutdown::flag();
+    let (cfg, ns) = args.common.load()?;
+    let n_dof = cfg.robot.joints.len();
+    anyhow::ensure!(
+        n_dof == JOINTS || n_dof == JOINTS + 1,
+        "the configuration lists {n_dof} joints: an FR3 has {JOINTS}, and the hand's width may \
+         be an 8th (config/franka_fr3.toml)"
+    );
+    anyhow::ensure!(
+        (cfg.robot.joint_state_rate_hz - 1000.0).abs() < 1e-9,
+        "robot.joint_state_rate_hz is {}: the FCI's cycle is 1 kHz",
+        cfg.robot.joint_state_rate_hz
+    );
+    let budget_us = args.answer_budget_us;
+    anyhow::ensure!(
+        budget_us.is_finite() && (0.0..=900.0).contains(&budget_us),
+        "--answer-budget-us {budget_us}: must be within 0..=900 (a cycle is 1000 µs)"
+    );
+    let timeout_ms = args.command_timeout_ms;
+    anyhow::ensure!(
+        timeout_ms.is_finite() && (1.0..=10_000.0).contains(&timeout_ms),
+        "--command-timeout-ms {timeout_ms}: must be within 1..=10000"
+    );
+    anyhow::ensure!(
+        args.limit_margin.is_finite() && (0.1..=1.0).contains(&args.limit_margin),
+        "--limit-margin {}: must be within 0.1..=1",
+        args.limit_margin
+    );
+    anyhow::ensure!(
+        args.bind_tolerance.is_finite() && args.bind_tolerance > 0.0,
+        "--bind-tolerance {}: must be > 0",
+        args.bind_tolerance
+    );
+    if args.no_guard {
+        tracing::warn!("franka: --no-guard: the controller's positions go to the robot unchanged");
+    }
+    let start = monotonic_ns();
+    let end_ns = end_time_ns(start, args.duration)?;
+
+    let realtime = match args.realtime {
+        Realtime::Enforce => RealtimeConfig::Enforce,
+        Realtime::Ignore => RealtimeConfig::Ignore,
+    };
+    let robot = Robot::new(&args.robot, realtime).map_err(|e| {
+        anyhow::anyhow!(
+            "franka: cannot connect to the robot at {}: {e} (a real arm: FCI enabled in Desk, \
+             the brakes open, this PC on its network; the simulator: is it running on that \
+             address?)",
+            args.robot
+        )
+    })?;
+    let version = robot.server_version();
+    anyhow::ensure!(
+        version == 10,
+        "franka: the robot at {} speaks FCI version {version}: this driver keeps the FR3's \
+         limits (FCI 10); an FER / Panda (FCI 5) has other limits and is not supported",
+        args.robot
+    );
+    tracing::info!(
+        "franka: connected to the FR3 at {} (FCI {version})",
+        args.robot
+    );
+
+    let node = open_node("chunkrt-franka")?;
+    let state_name = ns.joint_state();
+    let cmd_name = ns.joint_command();
+    let status_name = ns.status();
+    let state_service = services::joint_state_service(&node, &state_name)?;
+    let cmd_service = services::joint_command_service(&node, &cmd_name)?;
+    let state_events = services::event_service(&node, &state_name)?;
+    let cmd_events = services::event_service(&node, &cmd_name)?;
+
+    let hand = Arc::new(Hand {
+        width: AtomicU64::new(f64::NAN.to_bits()),
+        target: AtomicU64::new(f64::NAN.to_bits()),
+        moves: AtomicU64::new(0),
+    });
+    let hand_addr = match args.gripper.as_deref() {
+        Some("none") => None,
+        Some(a) => Some(a.to_string()),
+        None if n_dof > JOINTS => Some(args.robot.clone()),
+        None => None,
+    };
+    let hand_thread = match hand_addr {
+        Some(addr) => {
+            let hand = hand.clone();
+            let gripper = Gripper::new(&addr).map_err(|e| {
+                anyhow::anyhow!("franka: cannot connect to the hand at {addr}: {e} (--gripper none: without it)")
+            })?;
+            Some(
+                std::thread::Builder::new()
+                    .name("franka-hand".into())
+                    .spawn(move || hand_loop(&gripper, &hand, stop))
+                    .context("franka: hand thread")?,
+            )
+        }
+        None => {
+            hand.width.store(0f64.to_bits(), Ordering::Relaxed);
+            None
+        }
+    };
+
+    let mut intake = CommandIntake::new(
+        "franka",
+        n_dof,
+        (timeout_ms * 1e6) as u64,
+        (cfg.control.max_future_ms * 1e6) as u64,
+        start,
+    );
+    intake.bind_to_controller(chunkrt_tools::fake_robot::SESSION_TIMEOUT_NS);
+    intake.set_bind_tolerance(args.bind_tolerance);
+    let record = args.record.as_ref().map(|_| {
+        // ten minutes of cycles (or the run's duration), allocated once
+        let cycles = args.duration.map_or(600_000.0, |d| d * 1100.0 + 1000.0);
+        Vec::with_capacity(cycles.min(4e6) as usize)
+    });
+    let outcome = chunkrt_controller::rt::make_current_thread_realtime(
+        args.cpu,
+        args.priority,
+        args.realtime == Realtime::Enforce,
+    );
+    tracing::info!("franka: FCI thread: {outcome}");
+    let mut core = Core {
+        n_dof,
+        intake,
+        guard: Guard::new(GuardLimits::fr3(args.limit_margin, 0.02), CYCLE_S)?,
+        last: Motion::rest([0.0; JOINTS]),
+        seq: 0,
+        state_pub: services::publisher(&state_service, &state_name)?,
+        state_event: services::notifier(&state_events, &state_name)?,
+        cmd_sub: services::subscriber(&cmd_service, &cmd_name)?,
+        cmd_event: services::listener(&cmd_events, &cmd_name)?,
+        status_sub: services::subscriber(
+            &services::status_service(&node, &status_name)?,
+            &status_name,
+        )?,
+        budget_ns: (budget_us * 1e3) as u64,
+        last_cmd_seq: 0,
+        late_run: 0,
+        extrapolate_cycles: args.extrapolate_cycles,
+        no_guard: args.no_guard,
+        clamped_last: false,
+        motion_cycles: 0,
+        end_ns,
+        stop,
+        hand: hand.clone(),
+        round_trip: Histogram::new_with_bounds(1, 10_000_000_000, 3)
+            .expect("constant histogram bounds are valid"),
+        record,
+        s: Summary {
+            success_rate_min: 1.0,
+            ..Summary::default()
+        },
+    };
+    tracing::info!(
+        "franka: publishing '{state_name}', following '{cmd_name}' (answer budget {budget_us} µs, \
+         command timeout {timeout_ms} ms, guard at {} of the FR3's limits{})",
+        args.limit_margin,
+        if args.no_guard { ", OFF" } else { "" }
+    );
+
+    let mut failure = None;
+    while !stop.load(Ordering::Relaxed) && monotonic_ns() < end_ns {
+        let state = match robot.read_once() {
+            Ok(s) => s,
+            Err(e) => {
+                failure = Some(anyhow::anyhow!("franka: the robot stopped answering: {e}"));
+                break;
+            }
+        };
+        if state.robot_mode == RobotMode::Reflex || state.current_errors.any() {
+            tracing::warn!(
+                "franka: the robot reports {}: automatic error recovery",
+                state.current_errors
+            );
+            if let Err(e) = robot.automatic_error_recovery() {
+                failure = Some(anyhow::anyhow!("franka: error recovery failed: {e}"));
+                break;
+            }
+            continue;
+        }
+        core.begin_motion(state.q);
+        let r = robot.control_joint_positions(
+            |st, _dt| core.cycle(st),
+            ControllerMode::JointImpedance,
+            false,
+            MAX_CUTOFF_FREQUENCY,
+        );
+        match r {
+            Ok(()) => break,
+            Err(FrankaError::Control(e)) => {
+                core.s.reflexes += 1;
+                let names = e.last_motion_errors.names().join("+");
+                tracing::error!(
+                    "franka: REFLEX: the robot aborted the motion: {} ({})",
+                    if names.is_empty() {
+                        "no error named"
+                    } else {
+                        &names
+                    },
+                    e.message.lines().next().unwrap_or("")
+                );
+                if core.s.reflex_errors.len() < 400 {
+                    if !core.s.reflex_errors.is_empty() {
+                        core.s.reflex_errors.push(',');
+                    }
+                    core.s.reflex_errors.push_str(if names.is_empty() {
+                        "unnamed"
+                    } else {
+                        &names
+                    });
+                }
+                if args.stop_on_reflex {
+                    break;
+                }
+                if let Err(e) = robot.automatic_error_recovery() {
+                    failure = Some(anyhow::anyhow!("franka: error recovery failed: {e}"));
+                    break;
+                }
+            }
+            Err(e) => {
+                failure = Some(anyhow::anyhow!("franka: the motion ended: {e}"));
+                break;
+            }
+        }
+    }
+    stop.store(true, Ordering::SeqCst);
+    if let Some(t) = hand_thread {
+        let _ = t.join();
+    }
+    let h = &core.round_trip;
+    let us = |q: f64| h.value_at_quantile(q) as f64 / 1e3;
+    core.s.round_trip_us = [us(0.5), us(0.99), h.max() as f64 / 1e3];
+    let c = &core.intake.counters;
+    core.s.commands = [
+        c.commands_applied,
+        c.commands_expired,
+        c.commands_rejected,
+        c.commands_unbound,
+        c.commands_far,
+    ];
+    core.s.gripper_moves = hand.moves.load(Ordering::Relaxed);
+    if let (Some(path), Some(rec)) = (&args.record, &core.record) {
+        let mut text = String::with_capacity(rec.len() * 7 * 20);
+        for q in rec {
+            for (j, v) in q.iter().enumerate() {
+                if j > 0 {
+                    text.push(' ');
+                }
+                text.push_str(&format!("{v:.17e}"));
+            }
+            text.push('\n');
+        }
+        std::fs::write(path, text)
+            .with_context(|| format!("franka: cannot write {}", path.display()))?;
+        tracing::info!(
+            "franka: {} commanded positions in {}",
+            rec.len(),
+            path.display()
+        );
+    }
+    if let Some(e) = failure {
+        println!("{}", core.s);
+        return Err(e);
+    }
+    Ok(core.s)
+}
+
+/// The hand's own loop: follows the gripper channel's target width (a move, or a grasp when it
+/// closes) and reports the measured width. Blocking calls, at the hand's pace.
+fn hand_loop(gripper: &Gripper, hand: &Hand, stop: &AtomicBool) {
+    let mut commanded = f64::NAN;
+    let mut max_width = 0.08;
+    if let Ok(s) = gripper.read_once() {
+        hand.width.store(s.width.to_bits(), Ordering::Relaxed);
+        if s.max_width > 0.0 {
+            max_width = s.max_width;
+        }
+        commanded = s.width;
+    }
+    let mut errors = 0u32;
+    while !stop.load(Ordering::Relaxed) {
+        let target = f64::from_bits(hand.target.load(Ordering::Relaxed));
+        if target.is_finite() && (target - commanded).abs() > 2e-3 {
+            let w = target.clamp(0.0, max_width);
+            let r = if w < 0.005 {
+                // closing on whatever is between the fingers: a grasp with wide tolerances
+                gripper.grasp(0.0, 0.1, 20.0, max_width, max_width)
+            } else {
+                gripper.move_gripper(w, 0.1)
+            };
+            commanded = target;
+            hand.moves.fetch_add(1, Ordering::Relaxed);
+            if let Err(e) = r {
+                errors += 1;
+                if errors <= 5 {
+                    tracing::warn!("franka: hand: {e}");
+                }
+            }
+        }
+        match gripper.read_once() {
+            Ok(s) => hand.width.store(s.width.to_bits(), Ordering::Relaxed),
+            Err(e) => {
+                errors += 1;
+                if errors <= 5 {
+                    tracing::warn!("franka: hand state: {e}");
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        }
+    }
+}

@@ -1,0 +1,113 @@
+#!/usr/bin/env python3
+"""franka-sim (PyPI 1.1.7) on one loopback address, with its own count of reflexes.
+
+franka-sim's command line binds the single arm to 0.0.0.0:1337 (and the Franka Hand to 1338);
+FCI's port is fixed for libfranka, so tests that run side by side each take their own address
+(127.0.0.x). This starts franka-sim's own server class on HOST with both of the FCI's checks
+enforced by default (motion limits: position, velocity, acceleration, jerk; communication: 20
+consecutive lost cycles), and counts what the simulator itself logs:
+
+  reflexes      every motion it aborted ("... -- aborting the motion": a reflex on a real FR3)
+  violations    limit violations it only logged (with --no-enforce: what would have been one)
+  lost_cycles   its reports of lost command cycles
+
+Prints "franka-sim: ready HOST:PORT" once its simulation loop runs, and on SIGTERM / SIGINT /
+--duration "franka-sim summary: reflexes=N violations=N lost_reports=N" and the first reasons.
+
+  $CHUNKRT_FRANKA_PYTHON tools/python/fr3_sim.py --host 127.0.0.2 [--no-enforce]
+Needs FR3_MJCF (scripts/franka-env.sh) so that nothing is fetched from the network.
+"""
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+
+
+class Counter(logging.Handler):
+    def __init__(self, host, port):
+        super().__init__(level=logging.INFO)
+        self.reflexes, self.violations, self.lost = 0, 0, 0
+        self.reasons = []
+        self.ready = threading.Event()
+        self.where = f"{host}:{port}"
+
+    def emit(self, record):
+        try:
+            msg = record.getMessage()
+        except Exception:  # a malformed record must not take the server down
+            return
+        if "aborting the motion" in msg:
+            self.reflexes += 1
+            if len(self.reasons) < 8:
+                self.reasons.append(msg[:240])
+            print(f"franka-sim: REFLEX {msg[:240]}", flush=True)
+        elif "not enforced" in msg:
+            self.violations += 1
+            if len(self.reasons) < 8:
+                self.reasons.append(msg[:240])
+        elif "lost command cycle" in msg:
+            self.lost += 1
+        if not self.ready.is_set() and "simulation loop" in msg.lower():
+            self.ready.set()
+            print(f"franka-sim: ready {self.where}", flush=True)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--port", type=int, default=1337)
+    ap.add_argument("--no-enforce", action="store_true",
+                    help="log limit violations instead of aborting the motion")
+    ap.add_argument("--no-gripper", action="store_true")
+    ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    ap.add_argument("--log", default=None, help="franka-sim's own log (default: stderr, warnings only)")
+    args = ap.parse_args()
+    if not os.environ.get("FR3_MJCF"):
+        sys.exit("fr3_sim.py: set FR3_MJCF to the offline FR3 model (bash scripts/franka-env.sh)")
+
+    counter = Counter(args.host, args.port)
+    root = logging.getLogger()
+    root.setLevel(logging.INFO)
+    root.addHandler(counter)
+    sink = logging.FileHandler(args.log) if args.log else logging.StreamHandler(sys.stderr)
+    sink.setLevel(logging.INFO if args.log else logging.WARNING)
+    sink.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root.addHandler(sink)
+
+    from franka_sim.franka_sim_server import FrankaSimServer
+
+    enforce = not args.no_enforce
+    server = FrankaSimServer(host=args.host, port=args.port, enable_gripper=not args.no_gripper,
+                             enforce_comm_constraints=enforce, enforce_motion_limits=enforce)
+    done = threading.Event()
+
+    def stop(*_):
+        done.set()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    runner = threading.Thread(target=server.start, daemon=True)
+    t0 = time.monotonic()
+    runner.start()
+    while not done.wait(0.1):
+        if args.duration is not None and time.monotonic() - t0 > args.duration:
+            break
+        if not runner.is_alive():
+            print("fr3_sim.py: the simulator's server stopped", file=sys.stderr, flush=True)
+            break
+    try:
+        server.stop()
+    except Exception as e:  # report, still print the summary
+        print(f"fr3_sim.py: stop: {e}", file=sys.stderr)
+    print(f"franka-sim summary: reflexes={counter.reflexes} violations={counter.violations} "
+          f"lost_reports={counter.lost} enforced={int(enforce)}", flush=True)
+    for r in counter.reasons:
+        print(f"franka-sim reason: {r}", flush=True)
+    sys.exit(0 if runner.is_alive() or done.is_set() or args.duration else 1)
+
+
+if __name__ == "__main__":
+    main()
