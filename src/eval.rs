@@ -301,6 +301,7 @@ pub fn sweep(
             let max = r.server().map_or(0, |m| m.rtc_prefix_max);
             (Box::new(r), max)
         }
+        PolicySource::Scripted => (Box::new(crate::run::scripted_source(cfg)), usize::MAX),
     };
     if strategies
         .iter()

@@ -47,6 +47,10 @@ pub struct RunArgs {
     /// the policy here (sets `policy.source = "remote"` and `policy.url`).
     #[arg(long, value_name = "URL")]
     pub remote: Option<String>,
+    /// Take the chunks from the scripted test double (`policy.source = "scripted"`, no model):
+    /// smooth motions around the initial pose landing this many ms after their observation.
+    #[arg(long, value_name = "LATENCY_MS", conflicts_with_all = ["remote", "checkpoint"])]
+    pub scripted: Option<f64>,
     /// Run this checkpoint (chunkrt's, openpi's converted to PyTorch, or LeRobot's pi0 / pi05
     /// directory as shipped) instead of `policy.checkpoint`; the kind is the checkpoint's
     /// unless `--policy` says otherwise. `chunkrt inspect DIR` shows what it finds there.
@@ -78,6 +82,9 @@ pub fn load_source(
     cfg: &Config,
     stop: &std::sync::atomic::AtomicBool,
 ) -> anyhow::Result<Option<Box<dyn ChunkSource>>> {
+    if cfg.policy.source == PolicySource::Scripted {
+        return Ok(Some(Box::new(scripted_source(cfg))));
+    }
     if cfg.policy.kind.is_none() {
         return Ok(Some(Box::new(HoldSource)));
     }
@@ -93,6 +100,7 @@ pub fn load_source(
                 PolicySource::Remote => {
                     crate::remote::RemoteSource::connect(&c).map(|s| Box::new(s) as _)
                 }
+                PolicySource::Scripted => Ok(Box::new(scripted_source(&c)) as _),
             };
             let _ = tx.send(source);
         })
@@ -111,6 +119,39 @@ pub fn load_source(
             }
         }
     }
+}
+
+/// The scripted test double for this robot (`policy.source = "scripted"`): each continuous
+/// joint a sinusoid around its initial position (amplitude at most a quarter of its range and
+/// inside it), step joints toggling between their limits' ends.
+pub fn scripted_source(cfg: &Config) -> chunkrt_bench::scripted::ScriptedChunkSource {
+    use chunkrt_bench::scripted::{ScriptedChunkSource, ScriptedConfig};
+    let s = &cfg.policy.scripted;
+    let n = cfg.n_dof().min(chunkrt_ipc::MAX_DOF);
+    let mut c = ScriptedConfig::demo((s.latency_ms * 1e6) as u64, s.jump);
+    c.n_dof = n;
+    c.horizon = s.horizon;
+    c.period_ns = (1e9 / cfg.policy.action_rate_hz).round() as u64;
+    c.step_period_s = s.step_period_s;
+    c.step = [false; chunkrt_ipc::MAX_DOF];
+    c.centre = [0.0; chunkrt_ipc::MAX_DOF];
+    c.amplitude = [0.0; chunkrt_ipc::MAX_DOF];
+    c.frequency = [0.0; chunkrt_ipc::MAX_DOF];
+    for (j, joint) in cfg.robot.joints.iter().enumerate().take(n) {
+        if joint.step {
+            c.step[j] = true;
+            c.step_low[j] = joint.position_min;
+            c.step_high[j] = joint.position_max;
+            continue;
+        }
+        let (lo, hi) = (joint.position_min, joint.position_max);
+        let centre = joint.initial_position.clamp(lo, hi);
+        let room = (centre - lo).min(hi - centre);
+        c.centre[j] = centre;
+        c.amplitude[j] = s.amplitude.min(0.25 * (hi - lo)).min(0.8 * room).max(0.0);
+        c.frequency[j] = s.frequency_hz * (1.0 + 0.15 * j as f64);
+    }
+    ScriptedChunkSource::new(c)
 }
 
 /// `chunkrt run`: the controller until SIGINT / SIGTERM or `--duration`.
@@ -152,6 +193,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         }
         let file = cfg.source.display().to_string();
         cfg.validate(&format!("{file} (with --remote)"))?;
+    }
+    if let Some(latency) = args.scripted {
+        cfg.policy.source = PolicySource::Scripted;
+        cfg.policy.scripted.latency_ms = latency;
+        let file = cfg.source.display().to_string();
+        cfg.validate(&format!("{file} (with --scripted)"))?;
     }
     let stop_flag = chunkrt_tools::shutdown::flag();
     tracing::info!(

@@ -34,6 +34,9 @@ pub struct ScriptedConfig {
     pub step: [bool; MAX_DOF],
     /// Period of the step channels' toggling (s).
     pub step_period_s: f64,
+    /// The two values a step channel toggles between (default 0 and 1).
+    pub step_low: [f64; MAX_DOF],
+    pub step_high: [f64; MAX_DOF],
     /// Centre, amplitude (rad) and frequency (Hz) of each joint's sinusoid.
     pub centre: [f64; MAX_DOF],
     pub amplitude: [f64; MAX_DOF],
@@ -55,6 +58,8 @@ impl ScriptedConfig {
             jump,
             step: [false; MAX_DOF],
             step_period_s: 1.3,
+            step_low: [0.0; MAX_DOF],
+            step_high: [1.0; MAX_DOF],
             centre: [0.0; MAX_DOF],
             amplitude: [0.0; MAX_DOF],
             frequency: [0.0; MAX_DOF],
@@ -95,9 +100,9 @@ impl ScriptedChunkSource {
         let t = t_ns as f64 * 1e-9;
         if self.cfg.step[j] {
             if (t / self.cfg.step_period_s).floor() as i64 % 2 == 0 {
-                0.0
+                self.cfg.step_low[j]
             } else {
-                1.0
+                self.cfg.step_high[j]
             }
         } else {
             self.cfg.centre[j]

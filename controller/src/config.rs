@@ -50,7 +50,65 @@ chunkrt_ipc::config_enum! {
         /// An openpi-protocol server on another machine (`policy.url`): `chunkrt serve`,
         /// openpi's `serve_policy.py`, SGLang, vLLM-Omni.
         Remote = "remote",
+        /// A **test double**, no model: chunks of a known smooth trajectory around each joint's
+        /// `initial_position`, landing `[policy.scripted] latency_ms` after their observation
+        /// (`chunkrt run --scripted`): for bringing a robot up and for the tests.
+        Scripted = "scripted",
     }
+}
+
+/// `[policy.scripted]`: the scripted test double's chunks.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ScriptedSettings {
+    /// Observation → chunk ready (ms): the delay a real policy's inference would add.
+    #[serde(default = "default_scripted_latency_ms")]
+    pub latency_ms: f64,
+    /// Amplitude of each joint's sinusoid around its initial position (rad; at most a quarter
+    /// of the joint's range).
+    #[serde(default = "default_scripted_amplitude")]
+    pub amplitude: f64,
+    /// Frequency of joint 1's sinusoid (Hz; each next joint's 15 % higher).
+    #[serde(default = "default_scripted_frequency_hz")]
+    pub frequency_hz: f64,
+    /// Consecutive chunks disagree by ±this much (rad): what a chunk switch must absorb.
+    #[serde(default)]
+    pub jump: f64,
+    /// Actions per chunk.
+    #[serde(default = "default_scripted_horizon")]
+    pub horizon: usize,
+    /// Step channels (a gripper) toggle every this many seconds.
+    #[serde(default = "default_scripted_step_period_s")]
+    pub step_period_s: f64,
+}
+
+impl Default for ScriptedSettings {
+    fn default() -> Self {
+        Self {
+            latency_ms: default_scripted_latency_ms(),
+            amplitude: default_scripted_amplitude(),
+            frequency_hz: default_scripted_frequency_hz(),
+            jump: 0.0,
+            horizon: default_scripted_horizon(),
+            step_period_s: default_scripted_step_period_s(),
+        }
+    }
+}
+
+fn default_scripted_latency_ms() -> f64 {
+    50.0
+}
+fn default_scripted_amplitude() -> f64 {
+    0.15
+}
+fn default_scripted_frequency_hz() -> f64 {
+    0.2
+}
+fn default_scripted_horizon() -> usize {
+    50
+}
+fn default_scripted_step_period_s() -> f64 {
+    2.0
 }
 
 /// `policy.kind`: `"hold"` (no policy: the controller holds the robot where it is; the
@@ -126,6 +184,9 @@ pub struct PolicyConfig {
     /// (a padded 32-dim reply) is cut to the robot's; off, such a reply is an error.
     #[serde(default)]
     pub truncate_actions: bool,
+    /// `source = "scripted"`: the test double's chunks.
+    #[serde(default)]
+    pub scripted: ScriptedSettings,
 }
 
 fn default_steps() -> usize {
@@ -160,6 +221,7 @@ impl Default for PolicyConfig {
             api_key: None,
             connect_timeout_ms: default_connect_timeout_ms(),
             truncate_actions: false,
+            scripted: ScriptedSettings::default(),
         }
     }
 }
@@ -412,6 +474,20 @@ impl Config {
         let c = Checker { file };
         chunkrt_ipc::config::validate_shared(&self.robot, &self.control, &self.cameras, &c)?;
         let p = &self.policy;
+        if p.source == PolicySource::Scripted {
+            let sc = &p.scripted;
+            c.range("policy.scripted.latency_ms", sc.latency_ms, 0.0, 60_000.0)?;
+            c.range("policy.scripted.amplitude", sc.amplitude, 0.0, 10.0)?;
+            c.range("policy.scripted.frequency_hz", sc.frequency_hz, 0.0, 100.0)?;
+            c.range("policy.scripted.jump", sc.jump, 0.0, 10.0)?;
+            c.range("policy.scripted.horizon", sc.horizon as f64, 1.0, 1000.0)?;
+            c.range(
+                "policy.scripted.step_period_s",
+                sc.step_period_s,
+                0.01,
+                3600.0,
+            )?;
+        }
         if p.kind.is_some() && p.source == PolicySource::Local && p.checkpoint.is_none() {
             return Err(c.fail(
                 "policy.checkpoint",

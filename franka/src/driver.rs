@@ -105,6 +105,9 @@ pub struct Summary {
     pub late: u64,
     /// Cycles of a stop to rest (no live command).
     pub braking: u64,
+    /// Robot cycles that passed without an answer from this driver (the robot continued the
+    /// motion on its own).
+    pub missed: u64,
     /// Cycles at rest without a command.
     pub rest: u64,
     /// Cycles whose command the controller answered within the budget.
@@ -124,6 +127,8 @@ pub struct Summary {
     pub commands: [u64; 5],
     /// Hand moves commanded.
     pub gripper_moves: u64,
+    /// Why the guard acted on a fresh command, by limit ([`crate::guard::Broken`]).
+    pub guard_acted: [u64; 5],
 }
 
 impl std::fmt::Display for Summary {
@@ -131,16 +136,17 @@ impl std::fmt::Display for Summary {
         write!(
             f,
             "franka summary: cycles={} states_published={} fresh={} clamped={} late={} \
-             braking={} rest={} answered={} motions={} reflexes={} success_rate_min={:.4} \
+             braking={} missed={} rest={} answered={} motions={} reflexes={} success_rate_min={:.4} \
              round_trip_p50_us={:.1} round_trip_p99_us={:.1} round_trip_max_us={:.1} \
              commands_applied={} commands_expired={} commands_rejected={} commands_unbound={} \
-             commands_far={} gripper_moves={} reflex_errors={}",
+             commands_far={} gripper_moves={} guard_acted={} reflex_errors={}",
             self.cycles,
             self.states_published,
             self.fresh,
             self.clamped,
             self.late,
             self.braking,
+            self.missed,
             self.rest,
             self.answered,
             self.motions,
@@ -155,6 +161,19 @@ impl std::fmt::Display for Summary {
             self.commands[3],
             self.commands[4],
             self.gripper_moves,
+            {
+                let v: Vec<String> = crate::guard::Broken::NAMES
+                    .iter()
+                    .zip(self.guard_acted)
+                    .filter(|(_, n)| *n > 0)
+                    .map(|(name, n)| format!("{name}:{n}"))
+                    .collect();
+                if v.is_empty() {
+                    "none".to_string()
+                } else {
+                    v.join(",")
+                }
+            },
             if self.reflex_errors.is_empty() {
                 "none"
             } else {
@@ -216,10 +235,21 @@ impl Core {
         self.s.motions += 1;
     }
 
-    /// One FCI cycle: the state out, the controller's answer in, the command back.
-    fn cycle(&mut self, st: &RobotState) -> JointPositions {
+    /// One FCI cycle, `elapsed` robot cycles after the last (1; more when the robot went on
+    /// without an answer): the state out, the controller's answer in, the command back.
+    fn cycle(&mut self, st: &RobotState, elapsed: u64) -> JointPositions {
         let now = monotonic_ns();
         self.s.cycles += 1;
+        // cycles the robot ran on its own: it continued the last command at constant
+        // acceleration (the FCI's rule for a lost packet), and judges the next one against that
+        for _ in 1..elapsed.min(20) {
+            let mut q = self.last.q;
+            for (j, q) in q.iter_mut().enumerate() {
+                *q += (self.last.dq[j] + self.last.ddq[j] * CYCLE_S) * CYCLE_S;
+            }
+            self.last = Motion::after(&self.last, &q, CYCLE_S);
+            self.s.missed += 1;
+        }
         self.motion_cycles += 1;
         if self.motion_cycles > 100 {
             self.s.success_rate_min = self.s.success_rate_min.min(st.control_command_success_rate);
@@ -232,8 +262,9 @@ impl Core {
             measured[JOINTS] = if width.is_finite() { width } else { 0.0 };
         }
 
-        // the state out, then the event the robot-clocked controller waits on
-        self.seq += 1;
+        // the state out, then the event the robot-clocked controller waits on; its seq counts
+        // robot cycles, so that the controller advances as many
+        self.seq += elapsed.clamp(1, 20);
         let seq = self.seq;
         let mut flags = self.intake.flags(now);
         if st.robot_mode == RobotMode::Reflex || st.current_errors.any() {
@@ -297,7 +328,9 @@ impl Core {
         };
         let mut clamped = false;
         let next = match live {
-            Some(c) if c.seq != self.last_cmd_seq => {
+            // the answer to this cycle's state; an answer to an earlier one comes too late (its
+            // cycle was already continued) and would move the arm back
+            Some(c) if c.seq != self.last_cmd_seq && c.state_seq == seq => {
                 self.last_cmd_seq = c.seq;
                 self.late_run = 0;
                 self.s.fresh += 1;
@@ -306,13 +339,14 @@ impl Core {
                         .target
                         .store(c.position[JOINTS].to_bits(), Ordering::Relaxed);
                 }
-                let (mut q, mut v) = ([0.0; JOINTS], [0.0; JOINTS]);
+                let (mut q, mut v, mut a) = ([0.0; JOINTS], [0.0; JOINTS], [0.0; JOINTS]);
                 q.copy_from_slice(&c.position[..JOINTS]);
                 v.copy_from_slice(&c.velocity[..JOINTS]);
+                a.copy_from_slice(&c.acceleration[..JOINTS]);
                 if self.no_guard {
                     Motion::after(&self.last, &q, CYCLE_S)
                 } else {
-                    let (m, c) = self.guard.follow(&self.last, &q, &v);
+                    let (m, c) = self.guard.follow(&self.last, &q, &v, &a);
                     clamped = c;
                     m
                 }
@@ -533,7 +567,7 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         }
         core.begin_motion(state.q);
         let r = robot.control_joint_positions(
-            |st, _dt| core.cycle(st),
+            |st, dt| core.cycle(st, dt.as_millis().max(1)),
             ControllerMode::JointImpedance,
             false,
             MAX_CUTOFF_FREQUENCY,
@@ -592,6 +626,7 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         c.commands_far,
     ];
     core.s.gripper_moves = hand.moves.load(Ordering::Relaxed);
+    core.s.guard_acted = core.guard.acted;
     if let (Some(path), Some(rec)) = (&args.record, &core.record) {
         let mut text = String::with_capacity(rec.len() * 7 * 20);
         for q in rec {
