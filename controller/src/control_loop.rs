@@ -216,9 +216,10 @@ impl ControlLoop {
         let newest_seq = self.js.latest().map_or(0, |s| s.seq);
         if self.command_event.is_some() {
             // on the robot's clock: advance by the robot cycles since the last tick (1 when
-            // every state got its tick; a new robot, whose seq restarts, counts 1)
+            // every state got its tick; a new robot, whose seq restarts, counts 1; none on a
+            // timer tick while the robot is quiet: it did not move on, neither does the motion)
             let behind = newest_seq.wrapping_sub(self.answered_seq);
-            let cycles = if self.answered_seq == 0 || behind == 0 || behind > 50 {
+            let cycles = if self.answered_seq == 0 || behind > 50 {
                 1
             } else {
                 behind as u32

@@ -33,6 +33,7 @@ use crate::conditioning::Conditioner;
 use crate::config::{Config, Strategy};
 use crate::contract::{ChunkSource, InferenceRequest, Observation};
 use crate::inference::next_chunk_id;
+use chunkrt_openpi::ActionSpace;
 
 /// The first reconnection delay, doubled after every failed attempt up to [`BACKOFF_MAX`].
 const BACKOFF_START: Duration = Duration::from_millis(100);
@@ -66,6 +67,60 @@ pub struct RemoteSource {
     writer: Writer,
     pixels: Vec<Vec<u8>>,
     connects: u64,
+    /// DROID's robot environment (`[openpi] action_space = "droid_joint_velocity"`).
+    droid: Option<Droid>,
+    /// The state sent with the last request (DROID: the gripper as DROID reports it); the
+    /// velocity actions are integrated from its joints.
+    sent_state: Vec<f64>,
+}
+
+/// How DROID's robot environment turns its actions into robot motion, as chunkrt executes it
+/// (`ActionSpace::DroidJointVelocity`): the last joint is the gripper, its range the hand's
+/// opening (width at `open`, closed at `closed`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Droid {
+    /// Rad per full-scale velocity action.
+    pub max_joint_delta: f64,
+    /// The gripper channel's value when open (the hand's full width) and closed.
+    pub open: f64,
+    /// The gripper channel's value when closed.
+    pub closed: f64,
+}
+
+impl Droid {
+    /// The gripper's state as DROID reports it: 0 open, 1 closed.
+    pub fn gripper_state(&self, width: f64) -> f64 {
+        ((self.open - width) / (self.open - self.closed)).clamp(0.0, 1.0)
+    }
+
+    /// The server's chunk (`rows` of `n` values: the joints' velocities in [-1, 1], then the
+    /// gripper's position in [0, 1]) as positions from `state` (the joints as the observation
+    /// saw them): DROID's robot environment sets each step's target to where the arm is plus
+    /// `max_joint_delta` × the clipped velocity (droid/franka/robot.py); chunkrt makes the whole
+    /// chunk at once, each step from the one before (what DROID computes when the arm reaches
+    /// each target within its step), and binarises the gripper at 0.5 as openpi's DROID client
+    /// does (examples/droid/main.py): closed above, open otherwise.
+    pub fn positions(&self, state: &[f64], rows: &mut [f64], n: usize) {
+        let joints = n.saturating_sub(1);
+        let mut q: [f64; chunkrt_ipc::MAX_DOF] = [0.0; chunkrt_ipc::MAX_DOF];
+        q[..joints].copy_from_slice(&state[..joints]);
+        for row in rows.chunks_exact_mut(n) {
+            for (a, q) in row[..joints].iter_mut().zip(q.iter_mut()) {
+                let v = if a.is_finite() {
+                    a.clamp(-1.0, 1.0)
+                } else {
+                    0.0
+                };
+                *q += self.max_joint_delta * v;
+                *a = *q;
+            }
+            row[joints] = if row[joints] > 0.5 {
+                self.closed
+            } else {
+                self.open
+            };
+        }
+    }
 }
 
 /// How the state is split over a layout's state keys: the last keys carry one value each (a
@@ -94,6 +149,25 @@ impl RemoteSource {
         client_cfg.reply_timeout =
             Duration::from_secs_f64(cfg.execution.inference_timeout_ms / 1e3);
         let layout = Layout::from_config(&cfg.openpi).map_err(anyhow::Error::msg)?;
+        let droid = match layout.action_space {
+            ActionSpace::JointPosition => None,
+            ActionSpace::DroidJointVelocity => {
+                let g = cfg
+                    .robot
+                    .joints
+                    .last()
+                    .filter(|g| g.step && cfg.robot.joints.len() >= 2)
+                    .context(
+                        "openpi.action_space = \"droid_joint_velocity\" needs the gripper as the \
+                         robot's last joint, a step channel (its range the hand's opening)",
+                    )?;
+                Some(Droid {
+                    max_joint_delta: layout.max_joint_delta,
+                    open: g.position_max,
+                    closed: g.position_min,
+                })
+            }
+        };
         let mut me = Self {
             client_cfg,
             layout,
@@ -116,6 +190,8 @@ impl RemoteSource {
             writer: Writer::new(),
             pixels: Vec::new(),
             connects: 0,
+            droid,
+            sent_state: Vec::with_capacity(chunkrt_ipc::MAX_DOF),
         };
         me.reconnect()
             .with_context(|| format!("policy.url = {url:?}"))?;
@@ -332,11 +408,16 @@ impl RemoteSource {
             );
         }
         let split = state_split(self.layout.state.len(), ask.state.len());
+        self.sent_state.clear();
+        self.sent_state.extend_from_slice(ask.state);
+        if let (Some(d), Some(g)) = (&self.droid, self.sent_state.last_mut()) {
+            *g = d.gripper_state(*g);
+        }
         let chunkrt = self.server.is_some();
         self.writer.clear();
         Outgoing {
             images: &images,
-            state: ask.state,
+            state: &self.sent_state,
             state_split: &split,
             prompt: &self.prompt,
             guidance,
@@ -438,6 +519,13 @@ impl ChunkSource for RemoteSource {
         for row in reply.actions.chunks_exact(reply.dims) {
             actions.extend_from_slice(&row[..n]);
         }
+        if let Some(d) = &self.droid {
+            anyhow::ensure!(
+                self.sent_state.len() >= n,
+                "no state was sent for the chunk's joints"
+            );
+            d.positions(&self.sent_state, &mut actions, n);
+        }
         let chunk = ActionChunk {
             id: next_chunk_id(),
             observation_seq: obs.joint_state.seq,
@@ -456,6 +544,27 @@ impl ChunkSource for RemoteSource {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn droid_velocities_become_positions_and_the_gripper_is_binarised() {
+        let d = Droid {
+            max_joint_delta: 0.2,
+            open: 0.08,
+            closed: 0.0,
+        };
+        // the hand half open reports 0.5 closed; fully open 0, closed 1
+        assert_eq!(d.gripper_state(0.04), 0.5);
+        assert_eq!(d.gripper_state(0.08), 0.0);
+        assert_eq!(d.gripper_state(0.0), 1.0);
+        // 2 joints + gripper, 3 steps: full, half, clipped past 1; gripper 0.49 / 0.51 / NaN
+        let state = [1.0, -1.0, 0.0];
+        let mut rows = vec![1.0, -0.5, 0.49, 0.5, 0.0, 0.51, 2.0, f64::NAN, f64::NAN];
+        d.positions(&state, &mut rows, 3);
+        let want = [1.2, -1.1, 0.08, 1.3, -1.1, 0.0, 1.5, -1.1, 0.08];
+        for (g, w) in rows.iter().zip(want) {
+            assert!((g - w).abs() < 1e-12, "{rows:?}");
+        }
+    }
 
     #[test]
     fn the_state_splits_with_the_grippers_last() {

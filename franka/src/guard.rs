@@ -58,11 +58,11 @@ impl Motion {
     /// The motion that reaches `q` one cycle of `dt` after `prev`, as the robot differences it.
     pub fn after(prev: &Motion, q: &[f64; JOINTS], dt: f64) -> Motion {
         let mut m = *prev;
-        for j in 0..JOINTS {
-            let v = (q[j] - prev.q[j]) / dt;
+        for (j, &q) in q.iter().enumerate() {
+            let v = (q - prev.q[j]) / dt;
             m.ddq[j] = (v - prev.dq[j]) / dt;
             m.dq[j] = v;
-            m.q[j] = q[j];
+            m.q[j] = q;
         }
         m
     }
@@ -160,18 +160,18 @@ impl GuardLimits {
         let v = (q - prev.q[j]) / dt;
         let a = (v - prev.dq[j]) / dt;
         let jerk = (a - prev.ddq[j]) / dt;
+        // the velocity inside the envelope, and an acceleration from which it can stay inside
+        // under the jerk limit (the band every path keeps to, so that a later one can always
+        // continue)
+        let (lo, hi) = self.band(j, prev.q[j], v);
+        let velocity_ok = (self.lower(j, prev.q[j])..=self.upper(j, prev.q[j])).contains(&v)
+            && a <= hi + 1e-9
+            && a >= lo - 1e-9;
         if !q.is_finite() {
             Some(Broken::NotFinite)
         } else if !((self.q_min[j]..=self.q_max[j]).contains(&q) || (q - prev.q[j]).abs() < 1e-12) {
             Some(Broken::Position)
-        } else if !(self.lower(j, prev.q[j])..=self.upper(j, prev.q[j])).contains(&v) {
-            Some(Broken::Velocity)
-        } else if {
-            // the velocity can still be kept inside the envelope from here under the jerk limit
-            // (the band every path keeps to, so that a later one can always continue)
-            let (lo, hi) = self.band(j, prev.q[j], v);
-            a > hi + 1e-9 || a < lo - 1e-9
-        } {
+        } else if !velocity_ok {
             Some(Broken::Velocity)
         } else if a.abs() > self.ddq {
             Some(Broken::Acceleration)
@@ -267,8 +267,8 @@ impl Guard {
             synchronization: 3,
             ..OtgInput::default()
         };
-        for j in 0..JOINTS {
-            offset_in.max_velocity[j] = DQ_MAX[j] * OFFSET_VELOCITY;
+        for (j, vmax) in DQ_MAX.iter().enumerate() {
+            offset_in.max_velocity[j] = vmax * OFFSET_VELOCITY;
             offset_in.max_acceleration[j] = DDQ_MAX * OFFSET_ACCELERATION;
             offset_in.max_jerk[j] = DDDQ_MAX * OFFSET_JERK;
         }

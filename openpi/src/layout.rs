@@ -122,7 +122,35 @@ pub struct LayoutConfig {
     /// camera). Replaces the preset's list when given.
     #[serde(default)]
     pub optional_images: Option<Vec<String>>,
+    /// What the server's actions mean for the robot (a client's choice: the robot environment
+    /// the checkpoint was trained with). Default `joint_position`.
+    #[serde(default)]
+    pub action_space: ActionSpace,
+    /// With `action_space = "droid_joint_velocity"`: the position step of a full-scale velocity
+    /// action (rad; DROID's `max_joint_delta`, 0.2).
+    #[serde(default)]
+    pub max_joint_delta: Option<f64>,
 }
+
+/// `[openpi] action_space`: what the server's actions mean for the robot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ActionSpace {
+    /// Absolute joint positions, the robot's joints in order (openpi's ALOHA and LIBERO
+    /// clients after their output transforms; chunkrt's own checkpoints).
+    #[default]
+    JointPosition,
+    /// DROID's robot environment (`RobotEnv(action_space="joint_velocity",
+    /// gripper_action_space="position")`, which openpi's DROID client drives): 7 joint
+    /// velocities in [-1, 1], each a step of `max_joint_delta` (0.2 rad) at full scale from where
+    /// the arm is (droid/franka/robot.py, `create_action_dict`; droid/robot_ik/robot_ik_solver.py),
+    /// and the gripper's position in [0, 1] (1 closed), binarised at 0.5 (openpi's
+    /// examples/droid/main.py). The state sent carries the gripper the same way (1 closed).
+    DroidJointVelocity,
+}
+
+/// DROID's `max_joint_delta` (droid/robot_ik/robot_ik_solver.py): rad per full-scale action.
+pub const DROID_MAX_JOINT_DELTA: f64 = 0.2;
 
 /// The resolved layout.
 #[derive(Debug, Clone, PartialEq)]
@@ -139,6 +167,10 @@ pub struct Layout {
     pub chw: bool,
     /// Image inputs a request may leave out.
     pub optional: Vec<String>,
+    /// What the actions mean for the robot.
+    pub action_space: ActionSpace,
+    /// `DroidJointVelocity`: rad per full-scale velocity action.
+    pub max_joint_delta: f64,
 }
 
 fn key(k: &str) -> KeyPath {
@@ -165,6 +197,8 @@ impl Layout {
                 prompt: key("prompt"),
                 chw: false,
                 optional: vec![],
+                action_space: ActionSpace::JointPosition,
+                max_joint_delta: DROID_MAX_JOINT_DELTA,
             },
             Preset::Libero => Layout {
                 preset: p,
@@ -176,6 +210,8 @@ impl Layout {
                 prompt: key("prompt"),
                 chw: false,
                 optional: vec![],
+                action_space: ActionSpace::JointPosition,
+                max_joint_delta: DROID_MAX_JOINT_DELTA,
             },
             Preset::Aloha => Layout {
                 preset: p,
@@ -189,6 +225,8 @@ impl Layout {
                 chw: true,
                 // openpi's ALOHA input transform needs only cam_high
                 optional: vec!["left_wrist_0_rgb".into(), "right_wrist_0_rgb".into()],
+                action_space: ActionSpace::JointPosition,
+                max_joint_delta: DROID_MAX_JOINT_DELTA,
             },
             Preset::Droid => Layout {
                 preset: p,
@@ -203,6 +241,8 @@ impl Layout {
                 prompt: key("prompt"),
                 chw: false,
                 optional: vec![],
+                action_space: ActionSpace::JointPosition,
+                max_joint_delta: DROID_MAX_JOINT_DELTA,
             },
         }
     }
@@ -227,6 +267,15 @@ impl Layout {
         }
         if let Some(o) = &c.optional_images {
             l.optional = o.clone();
+        }
+        l.action_space = c.action_space;
+        if let Some(d) = c.max_joint_delta {
+            if !(d.is_finite() && d > 0.0 && d <= 1.0) {
+                return Err(format!(
+                    "openpi.max_joint_delta {d}: must be within (0, 1] rad"
+                ));
+            }
+            l.max_joint_delta = d;
         }
         for k in l
             .images

@@ -23,7 +23,7 @@ pub mod msgpack;
 pub mod server;
 
 pub use client::{Client, ClientConfig, ClientError};
-pub use layout::{KeyPath, Layout, LayoutConfig, Preset};
+pub use layout::{ActionSpace, KeyPath, Layout, LayoutConfig, Preset, DROID_MAX_JOINT_DELTA};
 pub use message::{ChunkrtMetadata, Image, ImageRef, Outgoing, Reply, Request, RequestError};
 pub use msgpack::{decode, DType, Limits, NdArray, Value, Writer};
 pub use server::{Failure, Server, ServerConfig, ServerStats};

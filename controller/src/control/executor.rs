@@ -221,11 +221,12 @@ impl Executor {
         self.command_publisher = Some(id);
     }
 
-    /// The next tick advances the generator by `cycles` control periods (1..=50): on a robot's
+    /// The next tick advances the generator by `cycles` control periods (0..=50): on a robot's
     /// clock, the cycles the robot ran since the last tick, so that a tick that missed one
-    /// continues where the robot is in time instead of a period behind. No allocation.
+    /// continues where the robot is in time instead of a period behind, and a tick while the
+    /// robot is quiet does not advance at all. No allocation.
     pub fn set_cycles(&mut self, cycles: u32) {
-        self.cycles = cycles.clamp(1, 50);
+        self.cycles = cycles.min(50);
     }
 
     /// Runs without a chunk source (`policy.kind = "hold"`): waiting for a chunk in STARTING is
