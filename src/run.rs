@@ -132,6 +132,7 @@ pub fn scripted_source(cfg: &Config) -> chunkrt_bench::scripted::ScriptedChunkSo
     c.n_dof = n;
     c.horizon = s.horizon;
     c.period_ns = (1e9 / cfg.policy.action_rate_hz).round() as u64;
+    c.latency_cycle_ns = s.delays.iter().map(|&d| d as u64 * c.period_ns).collect();
     c.step_period_s = s.step_period_s;
     c.step = [false; chunkrt_ipc::MAX_DOF];
     c.centre = [0.0; chunkrt_ipc::MAX_DOF];

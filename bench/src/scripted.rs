@@ -28,6 +28,9 @@ pub struct ScriptedConfig {
     pub period_ns: u64,
     /// Observation → chunk ready (ns).
     pub latency_ns: u64,
+    /// When not empty: chunk i lands after `latency_cycle_ns[i % len]` instead (a sweep of
+    /// delays in one run).
+    pub latency_cycle_ns: Vec<u64>,
     /// Bias of chunk c is `(-1)^c · jump` (rad) on every continuous joint.
     pub jump: f64,
     /// Joints that are step channels (toggle 0/1 every `step_period_s`).
@@ -55,6 +58,7 @@ impl ScriptedConfig {
             horizon: 50,
             period_ns: 20_000_000,
             latency_ns,
+            latency_cycle_ns: Vec::new(),
             jump,
             step: [false; MAX_DOF],
             step_period_s: 1.3,
@@ -173,7 +177,11 @@ impl ScriptedChunkSource {
             period_ns: p,
             n_dof: n,
             actions,
-            ready_ns: t_obs + self.cfg.latency_ns,
+            ready_ns: t_obs
+                + match self.cfg.latency_cycle_ns.len() {
+                    0 => self.cfg.latency_ns,
+                    n => self.cfg.latency_cycle_ns[(id as usize - 1) % n],
+                },
             start_shift_ns: 0,
         })
     }

@@ -64,6 +64,10 @@ pub struct ScriptedSettings {
     /// Observation → chunk ready (ms): the delay a real policy's inference would add.
     #[serde(default = "default_scripted_latency_ms")]
     pub latency_ms: f64,
+    /// When not empty: the chunks land after these many action periods in turn (a sweep of
+    /// delays in one run; `latency_ms` is then unused).
+    #[serde(default)]
+    pub delays: Vec<u32>,
     /// Amplitude of each joint's sinusoid around its initial position (rad; at most a quarter
     /// of the joint's range).
     #[serde(default = "default_scripted_amplitude")]
@@ -86,6 +90,7 @@ impl Default for ScriptedSettings {
     fn default() -> Self {
         Self {
             latency_ms: default_scripted_latency_ms(),
+            delays: Vec::new(),
             amplitude: default_scripted_amplitude(),
             frequency_hz: default_scripted_frequency_hz(),
             jump: 0.0,

@@ -79,6 +79,9 @@ pub struct Args {
     /// End at the first reflex instead of recovering and starting a new motion.
     #[arg(long)]
     pub stop_on_reflex: bool,
+    /// Wait up to this long for the robot to accept the first connection (s; 0: fail at once).
+    #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
+    pub wait_for_robot: f64,
 }
 
 /// `--realtime`.
@@ -121,12 +124,18 @@ pub struct Summary {
     /// Lowest `control_command_success_rate` the robot reported during a motion (after its
     /// first 100 cycles).
     pub success_rate_min: f64,
+    /// Its mean over the same cycles.
+    pub success_rate_mean: f64,
+    /// Connections made again after the robot went away.
+    pub reconnects: u64,
     /// Round trip state published → answering command received (µs).
     pub round_trip_us: [f64; 3],
     /// Commands: accepted, expired, rejected, unbound, far.
     pub commands: [u64; 5],
     /// Hand moves commanded.
     pub gripper_moves: u64,
+    /// Largest |commanded − measured| joint position while following fresh commands (rad).
+    pub max_tracking_error: f64,
     /// Why the guard acted on a fresh command, by limit ([`crate::guard::Broken`]).
     pub guard_acted: [u64; 5],
 }
@@ -136,10 +145,12 @@ impl std::fmt::Display for Summary {
         write!(
             f,
             "franka summary: cycles={} states_published={} fresh={} clamped={} late={} \
-             braking={} missed={} rest={} answered={} motions={} reflexes={} success_rate_min={:.4} \
+             braking={} missed={} rest={} answered={} motions={} reconnects={} reflexes={} \
+             success_rate_min={:.4} success_rate_mean={:.5} \
              round_trip_p50_us={:.1} round_trip_p99_us={:.1} round_trip_max_us={:.1} \
              commands_applied={} commands_expired={} commands_rejected={} commands_unbound={} \
-             commands_far={} gripper_moves={} guard_acted={} reflex_errors={}",
+             commands_far={} gripper_moves={} max_tracking_error={:.5} guard_acted={} \
+             reflex_errors={}",
             self.cycles,
             self.states_published,
             self.fresh,
@@ -150,8 +161,10 @@ impl std::fmt::Display for Summary {
             self.rest,
             self.answered,
             self.motions,
+            self.reconnects,
             self.reflexes,
             self.success_rate_min,
+            self.success_rate_mean,
             self.round_trip_us[0],
             self.round_trip_us[1],
             self.round_trip_us[2],
@@ -161,6 +174,7 @@ impl std::fmt::Display for Summary {
             self.commands[3],
             self.commands[4],
             self.gripper_moves,
+            self.max_tracking_error,
             {
                 let v: Vec<String> = crate::guard::Broken::NAMES
                     .iter()
@@ -181,6 +195,25 @@ impl std::fmt::Display for Summary {
             },
         )
     }
+}
+
+/// Connects to the FR3 at `addr` and checks that it is one (FCI version 10).
+fn connect(addr: &str, realtime: RealtimeConfig) -> anyhow::Result<Robot> {
+    let robot = Robot::new(addr, realtime).map_err(|e| {
+        anyhow::anyhow!(
+            "franka: cannot connect to the robot at {addr}: {e} (a real arm: FCI enabled in Desk, \
+             the brakes open, this PC on its network; the simulator: is it running on that \
+             address?)"
+        )
+    })?;
+    let version = robot.server_version();
+    anyhow::ensure!(
+        version == 10,
+        "franka: the robot at {addr} speaks FCI version {version}: this driver keeps the FR3's \
+         limits (FCI 10); an FER / Panda (FCI 5) has other limits and is not supported"
+    );
+    tracing::info!("franka: connected to the FR3 at {addr} (FCI {version})");
+    Ok(robot)
 }
 
 /// Runs until SIGINT / SIGTERM or `--duration`; prints the [`Summary`] on stdout.
@@ -222,6 +255,8 @@ struct Core {
     hand: Arc<Hand>,
     round_trip: Histogram<u64>,
     record: Option<Vec<[f64; JOINTS]>>,
+    rate_sum: f64,
+    rate_n: u64,
     s: Summary,
 }
 
@@ -252,7 +287,10 @@ impl Core {
         }
         self.motion_cycles += 1;
         if self.motion_cycles > 100 {
-            self.s.success_rate_min = self.s.success_rate_min.min(st.control_command_success_rate);
+            let r = st.control_command_success_rate;
+            self.s.success_rate_min = self.s.success_rate_min.min(r);
+            self.rate_sum += r;
+            self.rate_n += 1;
         }
         let stopping = self.stop.load(Ordering::Relaxed) || now >= self.end_ns;
         let width = f64::from_bits(self.hand.width.load(Ordering::Relaxed));
@@ -367,6 +405,14 @@ impl Core {
             }
         };
         self.s.clamped += clamped as u64;
+        if self.last_cmd_seq != 0 && live.is_some() {
+            for j in 0..JOINTS {
+                let e = (self.last.q[j] - st.q[j]).abs();
+                if e > self.s.max_tracking_error {
+                    self.s.max_tracking_error = e;
+                }
+            }
+        }
         self.clamped_last = clamped;
         self.last = next;
         if let Some(r) = &mut self.record {
@@ -427,26 +473,26 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         Realtime::Enforce => RealtimeConfig::Enforce,
         Realtime::Ignore => RealtimeConfig::Ignore,
     };
-    let robot = Robot::new(&args.robot, realtime).map_err(|e| {
-        anyhow::anyhow!(
-            "franka: cannot connect to the robot at {}: {e} (a real arm: FCI enabled in Desk, \
-             the brakes open, this PC on its network; the simulator: is it running on that \
-             address?)",
-            args.robot
-        )
-    })?;
-    let version = robot.server_version();
+    // the first connection must succeed (a wrong address, FCI off, a wrong model: said at once,
+    // or after --wait-for-robot)
     anyhow::ensure!(
-        version == 10,
-        "franka: the robot at {} speaks FCI version {version}: this driver keeps the FR3's \
-         limits (FCI 10); an FER / Panda (FCI 5) has other limits and is not supported",
-        args.robot
+        args.wait_for_robot.is_finite() && (0.0..=3600.0).contains(&args.wait_for_robot),
+        "--wait-for-robot {}: must be within 0..=3600 s",
+        args.wait_for_robot
     );
-    tracing::info!(
-        "franka: connected to the FR3 at {} (FCI {version})",
-        args.robot
-    );
-
+    let until = std::time::Instant::now() + Duration::from_secs_f64(args.wait_for_robot);
+    let mut robot = loop {
+        match connect(&args.robot, realtime) {
+            Ok(r) => break Some(r),
+            Err(e) if e.to_string().contains("FCI version") => return Err(e),
+            Err(e) => {
+                if std::time::Instant::now() >= until || stop.load(Ordering::Relaxed) {
+                    return Err(e);
+                }
+                std::thread::sleep(Duration::from_millis(200));
+            }
+        }
+    };
     let node = open_node("chunkrt-franka")?;
     let state_name = ns.joint_state();
     let cmd_name = ns.joint_command();
@@ -471,12 +517,14 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         Some(addr) => {
             let hand = hand.clone();
             let gripper = Gripper::new(&addr).map_err(|e| {
-                anyhow::anyhow!("franka: cannot connect to the hand at {addr}: {e} (--gripper none: without it)")
+                anyhow::anyhow!(
+                    "franka: cannot connect to the hand at {addr}: {e} (--gripper none: without it)"
+                )
             })?;
             Some(
                 std::thread::Builder::new()
                     .name("franka-hand".into())
-                    .spawn(move || hand_loop(&gripper, &hand, stop))
+                    .spawn(move || hand_loop(&addr, gripper, &hand, stop))
                     .context("franka: hand thread")?,
             )
         }
@@ -533,6 +581,8 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         round_trip: Histogram::new_with_bounds(1, 10_000_000_000, 3)
             .expect("constant histogram bounds are valid"),
         record,
+        rate_sum: 0.0,
+        rate_n: 0,
         s: Summary {
             success_rate_min: 1.0,
             ..Summary::default()
@@ -547,11 +597,25 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
 
     let mut failure = None;
     while !stop.load(Ordering::Relaxed) && monotonic_ns() < end_ns {
-        let state = match robot.read_once() {
+        let Some(r) = robot.as_ref() else {
+            // the robot went away (a restarted control box or simulator): try again, holding
+            // nothing (no state is published, so the controller holds)
+            std::thread::sleep(Duration::from_millis(500));
+            match connect(&args.robot, realtime) {
+                Ok(r) => {
+                    core.s.reconnects += 1;
+                    robot = Some(r);
+                }
+                Err(e) => tracing::debug!("{e}"),
+            }
+            continue;
+        };
+        let state = match r.read_once() {
             Ok(s) => s,
             Err(e) => {
-                failure = Some(anyhow::anyhow!("franka: the robot stopped answering: {e}"));
-                break;
+                tracing::warn!("franka: the robot stopped answering ({e}): reconnecting");
+                robot = None;
+                continue;
             }
         };
         if state.robot_mode == RobotMode::Reflex || state.current_errors.any() {
@@ -559,20 +623,20 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
                 "franka: the robot reports {}: automatic error recovery",
                 state.current_errors
             );
-            if let Err(e) = robot.automatic_error_recovery() {
+            if let Err(e) = r.automatic_error_recovery() {
                 failure = Some(anyhow::anyhow!("franka: error recovery failed: {e}"));
                 break;
             }
             continue;
         }
         core.begin_motion(state.q);
-        let r = robot.control_joint_positions(
+        let result = r.control_joint_positions(
             |st, dt| core.cycle(st, dt.as_millis().max(1)),
             ControllerMode::JointImpedance,
             false,
             MAX_CUTOFF_FREQUENCY,
         );
-        match r {
+        match result {
             Ok(()) => break,
             Err(FrankaError::Control(e)) => {
                 core.s.reflexes += 1;
@@ -599,14 +663,14 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
                 if args.stop_on_reflex {
                     break;
                 }
-                if let Err(e) = robot.automatic_error_recovery() {
-                    failure = Some(anyhow::anyhow!("franka: error recovery failed: {e}"));
-                    break;
+                if let Err(e) = r.automatic_error_recovery() {
+                    tracing::warn!("franka: error recovery failed ({e}): reconnecting");
+                    robot = None;
                 }
             }
             Err(e) => {
-                failure = Some(anyhow::anyhow!("franka: the motion ended: {e}"));
-                break;
+                tracing::warn!("franka: the motion ended ({e}): reconnecting");
+                robot = None;
             }
         }
     }
@@ -626,6 +690,11 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         c.commands_far,
     ];
     core.s.gripper_moves = hand.moves.load(Ordering::Relaxed);
+    core.s.success_rate_mean = if core.rate_n > 0 {
+        core.rate_sum / core.rate_n as f64
+    } else {
+        0.0
+    };
     core.s.guard_acted = core.guard.acted;
     if let (Some(path), Some(rec)) = (&args.record, &core.record) {
         let mut text = String::with_capacity(rec.len() * 7 * 20);
@@ -655,26 +724,27 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
 
 /// The hand's own loop: follows the gripper channel's target width (a move, or a grasp when it
 /// closes) and reports the measured width. Blocking calls, at the hand's pace.
-fn hand_loop(gripper: &Gripper, hand: &Hand, stop: &AtomicBool) {
+fn hand_loop(addr: &str, gripper: Gripper, hand: &Hand, stop: &AtomicBool) {
+    let mut gripper = Some(gripper);
     let mut commanded = f64::NAN;
     let mut max_width = 0.08;
-    if let Ok(s) = gripper.read_once() {
-        hand.width.store(s.width.to_bits(), Ordering::Relaxed);
-        if s.max_width > 0.0 {
-            max_width = s.max_width;
-        }
-        commanded = s.width;
-    }
     let mut errors = 0u32;
     while !stop.load(Ordering::Relaxed) {
+        let Some(g) = gripper.as_ref() else {
+            // the hand went away with the robot: connect again
+            std::thread::sleep(Duration::from_millis(500));
+            gripper = Gripper::new(addr).ok();
+            commanded = f64::NAN;
+            continue;
+        };
         let target = f64::from_bits(hand.target.load(Ordering::Relaxed));
-        if target.is_finite() && (target - commanded).abs() > 2e-3 {
+        if target.is_finite() && commanded.is_finite() && (target - commanded).abs() > 2e-3 {
             let w = target.clamp(0.0, max_width);
             let r = if w < 0.005 {
                 // closing on whatever is between the fingers: a grasp with wide tolerances
-                gripper.grasp(0.0, 0.1, 20.0, max_width, max_width)
+                g.grasp(0.0, 0.1, 20.0, max_width, max_width)
             } else {
-                gripper.move_gripper(w, 0.1)
+                g.move_gripper(w, 0.1)
             };
             commanded = target;
             hand.moves.fetch_add(1, Ordering::Relaxed);
@@ -685,14 +755,22 @@ fn hand_loop(gripper: &Gripper, hand: &Hand, stop: &AtomicBool) {
                 }
             }
         }
-        match gripper.read_once() {
-            Ok(s) => hand.width.store(s.width.to_bits(), Ordering::Relaxed),
+        match g.read_once() {
+            Ok(s) => {
+                hand.width.store(s.width.to_bits(), Ordering::Relaxed);
+                if s.max_width > 0.0 {
+                    max_width = s.max_width;
+                }
+                if !commanded.is_finite() {
+                    commanded = s.width;
+                }
+            }
             Err(e) => {
                 errors += 1;
                 if errors <= 5 {
                     tracing::warn!("franka: hand state: {e}");
                 }
-                std::thread::sleep(Duration::from_millis(20));
+                gripper = None;
             }
         }
     }

@@ -64,7 +64,10 @@ def main():
     ap.add_argument("--no-gripper", action="store_true")
     ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     ap.add_argument("--log", default=None, help="franka-sim's own log (default: stderr, warnings only)")
+    ap.add_argument("--model", default=None, help="the FR3 MJCF (default: $FR3_MJCF)")
     args = ap.parse_args()
+    if args.model:
+        os.environ["FR3_MJCF"] = args.model
     if not os.environ.get("FR3_MJCF"):
         sys.exit("fr3_sim.py: set FR3_MJCF to the offline FR3 model (bash scripts/franka-env.sh)")
 

@@ -1,0 +1,512 @@
+//! The Franka FR3 through FCI against code no one here wrote: `chunkrt franka` driving
+//! franka-sim (PyPI 1.1.7: a MuJoCo FR3 speaking libfranka's wire protocol) with both of the
+//! FCI's checks enforced (motion limits: a reflex on any discontinuity; communication: 20 lost
+//! cycles), and the official libfranka (PyPI pylibfranka) replaying a recorded command stream.
+//! The reflexes are counted twice: by the simulator itself (`fr3_sim.py` counts its own
+//! "aborting the motion" lines) and by the driver (the robot's aborted motions).
+//!
+//! The packages live in their own virtual environment (franka-sim pins mujoco < 3.3):
+//! `bash scripts/franka-env.sh` (`.ci/run` does) makes it and the offline FR3 model; without it
+//! these tests say so loudly and, in CI, fail. Each test takes its own loopback address (FCI's
+//! port is fixed) and the process tests run one at a time (two cores).
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard, Finished};
+
+#[path = "common/stack.rs"]
+mod stack;
+use stack::*;
+
+#[path = "common/python.rs"]
+mod python;
+
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+/// The franka venv's python and the offline FR3 model: `CHUNKRT_FRANKA_PYTHON` / `FR3_MJCF`,
+/// else scripts/franka-env.sh's default prefix. `None` (said loudly; a failure in CI) when the
+/// packages cannot run.
+fn franka_env(test: &str) -> Option<(String, String)> {
+    let prefix = std::env::var("CHUNKRT_FRANKA_PREFIX")
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| {
+            PathBuf::from(std::env::var("HOME").unwrap_or_default()).join(".cache/chunkrt-franka")
+        });
+    let py = std::env::var("CHUNKRT_FRANKA_PYTHON")
+        .unwrap_or_else(|_| prefix.join("venv/bin/python").display().to_string());
+    let model = std::env::var("FR3_MJCF")
+        .unwrap_or_else(|_| prefix.join("fr3_model/fr3.xml").display().to_string());
+    let probe = std::process::Command::new(&py)
+        .args(["-c", "import franka_sim, pylibfranka, iceoryx2, mujoco"])
+        .output();
+    let why = match probe {
+        Ok(o) if o.status.success() && std::path::Path::new(&model).is_file() => {
+            return Some((py, model))
+        }
+        Ok(o) if o.status.success() => format!("no FR3 model at {model}"),
+        Ok(o) => String::from_utf8_lossy(&o.stderr).trim().to_string(),
+        Err(e) => format!("cannot run {py}: {e}"),
+    };
+    let msg = format!(
+        "\n!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!\n\
+         !!! {test}: the Franka test peers are not usable: {why}\n\
+         !!! This test did NOT run (bash scripts/franka-env.sh; .ci/run does).\n\
+         !!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!\n"
+    );
+    if python::in_ci() {
+        panic!("{msg}(CI is set: this is a failure)");
+    }
+    eprintln!("{msg}");
+    None
+}
+
+/// franka-sim on `host` with both checks enforced (or neither).
+fn sim(py: &str, model: &str, host: &str, enforce: bool) -> ChildGuard {
+    let script = format!("{ROOT}/tools/python/fr3_sim.py");
+    let mut args = vec![
+        script.as_str(),
+        "--host",
+        host,
+        "--model",
+        model,
+        "--no-gripper",
+    ];
+    if !enforce {
+        args.push("--no-enforce");
+    }
+    ChildGuard::spawn(py, &args).expect("start franka-sim")
+}
+
+/// The simulator's own count of reflexes (its summary on SIGTERM).
+fn sim_reflexes(f: &Finished) -> f64 {
+    summary_value(&f.stdout, "reflexes").unwrap_or_else(|| {
+        panic!(
+            "franka-sim printed no summary:\n{}\n{}",
+            f.stdout,
+            f.stderr
+                .lines()
+                .rev()
+                .take(20)
+                .collect::<Vec<_>>()
+                .join("\n")
+        )
+    })
+}
+
+/// `chunkrt franka` for `seconds` on `host`.
+fn driver(ns: &str, host: &str, seconds: f64, extra: &[&str]) -> ChildGuard {
+    let cfg = format!("{ROOT}/config/franka_fr3.toml");
+    let secs = seconds.to_string();
+    let mut args = vec![
+        "--config",
+        cfg.as_str(),
+        "--robot",
+        host,
+        "--realtime",
+        "ignore",
+        "--gripper",
+        "none",
+        "--duration",
+        secs.as_str(),
+        "--wait-for-robot",
+        "30",
+    ];
+    args.extend_from_slice(extra);
+    start("franka", ns, &args)
+}
+
+/// A copy of config/franka_fr3.toml with `[execution] strategy` and the scripted test double's
+/// delay sweep (0–8 action periods, in turn) as its chunk source.
+fn scripted_config(tag: &str, strategy: &str, extra: &str) -> PathBuf {
+    let text = std::fs::read_to_string(format!("{ROOT}/config/franka_fr3.toml")).unwrap();
+    let text = text
+        .replace(
+            "strategy = \"replace\"",
+            &format!("strategy = \"{strategy}\""),
+        )
+        .replace("source = \"remote\"", "source = \"scripted\"")
+        .replace(
+            "\n[openpi]\n",
+            &format!(
+                "\n[policy.scripted]\ndelays = [0, 1, 2, 3, 4, 5, 6, 7, 8]\namplitude = 0.25\n\
+                 frequency_hz = 0.3\njump = 0.02\n{extra}\n[openpi]\n"
+            ),
+        );
+    let path = std::env::temp_dir().join(format!("fr3_{tag}_{}.toml", std::process::id()));
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// The driver's summary values.
+fn drv(out: &Finished, key: &str) -> f64 {
+    summary_value(&out.stdout, key).unwrap_or_else(|| {
+        panic!(
+            "no {key} in the driver's summary:\n{}\n{}",
+            out.stdout,
+            out.stderr
+                .lines()
+                .rev()
+                .take(30)
+                .collect::<Vec<_>>()
+                .join("\n")
+        )
+    })
+}
+
+fn assert_no_reflex(what: &str, d: &Finished, sim_out: &Finished) {
+    let line = d
+        .stdout
+        .lines()
+        .find(|l| l.starts_with("franka summary"))
+        .unwrap_or("");
+    println!("{what}: {line}");
+    println!(
+        "{what}: {}",
+        sim_out
+            .stdout
+            .lines()
+            .find(|l| l.contains("franka-sim summary"))
+            .unwrap_or("")
+    );
+    assert_eq!(
+        sim_reflexes(sim_out),
+        0.0,
+        "{what}: the simulator aborted a motion:\n{}",
+        sim_out.stdout
+    );
+    assert_eq!(drv(d, "reflexes"), 0.0, "{what}: {line}");
+}
+
+#[test]
+fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
+    let Some((py, model)) = franka_env("franka_sim: strategies") else {
+        return;
+    };
+    let _one = serial();
+    for (i, strategy) in [
+        "replace",
+        "crossfade",
+        "temporal_ensemble",
+        "rtc",
+        "rtc_trained",
+    ]
+    .iter()
+    .enumerate()
+    {
+        let host = format!("127.0.0.{}", 20 + i);
+        let ns = unique_namespace("fr3-strat");
+        let cfg = scripted_config(strategy, strategy, "");
+        let sim_g = sim(&py, &model, &host, true);
+        let d = driver(&ns, &host, 14.0, &[]);
+        let c = start(
+            "run",
+            &ns,
+            &[
+                "--config",
+                cfg.to_str().unwrap(),
+                "--duration",
+                "11",
+                "--log-every",
+                "0",
+            ],
+        );
+        let c_out = c.finish(Duration::from_secs(40));
+        let d_out = d.finish(Duration::from_secs(20));
+        let s_out = sim_g.terminate(Duration::from_secs(5));
+        assert_eq!(
+            c_out.code,
+            Some(0),
+            "{strategy}: the controller failed:\n{}",
+            c_out.stderr
+        );
+        assert_no_reflex(strategy, &d_out, &s_out);
+        // every chunk switch at every delay in the sweep, the robot answered in time
+        let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
+        assert!(
+            chunks >= 12.0,
+            "{strategy}: {chunks} chunks (the sweep needs 9+)"
+        );
+        let rate = drv(&d_out, "success_rate_mean");
+        assert!(rate >= 0.999, "{strategy}: command success rate {rate}");
+        let err = drv(&d_out, "max_tracking_error");
+        assert!(err < 0.05, "{strategy}: tracking error {err} rad");
+        assert!(
+            drv(&d_out, "fresh") > 8000.0,
+            "{strategy}: the controller's commands did not reach the robot"
+        );
+        let _ = std::fs::remove_file(cfg);
+    }
+}
+
+#[test]
+fn openpi_server_with_random_droid_velocities_trips_no_reflex() {
+    let Some((py, model)) = franka_env("franka_sim: droid") else {
+        return;
+    };
+    if !python::python_can_import(
+        "import openpi_server, numpy",
+        "franka_sim: droid",
+        ".ci/run installs openpi-server",
+    ) {
+        return;
+    }
+    let _one = serial();
+    let host = "127.0.0.30";
+    let ns = unique_namespace("fr3-droid");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let port_s = port.to_string();
+    let server = ChildGuard::spawn(
+        "python3",
+        &[
+            &format!("{ROOT}/tools/python/droid_scripted.py"),
+            "--port",
+            &port_s,
+            "--mode",
+            "random",
+            "--latency-ms",
+            "80",
+        ],
+    )
+    .unwrap();
+    let sim_g = sim(&py, &model, host, true);
+    let d = driver(&ns, host, 18.0, &[]);
+    let cfg = format!("{ROOT}/config/franka_fr3.toml");
+    let camera = ChildGuard::spawn(
+        &py,
+        &[
+            &format!("{ROOT}/tools/python/franka_camera.py"),
+            "--config",
+            &cfg,
+            "--namespace",
+            &ns,
+            "--model",
+            &model,
+            "--duration",
+            "17",
+        ],
+    )
+    .unwrap();
+    std::thread::sleep(Duration::from_secs(2));
+    let c = start(
+        "run",
+        &ns,
+        &[
+            "--config",
+            &cfg,
+            "--remote",
+            &format!("ws://127.0.0.1:{port}"),
+            "--duration",
+            "13",
+            "--log-every",
+            "0",
+        ],
+    );
+    let c_out = c.finish(Duration::from_secs(40));
+    let d_out = d.finish(Duration::from_secs(20));
+    let cam_out = camera.finish(Duration::from_secs(10));
+    let srv_out = server.terminate(Duration::from_secs(5));
+    let s_out = sim_g.terminate(Duration::from_secs(5));
+    assert_eq!(
+        c_out.code,
+        Some(0),
+        "the controller failed:\n{}",
+        c_out.stderr
+    );
+    assert_no_reflex("droid random", &d_out, &s_out);
+    println!("{}", cam_out.stdout.trim());
+    println!("{}", srv_out.stdout.lines().last().unwrap_or(""));
+    let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
+    assert!(
+        chunks >= 10.0,
+        "{chunks} chunks from openpi's server:\n{}",
+        c_out.stdout
+    );
+    let requests = summary_value(&srv_out.stdout, "requests").unwrap_or(0.0);
+    let bad = summary_value(&srv_out.stdout, "bad").unwrap_or(-1.0);
+    assert!(
+        requests >= 10.0 && bad == 0.0,
+        "the DROID server saw {requests} requests, {bad} bad"
+    );
+}
+
+#[test]
+fn stall_kill_takeover_and_a_restarted_robot_trip_no_reflex() {
+    let Some((py, model)) = franka_env("franka_sim: takeover") else {
+        return;
+    };
+    let _one = serial();
+    let host = "127.0.0.31";
+    let ns = unique_namespace("fr3-takeover");
+    let cfg = scripted_config("takeover", "rtc", "");
+    let cfg_s = cfg.to_str().unwrap().to_string();
+    let sim_a = sim(&py, &model, host, true);
+    let d = driver(&ns, host, 40.0, &[]);
+    let a = start(
+        "run",
+        &ns,
+        &["--config", &cfg_s, "--duration", "60", "--log-every", "0"],
+    );
+    std::thread::sleep(Duration::from_secs(6));
+    // SIGSTOP mid-motion for 2 s: the driver continues, then stops the arm within the limits
+    // SAFETY: kill(2) on our own child
+    unsafe { libc::kill(a.id() as libc::pid_t, libc::SIGSTOP) };
+    std::thread::sleep(Duration::from_secs(2));
+    unsafe { libc::kill(a.id() as libc::pid_t, libc::SIGCONT) };
+    std::thread::sleep(Duration::from_secs(4));
+    // SIGKILL mid-motion: the same stop; a second controller takes over without a step
+    kill9(a);
+    std::thread::sleep(Duration::from_millis(1500));
+    let b = start(
+        "run",
+        &ns,
+        &["--config", &cfg_s, "--duration", "60", "--log-every", "0"],
+    );
+    std::thread::sleep(Duration::from_secs(6));
+    // the robot restarts (a new simulator on the same address): the driver connects again and
+    // the controller re-seeds from where the arm is
+    let s_a = sim_a.terminate(Duration::from_secs(5));
+    let sim_b = sim(&py, &model, host, true);
+    std::thread::sleep(Duration::from_secs(9));
+    let b_out = b.terminate(Duration::from_secs(10));
+    let d_out = d.finish(Duration::from_secs(30));
+    let s_b = sim_b.terminate(Duration::from_secs(5));
+    assert_no_reflex("takeover (first robot)", &d_out, &s_a);
+    assert_eq!(
+        sim_reflexes(&s_b),
+        0.0,
+        "the restarted robot aborted a motion:\n{}",
+        s_b.stdout
+    );
+    assert!(
+        drv(&d_out, "braking") > 50.0,
+        "the stops to rest did not run"
+    );
+    assert!(
+        drv(&d_out, "reconnects") >= 1.0,
+        "the driver did not connect to the restarted robot"
+    );
+    assert!(drv(&d_out, "motions") >= 2.0);
+    // the second controller's commands were followed on both robots
+    assert!(
+        summary_value(&b_out.stdout, "commands").unwrap_or(0.0) > 5000.0,
+        "{}",
+        b_out.stdout
+    );
+    let _ = std::fs::remove_file(cfg);
+}
+
+#[test]
+fn the_check_can_fail_an_unguarded_stream_at_twice_the_limits_is_refused() {
+    let Some((py, model)) = franka_env("franka_sim: no guard") else {
+        return;
+    };
+    let _one = serial();
+    let host = "127.0.0.32";
+    let ns = unique_namespace("fr3-noguard");
+    // twice the FR3's acceleration and jerk in chunkrt's shaping, and no guard in the driver
+    let text = std::fs::read_to_string(scripted_config("noguard", "replace", "")).unwrap();
+    let text = text
+        .replace("max_acceleration = 8.0", "max_acceleration = 20.0")
+        .replace("max_jerk = 4000.0", "max_jerk = 10000.0")
+        .replace("amplitude = 0.25", "amplitude = 0.6")
+        .replace("jump = 0.02", "jump = 0.3");
+    let cfg = std::env::temp_dir().join(format!("fr3_noguard2_{}.toml", std::process::id()));
+    std::fs::write(&cfg, text).unwrap();
+    let sim_g = sim(&py, &model, host, true);
+    let d = driver(&ns, host, 12.0, &["--no-guard", "--stop-on-reflex"]);
+    let c = start(
+        "run",
+        &ns,
+        &[
+            "--config",
+            cfg.to_str().unwrap(),
+            "--duration",
+            "10",
+            "--log-every",
+            "0",
+        ],
+    );
+    let _ = c.finish(Duration::from_secs(30));
+    let d_out = d.finish(Duration::from_secs(20));
+    let s_out = sim_g.terminate(Duration::from_secs(5));
+    println!(
+        "{}",
+        d_out
+            .stdout
+            .lines()
+            .find(|l| l.starts_with("franka summary"))
+            .unwrap_or("")
+    );
+    println!("{}", s_out.stdout.trim());
+    assert!(
+        sim_reflexes(&s_out) >= 1.0,
+        "the simulator accepted a stream at twice its limits"
+    );
+    assert!(drv(&d_out, "reflexes") >= 1.0);
+    let _ = std::fs::remove_file(cfg);
+}
+
+#[test]
+fn libfranka_replays_a_recorded_command_stream_without_a_reflex() {
+    let Some((py, model)) = franka_env("franka_sim: libfranka replay") else {
+        return;
+    };
+    let _one = serial();
+    let host = "127.0.0.33";
+    let ns = unique_namespace("fr3-record");
+    let cfg = scripted_config("record", "rtc", "");
+    let stream = std::env::temp_dir().join(format!("fr3_stream_{}.txt", std::process::id()));
+    let stream_s = stream.to_str().unwrap().to_string();
+    let sim_g = sim(&py, &model, host, true);
+    let d = driver(&ns, host, 10.0, &["--record", &stream_s]);
+    let c = start(
+        "run",
+        &ns,
+        &[
+            "--config",
+            cfg.to_str().unwrap(),
+            "--duration",
+            "8",
+            "--log-every",
+            "0",
+        ],
+    );
+    let _ = c.finish(Duration::from_secs(30));
+    let d_out = d.finish(Duration::from_secs(20));
+    let s_out = sim_g.terminate(Duration::from_secs(5));
+    assert_no_reflex("recording", &d_out, &s_out);
+    // the same positions through Franka's own client, against a fresh robot
+    let sim_g = sim(&py, &model, host, true);
+    std::thread::sleep(Duration::from_secs(3));
+    let replay = ChildGuard::spawn(
+        &py,
+        &[
+            &format!("{ROOT}/tools/python/fr3_replay.py"),
+            "--host",
+            host,
+            "--stream",
+            &stream_s,
+        ],
+    )
+    .unwrap()
+    .finish(Duration::from_secs(60));
+    let s_out = sim_g.terminate(Duration::from_secs(5));
+    println!("{}", replay.stdout.trim());
+    assert_eq!(
+        replay.code,
+        Some(0),
+        "libfranka's replay failed:\n{}\n{}",
+        replay.stdout,
+        replay.stderr
+    );
+    assert_eq!(sim_reflexes(&s_out), 0.0, "{}", s_out.stdout);
+    let sent = summary_value(&replay.stdout, "sent").unwrap_or(0.0);
+    assert!(sent > 5000.0, "only {sent} commands replayed");
+    let _ = std::fs::remove_file(stream);
+    let _ = std::fs::remove_file(cfg);
+}
