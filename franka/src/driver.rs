@@ -76,12 +76,33 @@ pub struct Args {
     /// command stream to replay through another client (tools/python/fr3_replay.py).
     #[arg(long, value_name = "FILE")]
     pub record: Option<PathBuf>,
+    /// Write a trace of every cycle (CSV, at the end): the robot's measured position, the
+    /// controller's desired position and velocity, the position sent, and how it was made
+    /// (`pass`, `offset`, `restart`, `generator`, `late`, `brake`, `rest`, `unguarded`): what to
+    /// read when the guard acted.
+    #[arg(long, value_name = "FILE")]
+    pub trace: Option<PathBuf>,
     /// End at the first reflex instead of recovering and starting a new motion.
     #[arg(long)]
     pub stop_on_reflex: bool,
     /// Wait up to this long for the robot to accept the first connection (s; 0: fail at once).
     #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
     pub wait_for_robot: f64,
+    /// Print a status line (`franka status: ...`: cycles, the robot's command success rate,
+    /// reflexes, late and guarded cycles) every this many seconds (0: none).
+    #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
+    pub status_every: f64,
+}
+
+/// What the FCI thread shares with the status line (relaxed atomics: one store each a cycle).
+#[derive(Default)]
+struct Live {
+    cycles: AtomicU64,
+    success_rate: AtomicU64,
+    reflexes: AtomicU64,
+    late: AtomicU64,
+    clamped: AtomicU64,
+    braking: AtomicU64,
 }
 
 /// `--realtime`.
@@ -253,12 +274,37 @@ struct Core {
     end_ns: u64,
     stop: &'static AtomicBool,
     hand: Arc<Hand>,
+    live: Arc<Live>,
     round_trip: Histogram<u64>,
     record: Option<Vec<[f64; JOINTS]>>,
+    trace: Option<Vec<TraceRow>>,
     rate_sum: f64,
     rate_n: u64,
     s: Summary,
 }
+
+/// One cycle of `--trace`.
+#[derive(Clone, Copy)]
+struct TraceRow {
+    seq: u64,
+    path: u8,
+    measured: [f64; JOINTS],
+    desired: [f64; JOINTS],
+    desired_v: [f64; JOINTS],
+    sent: [f64; JOINTS],
+}
+
+/// `TraceRow::path` names (0..=3: the guard's own paths).
+const TRACE_PATHS: [&str; 8] = [
+    "pass",
+    "offset",
+    "restart",
+    "generator",
+    "late",
+    "brake",
+    "rest",
+    "unguarded",
+];
 
 impl Core {
     /// A new motion starts from rest at the robot's position.
@@ -365,6 +411,8 @@ impl Core {
             self.intake.live(t).copied()
         };
         let mut clamped = false;
+        let mut desired = ([f64::NAN; JOINTS], [f64::NAN; JOINTS]);
+        let path: u8;
         let next = match live {
             // the answer to this cycle's state; an answer to an earlier one comes too late (its
             // cycle was already continued) and would move the arm back
@@ -381,30 +429,43 @@ impl Core {
                 q.copy_from_slice(&c.position[..JOINTS]);
                 v.copy_from_slice(&c.velocity[..JOINTS]);
                 a.copy_from_slice(&c.acceleration[..JOINTS]);
+                desired = (q, v);
                 if self.no_guard {
+                    path = 7;
                     Motion::after(&self.last, &q, CYCLE_S)
                 } else {
                     let (m, c) = self.guard.follow(&self.last, &q, &v, &a);
                     clamped = c;
+                    path = self.guard.path;
                     m
                 }
             }
             Some(_) if self.late_run < self.extrapolate_cycles => {
                 self.late_run += 1;
                 self.s.late += 1;
+                path = 4;
                 self.guard.extrapolate(&self.last)
             }
             _ => {
                 if self.last.at_rest() {
                     self.s.rest += 1;
+                    path = 6;
                     Motion::rest(self.last.q)
                 } else {
                     self.s.braking += 1;
+                    path = 5;
                     self.guard.brake(&self.last).0
                 }
             }
         };
         self.s.clamped += clamped as u64;
+        let l = &self.live;
+        l.cycles.store(self.s.cycles, Ordering::Relaxed);
+        l.success_rate
+            .store(st.control_command_success_rate.to_bits(), Ordering::Relaxed);
+        l.late.store(self.s.late + self.s.missed, Ordering::Relaxed);
+        l.clamped.store(self.s.clamped, Ordering::Relaxed);
+        l.braking.store(self.s.braking, Ordering::Relaxed);
         if self.last_cmd_seq != 0 && live.is_some() {
             for j in 0..JOINTS {
                 let e = (self.last.q[j] - st.q[j]).abs();
@@ -418,6 +479,18 @@ impl Core {
         if let Some(r) = &mut self.record {
             if r.len() < r.capacity() {
                 r.push(next.q);
+            }
+        }
+        if let Some(r) = &mut self.trace {
+            if r.len() < r.capacity() {
+                r.push(TraceRow {
+                    seq,
+                    path,
+                    measured: st.q,
+                    desired: desired.0,
+                    desired_v: desired.1,
+                    sent: next.q,
+                });
             }
         }
         let mut out = JointPositions::new(next.q);
@@ -534,6 +607,38 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         }
     };
 
+    let live = Arc::new(Live::default());
+    let status_thread = if args.status_every > 0.0 {
+        anyhow::ensure!(
+            args.status_every.is_finite() && args.status_every <= 3600.0,
+            "--status-every {}: must be within 0..=3600 s",
+            args.status_every
+        );
+        let (live, every) = (live.clone(), Duration::from_secs_f64(args.status_every));
+        Some(
+            std::thread::Builder::new()
+                .name("franka-status".into())
+                .spawn(move || {
+                    while !stop.load(Ordering::Relaxed) {
+                        std::thread::sleep(every);
+                        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+                        println!(
+                            "franka status: cycles={} success_rate={:.3} reflexes={} late={} \
+                             guarded={} braking={}",
+                            g(&live.cycles),
+                            f64::from_bits(g(&live.success_rate)),
+                            g(&live.reflexes),
+                            g(&live.late),
+                            g(&live.clamped),
+                            g(&live.braking)
+                        );
+                    }
+                })
+                .context("franka: status thread")?,
+        )
+    } else {
+        None
+    };
     let mut intake = CommandIntake::new(
         "franka",
         n_dof,
@@ -547,6 +652,10 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         // ten minutes of cycles (or the run's duration), allocated once
         let cycles = args.duration.map_or(600_000.0, |d| d * 1100.0 + 1000.0);
         Vec::with_capacity(cycles.min(4e6) as usize)
+    });
+    let trace = args.trace.as_ref().map(|_| {
+        let cycles = args.duration.map_or(600_000.0, |d| d * 1100.0 + 1000.0);
+        Vec::with_capacity(cycles.min(1e6) as usize)
     });
     let outcome = chunkrt_controller::rt::make_current_thread_realtime(
         args.cpu,
@@ -578,9 +687,11 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         end_ns,
         stop,
         hand: hand.clone(),
+        live: live.clone(),
         round_trip: Histogram::new_with_bounds(1, 10_000_000_000, 3)
             .expect("constant histogram bounds are valid"),
         record,
+        trace,
         rate_sum: 0.0,
         rate_n: 0,
         s: Summary {
@@ -640,6 +751,7 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
             Ok(()) => break,
             Err(FrankaError::Control(e)) => {
                 core.s.reflexes += 1;
+                core.live.reflexes.store(core.s.reflexes, Ordering::Relaxed);
                 let names = e.last_motion_errors.names().join("+");
                 tracing::error!(
                     "franka: REFLEX: the robot aborted the motion: {} ({})",
@@ -678,6 +790,9 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
     if let Some(t) = hand_thread {
         let _ = t.join();
     }
+    if let Some(t) = status_thread {
+        let _ = t.join();
+    }
     let h = &core.round_trip;
     let us = |q: f64| h.value_at_quantile(q) as f64 / 1e3;
     core.s.round_trip_us = [us(0.5), us(0.99), h.max() as f64 / 1e3];
@@ -696,6 +811,9 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         0.0
     };
     core.s.guard_acted = core.guard.acted;
+    if let (Some(path), Some(rows)) = (&args.trace, &core.trace) {
+        write_trace(path, rows)?;
+    }
     if let (Some(path), Some(rec)) = (&args.record, &core.record) {
         let mut text = String::with_capacity(rec.len() * 7 * 20);
         for q in rec {
@@ -774,4 +892,30 @@ fn hand_loop(addr: &str, gripper: Gripper, hand: &Hand, stop: &AtomicBool) {
             }
         }
     }
+}
+
+/// `--trace`: one CSV row per cycle.
+fn write_trace(path: &std::path::Path, rows: &[TraceRow]) -> anyhow::Result<()> {
+    use std::fmt::Write as _;
+    let mut text = String::with_capacity(rows.len() * 30 * 12 + 512);
+    text.push_str("seq,path");
+    for name in ["measured", "desired", "desired_v", "sent"] {
+        for j in 1..=JOINTS {
+            let _ = write!(text, ",{name}_{j}");
+        }
+    }
+    text.push('\n');
+    for r in rows {
+        let _ = write!(text, "{},{}", r.seq, TRACE_PATHS[r.path as usize % 8]);
+        for x in [&r.measured, &r.desired, &r.desired_v, &r.sent] {
+            for v in x {
+                let _ = write!(text, ",{v:.6}");
+            }
+        }
+        text.push('\n');
+    }
+    std::fs::write(path, text)
+        .with_context(|| format!("franka: cannot write {}", path.display()))?;
+    tracing::info!("franka: {} cycles traced in {}", rows.len(), path.display());
+    Ok(())
 }

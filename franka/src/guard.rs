@@ -15,8 +15,8 @@
 //! - [`Guard::brake`]: one cycle of the time-optimal stop to rest (ruckig's velocity interface).
 //!
 //! The generator's limits leave room for what differencing at 1 kHz adds to its own (0.8 × the
-//! robot's acceleration and jerk; per joint no more than 0.75 of the envelope's deceleration,
-//! and positions 0.15 rad inside the envelope's limits, so its braking curve stays under the
+//! robot's acceleration and jerk, positions 0.15 rad inside the envelope's limits; every step
+//! passes `enforce`, which holds the acceleration in the band that keeps the velocity under the
 //! envelope). [`Motion`] holds what the robot computes: differences of the commanded positions.
 //! No allocation after [`Guard::new`].
 
@@ -233,7 +233,21 @@ pub struct Guard {
     /// The last desired position and its difference velocity: what the next desired velocity
     /// field is checked against.
     desired: Option<([f64; JOINTS], [f64; JOINTS])>,
+    /// The generator leads ([`Self::follow`]'s last resort) until the controller's motion
+    /// passes again: an offset is not restarted meanwhile.
+    generating: bool,
+    /// Calls of [`Self::follow`], and the calls of its last two offset restarts.
+    cycle: u64,
+    restarts: [u64; 2],
 }
+
+/// The largest of a joint vector's magnitudes.
+fn size(x: &[f64; JOINTS]) -> f64 {
+    x.iter().fold(0.0, |m, v| m.max(v.abs()))
+}
+
+/// Cycles in which a third offset restart hands over to the generator instead.
+const RESTART_WINDOW: u64 = 50;
 
 /// The offset's limits, as fractions of the robot's: what the controller's own motion leaves
 /// when it keeps to 0.8 of them (config/franka_fr3.toml), less the guard's margin.
@@ -252,9 +266,11 @@ impl Guard {
             ..OtgInput::default()
         };
         for j in 0..JOINTS {
-            // half speed: the fallback of a faulty stream never reaches the envelope's fast regime
+            // half speed: the fallback of a faulty stream never reaches the envelope's fast
+            // regime; the robot's own acceleration less a margin, so that it brakes as hard as a
+            // controller may (its steps pass `enforce`, which keeps them to the envelope's band)
             input.max_velocity[j] = limits.dq[j] * 0.5;
-            input.max_acceleration[j] = DDQ_MAX.min(0.75 * ENVELOPE_DECEL[j]) * GENERATOR_MARGIN;
+            input.max_acceleration[j] = DDQ_MAX * GENERATOR_MARGIN;
             input.max_jerk[j] = DDDQ_MAX * GENERATOR_MARGIN;
             input.min_position[j] = ENVELOPE_Q_MIN[j].max(Q_MIN[j]) + GENERATOR_POSITION_MARGIN;
             input.max_position[j] = ENVELOPE_Q_MAX[j].min(Q_MAX[j]) - GENERATOR_POSITION_MARGIN;
@@ -286,6 +302,9 @@ impl Guard {
             offset: None,
             path: 0,
             desired: None,
+            generating: false,
+            cycle: RESTART_WINDOW,
+            restarts: [0; 2],
         })
     }
 
@@ -322,6 +341,7 @@ impl Guard {
             o
         };
         let (mut vd, mut ad) = (fin(v), fin(a));
+        self.cycle += 1;
         // the velocity and acceleration fields are trusted only where they agree with the
         // desired positions' own differences (else those differences stand in for them)
         if let Some((pq, pv)) = self.desired {
@@ -366,6 +386,7 @@ impl Guard {
             match (0..JOINTS).find_map(|j| self.limits.broken(j, prev, q[j], self.dt)) {
                 None => {
                     self.planned = Some((*q, vd, ad));
+                    self.generating = false;
                     self.path = 0;
                     return (Motion::after(prev, q, self.dt), false);
                 }
@@ -402,7 +423,8 @@ impl Guard {
         }
         // (re)start the offset: this cycle the stream goes on at constant acceleration, and
         // the difference to the controller's motion shrinks from the next
-        if q.iter().all(|x| x.is_finite()) {
+        let running = self.offset.map(|o| size(&o.0));
+        if !self.generating && q.iter().all(|x| x.is_finite()) {
             let (sq, sv, sa) = self.stream_state(prev);
             let dt = self.dt;
             let mut o = ([0.0; JOINTS], [0.0; JOINTS], [0.0; JOINTS]);
@@ -411,25 +433,33 @@ impl Guard {
                 o.1[j] = sv[j] + sa[j] * dt - vd[j];
                 o.2[j] = sa[j] - ad[j];
             }
-            if let Some(m) = self.with_offset(prev, q, &vd, &ad, o, false) {
-                self.path = 2;
-                return (m, true);
+            // a third restart within RESTART_WINDOW cycles is taken only while the offset
+            // shrinks: restarted every few cycles (a controller whose every position breaks a
+            // limit, or whose own motion leaves the offset no room), the stream would go on at
+            // its speed, away from the controller's, to the envelope
+            let growing = self.cycle < self.restarts[0] + RESTART_WINDOW
+                && running.is_none_or(|r| size(&o.0) >= r);
+            if !growing {
+                if let Some(m) = self.with_offset(prev, q, &vd, &ad, o, false) {
+                    self.restarts = [self.restarts[1], self.cycle];
+                    self.path = 2;
+                    return (m, true);
+                }
             }
         }
         // not even the stream's own continuation keeps within the limits (it meets the
-        // envelope): the generator steps towards the controller's state within slower limits
+        // envelope), or the offset could not: the generator steps towards the controller's
+        // state within slower limits until that state passes
         self.offset = None;
+        self.generating = true;
         self.path = 3;
         self.input.control_interface = CONTROL_POSITION;
-        for j in 0..JOINTS {
+        for (j, &x) in q.iter().enumerate() {
             let (lo, hi) = (self.input.min_position[j], self.input.max_position[j]);
-            let vmax = self.input.max_velocity[j];
-            self.input.target_position[j] = if q[j].is_finite() {
-                q[j].clamp(lo, hi)
-            } else {
-                prev.q[j].clamp(lo, hi)
-            };
-            self.input.target_velocity[j] = vd[j].clamp(-vmax, vmax);
+            self.input.target_position[j] = if x.is_finite() { x } else { prev.q[j] }.clamp(lo, hi);
+            // at rest there: a target moving on at a velocity would be chased (each cycle's plan
+            // passes the point it aims at, and the next cycle's point has moved on)
+            self.input.target_velocity[j] = 0.0;
             self.input.target_acceleration[j] = 0.0;
         }
         (self.generate(prev), true)
@@ -512,6 +542,7 @@ impl Guard {
     /// within the limits, else the stop's first cycle.
     pub fn extrapolate(&mut self, prev: &Motion) -> Motion {
         self.offset = None;
+        self.generating = false;
         self.desired = None;
         let mut q = prev.q;
         for (j, q) in q.iter_mut().enumerate() {
@@ -533,6 +564,7 @@ impl Guard {
     /// Returns the motion and whether it is at rest.
     pub fn brake(&mut self, prev: &Motion) -> (Motion, bool) {
         self.offset = None;
+        self.generating = false;
         self.desired = None;
         if prev.at_rest() {
             return (Motion::rest(prev.q), true);
@@ -685,8 +717,8 @@ mod tests {
         }
         check(&seq);
         let k = rest_at.expect("at rest");
-        // 1.5 rad/s with a jerk-limited deceleration of 3.3-8 rad/s² (joint 6: 0.8 x 0.75 x its
-        // envelope's 5.5): well under a second
+        // 1.5 rad/s with a jerk-limited deceleration of up to 8 rad/s² (0.8 x the robot's 10):
+        // well under a second
         assert!(k < 800, "{k} cycles");
         assert!(m.at_rest());
     }
@@ -789,6 +821,81 @@ mod tests {
             for j in 0..JOINTS {
                 assert!(m.q[j] >= l.q_min[j] - 1e-9 && m.q[j] <= l.q_max[j] + 1e-9);
             }
+        }
+    }
+
+    /// The controller's motion on `joint`: up to `vmax` at 8 rad/s², a jump of `jump` at cycle
+    /// 350, from cycle 500 a stop at 8 rad/s² entered at once (the acceleration jumps), and
+    /// `noise` on every position; returns the guard's largest deviation from it after the
+    /// jump, how far the stream passed the stop, and where the stream ended against the stop.
+    fn at_speed(joint: usize, vmax: f64, jump: f64, noise: f64) -> (f64, f64, f64) {
+        let mut g = Guard::new(GuardLimits::fr3(0.95, 0.02), CYCLE_S).unwrap();
+        let mut q = [0.0, -0.3, 0.0, -1.8, 0.0, 2.6, 0.785];
+        let mut m = Motion::rest(q);
+        let mut seq = vec![m];
+        let (mut v, mut a) = (0.0f64, 0.0f64);
+        let (mut worst, mut past): (f64, f64) = (0.0, 0.0);
+        for k in 0..5000 {
+            if k < 500 {
+                a = if v <= -vmax {
+                    0.0
+                } else {
+                    (a - 4000.0 * CYCLE_S).max(-8.0)
+                };
+                v = (v + a * CYCLE_S).max(-vmax);
+            } else {
+                a = if v < 0.0 { 8.0 } else { 0.0 };
+                v = (v + a * CYCLE_S).min(0.0);
+            }
+            q[joint] += v * CYCLE_S + if k == 350 { jump } else { 0.0 };
+            let mut desired = q;
+            desired[joint] += noise * ((k * 7919 % 13) as f64 / 13.0 - 0.5);
+            let (mut vv, mut aa) = ([0.0; JOINTS], [0.0; JOINTS]);
+            vv[joint] = v;
+            aa[joint] = a;
+            m = g.follow(&m, &desired, &vv, &aa).0;
+            seq.push(m);
+            if k > 350 {
+                worst = worst.max((m.q[joint] - q[joint]).abs());
+                past = past.max(q[joint] - m.q[joint]);
+            }
+        }
+        check(&seq);
+        (worst, past, m.q[joint] - q[joint])
+    }
+
+    #[test]
+    fn a_controller_whose_every_position_breaks_a_limit_does_not_carry_the_arm_away() {
+        // noise of 2e-5 rad is past the jerk limit every cycle: the offset failed every other
+        // cycle and its restarts carried the stream on at its speed, 1.4-3.2 rad past the stop
+        for (joint, vmax) in [(5, 2.3), (5, 1.5), (3, 2.0), (6, 2.3)] {
+            let (_, past, end) = at_speed(joint, vmax, 0.0, 2e-5);
+            assert!(
+                past < 0.02,
+                "joint {joint} at {vmax} rad/s: {past} rad past the stop"
+            );
+            assert!(end.abs() < 0.01, "joint {joint}: ended {end} rad off");
+        }
+    }
+
+    #[test]
+    fn a_jump_at_speed_and_an_abrupt_stop_stay_near_the_controller() {
+        for (vmax, jump) in [
+            (2.3, 0.05),
+            (2.3, -0.05),
+            (2.3, 0.2),
+            (1.0, 0.3),
+            (2.4, 0.01),
+        ] {
+            let (worst, _, end) = at_speed(5, vmax, jump, 0.0);
+            assert!(
+                worst < jump.abs() + 0.01,
+                "{vmax} rad/s, jump {jump}: {worst} rad from the controller"
+            );
+            assert!(
+                end.abs() < 1e-3,
+                "{vmax} rad/s, jump {jump}: ended {end} rad off"
+            );
         }
     }
 }
