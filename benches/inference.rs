@@ -115,6 +115,8 @@ fn device_mode(value: &dyn Fn(&str) -> Option<String>) -> i32 {
             unfused: flag("--unfused"),
             check_f32: flag("--check-f32"),
             profile: flag("--profile"),
+            graphs_only: flag("--graphs-only"),
+            write_checkpoint: value("--write-checkpoint").map(Into::into),
         })
     };
     match run() {

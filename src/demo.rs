@@ -26,6 +26,7 @@ use chunkrt_ipc::{
 use crate::report::{fmt_us, latency_histogram};
 use crate::task::{ReachScene, TargetColor, REACH_TOLERANCE};
 
+mod franka;
 pub mod so101;
 
 /// `chunkrt demo`.
@@ -486,6 +487,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let stack = args.stack.prepare("demo", None)?;
     if so101::is_so101(&stack.cfg) {
         return so101::run(&args, &stack);
+    }
+    if franka::is_franka(&stack.cfg) {
+        return franka::run(&args, &stack);
     }
     let stop_flag = chunkrt_tools::shutdown::flag();
     let (cfg, ns, exe, log_dir, task) = (

@@ -195,6 +195,20 @@ pub fn run(args: ReportArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A plot's error as a user reads it: a missing font (plotters finds fonts through fontconfig)
+/// gets what to install.
+pub fn plot_error_text(e: &dyn std::fmt::Display) -> String {
+    let text = e.to_string();
+    if text.contains("Font") || text.contains("font") {
+        format!(
+            "{text} (the plots need a sans-serif font found by fontconfig: install \
+             fonts-dejavu-core, or point FONTCONFIG_FILE at a fonts.conf naming a folder of .ttf files)"
+        )
+    } else {
+        text
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -261,19 +275,5 @@ mod tests {
         assert_eq!(percentile_label(1.0), "90%");
         assert_eq!(percentile_label(3.0), "99.9%");
         assert!((percentile_x(0.99) - 2.0).abs() < 1e-9);
-    }
-}
-
-/// A plot's error as a user reads it: a missing font (plotters finds fonts through fontconfig)
-/// gets what to install.
-pub fn plot_error_text(e: &dyn std::fmt::Display) -> String {
-    let text = e.to_string();
-    if text.contains("Font") || text.contains("font") {
-        format!(
-            "{text} (the plots need a sans-serif font found by fontconfig: install \
-             fonts-dejavu-core, or point FONTCONFIG_FILE at a fonts.conf naming a folder of .ttf files)"
-        )
-    } else {
-        text
     }
 }
