@@ -510,3 +510,84 @@ fn libfranka_replays_a_recorded_command_stream_without_a_reflex() {
     let _ = std::fs::remove_file(stream);
     let _ = std::fs::remove_file(cfg);
 }
+
+/// Bad input at the FCI boundary, with no simulator needed: no robot at the address, and a peer
+/// on FCI's port that answers the connection with garbage and hangs up. Each gets a clear error
+/// naming the address and a failed exit, never a panic; the wrong-model check (an FER / Panda
+/// answers FCI version 5) sits in the same place, but no simulator here speaks version 5.
+#[test]
+fn an_absent_robot_and_a_peer_speaking_garbage_get_a_clear_error() {
+    let ns = unique_namespace("fr3-bad");
+    // nothing listens on 127.0.0.41:1337
+    let t0 = std::time::Instant::now();
+    let out = driver_once(&ns, "127.0.0.41");
+    println!(
+        "absent robot: exit {:?} after {:.1} s",
+        out.code,
+        t0.elapsed().as_secs_f64()
+    );
+    assert_eq!(out.code, Some(1), "{}\n{}", out.stdout, out.stderr);
+    assert!(
+        out.stderr.contains("127.0.0.41") && !out.stderr.contains("panicked"),
+        "{}",
+        out.stderr
+    );
+    assert!(t0.elapsed() < Duration::from_secs(20));
+
+    // a peer that accepts, sends 64 bytes of garbage and closes, every time
+    let listener = std::net::TcpListener::bind("127.0.0.42:1337").expect("bind 127.0.0.42:1337");
+    let peer = std::thread::spawn(move || {
+        use std::io::{Read, Write};
+        listener.set_nonblocking(false).ok();
+        let mut served = 0;
+        while let Ok((mut s, _)) = listener.accept() {
+            s.set_read_timeout(Some(Duration::from_millis(200))).ok();
+            let mut buf = [0u8; 256];
+            let _ = s.read(&mut buf);
+            let _ = s.write_all(&[0xA5; 64]);
+            served += 1;
+            if served >= 1 {
+                return served;
+            }
+        }
+        served
+    });
+    let out = driver_once(&ns, "127.0.0.42");
+    println!(
+        "garbage peer: exit {:?}; {}",
+        out.code,
+        out.stderr.lines().last().unwrap_or("")
+    );
+    assert_eq!(out.code, Some(1), "{}\n{}", out.stdout, out.stderr);
+    assert!(
+        out.stderr.contains("127.0.0.42") && !out.stderr.contains("panicked"),
+        "{}",
+        out.stderr
+    );
+    assert!(
+        peer.join().unwrap() >= 1,
+        "the driver never connected to the peer"
+    );
+}
+
+/// `chunkrt franka` on `host` that does not wait for the robot; its output when it exits.
+fn driver_once(ns: &str, host: &str) -> Finished {
+    let cfg = format!("{ROOT}/config/franka_fr3.toml");
+    start(
+        "franka",
+        ns,
+        &[
+            "--config",
+            cfg.as_str(),
+            "--robot",
+            host,
+            "--realtime",
+            "ignore",
+            "--gripper",
+            "none",
+            "--duration",
+            "5",
+        ],
+    )
+    .finish(Duration::from_secs(30))
+}

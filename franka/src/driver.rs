@@ -76,7 +76,7 @@ pub struct Args {
     /// command stream to replay through another client (tools/python/fr3_replay.py).
     #[arg(long, value_name = "FILE")]
     pub record: Option<PathBuf>,
-    /// Write a trace of every cycle (CSV, at the end): the robot's measured position, the
+    /// Write a trace of the last 120 s of cycles (CSV, at the end): the robot's measured position, the
     /// controller's desired position and velocity, the position sent, and how it was made
     /// (`pass`, `offset`, `restart`, `generator`, `late`, `brake`, `rest`, `unguarded`): what to
     /// read when the guard acted.
@@ -277,11 +277,15 @@ struct Core {
     live: Arc<Live>,
     round_trip: Histogram<u64>,
     record: Option<Vec<[f64; JOINTS]>>,
-    trace: Option<Vec<TraceRow>>,
+    /// `--trace`: the last TRACE_CYCLES rows (a ring, allocated once) and the next slot.
+    trace: Option<(Vec<TraceRow>, usize)>,
     rate_sum: f64,
     rate_n: u64,
     s: Summary,
 }
+
+/// Cycles `--trace` keeps (the last 120 s).
+const TRACE_CYCLES: usize = 120_000;
 
 /// One cycle of `--trace`.
 #[derive(Clone, Copy)]
@@ -481,17 +485,21 @@ impl Core {
                 r.push(next.q);
             }
         }
-        if let Some(r) = &mut self.trace {
-            if r.len() < r.capacity() {
-                r.push(TraceRow {
-                    seq,
-                    path,
-                    measured: st.q,
-                    desired: desired.0,
-                    desired_v: desired.1,
-                    sent: next.q,
-                });
+        if let Some((rows, next_slot)) = &mut self.trace {
+            let row = TraceRow {
+                seq,
+                path,
+                measured: st.q,
+                desired: desired.0,
+                desired_v: desired.1,
+                sent: next.q,
+            };
+            if rows.len() < rows.capacity() {
+                rows.push(row);
+            } else {
+                rows[*next_slot] = row;
             }
+            *next_slot = (*next_slot + 1) % TRACE_CYCLES;
         }
         let mut out = JointPositions::new(next.q);
         if stopping && next.at_rest() {
@@ -653,10 +661,10 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         let cycles = args.duration.map_or(600_000.0, |d| d * 1100.0 + 1000.0);
         Vec::with_capacity(cycles.min(4e6) as usize)
     });
-    let trace = args.trace.as_ref().map(|_| {
-        let cycles = args.duration.map_or(600_000.0, |d| d * 1100.0 + 1000.0);
-        Vec::with_capacity(cycles.min(1e6) as usize)
-    });
+    let trace = args
+        .trace
+        .as_ref()
+        .map(|_| (Vec::with_capacity(TRACE_CYCLES), 0));
     let outcome = chunkrt_controller::rt::make_current_thread_realtime(
         args.cpu,
         args.priority,
@@ -811,8 +819,10 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         0.0
     };
     core.s.guard_acted = core.guard.acted;
-    if let (Some(path), Some(rows)) = (&args.trace, &core.trace) {
-        write_trace(path, rows)?;
+    if let (Some(path), Some((rows, next_slot))) = (&args.trace, &core.trace) {
+        // oldest first
+        let (newer, older) = rows.split_at(*next_slot % rows.len().max(1));
+        write_trace(path, older.iter().chain(newer))?;
     }
     if let (Some(path), Some(rec)) = (&args.record, &core.record) {
         let mut text = String::with_capacity(rec.len() * 7 * 20);
@@ -895,9 +905,13 @@ fn hand_loop(addr: &str, gripper: Gripper, hand: &Hand, stop: &AtomicBool) {
 }
 
 /// `--trace`: one CSV row per cycle.
-fn write_trace(path: &std::path::Path, rows: &[TraceRow]) -> anyhow::Result<()> {
+fn write_trace<'a>(
+    path: &std::path::Path,
+    rows: impl Iterator<Item = &'a TraceRow>,
+) -> anyhow::Result<()> {
     use std::fmt::Write as _;
-    let mut text = String::with_capacity(rows.len() * 30 * 12 + 512);
+    let mut text = String::with_capacity(TRACE_CYCLES * 30 * 12 + 512);
+    let mut n = 0usize;
     text.push_str("seq,path");
     for name in ["measured", "desired", "desired_v", "sent"] {
         for j in 1..=JOINTS {
@@ -906,6 +920,7 @@ fn write_trace(path: &std::path::Path, rows: &[TraceRow]) -> anyhow::Result<()> 
     }
     text.push('\n');
     for r in rows {
+        n += 1;
         let _ = write!(text, "{},{}", r.seq, TRACE_PATHS[r.path as usize % 8]);
         for x in [&r.measured, &r.desired, &r.desired_v, &r.sent] {
             for v in x {
@@ -916,6 +931,6 @@ fn write_trace(path: &std::path::Path, rows: &[TraceRow]) -> anyhow::Result<()> 
     }
     std::fs::write(path, text)
         .with_context(|| format!("franka: cannot write {}", path.display()))?;
-    tracing::info!("franka: {} cycles traced in {}", rows.len(), path.display());
+    tracing::info!("franka: the last {n} cycles traced in {}", path.display());
     Ok(())
 }
