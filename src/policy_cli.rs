@@ -80,6 +80,12 @@ pub struct LayoutArgs {
     /// (one per robot the model was trained on).
     #[arg(long, value_name = "ID")]
     pub asset_id: Option<String>,
+    /// openpi's training config whose transforms wrap the model, as openpi's server applies
+    /// them: pi0_aloha_towel, pi0_aloha_tupperware, pi0_aloha_pen_uncap, pi05_aloha_pen_uncap,
+    /// pi0_aloha_sim, pi0_libero, pi05_libero, pi0_droid, pi05_droid (default: recognised from
+    /// an openpi checkpoint's folder name or assets).
+    #[arg(long, value_name = "NAME")]
+    pub openpi_config: Option<String>,
 }
 
 impl LayoutArgs {
@@ -94,6 +100,9 @@ impl LayoutArgs {
         if let Some(id) = &self.asset_id {
             p.asset_id = Some(id.clone());
         }
+        if let Some(c) = &self.openpi_config {
+            p.openpi_config = Some(c.clone());
+        }
         Ok(())
     }
 
@@ -102,6 +111,7 @@ impl LayoutArgs {
         crate::policy::layout::LayoutOptions {
             tokenizer: self.tokenizer.clone(),
             asset_id: self.asset_id.clone(),
+            openpi_config: self.openpi_config.clone(),
         }
     }
 }

@@ -122,10 +122,12 @@ pub fn answer(
             data: &i.data,
         })
         .collect();
-    let prompt = match &req.prompt {
-        Some(p) => p.as_str(),
-        None if !default_prompt.is_empty() => default_prompt,
-        None => {
+    // openpi's order: the request's, the server's, the config's default prompt
+    let prompt = match (&req.prompt, policy.default_prompt()) {
+        (Some(p), _) => p.as_str(),
+        (None, _) if !default_prompt.is_empty() => default_prompt,
+        (None, Some(p)) => p,
+        (None, None) => {
             return Err(
                 "missing key \"prompt\" (and the server has no default: [policy] prompt)".into(),
             )
@@ -154,9 +156,11 @@ pub fn answer(
     let actions = pool
         .install(|| policy.infer(&raw, &conditioning))
         .map_err(|e| e.to_string())?;
+    // the robot's columns (an openpi config's: LIBERO's 7 for its 8 state values)
+    let dims = policy.action_width(n).max(1);
     Ok(Reply {
-        horizon: actions.len() / n.max(1),
-        dims: n,
+        horizon: actions.len() / dims,
+        dims,
         actions,
         policy_infer_ms: Some(t.elapsed().as_secs_f64() * 1e3),
         server_infer_ms: None,
@@ -196,13 +200,20 @@ pub fn start(args: &ServeArgs) -> anyhow::Result<Serving> {
         cfg.policy.precision = p;
     }
     args.files.apply(&mut cfg.policy)?;
-    let layout = layout_of(&cfg, args.layout.as_deref())?;
     let pool = crate::inference::policy_pool(&cfg.policy)?;
     let mut opts = cfg.policy.load_options();
     opts.kind = None; // whatever the checkpoint is
     let mut policy = pool
         .install(|| Policy::load(&args.checkpoint, &opts))
         .with_context(|| format!("cannot load the policy from {}", args.checkpoint.display()))?;
+    // an openpi config's robot sends the keys of openpi's example client for it
+    let preset = args.layout.as_deref().or(match policy.openpi_config() {
+        Some(c) if cfg.openpi.preset == chunkrt_openpi::layout::Preset::default() => {
+            Some(c.robot.layout())
+        }
+        _ => None,
+    });
+    let layout = layout_of(&cfg, preset)?;
     let meta = metadata(&policy, &layout);
     let inputs = policy.model().cfg.cameras.clone();
     let max_message_bytes = match args.max_message_mb {

@@ -107,6 +107,7 @@ fn with_tokenizer() -> LayoutOptions {
     LayoutOptions {
         tokenizer: Some(fixture::data(TOKENIZER)),
         asset_id: None,
+        openpi_config: None,
     }
 }
 
@@ -199,6 +200,7 @@ fn an_openpi_checkpoint_with_several_robots_needs_an_asset_id() {
     let no_tokenizer = LayoutOptions {
         tokenizer: None,
         asset_id: Some("droid".into()),
+        openpi_config: None,
     };
     let e = load(&dir, no_tokenizer).err().expect("refused");
     assert!(
@@ -339,4 +341,89 @@ fn an_openpi_pi0_checkpoint_samples_as_the_same_model_in_chunkrts_layout() {
     for d in [reference, dir] {
         std::fs::remove_dir_all(d).ok();
     }
+}
+
+/// LIBERO's statistics (state 8, actions 7) under `assets/physical-intelligence/libero`, nested
+/// as openpi writes an asset id with a slash.
+fn libero_stats_json() -> String {
+    let stats = |n: usize| {
+        serde_json::json!({
+            "mean": vec![0.1f32; n], "std": vec![0.5f32; n],
+            "q01": vec![-1.0f32; n], "q99": vec![1.0f32; n],
+        })
+    };
+    serde_json::json!({"norm_stats": {"state": stats(8), "actions": stats(7)}}).to_string()
+}
+
+#[test]
+fn an_openpi_checkpoint_gives_its_config_away_and_answers_its_robots_columns() {
+    // by its assets: statistics for one robot only, nested two folders deep
+    let dir = openpi_layout(&[]);
+    let a = dir.join("assets/physical-intelligence/libero");
+    std::fs::create_dir_all(&a).unwrap();
+    std::fs::write(a.join("norm_stats.json"), libero_stats_json()).unwrap();
+    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    eprintln!("{report}");
+    for want in [
+        "openpi config pi05_libero (from assets/physical-intelligence/libero)",
+        "libero transforms, 8 state values in, 7 action columns out",
+        "state in the prompt: false",
+        "normalisation: assets/physical-intelligence/libero/norm_stats.json",
+    ] {
+        assert!(report.contains(want), "{want:?} not in\n{report}");
+    }
+    let mut p = load(&dir, with_tokenizer()).unwrap();
+    assert_eq!(p.openpi_config().map(|c| c.name), Some("pi05_libero"));
+    assert_eq!(p.action_width(8), 7);
+    let (frames, _) = fixture::raw_observation("pi05_tiny", &["base_0_rgb", "left_wrist_0_rgb"]);
+    let raw = fixture::raw_frames(&frames);
+    let state = [0.1, -0.2, 0.3, 1.0, -1.0, 0.5, 0.02, 0.01];
+    let obs = RawObservation {
+        frames: &raw,
+        joint_positions: &state,
+        prompt: PROMPT,
+    };
+    let actions = p.infer(&obs, &Conditioning::Fresh).unwrap();
+    assert_eq!(
+        actions.len(),
+        10 * 7,
+        "LIBERO's 7 columns, the config's 10 actions"
+    );
+    // the wrong robot's state is refused with what the config takes
+    let e = p
+        .infer(
+            &RawObservation {
+                joint_positions: &[0.0; 6],
+                ..obs
+            },
+            &Conditioning::Fresh,
+        )
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("takes 8 state values"), "{e}");
+
+    // by its folder name, over statistics that do not fit it: a clear error at load
+    let named = dir
+        .parent()
+        .unwrap()
+        .join(format!("pi05_droid_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&named);
+    std::fs::create_dir_all(&named).unwrap();
+    let droid = named.join("pi05_droid");
+    std::fs::rename(&dir, &droid).unwrap();
+    let e = load(&droid, with_tokenizer()).err().expect("refused");
+    assert!(
+        e.contains("openpi config pi05_droid") && e.contains("8 state and 7 action values"),
+        "{e}"
+    );
+    // a π0 config on a π0.5 checkpoint, named
+    let mut opts = with_tokenizer();
+    opts.openpi_config = Some("pi0_libero".into());
+    let e = load(&droid, opts).err().expect("refused");
+    assert!(
+        e.contains("is a pi0 config") && e.contains("pi05 model"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&named).ok();
 }

@@ -356,3 +356,59 @@ fn controller_takes_chunks_from_openpi_s_own_server() {
     );
     drop((robot, camera, py));
 }
+
+/// openpi's configs served as openpi serves them: `--openpi-config pi05_libero` answers
+/// openpi's LIBERO client (its keys, 224² HWC views, an 8-value state, replanning every 5
+/// actions) with 7 columns and the config's 10 actions, and `pi05_droid` answers DROID's with
+/// 8 columns and 15 actions; the request layout follows the config without `--layout`. A
+/// 14-value state under the LIBERO config is refused with what it takes.
+#[test]
+fn openpi_configs_answer_their_robots_clients() {
+    if !openpi_python() {
+        return;
+    }
+    let _serial = serial();
+    let ckpt = format!("{ROOT}/tests/data/pi05_tiny");
+    for (config, robot, shape) in [
+        ("pi05_libero", "libero", "10x7"),
+        ("pi05_droid", "droid", "15x8"),
+    ] {
+        let port = free_port();
+        let server = serve(&ckpt, port, &["--openpi-config", config]);
+        let url = format!("ws://127.0.0.1:{port}");
+        let out = Command::new("python3")
+            .args([
+                PEER, "robots", "--url", &url, "--robot", robot, "--shape", shape,
+            ])
+            .output()
+            .expect("run openpi_peer.py");
+        let text = String::from_utf8_lossy(&out.stdout);
+        println!("{config}: {}", text.trim());
+        assert!(
+            out.status.success(),
+            "{config}: {text}\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        if robot == "libero" {
+            // an ALOHA-sized state under the LIBERO config
+            let bad = Command::new("python3")
+                .args([
+                    "-c",
+                    "import sys, numpy as np\n\
+                     from openpi_client import websocket_client_policy as w\n\
+                     c = w.WebsocketClientPolicy(host=sys.argv[1])\n\
+                     img = np.zeros((224, 224, 3), np.uint8)\n\
+                     try:\n    c.infer({'observation/image': img, 'observation/wrist_image': img, \
+                     'observation/state': np.zeros(14), 'prompt': 'x'})\n    print('served')\n\
+                     except RuntimeError as e:\n    print(str(e).splitlines()[-1])\n",
+                    &url,
+                ])
+                .output()
+                .expect("python");
+            let said = String::from_utf8_lossy(&bad.stdout);
+            println!("{config}, a 14-value state: {}", said.trim());
+            assert!(said.contains("takes 8 state values"), "{said}");
+        }
+        let _ = server.terminate(Duration::from_secs(5));
+    }
+}

@@ -175,6 +175,12 @@ pub struct PolicyConfig {
     /// openpi checkpoints: which `assets/<asset_id>/norm_stats.json` (when there are several).
     #[serde(default)]
     pub asset_id: Option<String>,
+    /// openpi's training config whose transforms wrap the model (`pi05_libero`,
+    /// `pi0_aloha_sim`, ...: the robot's input and output transforms, delta dims, default
+    /// prompt, horizon; `chunkrt inspect` prints them). Unset: recognised from an openpi
+    /// checkpoint's folder name or assets where it can be.
+    #[serde(default)]
+    pub openpi_config: Option<String>,
     /// `source = "remote"`: the server, `ws://host:port[/path]`.
     #[serde(default)]
     pub url: Option<String>,
@@ -222,6 +228,7 @@ impl Default for PolicyConfig {
             model: ConfigOverrides::default(),
             tokenizer: None,
             asset_id: None,
+            openpi_config: None,
             url: None,
             api_key: None,
             connect_timeout_ms: default_connect_timeout_ms(),
@@ -247,6 +254,7 @@ impl PolicyConfig {
             layout: chunkrt_policy::layout::LayoutOptions {
                 tokenizer: self.tokenizer.clone(),
                 asset_id: self.asset_id.clone(),
+                openpi_config: self.openpi_config.clone(),
             },
         }
     }

@@ -78,6 +78,29 @@ impl PolicySource {
         policy
             .check_dof(cfg.n_dof())
             .with_context(|| format!("{}: norm_stats.json", dir.display()))?;
+        if let Some(c) = policy.openpi_config() {
+            anyhow::ensure!(
+                policy.action_width(cfg.n_dof()) == cfg.n_dof(),
+                "openpi config {} answers {} action columns for {} state values: the \
+                 controller drives one joint per column, so it cannot run it in-process \
+                 (serve it to its own client: chunkrt serve --openpi-config {})",
+                c.name,
+                policy.action_width(cfg.n_dof()),
+                cfg.n_dof(),
+                c.name
+            );
+            anyhow::ensure!(
+                !matches!(
+                    cfg.execution.strategy,
+                    crate::config::Strategy::Rtc | crate::config::Strategy::RtcTrained
+                ),
+                "openpi config {}: execution.strategy = {:?} conditions a chunk on the \
+                 previous one (RTC), which chunkrt does not do through the robot's \
+                 transforms: use replace, crossfade or temporal_ensemble",
+                c.name,
+                cfg.execution.strategy
+            );
+        }
         anyhow::ensure!(
             cfg.execution.strategy != crate::config::Strategy::RtcTrained
                 || policy.committed_max() > 0,

@@ -29,6 +29,7 @@ use crate::checkpoint::detect_kind;
 use crate::config::{ModelConfig, ModelKind};
 use crate::error::PolicyError;
 use crate::files::read_side_file;
+use crate::openpi_config::OpenpiConfig as TrainingConfig;
 use crate::preprocess::{NormStats, PromptStyle, Stats};
 
 /// Which layout a checkpoint directory has.
@@ -61,6 +62,10 @@ pub struct LayoutOptions {
     pub tokenizer: Option<PathBuf>,
     /// openpi: which `assets/<asset_id>/norm_stats.json` (needed when there are several).
     pub asset_id: Option<String>,
+    /// openpi's training config whose transforms wrap the model (`pi05_libero`, ...;
+    /// [`crate::openpi_config`]). `None`: recognised from an openpi checkpoint's folder name
+    /// or assets where it can be, else none.
+    pub openpi_config: Option<String>,
 }
 
 /// The tokenizer a layout uses.
@@ -98,6 +103,8 @@ pub struct Layout {
     pub norm_problem: Option<String>,
     /// How π0 prompts are built (LeRobot's pi0 differs from openpi's).
     pub prompt_style: PromptStyle,
+    /// openpi's training config whose transforms wrap the model, and how it was chosen.
+    pub openpi: Option<(&'static TrainingConfig, String)>,
 }
 
 /// The variant names of the real checkpoints (openpi's `gemma_2b` / `gemma_300m`, LoRA or not).
@@ -254,14 +261,91 @@ impl Layout {
             missing: Vec::new(),
             norm_problem: None,
             prompt_style: PromptStyle::Openpi,
+            openpi: None,
         };
         match kind {
             LayoutKind::Chunkrt => me.read_chunkrt(dir, tensors, raw.as_deref())?,
             LayoutKind::Openpi => me.read_openpi(dir, tensors, raw.as_deref(), opts)?,
             LayoutKind::LeRobot => me.read_lerobot(dir, tensors, raw.as_deref())?,
         }
+        me.apply_openpi_config(dir, opts)?;
         me.find_tokenizer(dir, opts);
         Ok(me)
+    }
+
+    /// openpi's training config ([`crate::openpi_config`]): named, or recognised from an openpi
+    /// checkpoint. It sets the horizon, the prompt length, the delta dims and the statistics'
+    /// asset id as the config does, and checks the statistics' widths against its robot.
+    fn apply_openpi_config(&mut self, dir: &Path, opts: &LayoutOptions) -> Result<(), PolicyError> {
+        let chosen = match &opts.openpi_config {
+            Some(n) => Some((
+                crate::openpi_config::by_name(n)?,
+                "named (--openpi-config / policy.openpi_config)".to_string(),
+            )),
+            None if self.kind == LayoutKind::Openpi => {
+                crate::openpi_config::recognise(dir, self.config.kind)
+            }
+            None => None,
+        };
+        let Some((c, how)) = chosen else {
+            return Ok(());
+        };
+        if c.kind != self.config.kind {
+            return Err(PolicyError::Config(format!(
+                "openpi config {} is a {} config, but {} holds a {} model",
+                c.name,
+                c.kind.name(),
+                dir.display(),
+                self.config.kind.name()
+            )));
+        }
+        if self.kind == LayoutKind::Openpi && opts.asset_id.is_none() {
+            let p = dir.join("assets").join(c.asset_id).join("norm_stats.json");
+            if p.is_file() {
+                self.norm = Some(NormStats::from_file(&p)?);
+                self.norm_problem = None;
+                self.missing
+                    .retain(|m| !m.contains("norm stats") && !m.contains("norm_stats.json"));
+                self.notes.retain(|n| !n.starts_with("normalisation:"));
+                self.notes.push(format!(
+                    "normalisation: assets/{}/norm_stats.json (the config's asset id)",
+                    c.asset_id
+                ));
+            }
+        }
+        if let Some(ns) = &self.norm {
+            c.check_stats(ns, self.config.action_dim)?;
+        }
+        if self.config.action_horizon != c.action_horizon {
+            self.notes.push(format!(
+                "action_horizon {} (the config's; the checkpoint said {})",
+                c.action_horizon, self.config.action_horizon
+            ));
+        }
+        self.config.action_horizon = c.action_horizon;
+        self.config.max_token_len = c.max_token_len;
+        self.config.delta_action_mask = c.delta_mask.to_vec();
+        self.notes.push(format!(
+            "openpi config {} ({how}): {} transforms, {} state values in, {} action columns out, \
+             delta dims {}, state in the prompt: {}, default prompt {}",
+            c.name,
+            c.robot.layout(),
+            c.robot.state_dim(),
+            c.robot.action_dim(),
+            if c.delta_mask.is_empty() {
+                "none".to_string()
+            } else {
+                format!(
+                    "{:?}",
+                    c.delta_mask.iter().map(|&m| m as u8).collect::<Vec<_>>()
+                )
+            },
+            c.kind == ModelKind::Pi05 && c.discrete_state_input,
+            c.default_prompt
+                .map_or("none".to_string(), |p| format!("{p:?}")),
+        ));
+        self.openpi = Some((c, how));
+        Ok(())
     }
 
     /// The base dimensions of a foreign layout: `chunkrt.json` if present, else the preset of
@@ -396,17 +480,30 @@ impl Layout {
         self.config = cfg;
         // the statistics: assets/<asset_id>/norm_stats.json
         let assets = dir.join("assets");
-        let found: Vec<String> = std::fs::read_dir(&assets)
-            .map(|rd| {
-                let mut v: Vec<String> = rd
-                    .filter_map(|e| e.ok())
-                    .filter(|e| e.path().join("norm_stats.json").is_file())
-                    .filter_map(|e| e.file_name().to_str().map(str::to_string))
-                    .collect();
-                v.sort();
-                v
-            })
-            .unwrap_or_default();
+        // asset ids one or two folders deep (`droid`, `physical-intelligence/libero`)
+        let mut found: Vec<String> = Vec::new();
+        let names = |p: &Path| -> Vec<String> {
+            std::fs::read_dir(p)
+                .map(|rd| {
+                    rd.filter_map(|e| e.ok())
+                        .filter(|e| e.path().is_dir())
+                        .filter_map(|e| e.file_name().to_str().map(str::to_string))
+                        .collect()
+                })
+                .unwrap_or_default()
+        };
+        for a in names(&assets) {
+            if assets.join(&a).join("norm_stats.json").is_file() {
+                found.push(a);
+                continue;
+            }
+            for b in names(&assets.join(&a)) {
+                if assets.join(&a).join(&b).join("norm_stats.json").is_file() {
+                    found.push(format!("{a}/{b}"));
+                }
+            }
+        }
+        found.sort();
         let id = match (&opts.asset_id, found.as_slice()) {
             (Some(id), _) => Some(id.clone()),
             (None, [one]) => Some(one.clone()),

@@ -27,6 +27,7 @@ pub mod graph;
 pub mod kernels;
 pub mod layout;
 pub mod model;
+pub mod openpi_config;
 pub mod ops;
 pub mod packed;
 pub mod preprocess;

@@ -13,9 +13,10 @@ use super::device::{DeviceSpec, Precision};
 use super::graph::SampleGraph;
 use super::layout::{LayoutOptions, TokenizerFile};
 use super::model::{ModelInputs, PiModel, PrefixCache};
+use super::openpi_config::{model_state, robot_actions, ModelState, OpenpiConfig};
 use super::preprocess::{
-    discretize_state, normalize, resize_with_pad, to_model_chw, to_rgb, unnormalize, Encoding,
-    NormMode, NormStats, PromptStyle, PromptTokenizer,
+    discretize_state, resize_with_pad, to_model_chw, to_rgb, Encoding, NormMode, NormStats,
+    PromptStyle, PromptTokenizer,
 };
 pub use super::rtc::Guidance;
 use super::rtc::{check_target, denoise_guided, model_space_actions, GuidanceTarget, Jacobian};
@@ -107,6 +108,8 @@ pub struct Policy {
     state_prompt_dim: Option<usize>,
     /// How π0 prompts are built.
     prompt_style: PromptStyle,
+    /// openpi's training config whose transforms wrap the model ([`crate::openpi_config`]).
+    openpi: Option<&'static OpenpiConfig>,
 }
 
 /// How to load a policy (the controller builds this from its `[policy]` configuration).
@@ -255,6 +258,7 @@ impl Policy {
             truncated_prompt: None,
             state_prompt_dim: layout.state_prompt_dim,
             prompt_style: layout.prompt_style,
+            openpi: layout.openpi.map(|(c, _)| c),
         })
     }
 
@@ -338,12 +342,36 @@ impl Policy {
         self.model.cfg.action_horizon
     }
 
-    /// Checks that the normalisation statistics (if any) cover a robot of `n_dof` joints.
+    /// Checks that the normalisation statistics (if any) cover a robot of `n_dof` joints, and
+    /// that an openpi config's robot sends that many state values.
     pub fn check_dof(&self, n_dof: usize) -> Result<(), PolicyError> {
+        if let Some(c) = self.openpi {
+            c.check_state(n_dof)?;
+        }
         match &self.norm {
-            Some(ns) => ns.check(self.mode(), n_dof),
+            Some(ns) => ns.check(
+                self.mode(),
+                n_dof.min(self.openpi.map_or(n_dof, |c| c.model_action_width())),
+            ),
             None => Ok(()),
         }
+    }
+
+    /// openpi's training config whose transforms wrap the model, if any.
+    pub fn openpi_config(&self) -> Option<&'static OpenpiConfig> {
+        self.openpi
+    }
+
+    /// Action columns a chunk has for a state of `n_state` values: the openpi config's robot's
+    /// (ALOHA 14, LIBERO 7, DROID 8), else one per state value.
+    pub fn action_width(&self, n_state: usize) -> usize {
+        self.openpi.map_or(n_state, |c| c.robot.action_dim())
+    }
+
+    /// The prompt when neither the request nor the server has one: the openpi config's
+    /// `default_prompt`.
+    pub fn default_prompt(&self) -> Option<&'static str> {
+        self.openpi.and_then(|c| c.default_prompt)
     }
 
     fn mode(&self) -> NormMode {
@@ -364,6 +392,14 @@ impl Policy {
         let inputs = self.prepare(obs)?;
         let n_dof = obs.joint_positions.len();
         let stats = self.norm.as_ref().map(|n| &n.actions);
+        if let (Some(c), Conditioning::Guided(_) | Conditioning::Committed(_)) = (self.openpi, how)
+        {
+            return Err(PolicyError::Config(format!(
+                "openpi config {}: a chunk conditioned on the previous one (RTC) is not \
+                 supported through the robot's transforms; ask for a fresh chunk",
+                c.name
+            )));
+        }
         match how {
             Conditioning::Fresh => self.run(&inputs, n_dof, Continue::Fresh),
             Conditioning::Guided(g) => {
@@ -438,30 +474,34 @@ impl Policy {
             return Err(PolicyError::Input("non-finite joint position".into()));
         }
         let mode = self.mode();
-        self.offsets.clear();
-        self.offsets
-            .extend(obs.joint_positions.iter().enumerate().map(|(d, &q)| {
-                if cfg.delta_action_mask.get(d).copied().unwrap_or(false) {
-                    q
-                } else {
-                    0.0
-                }
-            }));
-        // state: normalise the unpadded state, then pad to the action dim
-        let mut state: Vec<f32> = obs.joint_positions.iter().map(|&x| x as f32).collect();
-        if let Some(ns) = &self.norm {
-            normalize(&mut state, &ns.state, mode)?;
+        if let Some(c) = self.openpi {
+            c.check_state(n_dof)?;
         }
-        let bins = (cfg.kind == ModelKind::Pi05).then(|| match self.state_prompt_dim {
-            // LeRobot's pi05 processor pads the normalised state before discretising it
-            Some(n) if n > state.len() => {
-                let mut padded = state.clone();
-                padded.resize(n, 0.0);
-                discretize_state(&padded)
-            }
-            _ => discretize_state(&state),
-        });
-        state.resize(cfg.action_dim, 0.0);
+        // the robot's input transform, the normalisation of the unpadded state, the padding
+        let ModelState {
+            state,
+            prompt_state,
+            offsets,
+        } = model_state(
+            self.openpi,
+            &cfg.delta_action_mask,
+            self.norm.as_ref(),
+            mode,
+            obs.joint_positions,
+            cfg.action_dim,
+        )?;
+        self.offsets = offsets;
+        let in_prompt = self.openpi.is_none_or(|c| c.discrete_state_input);
+        let bins =
+            (cfg.kind == ModelKind::Pi05 && in_prompt).then(|| match self.state_prompt_dim {
+                // LeRobot's pi05 processor pads the normalised state before discretising it
+                Some(n) if n > prompt_state.len() => {
+                    let mut padded = prompt_state.clone();
+                    padded.resize(n, 0.0);
+                    discretize_state(&padded)
+                }
+                _ => discretize_state(&prompt_state),
+            });
         // images in camera order; absent cameras black and masked
         let s = cfg.vision.image_size;
         let dev = self.model.device().clone();
@@ -564,23 +604,14 @@ impl Policy {
         // the one device -> host copy of the chunk
         let acts = out.actions.squeeze(0)?.to_vec2::<f32>()?;
         let mut res = Vec::with_capacity(cfg.action_horizon * n_dof);
-        for row in acts {
-            let mut r = row;
-            if let Some(ns) = &self.norm {
-                unnormalize(&mut r, &ns.actions, mode)?;
-            }
-            res.extend(
-                r.iter()
-                    .zip(&self.offsets)
-                    .take(n_dof)
-                    .map(|(&x, &o)| x as f64 + o),
-            );
-        }
-        if res.iter().any(|x| !x.is_finite()) {
-            return Err(PolicyError::Input(
-                "model produced non-finite actions".into(),
-            ));
-        }
+        robot_actions(
+            self.openpi,
+            self.norm.as_ref(),
+            mode,
+            acts,
+            &self.offsets,
+            &mut res,
+        )?;
         Ok(res)
     }
 }

@@ -8,6 +8,9 @@
   serve-instant, bench-client
           the remote bench's reference: openpi's server answering at once, openpi-client timing
           the round trips of a 3 x 224x224 observation.
+  robots  openpi-client sending what openpi's LIBERO and DROID example clients send (their keys,
+          224x224 HWC views, their state widths; the LIBERO loop's replanning) to a server with an
+          openpi config: the chunk has the robot's columns (LIBERO 7, DROID 8) and the config's horizon.
   latency one openpi-client against a server with a real model (the GPU run's `chunkrt serve`):
           waits for it to come up, then times round trips of new 3 x 224x224 observations and
           prints their p50 / p99 / max beside the server's own `policy_timing` / `server_timing`.
@@ -274,6 +277,47 @@ def latency(args):
     return 0
 
 
+def robots(args):
+    """openpi's LIBERO / DROID client requests (examples/libero/main.py, examples/droid/main.py)."""
+    rng = np.random.default_rng(5)
+    client = wcp.WebsocketClientPolicy(host=args.url)
+    view = lambda: rng.integers(0, 255, size=(224, 224, 3), dtype=np.uint8)  # noqa: E731
+    if args.robot == "libero":
+        plan = []
+        shapes = set()
+        for step in range(args.steps):
+            if not plan:
+                obs = {
+                    "observation/image": view(),
+                    "observation/wrist_image": view(),
+                    "observation/state": np.concatenate(
+                        [rng.uniform(-0.3, 0.3, 3), rng.uniform(-3, 3, 3), rng.uniform(0, 0.04, 2)]
+                    ),
+                    "prompt": "put the bowl on the plate",
+                }
+                chunk = client.infer(obs)["actions"]
+                shapes.add(tuple(chunk.shape))
+                # the example's own check and replanning
+                assert len(chunk) >= args.replan, f"chunk of {len(chunk)} < replan_steps"
+                plan = list(chunk[: args.replan])
+            action = plan.pop(0)
+            assert np.asarray(action).shape == (7,), np.asarray(action).shape
+    else:
+        shapes = set()
+        for _ in range(args.steps):
+            obs = {
+                "observation/exterior_image_1_left": view(),
+                "observation/wrist_image_left": view(),
+                "observation/joint_position": rng.uniform(-1, 1, 7),
+                "observation/gripper_position": rng.uniform(0, 1, 1),
+                "prompt": "pick up the marker",
+            }
+            shapes.add(tuple(client.infer(obs)["actions"].shape))
+    want = tuple(int(x) for x in args.shape.split("x"))
+    report(f"{args.robot} chunk shape", shapes == {want}, f"{sorted(shapes)} (want {want})")
+    return 1 if FAILED else 0
+
+
 def main():
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -294,6 +338,12 @@ def main():
     b.add_argument("--url", required=True)
     b.add_argument("--cameras", type=int, default=3)
     b.add_argument("--requests", type=int, default=40)
+    r = sub.add_parser("robots")
+    r.add_argument("--url", required=True)
+    r.add_argument("--robot", choices=["libero", "droid"], required=True)
+    r.add_argument("--steps", type=int, default=20)
+    r.add_argument("--replan", type=int, default=5)
+    r.add_argument("--shape", required=True, help="HxW the chunk must have, e.g. 10x7")
     la = sub.add_parser("latency")
     la.add_argument("--url", required=True)
     la.add_argument("--cameras", type=int, default=3)
@@ -305,6 +355,8 @@ def main():
     args = ap.parse_args()
     if args.cmd == "latency":
         sys.exit(latency(args))
+    if args.cmd == "robots":
+        sys.exit(robots(args))
     if args.cmd == "check":
         sys.exit(check(args))
     if args.cmd == "serve-instant":
