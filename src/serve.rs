@@ -90,6 +90,10 @@ pub fn metadata(policy: &Policy, layout: &Layout) -> ChunkrtMetadata {
             .iter()
             .map(|v| (v.name.clone(), v.camera.clone(), v.delay_ms))
             .collect(),
+        reset_pose: policy
+            .openpi_config()
+            .and_then(|c| c.reset_pose)
+            .map(<[f64]>::to_vec),
     }
 }
 

@@ -761,13 +761,23 @@ pub struct ChunkrtMetadata {
     /// Image inputs that are an earlier frame of a camera: `(input, camera, delay_ms)`; the
     /// client sends them under the input's name.
     pub delayed_views: Vec<(String, String, f64)>,
+    /// openpi's `policy_metadata` `reset_pose` of the served config (a top-level key, as
+    /// openpi's server sends it; openpi's ALOHA client resets the arms to it).
+    pub reset_pose: Option<Vec<f64>>,
 }
 
 impl ChunkrtMetadata {
     /// Packs the whole metadata map: `{"chunkrt": {...}}` plus `extra` entries written by the
     /// caller (none: pass 0 and a no-op).
     pub fn write(&self, w: &mut Writer) {
-        w.map(1).str(keys::METADATA).map(9);
+        w.map(1 + self.reset_pose.is_some() as usize);
+        if let Some(pose) = &self.reset_pose {
+            w.str("reset_pose").list(pose.len());
+            for v in pose {
+                w.f64(*v);
+            }
+        }
+        w.str(keys::METADATA).map(9);
         w.str("version").str(&self.version);
         w.str("model").str(&self.model);
         w.str("action_horizon").uint(self.action_horizon as u64);
@@ -823,6 +833,10 @@ impl ChunkrtMetadata {
                     })
                     .collect(),
                 _ => Vec::new(),
+            },
+            reset_pose: match meta.get("reset_pose") {
+                Some(Value::Array(xs)) => xs.iter().map(Value::as_f64).collect(),
+                _ => None,
             },
         })
     }
@@ -982,6 +996,7 @@ mod tests {
             rtc_prefix_max: 0,
             layout: "chunkrt".into(),
             delayed_views: vec![("base_1s".into(), "base_0_rgb".into(), 1000.0)],
+            reset_pose: None,
         };
         let mut w = Writer::new();
         meta.write(&mut w);

@@ -25,6 +25,7 @@ fn start(api_key: Option<&str>) -> Server {
         rtc_prefix_max: 0,
         layout: "libero".into(),
         delayed_views: vec![],
+        reset_pose: Some(vec![0.0, -1.5, 1.5, 0.0, 0.0, 0.0]),
     };
     let mut w = Writer::new();
     meta.write(&mut w);
@@ -103,6 +104,8 @@ fn metadata_replies_and_timings() {
     let mut c = Client::connect(&ClientConfig::new(&url(server.local_addr()))).unwrap();
     let meta = ChunkrtMetadata::parse(&c.metadata()).unwrap();
     assert_eq!((meta.action_horizon, meta.layout.as_str()), (4, "libero"));
+    // openpi's policy_metadata key, top level as openpi's server sends it
+    assert_eq!(meta.reset_pose, Some(vec![0.0, -1.5, 1.5, 0.0, 0.0, 0.0]));
     for i in 0..3 {
         let bytes = c.infer(&request(&[1.0, 2.0])).unwrap();
         let r = Reply::parse(&decode(&bytes, Limits::default()).unwrap()).unwrap();

@@ -101,6 +101,9 @@ pub struct OpenpiConfig {
     pub delta_mask: &'static [bool],
     /// The config's `default_prompt` (a request's prompt, then the server's, come first).
     pub default_prompt: Option<&'static str>,
+    /// The config's `policy_metadata` `reset_pose` (the ALOHA towel and tupperware configs):
+    /// the server's metadata carries it, and openpi's ALOHA client resets the arms to it.
+    pub reset_pose: Option<&'static [f64]>,
 }
 
 const T: bool = true;
@@ -110,6 +113,9 @@ const ALOHA_DELTA: &[bool] = &[T, T, T, T, T, T, F, T, T, T, T, T, T, F];
 /// `make_bool_mask(6, -1)`: the end effector pose relative, the gripper absolute.
 const LIBERO_DELTA: &[bool] = &[T, T, T, T, T, T, F];
 const ALOHA: Robot = Robot::Aloha { adapt_to_pi: true };
+/// `policy_metadata={"reset_pose": [0, -1.5, 1.5, 0, 0, 0]}` of the ALOHA towel and
+/// tupperware configs.
+const ALOHA_RESET_POSE: &[f64] = &[0.0, -1.5, 1.5, 0.0, 0.0, 0.0];
 
 /// The configs of openpi (15a9616) that ship a checkpoint or that its examples serve.
 pub const CONFIGS: [OpenpiConfig; 9] = [
@@ -123,6 +129,7 @@ pub const CONFIGS: [OpenpiConfig; 9] = [
         robot: ALOHA,
         delta_mask: ALOHA_DELTA,
         default_prompt: Some("fold the towel"),
+        reset_pose: Some(ALOHA_RESET_POSE),
     },
     OpenpiConfig {
         name: "pi0_aloha_tupperware",
@@ -134,6 +141,7 @@ pub const CONFIGS: [OpenpiConfig; 9] = [
         robot: ALOHA,
         delta_mask: ALOHA_DELTA,
         default_prompt: Some("open the tupperware and put the food on the plate"),
+        reset_pose: Some(ALOHA_RESET_POSE),
     },
     OpenpiConfig {
         name: "pi0_aloha_pen_uncap",
@@ -145,6 +153,7 @@ pub const CONFIGS: [OpenpiConfig; 9] = [
         robot: ALOHA,
         delta_mask: ALOHA_DELTA,
         default_prompt: Some("uncap the pen"),
+        reset_pose: None,
     },
     OpenpiConfig {
         name: "pi05_aloha_pen_uncap",
@@ -156,6 +165,7 @@ pub const CONFIGS: [OpenpiConfig; 9] = [
         robot: ALOHA,
         delta_mask: ALOHA_DELTA,
         default_prompt: Some("uncap the pen"),
+        reset_pose: None,
     },
     OpenpiConfig {
         name: "pi0_aloha_sim",
@@ -167,6 +177,7 @@ pub const CONFIGS: [OpenpiConfig; 9] = [
         robot: ALOHA,
         delta_mask: &[],
         default_prompt: Some("Transfer cube"),
+        reset_pose: None,
     },
     OpenpiConfig {
         name: "pi0_libero",
@@ -178,6 +189,7 @@ pub const CONFIGS: [OpenpiConfig; 9] = [
         robot: Robot::Libero,
         delta_mask: LIBERO_DELTA,
         default_prompt: None,
+        reset_pose: None,
     },
     OpenpiConfig {
         name: "pi05_libero",
@@ -189,6 +201,7 @@ pub const CONFIGS: [OpenpiConfig; 9] = [
         robot: Robot::Libero,
         delta_mask: &[],
         default_prompt: None,
+        reset_pose: None,
     },
     OpenpiConfig {
         name: "pi0_droid",
@@ -200,6 +213,7 @@ pub const CONFIGS: [OpenpiConfig; 9] = [
         robot: Robot::Droid,
         delta_mask: &[],
         default_prompt: None,
+        reset_pose: None,
     },
     OpenpiConfig {
         name: "pi05_droid",
@@ -211,6 +225,7 @@ pub const CONFIGS: [OpenpiConfig; 9] = [
         robot: Robot::Droid,
         delta_mask: &[],
         default_prompt: None,
+        reset_pose: None,
     },
 ];
 
