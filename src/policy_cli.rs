@@ -508,6 +508,12 @@ pub fn inspect(args: InspectArgs) -> anyhow::Result<()> {
         "{}",
         checkpoint::inspect(&args.dir, &args.layout.options())?
     );
+    // the verdict `run` and `serve` would give at load
+    if let Err(e) = checkpoint::verdict(&args.dir, &args.layout.options()) {
+        println!("REFUSED at load: {e}");
+        anyhow::bail!("{}: would not load: {e}", args.dir.display());
+    }
+    println!("loads: yes (the statistics pass the checks run and serve make)");
     if let Some(spec) = args.device {
         let device = spec.open()?;
         let need = checkpoint::model_bytes(&args.dir, model_dtype(&device, args.precision))?;

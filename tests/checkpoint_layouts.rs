@@ -427,3 +427,42 @@ fn an_openpi_checkpoint_gives_its_config_away_and_answers_its_robots_columns() {
     );
     std::fs::remove_dir_all(&named).ok();
 }
+
+#[test]
+fn absurd_statistics_are_refused_by_run_and_inspect_alike() {
+    let dir = chunkrt_layout();
+    let mut ns: serde_json::Value = serde_json::from_str(&norm_stats_json()).unwrap();
+    // an action range no joint has: the chunk came out at ~1e37 rad before
+    ns["norm_stats"]["actions"]["q99"][2] = serde_json::json!(1e38);
+    std::fs::write(dir.join("norm_stats.json"), ns.to_string()).unwrap();
+    let e = load(&dir, LayoutOptions::default()).err().expect("refused");
+    assert!(
+        e.contains("dimension(s) [2]") && e.contains("beyond"),
+        "{e}"
+    );
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_chunkrt"))
+        .arg("inspect")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        !out.status.success(),
+        "inspect accepted what run refuses:\n{text}"
+    );
+    assert!(
+        text.contains("REFUSED at load") && text.contains("dimension(s) [2]"),
+        "{text}"
+    );
+    // and the sound statistics pass both
+    std::fs::write(dir.join("norm_stats.json"), norm_stats_json()).unwrap();
+    load(&dir, LayoutOptions::default()).expect("loads");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_chunkrt"))
+        .arg("inspect")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    assert!(String::from_utf8_lossy(&out.stdout).contains("loads: yes"));
+    std::fs::remove_dir_all(&dir).ok();
+}

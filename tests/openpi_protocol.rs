@@ -412,3 +412,52 @@ fn openpi_configs_answer_their_robots_clients() {
         let _ = server.terminate(Duration::from_secs(5));
     }
 }
+
+/// Logs are bounded by us, not by the peer: five requests with 1 MiB prompts (each a new
+/// prompt, each truncated and warned about once) add a few lines to `serve`'s log, each cut to
+/// a bounded length with the original length said (20 requests of 3 MiB added 60 MiB before).
+#[test]
+fn a_peers_long_prompts_do_not_grow_the_log() {
+    if !openpi_python() {
+        return;
+    }
+    let _serial = serial();
+    let port = free_port();
+    let ckpt = format!("{ROOT}/tests/data/pi05_tiny");
+    let server = serve(&ckpt, port, &["--max-message-mb", "8"]);
+    let url = format!("ws://127.0.0.1:{port}");
+    let out = Command::new("python3")
+        .args([
+            "-c",
+            "import sys, numpy as np\n\
+             from openpi_client import websocket_client_policy as w\n\
+             c = w.WebsocketClientPolicy(host=sys.argv[1])\n\
+             img = np.zeros((64, 64, 3), np.uint8)\n\
+             for i in range(5):\n    \
+             p = chr(97 + i) + 'x' * (1 << 20)\n    \
+             c.infer({'observation/base_0_rgb': img, 'observation/state': np.zeros(4), 'prompt': p})\n\
+             print('sent 5')\n",
+            &url,
+        ])
+        .output()
+        .expect("python");
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        said.contains("sent 5"),
+        "{said}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let f = server.terminate(Duration::from_secs(5));
+    let log = f.stderr;
+    println!(
+        "serve's log after 5 MiB of prompts: {} bytes; longest line {} bytes",
+        log.len(),
+        log.lines().map(str::len).max().unwrap_or(0)
+    );
+    assert!(log.len() < 32 << 10, "{} bytes of log", log.len());
+    assert!(log.lines().all(|l| l.len() < 1024), "a line over 1 KiB");
+    assert!(
+        log.contains("bytes in all"),
+        "the cut lines say the length:\n{log}"
+    );
+}

@@ -50,6 +50,49 @@ pub enum IpcError {
     Node(String),
 }
 
+/// iceoryx2's error when a service cannot be opened, with what it means and what to do: a
+/// service that exists with other settings was made by another program (or an older chunkrt)
+/// in the same namespace, and chunkrt will not talk on it.
+pub fn explain_open(raw: &str) -> String {
+    let what = if raw.contains("DoesNotSupportRequestedAmountOf") {
+        Some(
+            "it already exists with fewer publishers, subscribers or nodes than chunkrt needs: \
+             another program (or an older chunkrt) created it with other settings",
+        )
+    } else if raw.contains("Incompatible") {
+        Some(
+            "it already exists with another message type or settings: another program, or a \
+             chunkrt of another version, uses this namespace",
+        )
+    } else if raw.contains("InsufficientPermissions") {
+        Some("another user's process owns it")
+    } else if raw.contains("CorruptedState") || raw.contains("HangsInCreation") {
+        Some(
+            "its shared memory is left from a process that crashed while creating it; it is \
+             cleaned up when no process uses it any more",
+        )
+    } else {
+        None
+    };
+    match what {
+        Some(w) => format!("{w}; stop that program or use another namespace (--namespace) [{raw}]"),
+        None => raw.to_string(),
+    }
+}
+
+/// iceoryx2's error when a port cannot be created, with what it means.
+pub fn explain_port(raw: &str) -> String {
+    if raw.contains("ExceedsMax") {
+        format!(
+            "the service already has as many of these ports as it allows: other processes hold \
+             them (another robot or controller on this namespace, or a program squatting it); \
+             stop them or use another namespace (--namespace) [{raw}]"
+        )
+    } else {
+        raw.to_string()
+    }
+}
+
 /// Namespace of one robot's services, e.g. `chunkrt/arm0`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Namespace(String);
@@ -158,7 +201,7 @@ macro_rules! typed_service {
                 .open_or_create()
                 .map_err(|e| IpcError::Service {
                     name: name.to_string(),
-                    reason: format!("{e:?}"),
+                    reason: explain_open(&format!("{e:?}")),
                 })
         }
     };
@@ -204,7 +247,7 @@ pub fn camera_service(node: &Node<Ipc>, name: &str) -> Result<CameraService, Ipc
         .open_or_create()
         .map_err(|e| IpcError::Service {
             name: name.to_string(),
-            reason: format!("{e:?}"),
+            reason: explain_open(&format!("{e:?}")),
         })
 }
 
@@ -227,7 +270,7 @@ pub fn event_service(node: &Node<Ipc>, name: &str) -> Result<EventService, IpcEr
         .open_or_create()
         .map_err(|e| IpcError::Service {
             name: name.to_string(),
-            reason: format!("{e:?}"),
+            reason: explain_open(&format!("{e:?}")),
         })
 }
 
@@ -239,7 +282,7 @@ pub fn notifier(factory: &EventService, name: &str) -> Result<Notifier<Ipc>, Ipc
         .map_err(|e| IpcError::Port {
             what: "notifier",
             name: name.to_string(),
-            reason: format!("{e:?}"),
+            reason: explain_port(&format!("{e:?}")),
         })
 }
 
@@ -251,7 +294,7 @@ pub fn listener(factory: &EventService, name: &str) -> Result<Listener<Ipc>, Ipc
         .map_err(|e| IpcError::Port {
             what: "listener",
             name: name.to_string(),
-            reason: format!("{e:?}"),
+            reason: explain_port(&format!("{e:?}")),
         })
 }
 
@@ -295,7 +338,7 @@ pub fn wait_event(
         .map_err(|e| IpcError::Port {
             what: "listener",
             name: String::new(),
-            reason: format!("{e:?}"),
+            reason: explain_port(&format!("{e:?}")),
         })?;
     Ok(woke)
 }
@@ -341,7 +384,7 @@ pub fn subscriber<T: core::fmt::Debug + ZeroCopySend>(
         .map_err(|e| IpcError::Port {
             what: "subscriber",
             name: name.to_string(),
-            reason: format!("{e:?}"),
+            reason: explain_port(&format!("{e:?}")),
         })
 }
 
@@ -360,7 +403,7 @@ pub fn camera_publisher(
         .map_err(|e| IpcError::Port {
             what: "camera publisher",
             name: name.to_string(),
-            reason: format!("{e:?}"),
+            reason: explain_port(&format!("{e:?}")),
         })
 }
 
@@ -376,13 +419,34 @@ pub fn camera_subscriber(
         .map_err(|e| IpcError::Port {
             what: "camera subscriber",
             name: name.to_string(),
-            reason: format!("{e:?}"),
+            reason: explain_port(&format!("{e:?}")),
         })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_squatted_service_is_named_with_what_to_do() {
+        // another program made the joint state service first, with one publisher allowed
+        let node = node("test-squat").unwrap();
+        let name = format!("chunkrt/test-squat-{}/joint_state", std::process::id());
+        let _squat = node
+            .service_builder(&service_name(&name).unwrap())
+            .publish_subscribe::<crate::JointState>()
+            .max_publishers(1)
+            .create()
+            .unwrap();
+        let e = joint_state_service(&node, &name)
+            .err()
+            .expect("refused")
+            .to_string();
+        assert!(
+            e.contains(&name) && e.contains("another program") && e.contains("--namespace"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn namespace_rules() {

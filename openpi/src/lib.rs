@@ -24,6 +24,8 @@ pub mod server;
 
 pub use client::{Client, ClientConfig, ClientError};
 pub use layout::{ActionSpace, KeyPath, Layout, LayoutConfig, Preset, DROID_MAX_JOINT_DELTA};
-pub use message::{ChunkrtMetadata, Image, ImageRef, Outgoing, Reply, Request, RequestError};
+pub use message::{
+    clip_text, ChunkrtMetadata, Image, ImageRef, Outgoing, Reply, Request, RequestError,
+};
 pub use msgpack::{decode, DType, Limits, NdArray, Value, Writer};
 pub use server::{Failure, Server, ServerConfig, ServerStats};

@@ -739,6 +739,20 @@ impl Reply {
     }
 }
 
+/// `text` as a log line or an error reply may carry it: at most `max` bytes (cut at a character
+/// boundary), the original length said when cut. Outside data (a prompt, a key, a value) never
+/// makes a line longer than its caller allows.
+pub fn clip_text(text: &str, max: usize) -> std::borrow::Cow<'_, str> {
+    if text.len() <= max {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    let mut end = max;
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    std::borrow::Cow::Owned(format!("{}… ({} bytes in all)", &text[..end], text.len()))
+}
+
 /// What a chunkrt server says about its policy (the metadata's `chunkrt` map).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct ChunkrtMetadata {

@@ -133,6 +133,11 @@ struct Job {
     answer: mpsc::SyncSender<(Result<Reply, String>, Duration)>,
 }
 
+/// The most of a failure's text a log line carries (bytes).
+pub const LOG_TEXT_MAX: usize = 400;
+/// The most of a failure's text the error reply carries (bytes).
+pub const REPLY_TEXT_MAX: usize = 4096;
+
 /// A running server.
 pub struct Server {
     addr: SocketAddr,
@@ -535,8 +540,18 @@ fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
 /// with 1011), counts it and logs it (rate-limited). Other connections go on.
 fn fail(ws: &mut WebSocket<TcpStream>, peer: SocketAddr, s: &Shared, kind: Failure, text: &str) {
     s.stats.fail(kind);
-    s.warn(kind.name(), || format!("serve: {peer}: {text}"));
-    let _ = ws.send(Message::Text(text.into()));
+    // the text may quote what the peer sent: bounded in the log and in the reply
+    s.warn(kind.name(), || {
+        format!(
+            "serve: {peer}: {}",
+            crate::message::clip_text(text, LOG_TEXT_MAX)
+        )
+    });
+    let _ = ws.send(Message::Text(
+        crate::message::clip_text(text, REPLY_TEXT_MAX)
+            .into_owned()
+            .into(),
+    ));
     let _ = ws.close(Some(CloseFrame {
         code: CloseCode::Error,
         reason: "Internal server error".into(),

@@ -409,6 +409,27 @@ pub fn model_bytes(dir: &Path, dtype: DType) -> Result<u64, PolicyError> {
     Ok((n * dtype.size_in_bytes()) as u64)
 }
 
+/// What loading `dir` would refuse in its statistics, without loading the weights: the same
+/// checks as [`crate::Policy::load`] (several asset ids to choose from, statistics that are
+/// not finite, ordered, spread or of sane magnitude, an openpi config they do not fit), so that
+/// `chunkrt inspect` and `run` give one verdict.
+pub fn verdict(dir: &Path, opts: &LayoutOptions) -> Result<(), PolicyError> {
+    let file = WeightFile::open(&dir.join("model.safetensors"))?;
+    let (cfg, layout) = resolve(dir, file.shapes(), &ConfigOverrides::default(), opts)?;
+    if let Some(problem) = &layout.norm_problem {
+        return Err(PolicyError::Config(problem.clone()));
+    }
+    if let Some(ns) = &layout.norm {
+        let mode = match cfg.kind {
+            ModelKind::Pi0 => crate::preprocess::NormMode::ZScore,
+            ModelKind::Pi05 => crate::preprocess::NormMode::Quantile,
+        };
+        ns.check(mode, 0)
+            .map_err(|e| PolicyError::Config(format!("{}: {e}", dir.display())))?;
+    }
+    Ok(())
+}
+
 /// Human-readable description of a checkpoint directory: architecture, parameter counts, dtypes,
 /// and what is missing or mismatched.
 pub fn inspect(dir: &Path, opts: &LayoutOptions) -> Result<String, PolicyError> {

@@ -258,6 +258,29 @@ impl NormStats {
             let flat: Vec<usize> = (0..n_dof.min(spread.len()))
                 .filter(|&i| spread[i] < MIN_SPREAD)
                 .collect();
+            // statistics far wider than any joint, gripper or end effector moves (a q99 of
+            // 1e38 loaded, and the chunks came out at ~1e37 rad: the arm went to its limits at
+            // full speed)
+            let quant = quantiles(st).ok();
+            let wide: Vec<usize> = (0..len)
+                .filter(|&i| {
+                    let mut xs = vec![st.mean[i], st.std.get(i).copied().unwrap_or(0.0)];
+                    if let Some((q01, q99)) = quant {
+                        xs.extend([
+                            q01.get(i).copied().unwrap_or(0.0),
+                            q99.get(i).copied().unwrap_or(0.0),
+                        ]);
+                    }
+                    xs.iter().any(|x| x.abs() > MAX_MAGNITUDE)
+                })
+                .collect();
+            if !wide.is_empty() {
+                return Err(err(format!(
+                    "dimension(s) {wide:?} have statistics beyond {MAX_MAGNITUDE:e} (a mean, std \
+                     or quantile no joint, gripper or end effector reaches): un-normalising by \
+                     them would send the arm to its limits; fix the statistics"
+                )));
+            }
             if !flat.is_empty() {
                 return Err(err(format!(
                     "joint(s) {flat:?} have no spread ({} below {MIN_SPREAD}): normalising by it \
@@ -276,6 +299,10 @@ impl NormStats {
 
 /// The least spread (q99 − q01, or std) a robot joint's statistics may have (rad or m).
 pub const MIN_SPREAD: f32 = 1e-4;
+
+/// The largest magnitude a statistic may have (a mean, std or quantile, in rad, m or a
+/// normalised unit): 1000 is wider than any joint's range by two orders of magnitude.
+pub const MAX_MAGNITUDE: f32 = 1e3;
 
 fn quantiles(s: &Stats) -> Result<(&[f32], &[f32]), PolicyError> {
     match (&s.q01, &s.q99) {

@@ -533,11 +533,17 @@ impl Policy {
         if full > cfg.max_token_len && self.truncated_prompt.as_deref() != Some(obs.prompt) {
             // once per prompt: a π0.5 prompt's length changes with the state
             self.truncated_prompt = Some(obs.prompt.to_string());
+            // the prompt is outside data: its first 120 characters, and its length
+            let shown: String = obs.prompt.chars().take(120).collect();
+            let more = if shown.len() < obs.prompt.len() {
+                format!("… ({} bytes in all)", obs.prompt.len())
+            } else {
+                String::new()
+            };
             tracing::warn!(
-                "the prompt {:?} is {full} tokens with its state, more than the model's {}: \
-                 truncated, so the policy does not see its end (shorten it, or raise \
+                "the prompt {shown:?}{more} is {full} tokens with its state, more than the \
+                 model's {}: truncated, so the policy does not see its end (shorten it, or raise \
                  max_token_len if the checkpoint was trained with more)",
-                obs.prompt,
                 cfg.max_token_len
             );
         }

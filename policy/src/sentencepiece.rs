@@ -150,8 +150,17 @@ impl SentencePiece {
 
     /// Decodes a serialised `ModelProto`.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
+        if bytes.is_empty() {
+            return Err("an empty file, not a SentencePiece model".into());
+        }
         let proto = ModelProto::decode(bytes)
             .map_err(|e| format!("not a SentencePiece model (protobuf: {e})"))?;
+        if proto.pieces.is_empty() {
+            return Err(format!(
+                "not a SentencePiece model: no pieces in its {} bytes",
+                bytes.len()
+            ));
+        }
         let trainer = proto.trainer_spec.unwrap_or_default();
         let norm = proto.normalizer_spec.unwrap_or_default();
         let model_type = trainer.model_type.unwrap_or(1);
@@ -558,7 +567,8 @@ mod tests {
     #[test]
     fn bad_models_are_errors_not_panics() {
         assert!(SentencePiece::from_bytes(b"\xff\xff\xff").is_err());
-        assert!(SentencePiece::from_bytes(&[]).is_err());
+        let e = SentencePiece::from_bytes(&[]).unwrap_err();
+        assert!(e.contains("empty file") && !e.contains("unigram"), "{e}");
         let unigram = ModelProto {
             pieces: vec![PieceProto {
                 piece: Some("<unk>".into()),
