@@ -438,10 +438,10 @@ mod tests {
             .max_publishers(1)
             .create()
             .unwrap();
-        let e = joint_state_service(&node, &name)
-            .err()
-            .expect("refused")
-            .to_string();
+        let e = match joint_state_service(&node, &name) {
+            Ok(_) => panic!("a squatted service was opened"),
+            Err(e) => e.to_string(),
+        };
         assert!(
             e.contains(&name) && e.contains("another program") && e.contains("--namespace"),
             "{e}"
