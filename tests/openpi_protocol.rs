@@ -461,3 +461,107 @@ fn a_peers_long_prompts_do_not_grow_the_log() {
         "the cut lines say the length:\n{log}"
     );
 }
+
+/// Every failure kind gets a bounded retry rate: against a server that answers every request
+/// with non-finite actions (or the wrong shapes), the remote chunk source asked for chunks as
+/// fast as the inference thread does reconnects and re-asks a few times in 3 s, backing off
+/// from 0.1 to 2 s (it reconnected on every request before: 4 604 times in 9.5 s), and takes
+/// good chunks again within the longest backoff once the server answers well.
+#[test]
+fn a_server_that_answers_badly_is_asked_at_a_bounded_rate() {
+    use chunkrt::contract::{ChunkSource, InferenceRequest, Observation};
+    use chunkrt_openpi::{Layout, Preset, Request, Server, ServerConfig, Value, Writer};
+    use std::sync::atomic::{AtomicU8, Ordering};
+    use std::sync::Arc;
+
+    // 0: NaN actions, 1: the wrong width, 2: good
+    let mode = Arc::new(AtomicU8::new(0));
+    let m = mode.clone();
+    let layout = Layout::preset(Preset::Chunkrt);
+    let server = Server::start(
+        ServerConfig {
+            addr: "127.0.0.1:0".parse().unwrap(),
+            api_key: None,
+            max_message_bytes: 1 << 22,
+            max_connections: 8,
+            limits: Limits::default(),
+        },
+        {
+            let mut w = Writer::new();
+            w.map(0);
+            w.buf
+        },
+        Box::new(move |v: &Value<'_>| Request::parse(v, &layout, &[])),
+        Box::new(move |r: &Request| {
+            let n = r.state.len();
+            let (dims, fill) = match m.load(Ordering::Relaxed) {
+                0 => (n, f64::NAN),
+                1 => (n + 3, 0.0),
+                _ => (n, 0.0),
+            };
+            Ok(Reply {
+                actions: r
+                    .state
+                    .iter()
+                    .copied()
+                    .chain(std::iter::repeat(fill))
+                    .take(10 * dims)
+                    .map(|x| if fill.is_nan() { f64::NAN } else { x })
+                    .collect(),
+                horizon: 10,
+                dims,
+                policy_infer_ms: None,
+                server_infer_ms: None,
+                prev_total_ms: None,
+            })
+        }),
+        Box::new(|_, _| {}),
+    )
+    .unwrap();
+    let mut cfg = Config::embedded_default();
+    cfg.policy.url = Some(format!("ws://{}", server.local_addr()));
+    let mut src = chunkrt::remote::RemoteSource::connect(&cfg).expect("connects");
+    let mut obs = Observation::new(&cfg);
+    obs.joint_state.n_dof = cfg.n_dof() as u32;
+    let req = InferenceRequest::default();
+    for (bad, what) in [(0u8, "non-finite actions"), (1, "the wrong width")] {
+        mode.store(bad, Ordering::Relaxed);
+        let replies0 = server.stats().replies.load(Ordering::Relaxed);
+        let connects0 = src.connects();
+        let t0 = Instant::now();
+        let mut errors = 0;
+        while t0.elapsed() < Duration::from_secs(3) {
+            if src.compute(&obs, &req).is_err() {
+                errors += 1;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        let asked = server.stats().replies.load(Ordering::Relaxed) - replies0;
+        let reconnects = src.connects() - connects0;
+        println!(
+            "{what}: {asked} requests and {reconnects} reconnects in 3 s ({errors} failed calls, \
+             failures so far {:?})",
+            src.failures()
+        );
+        assert!(asked <= 8, "{what}: {asked} requests in 3 s");
+        assert!(reconnects <= 8, "{what}: {reconnects} reconnects in 3 s");
+    }
+    // the server answers well again: a chunk within the longest backoff
+    mode.store(2, Ordering::Relaxed);
+    let t0 = Instant::now();
+    loop {
+        if let Ok(Some(_)) = src.compute(&obs, &req) {
+            break;
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(3),
+            "no chunk after the server recovered"
+        );
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    println!(
+        "good chunks again {:.2} s after the server recovered",
+        t0.elapsed().as_secs_f64()
+    );
+    assert_eq!(src.failures().1, 0);
+}

@@ -62,6 +62,13 @@ pub struct RemoteSource {
     horizon: usize,
     next_attempt: Instant,
     backoff: Duration,
+    /// The wait after a failed request of any kind (a transport error, a reply that is not
+    /// msgpack, an error text, wrong shapes, non-finite actions), doubled per consecutive
+    /// failure up to [`BACKOFF_MAX`]; back to [`BACKOFF_START`] after a good chunk.
+    fail_backoff: Duration,
+    /// Consecutive failed requests, and all of them.
+    failures: u64,
+    failures_total: u64,
     reseed: Option<u64>,
     warned_fresh: bool,
     writer: Writer,
@@ -185,6 +192,9 @@ impl RemoteSource {
             horizon: 0,
             next_attempt: Instant::now(),
             backoff: BACKOFF_START,
+            fail_backoff: BACKOFF_START,
+            failures: 0,
+            failures_total: 0,
             reseed: None,
             warned_fresh: false,
             writer: Writer::new(),
@@ -211,6 +221,11 @@ impl RemoteSource {
     /// Successful connections so far (the first and every reconnect).
     pub fn connects(&self) -> u64 {
         self.connects
+    }
+
+    /// Failed requests so far (every kind), and how many of the last ones in a row.
+    pub fn failures(&self) -> (u64, u64) {
+        (self.failures_total, self.failures)
     }
 
     /// Connects and checks the fit; on failure the next attempt waits out the backoff.
@@ -245,8 +260,13 @@ impl RemoteSource {
                 self.client = Some(c);
                 self.backoff = BACKOFF_START;
                 self.connects += 1;
-                if self.connects > 1 {
-                    tracing::info!("remote policy: reconnected to {}", self.client_cfg.url);
+                // one line per power of two: a server that fails every reply cannot flood the log
+                let reconnects = self.connects - 1;
+                if reconnects > 0 && reconnects.is_power_of_two() {
+                    tracing::info!(
+                        "remote policy: reconnected to {} ({reconnects} reconnects so far)",
+                        self.client_cfg.url
+                    );
                 }
                 Ok(())
             }
@@ -478,18 +498,50 @@ impl ChunkSource for RemoteSource {
         obs: &Observation,
         request: &InferenceRequest,
     ) -> anyhow::Result<Option<ActionChunk>> {
+        // every failure waits out a backoff, whatever its kind: a server that answers every
+        // request with NaN or the wrong shapes is asked at most a few times a second, not
+        // hundreds (its connection dropped and made again each time)
+        let now = Instant::now();
+        if now < self.next_attempt {
+            anyhow::bail!(
+                "{} {}; next attempt in {} ms",
+                self.client_cfg.url,
+                if self.client.is_none() {
+                    "is unreachable".to_string()
+                } else {
+                    format!("failed {} requests in a row", self.failures)
+                },
+                (self.next_attempt - now).as_millis()
+            );
+        }
         if self.client.is_none() {
-            let now = Instant::now();
-            if now < self.next_attempt {
-                anyhow::bail!(
-                    "{} is unreachable; next attempt in {} ms",
-                    self.client_cfg.url,
-                    (self.next_attempt - now).as_millis()
-                );
-            }
             self.reconnect()
                 .with_context(|| format!("cannot reconnect to {}", self.client_cfg.url))?;
         }
+        let result = self.request(obs, request);
+        match &result {
+            Ok(_) => {
+                self.failures = 0;
+                self.fail_backoff = BACKOFF_START;
+            }
+            Err(_) => {
+                self.failures += 1;
+                self.failures_total += 1;
+                self.next_attempt = Instant::now() + self.fail_backoff;
+                self.fail_backoff = (self.fail_backoff * 2).min(BACKOFF_MAX);
+            }
+        }
+        result
+    }
+}
+
+impl RemoteSource {
+    /// One request and its chunk (any failure is [`ChunkSource::compute`]'s to pace).
+    fn request(
+        &mut self,
+        obs: &Observation,
+        request: &InferenceRequest,
+    ) -> anyhow::Result<Option<ActionChunk>> {
         let start_shift_ns = self.pack(obs, request)?;
         let reply = self.exchange()?;
         let n = self.n_dof.min(obs.joint_state.n_dof as usize);
