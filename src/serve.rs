@@ -58,9 +58,21 @@ pub struct ServeArgs {
     pub max_message_mb: Option<f64>,
     #[command(flatten)]
     pub files: crate::policy_cli::LayoutArgs,
-    /// Connections served at once (more are refused with HTTP 503).
-    #[arg(long, default_value_t = 16)]
-    pub max_connections: usize,
+    /// Connections served at once (more are refused with HTTP 503; default `[serve]
+    /// max_connections`, 16).
+    #[arg(long)]
+    pub max_connections: Option<usize>,
+    /// Connections one peer address may hold (default `[serve] max_per_address`, 4).
+    #[arg(long)]
+    pub max_per_address: Option<usize>,
+    /// Seconds a connection has to send its request and complete the websocket handshake
+    /// (default `[serve] handshake_timeout_s`, 2).
+    #[arg(long, value_name = "SECONDS")]
+    pub handshake_timeout: Option<f64>,
+    /// Seconds a websocket may go without a request before it is closed (default `[serve]
+    /// idle_timeout_s`, 600).
+    #[arg(long, value_name = "SECONDS")]
+    pub idle_timeout: Option<f64>,
     /// Seconds between status lines (0: none).
     #[arg(long, default_value_t = 10.0)]
     pub log_every: f64,
@@ -235,13 +247,36 @@ pub fn start(args: &ServeArgs) -> anyhow::Result<Serving> {
     let default_prompt = cfg.policy.prompt.clone();
     let log = Arc::new(Mutex::new(LogLimiter::new(Duration::from_secs(1))));
     let report_log = log.clone();
+    let limits = &cfg.serve;
+    let secs = |flag: &str, v: f64| -> anyhow::Result<Duration> {
+        anyhow::ensure!(
+            v.is_finite() && v > 0.0 && v < 1e7,
+            "{flag} {v}: must be a positive number of seconds"
+        );
+        Ok(Duration::from_secs_f64(v))
+    };
     let server = Server::start(
         ServerConfig {
             addr,
             api_key: args.api_key.clone().filter(|k| !k.is_empty()),
             max_message_bytes,
-            max_connections: args.max_connections.max(1),
+            max_connections: args
+                .max_connections
+                .unwrap_or(limits.max_connections)
+                .max(1),
             limits: Limits::default(),
+            max_per_address: args
+                .max_per_address
+                .unwrap_or(limits.max_per_address)
+                .max(1),
+            handshake_timeout: secs(
+                "handshake timeout",
+                args.handshake_timeout.unwrap_or(limits.handshake_timeout_s),
+            )?,
+            idle_timeout: secs(
+                "idle timeout",
+                args.idle_timeout.unwrap_or(limits.idle_timeout_s),
+            )?,
         },
         w.buf,
         Box::new(move |v: &Value<'_>| Request::parse(v, &layout, &inputs)),

@@ -485,6 +485,7 @@ fn a_server_that_answers_badly_is_asked_at_a_bounded_rate() {
             max_message_bytes: 1 << 22,
             max_connections: 8,
             limits: Limits::default(),
+            ..ServerConfig::new("127.0.0.1:0".parse().unwrap(), 1 << 20)
         },
         {
             let mut w = Writer::new();
@@ -564,4 +565,59 @@ fn a_server_that_answers_badly_is_asked_at_a_bounded_rate() {
         t0.elapsed().as_secs_f64()
     );
     assert_eq!(src.failures().1, 0);
+}
+
+/// `chunkrt serve` cannot be locked out without the api key: one peer (127.0.0.2) holding 50
+/// TCP connections that never finish their request and 16 authenticated websockets that never
+/// send one takes at most its 4 slots (`[serve] max_per_address`), so an unmodified
+/// openpi-client on 127.0.0.1 is served within 1 s (30 of 30 tries got HTTP 503 before), and the
+/// server exits within 1 s of SIGTERM with all of that open (11.9 s before).
+#[test]
+fn one_peer_cannot_lock_the_server_out() {
+    use std::io::BufRead;
+    if !openpi_python() {
+        return;
+    }
+    let _serial = serial();
+    let port = free_port();
+    let ckpt = format!("{ROOT}/tests/data/pi05_tiny");
+    let server = serve(&ckpt, port, &["--api-key", "k3y"]);
+    let url = format!("ws://127.0.0.1:{port}");
+    let mut peer = Command::new("python3")
+        .args([
+            PEER,
+            "lockout",
+            "--url",
+            &url,
+            "--api-key",
+            "k3y",
+            "--images",
+            "base_0_rgb",
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::inherit())
+        .spawn()
+        .expect("run openpi_peer.py lockout");
+    let mut lines = std::io::BufReader::new(peer.stdout.take().unwrap()).lines();
+    let mut served = None;
+    for line in lines.by_ref().map_while(Result::ok) {
+        println!("{line}");
+        if let Some(s) = line.strip_prefix("served in ") {
+            served = s.trim_end_matches(" s").parse::<f64>().ok();
+            break;
+        }
+    }
+    let served = served.expect("the client was served");
+    assert!(served < 1.0, "served after {served} s");
+    // SIGTERM with the peer's connections still open
+    let t0 = Instant::now();
+    let f = server.terminate(Duration::from_secs(10));
+    let took = t0.elapsed().as_secs_f64();
+    let _ = peer.kill();
+    let _ = peer.wait();
+    println!(
+        "the server exited {took:.2} s after SIGTERM (code {:?})",
+        f.code
+    );
+    assert!(took < 1.0, "{took} s to exit");
 }

@@ -208,6 +208,7 @@ fn local_server(model: &Model) -> Result<Server, BenchError> {
             max_message_bytes: 64 << 20,
             max_connections: 4,
             limits: Limits::default(),
+            ..ServerConfig::new("127.0.0.1:0".parse().unwrap(), 1 << 20)
         },
         w.buf,
         Box::new(move |v: &Value<'_>| Request::parse(v, &layout, &inputs)),

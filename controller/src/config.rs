@@ -36,9 +36,54 @@ pub struct Config {
     /// The openpi protocol's request layout (`chunkrt serve`, `policy.source = "remote"`).
     #[serde(default)]
     pub openpi: LayoutConfig,
+    /// `chunkrt serve`'s connection limits.
+    #[serde(default)]
+    pub serve: ServeSettings,
     /// Where the configuration came from (not part of the file).
     #[serde(skip)]
     pub source: PathBuf,
+}
+
+/// `[serve]`: how many connections `chunkrt serve` holds and for how long (its flags override).
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ServeSettings {
+    /// Connections served at once (more are refused with HTTP 503).
+    #[serde(default = "default_max_connections")]
+    pub max_connections: usize,
+    /// Connections one peer address may hold at once.
+    #[serde(default = "default_max_per_address")]
+    pub max_per_address: usize,
+    /// Seconds a connection has to complete its HTTP request and websocket handshake.
+    #[serde(default = "default_handshake_timeout_s")]
+    pub handshake_timeout_s: f64,
+    /// Seconds a websocket may go without a request before it is closed.
+    #[serde(default = "default_idle_timeout_s")]
+    pub idle_timeout_s: f64,
+}
+
+fn default_max_connections() -> usize {
+    16
+}
+fn default_max_per_address() -> usize {
+    4
+}
+fn default_handshake_timeout_s() -> f64 {
+    2.0
+}
+fn default_idle_timeout_s() -> f64 {
+    600.0
+}
+
+impl Default for ServeSettings {
+    fn default() -> Self {
+        Self {
+            max_connections: default_max_connections(),
+            max_per_address: default_max_per_address(),
+            handshake_timeout_s: default_handshake_timeout_s(),
+            idle_timeout_s: default_idle_timeout_s(),
+        }
+    }
 }
 
 chunkrt_ipc::config_enum! {

@@ -36,6 +36,31 @@ pub struct ServerConfig {
     pub max_connections: usize,
     /// Decoding limits.
     pub limits: Limits,
+    /// Connections one address may hold at once (a peer cannot take every slot).
+    pub max_per_address: usize,
+    /// A connection that has not completed its HTTP request and websocket handshake within
+    /// this is closed (a half-sent request holds its slot no longer).
+    pub handshake_timeout: Duration,
+    /// A websocket that sends no request for this long is closed (openpi-client's keep-alive
+    /// pings do not count; a client that pauses longer reconnects).
+    pub idle_timeout: Duration,
+}
+
+impl ServerConfig {
+    /// `addr` with the defaults: no api key, 16 connections of which 4 per address, 2 s for
+    /// the handshake, 10 minutes idle, messages up to `max_message_bytes`.
+    pub fn new(addr: SocketAddr, max_message_bytes: usize) -> Self {
+        Self {
+            addr,
+            api_key: None,
+            max_message_bytes,
+            max_connections: 16,
+            limits: Limits::default(),
+            max_per_address: 4,
+            handshake_timeout: Duration::from_secs(2),
+            idle_timeout: Duration::from_secs(600),
+        }
+    }
 }
 
 /// Reads a decoded message into a request (runs on the connection threads).
@@ -98,8 +123,13 @@ pub struct ServerStats {
     pub failures: [AtomicU64; 5],
     /// Connections refused for a wrong or missing api key.
     pub unauthorized: AtomicU64,
-    /// Connections refused because `max_connections` were open.
+    /// Connections refused because `max_connections` were open, or their address held
+    /// `max_per_address`.
     pub busy: AtomicU64,
+    /// Connections closed before they completed their handshake in time.
+    pub handshake_timeouts: AtomicU64,
+    /// Websockets closed after `idle_timeout` without a request.
+    pub idle_closed: AtomicU64,
     /// `GET /healthz` answered.
     pub health_checks: AtomicU64,
     /// Receive → reply sent of each answered request (µs), and the policy's part of it.
@@ -156,6 +186,8 @@ struct Shared {
     stats: Arc<ServerStats>,
     stop: Arc<AtomicBool>,
     report: Box<Report>,
+    /// Connections open per peer address.
+    per_address: Mutex<std::collections::HashMap<std::net::IpAddr, usize>>,
 }
 
 impl Server {
@@ -192,6 +224,7 @@ impl Server {
             stats: stats.clone(),
             stop: stop.clone(),
             report,
+            per_address: Mutex::new(std::collections::HashMap::new()),
         });
         let accept = std::thread::Builder::new()
             .name("chunkrt-serve-accept".into())
@@ -250,18 +283,55 @@ fn accept_loop(listener: TcpListener, shared: Arc<Shared>) {
                     refuse(stream, "503 Service Unavailable", "too many connections\n");
                     continue;
                 }
+                // one address holds at most max_per_address of the slots
+                let ip = peer.ip();
+                let admitted = shared.per_address.lock().is_ok_and(|mut m| {
+                    let n = m.entry(ip).or_insert(0);
+                    if *n >= shared.cfg.max_per_address.max(1) {
+                        false
+                    } else {
+                        *n += 1;
+                        true
+                    }
+                });
+                if !admitted {
+                    shared.stats.busy.fetch_add(1, Ordering::Relaxed);
+                    shared.warn("busy", || {
+                        format!(
+                            "serve: {peer}: refused: {ip} already holds {} connections",
+                            shared.cfg.max_per_address
+                        )
+                    });
+                    refuse(
+                        stream,
+                        "503 Service Unavailable",
+                        "too many connections from this address\n",
+                    );
+                    continue;
+                }
+                let release = move |s: &Shared| {
+                    s.stats.open.fetch_sub(1, Ordering::Relaxed);
+                    if let Ok(mut m) = s.per_address.lock() {
+                        if let Some(n) = m.get_mut(&ip) {
+                            *n = n.saturating_sub(1);
+                            if *n == 0 {
+                                m.remove(&ip);
+                            }
+                        }
+                    }
+                };
                 shared.stats.open.fetch_add(1, Ordering::Relaxed);
                 let s = shared.clone();
                 let spawned = std::thread::Builder::new()
                     .name("chunkrt-serve-conn".into())
                     .spawn(move || {
                         serve_connection(stream, peer, &s);
-                        s.stats.open.fetch_sub(1, Ordering::Relaxed);
+                        release(&s);
                     });
                 match spawned {
                     Ok(h) => conns.push(h),
                     Err(e) => {
-                        shared.stats.open.fetch_sub(1, Ordering::Relaxed);
+                        release(&shared);
                         tracing::warn!("serve: cannot start a connection thread: {e}");
                     }
                 }
@@ -301,11 +371,26 @@ struct Head {
     authorization: Option<String>,
 }
 
-fn peek_head(stream: &TcpStream) -> Option<Head> {
+fn peek_head(stream: &TcpStream, deadline: Instant, stop: &AtomicBool) -> Option<Head> {
     let mut buf = vec![0u8; 16 * 1024];
-    let deadline = Instant::now() + Duration::from_secs(10);
+    // short waits, so a stop or the deadline is seen while the peer sends nothing
+    let _ = stream.set_read_timeout(Some(Duration::from_millis(100)));
     loop {
-        let n = stream.peek(&mut buf).ok()?;
+        if stop.load(Ordering::Relaxed) || Instant::now() >= deadline {
+            return None;
+        }
+        let n = match stream.peek(&mut buf) {
+            Ok(n) => n,
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) =>
+            {
+                continue
+            }
+            Err(_) => return None,
+        };
         if n == 0 {
             return None;
         }
@@ -344,11 +429,17 @@ fn same_key(given: &str, key: &str) -> bool {
 }
 
 fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
-    let _ = stream.set_read_timeout(Some(Duration::from_secs(10)));
-    let _ = stream.set_write_timeout(Some(Duration::from_secs(10)));
-    let Some(head) = peek_head(&stream) else {
+    let deadline = Instant::now() + s.cfg.handshake_timeout;
+    let _ = stream.set_write_timeout(Some(Duration::from_secs(2)));
+    let Some(head) = peek_head(&stream, deadline, &s.stop) else {
+        s.stats.handshake_timeouts.fetch_add(1, Ordering::Relaxed);
         return;
     };
+    // the rest of the handshake within what is left of the deadline
+    let left = deadline
+        .saturating_duration_since(Instant::now())
+        .max(Duration::from_millis(10));
+    let _ = stream.set_read_timeout(Some(left));
     let consume = |stream: &mut TcpStream, n: usize| {
         let mut sink = vec![0u8; n];
         let _ = stream.read_exact(&mut sink);
@@ -397,6 +488,19 @@ fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
     let mut prev_total: Option<Duration> = None;
     let mut waiting_since = Instant::now();
     loop {
+        if waiting_since.elapsed() >= s.cfg.idle_timeout {
+            s.stats.idle_closed.fetch_add(1, Ordering::Relaxed);
+            tracing::info!(
+                "serve: {peer}: no request for {:.0} s: closed",
+                s.cfg.idle_timeout.as_secs_f64()
+            );
+            let _ = ws.close(Some(CloseFrame {
+                code: CloseCode::Away,
+                reason: "idle".into(),
+            }));
+            let _ = ws.flush();
+            return;
+        }
         if s.stop.load(Ordering::Relaxed) {
             let _ = ws.close(Some(CloseFrame {
                 code: CloseCode::Away,

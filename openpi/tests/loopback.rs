@@ -37,6 +37,7 @@ fn start(api_key: Option<&str>) -> Server {
             max_message_bytes: 1 << 20,
             max_connections: 8,
             limits: Limits::default(),
+            ..ServerConfig::new("127.0.0.1:0".parse().unwrap(), 1 << 20)
         },
         w.buf,
         Box::new(move |v: &Value<'_>| Request::parse(v, &l, &names)),

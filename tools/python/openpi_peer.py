@@ -318,6 +318,47 @@ def robots(args):
     return 1 if FAILED else 0
 
 
+def lockout(args):
+    """A peer on another loopback address holds every connection it can: 50 TCP connections that
+    never finish their HTTP request and 16 websockets (with the api key) that never send a
+    request. Then an unmodified openpi-client on 127.0.0.1 must be served; its time is printed.
+    The peer's connections stay open until this process is killed."""
+    import socket
+
+    from websockets.sync import client as wsc
+
+    host, port = args.url.removeprefix("ws://").split(":")
+    port = int(port)
+    held = []
+    opened = 0
+    for _ in range(16):
+        s = socket.socket()
+        s.bind((args.peer, 0))
+        try:
+            s.connect((host, port))
+            held.append(wsc.connect(args.url, sock=s, additional_headers={"Authorization": f"Api-Key {args.api_key}"}, open_timeout=3))
+            opened += 1
+        except Exception:  # noqa: BLE001 - refused: the server's limit
+            held.append(s)
+    for _ in range(50):
+        s = socket.socket()
+        s.bind((args.peer, 0))
+        try:
+            s.connect((host, port))
+            s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n")  # never finished
+        except OSError:
+            pass
+        held.append(s)
+    print(f"peer {args.peer}: {opened} of 16 idle websockets open, then 50 half-sent requests", flush=True)
+    t = time.monotonic()
+    client = wcp.WebsocketClientPolicy(host=args.url, api_key=args.api_key)
+    rng = np.random.default_rng(1)
+    client.infer(observation(rng, args.images.split(","), args.state_dim))
+    print(f"served in {time.monotonic() - t:.3f} s", flush=True)
+    time.sleep(60)
+    return 0
+
+
 def main():
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -344,6 +385,12 @@ def main():
     r.add_argument("--steps", type=int, default=20)
     r.add_argument("--replan", type=int, default=5)
     r.add_argument("--shape", required=True, help="HxW the chunk must have, e.g. 10x7")
+    lo = sub.add_parser("lockout")
+    lo.add_argument("--url", required=True)
+    lo.add_argument("--api-key", required=True)
+    lo.add_argument("--peer", default="127.0.0.2", help="the hostile peer's source address")
+    lo.add_argument("--images", required=True)
+    lo.add_argument("--state-dim", type=int, default=4)
     la = sub.add_parser("latency")
     la.add_argument("--url", required=True)
     la.add_argument("--cameras", type=int, default=3)
@@ -357,6 +404,8 @@ def main():
         sys.exit(latency(args))
     if args.cmd == "robots":
         sys.exit(robots(args))
+    if args.cmd == "lockout":
+        sys.exit(lockout(args))
     if args.cmd == "check":
         sys.exit(check(args))
     if args.cmd == "serve-instant":
