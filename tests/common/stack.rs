@@ -72,6 +72,8 @@ pub struct Watch {
     pub js_seq_at_status: u64,
     pub last_js: JointState,
     pub commands: Vec<JointCommand>,
+    /// The iceoryx2 publisher of each of `commands`.
+    pub origins: Vec<u128>,
     /// Statuses from this publisher are not the controller's (a forger the test runs itself).
     pub ignore_status_from: u128,
 }
@@ -104,6 +106,7 @@ impl Watch {
             js_seq_at_status: 0,
             last_js: JointState::default(),
             commands: Vec::new(),
+            origins: Vec::new(),
             ignore_status_from: 0,
         }
     }
@@ -124,6 +127,7 @@ impl Watch {
             }
             while let Ok(Some(s)) = self.cmd.receive() {
                 self.commands.push(*s.payload());
+                self.origins.push(s.origin().value());
             }
             std::thread::sleep(Duration::from_micros(500));
         }

@@ -85,6 +85,13 @@ const SYNC_NONE: i32 = 3;
 /// from the generator's own (a robot that restarted or was moved) restarts the generator from
 /// the measured state (rad or unit).
 const RESUME_TOLERANCE: f64 = 0.01;
+/// A rejoin ends within this distance of the measured position (rad or unit) and below this
+/// speed (per second): tracking takes up the rest.
+const REJOINED: (f64, f64) = (1e-3, 1e-2);
+
+/// A gap between two ticks longer than this (ns) means the controller itself stood still (a
+/// SIGSTOP, a swapped-out process): the robot did not wait for it.
+const STALL_NS: u64 = 50_000_000;
 
 /// Velocity below which a braking joint counts as stopped (per second).
 const STOPPED_VELOCITY: f64 = 1e-6;
@@ -129,6 +136,17 @@ pub struct Executor {
     /// The joint state was missing or stale at some tick since the last fresh one (a robot
     /// restart, a stalled driver): on the next fresh state the generator may have to re-sync.
     js_gap: bool,
+    /// When the last tick ran (ns; 0: none yet), and the generator re-seeds after a stall of
+    /// the controller itself.
+    last_tick_ns: u64,
+    /// Re-seeds from the robot's measured state after a stall of this process.
+    pub stall_reseeds: u64,
+    /// The generator is on its way from its own state to the robot's measured position
+    /// ([`Self::rejoin`]), which it follows here.
+    rejoining: bool,
+    rejoin_to: [f64; MAX_DOF],
+    /// Rejoins started.
+    pub rejoins: u64,
     chunk_tx: ChunkSender,
     req_rx: RequestReceiver,
     timing: TickTiming,
@@ -185,6 +203,11 @@ impl Executor {
             source_failing: false,
             stale_seen: 0,
             js_gap: false,
+            last_tick_ns: 0,
+            stall_reseeds: 0,
+            rejoining: false,
+            rejoin_to: [0.0; MAX_DOF],
+            rejoins: 0,
             chunk_tx,
             req_rx,
             timing: TickTiming::new(),
@@ -328,6 +351,8 @@ impl Executor {
         command: &mut JointCommand,
     ) -> TickReport {
         self.ticks += 1;
+        let stalled = self.last_tick_ns != 0 && now_ns.saturating_sub(self.last_tick_ns) > STALL_NS;
+        self.last_tick_ns = now_ns;
         if self.timeline.receive(now_ns) {
             self.requests.landed();
             self.source_failing = false;
@@ -342,6 +367,9 @@ impl Executor {
             self.requests.landed();
         }
         let js = self.check_joint_state(now_ns, joint_state);
+        if let (true, true, Some(state)) = (self.rejoining, js.fresh, joint_state) {
+            self.rejoin_target(state);
+        }
         self.stale_seen = self
             .stale_cameras
             .load(std::sync::atomic::Ordering::Relaxed);
@@ -355,6 +383,16 @@ impl Executor {
         {
             self.init_generator(js);
         }
+        // this process stood still (SIGSTOP, swapped out): the robot did not, and the
+        // generator's state is where the controller left it. Its first command now starts from
+        // where the robot is, not a step there after the robot refused the stale ones: the
+        // command stream stays continuous across the gap (0.17 rad in one tick before).
+        if let (true, true, true, Some(js)) = (stalled, js.fresh, self.initialized, joint_state) {
+            if self.away_from(js) {
+                self.init_generator(js);
+                self.stall_reseeds += 1;
+            }
+        }
         if let (Some(State::Hold), Some(js)) = (
             self.safety.step(now_ns, problem, self.initialized),
             joint_state,
@@ -363,7 +401,7 @@ impl Executor {
             // (after a robot restart they can be far apart). A robot that followed the braking
             // keeps the generator's own (continuous) state.
             if self.safety.state() == State::Running && self.away_from(js) {
-                self.init_generator(js);
+                self.rejoin(js);
             }
         }
         let mut report = self.report(primary);
@@ -396,12 +434,22 @@ impl Executor {
         if let (true, Some(js), Some(me)) = (check.fresh, joint_state, self.command_publisher) {
             // a robot that says whom it obeys: not us (another controller, nobody yet), or our
             // last command refused as too far from where it is
-            check.obeyed = js.obeyed_publisher().is_none_or(|id| id == me)
-                && js.status_flags & chunkrt_ipc::JOINT_STATUS_COMMAND_FAR == 0;
-            if !check.obeyed {
-                // command where the robot is, so nothing accumulates and the hand-over, when
-                // the robot binds this controller, starts from its measured state
+            let ours = js.obeyed_publisher().is_none_or(|id| id == me);
+            let far = js.status_flags & chunkrt_ipc::JOINT_STATUS_COMMAND_FAR != 0;
+            check.obeyed = ours && !far;
+            if far {
+                // our command was refused as too far from the arm, which holds at rest: the
+                // robot takes the next command only near it, and a command that arrives moving
+                // makes its stop-to-rest and the new motion meet (a Franka reflex, seen); the
+                // robot refused every command in between, so to it the stream is continuous
                 self.init_generator(js);
+            } else if !ours {
+                // another controller moves the arm, or nobody yet: follow the arm, so nothing
+                // accumulates and the hand-over, when the robot binds this controller, starts
+                // where the arm is; within the limits, not in steps to each measurement (the
+                // arm lags a command and the states arrive unevenly: 2.7 x the velocity limit
+                // in one tick)
+                self.rejoin(js);
             }
         }
         if !check.fresh {
@@ -411,7 +459,7 @@ impl Executor {
             if let Some(js) = joint_state {
                 let running = self.safety.state() == State::Running;
                 if self.initialized && !running && self.away_from(js) {
-                    self.init_generator(js);
+                    self.rejoin(js);
                 }
             }
         }
@@ -478,7 +526,9 @@ impl Executor {
         let running = self.safety.state() == State::Running;
         let mut r = OtgResult::Working;
         for _ in 0..std::mem::replace(&mut self.cycles, 1) {
-            if running {
+            if self.rejoining {
+                shaping::rejoin(&self.limits, &self.rejoin_to, &mut self.otg_in);
+            } else if running {
                 shaping::track(
                     &self.limits,
                     self.tracking_gain,
@@ -515,6 +565,9 @@ impl Executor {
             self.otg_in.current_position = out.position;
             self.otg_in.current_velocity = out.velocity;
             self.otg_in.current_acceleration = out.acceleration;
+            if self.rejoining && self.rejoined() {
+                self.rejoining = false;
+            }
             let stopped = self.otg_in.current_velocity[..n]
                 .iter()
                 .all(|v| v.abs() < STOPPED_VELOCITY)
@@ -605,7 +658,47 @@ impl Executor {
             .any(|j| (js.position[j] - self.otg_in.current_position[j]).abs() > RESUME_TOLERANCE)
     }
 
+    /// Re-seeds a generator that runs: from its own state (position, velocity, acceleration)
+    /// to the measured position at rest, within the limits, instead of a step there (a robot
+    /// that enforces continuity stops on a step; a robot that held refuses the commands until
+    /// they come near it). Only for a robot that reports its session, and with it the
+    /// hand-over's distance check (`JOINT_STATUS_COMMAND_FAR`): one that does not would follow
+    /// the rejoin's first commands, away from where it is, so it gets the measured state at
+    /// once, as does a generator that has no state yet.
+    fn rejoin(&mut self, js: &JointState) {
+        if !self.initialized || js.obeyed_publisher().is_none() {
+            self.init_generator(js);
+            return;
+        }
+        if !self.rejoining {
+            if self.away_from(js) {
+                self.rejoins += 1;
+            }
+            self.rejoining = true;
+            self.otg.reset();
+        }
+        self.rejoin_target(js);
+    }
+
+    fn rejoin_target(&mut self, js: &JointState) {
+        for j in 0..self.limits.n {
+            let p = js.position[j];
+            if p.is_finite() {
+                self.rejoin_to[j] = p.clamp(self.limits.pmin[j], self.limits.pmax[j]);
+            }
+        }
+    }
+
+    /// The rejoin has arrived: within [`REJOINED`] of the measured position, at rest.
+    fn rejoined(&self) -> bool {
+        (0..self.limits.n).all(|j| {
+            (self.otg_in.current_position[j] - self.rejoin_to[j]).abs() <= REJOINED.0
+                && self.otg_in.current_velocity[j].abs() <= REJOINED.1
+        })
+    }
+
     fn init_generator(&mut self, js: &JointState) {
+        self.rejoining = false;
         let n = self.limits.n;
         for j in 0..n {
             let p = js.position[j];
