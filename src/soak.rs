@@ -42,6 +42,33 @@ pub struct SoakArgs {
     /// to compare two builds on the same machine with the same measurement.
     #[arg(long, value_name = "PATH")]
     pub exe: Option<PathBuf>,
+    /// Seconds of `cyclictest` right after the soak, on the control thread's core at its
+    /// priority and rate, with the whole stack still running: the platform's floor in the same
+    /// hour, against which the soak's overruns are a ratio (0: none; skipped with a note when
+    /// cyclictest is not installed).
+    #[arg(long, value_name = "SECONDS", default_value_t = 120.0)]
+    pub floor: f64,
+}
+
+/// `cyclictest` beside the soak ([`SoakArgs::floor`]).
+#[derive(Debug, Clone, Default)]
+pub struct Floor {
+    /// Wake-ups measured.
+    pub loops: u64,
+    /// Wake-ups a period or more late (the ones that would be an overrun).
+    pub late: u64,
+    /// Wake-up latency p99 / max (µs).
+    pub p99_us: f64,
+    pub max_us: f64,
+    /// The command that ran.
+    pub command: String,
+}
+
+impl Floor {
+    /// Late share of the wake-ups (%).
+    pub fn late_percent(&self) -> f64 {
+        100.0 * self.late as f64 / self.loops.max(1) as f64
+    }
 }
 
 /// Resident memory and descriptors of one process, from `/proc`.
@@ -131,6 +158,8 @@ pub struct SoakFigures {
     pub steal_percent: Option<f64>,
     /// Involuntary context switches of the control thread during the run, if known.
     pub control_preemptions: Option<u64>,
+    /// The platform's floor measured right after ([`SoakArgs::floor`]), or why not.
+    pub floor: Option<Result<Floor, String>>,
 }
 
 impl SoakFigures {
@@ -376,12 +405,50 @@ fn follow(
     }
     fig.commands_published = w.last_cmd_seq.saturating_sub(start_seq);
     fig.commands_received = w.received - start_received;
+    if args.floor > 0.0 && !stop_flag.load(std::sync::atomic::Ordering::Relaxed) {
+        fig.floor = Some(platform_floor(cfg, args.floor));
+    }
     let stats = procs
         .iter()
         .zip(start_stats.into_iter().zip(end_stats))
         .map(|(p, (a, b))| (p.name, a, b))
         .collect();
     Ok((fig, stats))
+}
+
+/// `cyclictest` on the control thread's core, at its priority and period, for `seconds`, while
+/// the stack runs on: the share of wake-ups a period or more late, the figure a soak's overrun
+/// share is compared with.
+fn platform_floor(cfg: &crate::config::Config, seconds: f64) -> Result<Floor, String> {
+    if !chunkrt_bench::cyclictest::available() {
+        return Err("cyclictest is not installed (apt-get install rt-tests)".into());
+    }
+    let period_us = (1e6 / cfg.control.rate_hz).round().max(1.0) as u64;
+    let core = cfg
+        .control
+        .cpu
+        .unwrap_or_else(chunkrt_controller::rt::default_control_core);
+    let loops = ((seconds * 1e6) / period_us as f64).round().max(1.0) as u64;
+    println!(
+        "platform floor: cyclictest on core {core} at SCHED_FIFO {} every {period_us} µs for {seconds:.0} s, the stack still running ...",
+        cfg.control.realtime_priority
+    );
+    let r = chunkrt_bench::cyclictest::run(&chunkrt_bench::cyclictest::CyclictestConfig {
+        interval_us: period_us,
+        loops,
+        core: Some(core),
+        priority: (cfg.control.realtime_priority > 0).then_some(cfg.control.realtime_priority),
+        hist_max_us: period_us,
+    })
+    .map_err(|e| e.to_string())?;
+    let measured = r.latency.len().max(1);
+    Ok(Floor {
+        loops: measured,
+        late: r.overflows,
+        p99_us: r.latency.value_at_quantile(0.99) as f64 / 1e3,
+        max_us: r.max_us as f64,
+        command: r.command,
+    })
 }
 
 fn summary_markdown(
@@ -459,6 +526,31 @@ fn summary_markdown(
             .map(|v| format!("{v:.3} %"))
             .unwrap_or_else(|| "unknown".into()),
     );
+    match &f.floor {
+        Some(Ok(fl)) => {
+            row(
+                "platform floor: cyclictest late ≥ 1 period, same core, stack running",
+                format!(
+                    "{} of {} ({:.3} %), p99 {:.0} µs, max {:.0} µs",
+                    fl.late,
+                    fl.loops,
+                    fl.late_percent(),
+                    fl.p99_us,
+                    fl.max_us
+                ),
+            );
+            row(
+                "overruns / floor (target ≤ 1.5)",
+                if fl.late == 0 {
+                    format!("floor 0: {} overruns against none", f.overruns)
+                } else {
+                    format!("{:.2}", f.overrun_percent() / fl.late_percent())
+                },
+            );
+        }
+        Some(Err(why)) => row("platform floor", format!("not measured: {why}")),
+        None => {}
+    }
     row("final state", controller_state_name(st.state).to_string());
     md.push_str(
         "\n| process | RSS start → end | growth | fds start → end | threads | ended |\n|---|---:|---:|---:|---:|---|\n",

@@ -40,21 +40,28 @@ def record(args):
     expert = PickPlaceController(DEFAULT_ACTION_SCALE)
     expert.reset()
     rows = [env.data.ctrl[act].tolist()]
+    qvel = [env.model.actuator(j).trnid[0] for j in JOINTS]
+    qvel = [env.model.jnt_dofadr[j] for j in qvel]
+    peak = np.zeros(len(JOINTS))
     success = False
     for _ in range(args.max_steps):
         a = expert.act(env.ik_point_pos, env.data.sensor("block_pos").data.copy(), env.goal_pos)
         _, _, terminated, _, info = env.step(a)
         rows.append(env.data.ctrl[act].tolist())
+        # after the control step only: the peak joint speed the expert's episode reached
+        peak = np.maximum(peak, np.abs(env.data.qvel[qvel]))
         success = bool(info["succeed"])
         if terminated:
             break
     # a few rows of the final pose, so the replay ends holding still
     rows += [rows[-1]] * 10
     plan = {"joints": JOINTS, "dt": env.control_dt, "seed": args.seed, "rows": rows,
-            "expert_success": success, "expert_steps": len(rows) - 11}
+            "expert_success": success, "expert_steps": len(rows) - 11,
+            "expert_peak_velocity": peak.tolist()}
     with open(args.out, "w") as f:
         json.dump(plan, f)
-    print(f"plan: {len(rows)} rows of {env.control_dt} s, expert success {success}", flush=True)
+    print(f"plan: {len(rows)} rows of {env.control_dt} s, expert success {success}, peak joint "
+          f"speed {np.round(peak, 2).tolist()} rad/s", flush=True)
     return 0 if success else 1
 
 
@@ -76,10 +83,11 @@ class PlanReplay:
     """Answers with the plan's next rows by the clock (a test double: the observation is unused
     but for its shape)."""
 
-    def __init__(self, plan, horizon):
+    def __init__(self, plan, horizon, lead=0):
         self.rows = np.asarray(plan["rows"], dtype=np.float32)
         self.dt = float(plan["dt"])
         self.horizon = horizon
+        self.lead = lead
         self.t0 = None
 
     def infer(self, obs):
@@ -88,7 +96,7 @@ class PlanReplay:
         now = time.monotonic()
         if self.t0 is None:
             self.t0 = now
-        i = int((now - self.t0) / self.dt)
+        i = int((now - self.t0) / self.dt) + self.lead
         idx = np.minimum(np.arange(i, i + self.horizon), len(self.rows) - 1)
         return {"actions": self.rows[idx].copy(), "policy_timing": {"infer_ms": 0.0}}
 
@@ -99,7 +107,7 @@ def serve(args):
     with open(args.plan) as f:
         plan = json.load(f)
     server = WebsocketPolicyServer(
-        PlanReplay(plan, args.horizon), host="127.0.0.1", port=args.port,
+        PlanReplay(plan, args.horizon, args.lead), host="127.0.0.1", port=args.port,
         metadata={"test_double": "so101 plan replay"},
     )
     print(f"so101 plan replay on ws://127.0.0.1:{args.port}", flush=True)
@@ -119,6 +127,8 @@ def main(argv):
     s.add_argument("--plan", required=True)
     s.add_argument("--port", type=int, required=True)
     s.add_argument("--horizon", type=int, default=10)
+    s.add_argument("--lead", type=int, default=0,
+                   help="rows ahead of the clock (the expert's row k+1 is its target during step k)")
     args = ap.parse_args(argv)
     return {"record": record, "wiggle": wiggle, "serve": serve}[args.cmd](args)
 
