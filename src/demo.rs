@@ -78,6 +78,10 @@ pub struct StackArgs {
     /// the controller (`chunkrt run --remote`).
     #[arg(long, value_name = "URL")]
     pub remote: Option<String>,
+    /// Record the run into this Rerun file (`chunkrt record`: a process of its own; needs
+    /// `bash scripts/rerun-env.sh`; open it with `rerun FILE`).
+    #[arg(long, value_name = "FILE")]
+    pub record: Option<PathBuf>,
 }
 
 /// A prepared stack: its configuration (in its own namespace), the executable, where the logs
@@ -92,6 +96,7 @@ pub(crate) struct Stack {
     common: Vec<String>,
     seed: u64,
     remote: Option<String>,
+    record: Option<PathBuf>,
 }
 
 impl StackArgs {
@@ -127,6 +132,7 @@ impl StackArgs {
             common,
             seed: self.seed,
             remote: self.remote.clone(),
+            record: self.record.clone(),
         })
     }
 }
@@ -166,6 +172,64 @@ impl Stack {
     /// The scene seed.
     pub(crate) fn seed(&self) -> u64 {
         self.seed
+    }
+
+    /// The recorder (`--record FILE`), started before the controller so that it sees the run
+    /// from its first command; None without `--record`.
+    pub(crate) fn spawn_recorder(&self, prompt: &str) -> anyhow::Result<Option<Proc>> {
+        let Some(out) = &self.record else {
+            return Ok(None);
+        };
+        let cameras: Vec<String> = self.cfg.cameras.iter().map(|c| c.name.clone()).collect();
+        let mut extra = vec!["--prompt".to_string(), prompt.to_string()];
+        if let Some(i) = self.common.iter().position(|a| a == "--config") {
+            extra.extend(["--config".into(), self.common[i + 1].clone()]);
+        }
+        extra.extend([
+            "--property".into(),
+            format!("chunkrt={}", env!("CARGO_PKG_VERSION")),
+            "--property".into(),
+            format!("robot={}", self.cfg.robot.name),
+            "--property".into(),
+            format!("policy={}", self.cfg.policy.kind_name()),
+        ]);
+        let log = self.log_dir.join("recorder.log");
+        let file =
+            File::create(&log).with_context(|| format!("cannot create {}", log.display()))?;
+        let child = crate::record::recorder_command(&self.ns, out, &cameras, &extra)?
+            .stdout(file.try_clone()?)
+            .stderr(file)
+            .spawn()
+            .context("cannot start the recorder")?;
+        let mut p = Proc {
+            name: "recorder",
+            child,
+            log,
+        };
+        // the run starts once the recorder has subscribed (its first line; importing rerun
+        // takes about a second), so that it sees the controller's first chunks
+        let t0 = Instant::now();
+        loop {
+            let text = std::fs::read_to_string(&p.log).unwrap_or_default();
+            if text.contains("chunkrt_record: recording") {
+                break;
+            }
+            if !matches!(p.child.try_wait(), Ok(None)) || t0.elapsed() > Duration::from_secs(30) {
+                let _ = stop(&mut p, Duration::from_secs(1));
+                anyhow::bail!(
+                    "the recorder did not start; its log {}:\n{}",
+                    p.log.display(),
+                    text.trim()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        println!(
+            "recording into {} (recorder log {})",
+            out.display(),
+            p.log.display()
+        );
+        Ok(Some(p))
     }
 }
 
@@ -518,10 +582,15 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
             sc.targets[1][1]
         );
     }
-    let mut procs = [
+    let mut procs = vec![
         spawn(exe, "fake-robot", &stack.args("fake-robot"), log_dir)?,
         spawn(exe, "fake-camera", &stack.camera_args(), log_dir)?,
     ];
+    // stopped last (the list is stopped from its end): it records the controller's end too
+    let prompt_all = args.prompts.join(" | ");
+    if let Some(r) = stack.spawn_recorder(&prompt_all)? {
+        procs.insert(0, r);
+    }
     let node = services::node(&format!("chunkrt-demo-{}", std::process::id()))?;
     let nsp = cfg.namespace();
     let ports = Ports {

@@ -20,6 +20,7 @@
 pub mod demo;
 pub mod eval;
 pub mod policy_cli;
+pub mod record;
 pub mod report;
 pub mod run;
 pub mod serve;

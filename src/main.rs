@@ -42,6 +42,9 @@ enum Command {
     /// Time a random model of a preset on a device (GPU or CPU): vision, prefix, one step, the
     /// full sample eager and as a CUDA graph; p50/p90/p99/max by wall clock and CUDA events.
     BenchInference(chunkrt::policy_cli::BenchArgs),
+    /// Record a running namespace (joint states, commands, status, chunks, frames) into a
+    /// Rerun recording (`rerun FILE` opens it); needs `bash scripts/rerun-env.sh`.
+    Record(chunkrt::record::RecordArgs),
     /// Render a folder of HdrHistogram logs into a PNG plot and a Markdown table.
     Report(chunkrt::report::ReportArgs),
     /// Train the reach task's π0.5 with the flow-matching loss (expert demonstrations,
@@ -70,6 +73,7 @@ fn main() {
         Command::Inspect(a) => chunkrt::policy_cli::inspect(a),
         Command::BenchInference(a) => chunkrt::policy_cli::bench(a),
         Command::Report(a) => chunkrt::report::run(a),
+        Command::Record(a) => chunkrt::record::run(a),
         Command::Train(a) => chunkrt::train::run(a),
         Command::Eval(a) => chunkrt::eval::run(a),
     };

@@ -247,8 +247,12 @@ pub fn run(args: SoakArgs) -> anyhow::Result<()> {
     let mut procs: Vec<Proc> = vec![
         spawn(exe, "fake-robot", &stack.args("fake-robot"), log_dir)?,
         spawn(exe, "fake-camera", &cam_args, log_dir)?,
-        spawn(exe, "controller", &run_args, log_dir)?,
     ];
+    // stopped last (the list is stopped from its end), started before the controller
+    if let Some(r) = stack.spawn_recorder(args.prompt.as_deref().unwrap_or(&cfg.policy.prompt))? {
+        procs.insert(0, r);
+    }
+    procs.push(spawn(exe, "controller", &run_args, log_dir)?);
     let result = follow(&args, cfg, &mut procs, stop_flag);
     let mut outcomes = Vec::new();
     // the controller first, so its summary and histogram log are complete

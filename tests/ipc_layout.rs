@@ -41,6 +41,7 @@ fn missing(what: &str, why: &str) {
 fn rust_constants() -> BTreeMap<String, u64> {
     let mut c: BTreeMap<String, u64> = [
         ("MAX_DOF", MAX_DOF as u64),
+        ("MAX_CHUNK_HORIZON", MAX_CHUNK_HORIZON as u64),
         ("CONTRACT_VERSION", CONTRACT_VERSION as u64),
         ("BUFFER_SIZE", services::BUFFER_SIZE as u64),
         ("CAMERA_BUFFER_SIZE", services::CAMERA_BUFFER_SIZE as u64),
@@ -159,6 +160,7 @@ fn rust_type_names() -> BTreeMap<String, String> {
     let jc = services::joint_command_service(&node, &format!("{ns}/joint_command")).unwrap();
     let st = services::status_service(&node, &format!("{ns}/status")).unwrap();
     let ra = services::rearm_service(&node, &format!("{ns}/rearm")).unwrap();
+    let ch = services::chunk_service(&node, &format!("{ns}/chunks")).unwrap();
     let cam = services::camera_service(&node, &format!("{ns}/camera/c")).unwrap();
     for (k, d) in [
         (
@@ -176,6 +178,10 @@ fn rust_type_names() -> BTreeMap<String, String> {
         (
             "RearmRequest",
             ra.static_config().message_type_details().payload,
+        ),
+        (
+            "ActionChunkMsg",
+            ch.static_config().message_type_details().payload,
         ),
         (
             "CameraFrameHeader",
@@ -282,6 +288,7 @@ fn c_program(layouts: &BTreeMap<String, Layout>, constants: &BTreeMap<String, u6
         ("JointCommand", "JOINT_COMMAND"),
         ("ControllerStatus", "CONTROLLER_STATUS"),
         ("RearmRequest", "REARM_REQUEST"),
+        ("ActionChunkMsg", "ACTION_CHUNK_MSG"),
     ] {
         s += &format!("  printf(\"type_name {k} %s\\n\", CHUNKRT_TYPE_NAME_{macro_});\n");
     }

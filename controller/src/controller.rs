@@ -249,7 +249,22 @@ fn observation_thread(
     link: InferenceLink,
     ready: crossbeam::channel::Sender<anyhow::Result<()>>,
 ) -> anyhow::Result<()> {
+    let ns = cfg.namespace();
+    // every chunk on NS/chunks for recorders and viewers (this thread, never the control tick;
+    // a namespace whose chunk service cannot be opened only loses the recording); the node
+    // outlives the worker that holds its publisher
+    let chunk_node = services::node("chunkrt-chunks");
     let mut worker = InferenceWorker::new(link, Delivery::Immediate);
+    match chunk_node
+        .as_ref()
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .and_then(|node| {
+            let svc = services::chunk_service(node, &ns.chunks())?;
+            Ok(services::publisher(&svc, &ns.chunks())?)
+        }) {
+        Ok(publisher) => worker.set_tap(Box::new(chunk_publisher(publisher))),
+        Err(e) => tracing::warn!("chunks are not published on '{}': {e:#}", ns.chunks()),
+    }
     // the inference thread gets a core of its own when there is one besides the control core
     let control_core = cfg.control.cpu.unwrap_or_else(rt::default_control_core);
     if rt::available_cores() > 1 {
@@ -259,7 +274,6 @@ fn observation_thread(
             Err(e) => tracing::warn!("observation/inference thread not pinned: {e}"),
         }
     }
-    let ns = cfg.namespace();
     let setup = || -> anyhow::Result<_> {
         let node = services::node("chunkrt-observe")?;
         let cams = CameraInput::new(&node, &ns, cfg)?;
@@ -369,6 +383,40 @@ fn observation_thread(
         }
     }
     Ok(())
+}
+
+/// Publishes each chunk as an [`chunkrt_ipc::ActionChunkMsg`] (the first
+/// [`chunkrt_ipc::MAX_CHUNK_HORIZON`] actions); a refused loan loses that chunk's record only.
+fn chunk_publisher(
+    publisher: iceoryx2::port::publisher::Publisher<services::Ipc, chunkrt_ipc::ActionChunkMsg, ()>,
+) -> impl FnMut(&crate::chunk::ActionChunk, usize) {
+    let mut seq = 0u64;
+    move |chunk, delay_steps| {
+        let Ok(sample) = publisher.loan_uninit() else {
+            return;
+        };
+        seq += 1;
+        let n = chunk.n_dof.min(chunkrt_ipc::MAX_DOF);
+        let h = chunk.horizon().min(chunkrt_ipc::MAX_CHUNK_HORIZON);
+        let mut m = chunkrt_ipc::ActionChunkMsg {
+            seq,
+            publish_time_ns: monotonic_ns(),
+            chunk_id: chunk.id,
+            observation_seq: chunk.observation_seq,
+            observation_time_ns: chunk.t_obs_ns,
+            ready_time_ns: chunk.ready_ns,
+            start_shift_ns: chunk.start_shift_ns,
+            period_ns: chunk.period_ns,
+            delay_steps: delay_steps.min(u32::MAX as usize) as u32,
+            horizon: h as u32,
+            n_dof: n as u32,
+            ..Default::default()
+        };
+        for (k, row) in m.actions.iter_mut().enumerate().take(h) {
+            row[..n].copy_from_slice(&chunk.action(k)[..n]);
+        }
+        let _ = sample.write_payload(m).send();
+    }
 }
 
 fn us(ns: u64) -> f64 {

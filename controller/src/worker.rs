@@ -53,9 +53,14 @@ pub struct WorkerStats {
     pub last_latency_ns: u64,
 }
 
+/// Sees every chunk a worker computes, with the inference delay (actions) its request was made
+/// with, before the chunk is handed over (the controller publishes it on `NS/chunks`).
+pub type ChunkTap = Box<dyn FnMut(&ActionChunk, usize)>;
+
 /// The inference side of a controller's hand-offs.
 pub struct InferenceWorker {
     link: InferenceLink,
+    tap: Option<ChunkTap>,
     delivery: Delivery,
     /// Chunks waiting for their delivery time ([`Delivery::After`]), oldest first.
     pending: Vec<ActionChunk>,
@@ -67,10 +72,16 @@ impl InferenceWorker {
     pub fn new(link: InferenceLink, delivery: Delivery) -> Self {
         Self {
             link,
+            tap: None,
             delivery,
             pending: Vec::new(),
             stats: WorkerStats::default(),
         }
+    }
+
+    /// Shows every computed chunk to `tap` ([`ChunkTap`]).
+    pub fn set_tap(&mut self, tap: ChunkTap) {
+        self.tap = Some(tap);
     }
 
     /// The link (for its stale-camera mask).
@@ -107,9 +118,15 @@ impl InferenceWorker {
         obs: &Observation,
     ) -> Turn {
         let result = source.compute(obs, &request);
+        let delay_steps = request.delay_steps;
         self.link.requests.done(request);
         match result {
-            Ok(Some(chunk)) => self.deliver(now_ns, chunk),
+            Ok(Some(chunk)) => {
+                if let Some(tap) = self.tap.as_mut() {
+                    tap(&chunk, delay_steps);
+                }
+                self.deliver(now_ns, chunk)
+            }
             Ok(None) => Turn::Nothing,
             Err(e) => {
                 self.stats.failures += 1;

@@ -16,6 +16,7 @@
  *   NS/joint_command  payload JointCommand,     user header none
  *   NS/status         payload ControllerStatus, user header none
  *   NS/rearm          payload RearmRequest,     user header none
+ *   NS/chunks         payload ActionChunkMsg,   user header none
  *   NS/camera/NAME    payload uint8_t[] (slice, "u8"), user header CameraFrameHeader
  */
 #ifndef CHUNKRT_IPC_H
@@ -40,6 +41,7 @@ extern "C" {
 #define CHUNKRT_TYPE_NAME_JOINT_COMMAND "chunkrt.JointCommand.v2"
 #define CHUNKRT_TYPE_NAME_CONTROLLER_STATUS "chunkrt.ControllerStatus.v4"
 #define CHUNKRT_TYPE_NAME_REARM_REQUEST "chunkrt.RearmRequest.v1"
+#define CHUNKRT_TYPE_NAME_ACTION_CHUNK_MSG "chunkrt.ActionChunk.v1"
 /** Element type name of the camera pixel slice. */
 #define CHUNKRT_TYPE_NAME_PIXEL "u8"
 
@@ -233,6 +235,29 @@ typedef struct RearmRequest {
     uint64_t reserved;        /**< zero */
 } RearmRequest;
 
+/* ---- action chunk (controller -> recorders, viewers) ------------------------------------ */
+
+/** Most actions a published chunk carries. */
+#define CHUNKRT_MAX_CHUNK_HORIZON 128
+
+/** Every chunk the controller's chunk source delivers: what the policy predicted. Published by
+    the inference thread; the control tick does nothing for it. */
+typedef struct ActionChunkMsg {
+    uint64_t seq;                 /**< per publisher, +1 per message */
+    uint64_t publish_time_ns;     /**< CLOCK_MONOTONIC */
+    uint64_t chunk_id;            /**< JointCommand.chunk_id while it executes */
+    uint64_t observation_seq;     /**< JointState.seq behind the observation */
+    uint64_t observation_time_ns; /**< capture time of the observation */
+    uint64_t ready_time_ns;       /**< when the chunk was ready: ready - observation = latency */
+    uint64_t start_shift_ns;      /**< action 0 is for observation_time_ns + start_shift_ns */
+    uint64_t period_ns;           /**< between consecutive actions */
+    uint32_t delay_steps;         /**< the inference delay (actions) the request was made with */
+    uint32_t horizon;             /**< rows of actions used (<= CHUNKRT_MAX_CHUNK_HORIZON) */
+    uint32_t n_dof;               /**< columns of actions used */
+    uint32_t reserved;            /**< zero */
+    double actions[CHUNKRT_MAX_CHUNK_HORIZON][CHUNKRT_MAX_DOF];
+} ActionChunkMsg;
+
 /* ---- compile-time layout checks (the full per-field check is in tests/ipc_layout.rs) ---- */
 
 #if defined(__cplusplus)
@@ -246,6 +271,8 @@ CHUNKRT_STATIC_ASSERT(sizeof(JointCommand) == 56 + 3 * 8 * CHUNKRT_MAX_DOF, "Joi
 CHUNKRT_STATIC_ASSERT(sizeof(ControllerStatus) == 24 + 5 * 8 + 8 * CHUNKRT_REJECT_REASON_COUNT + 15 * 8,
                       "ControllerStatus size");
 CHUNKRT_STATIC_ASSERT(sizeof(RearmRequest) == 24, "RearmRequest size");
+CHUNKRT_STATIC_ASSERT(sizeof(ActionChunkMsg) == 80 + 8 * CHUNKRT_MAX_CHUNK_HORIZON * CHUNKRT_MAX_DOF,
+                      "ActionChunkMsg size");
 
 #ifdef __cplusplus
 }

@@ -21,6 +21,8 @@ import time
 
 #: Largest number of joints a message can carry.
 MAX_DOF = 16
+#: Most actions a published chunk carries (``NS/chunks``).
+MAX_CHUNK_HORIZON = 128
 #: Version of the message contract; part of every type name.
 CONTRACT_VERSION = 1
 
@@ -135,6 +137,7 @@ TYPE_NAME_JOINT_STATE = "chunkrt.JointState.v2"
 TYPE_NAME_JOINT_COMMAND = "chunkrt.JointCommand.v2"
 TYPE_NAME_CONTROLLER_STATUS = "chunkrt.ControllerStatus.v4"
 TYPE_NAME_REARM_REQUEST = "chunkrt.RearmRequest.v1"
+TYPE_NAME_ACTION_CHUNK_MSG = "chunkrt.ActionChunk.v1"
 
 _F64xDOF = ctypes.c_double * MAX_DOF
 
@@ -274,7 +277,34 @@ class RearmRequest(ctypes.Structure):
         return TYPE_NAME_REARM_REQUEST
 
 
-MESSAGE_TYPES = [CameraFrameHeader, JointState, JointCommand, ControllerStatus, RearmRequest]
+class ActionChunkMsg(ctypes.Structure):
+    """Every chunk the controller's chunk source delivers (``NS/chunks``): what the policy
+    predicted. Published by the inference thread; the control tick does nothing for it."""
+
+    _fields_ = [
+        ("seq", ctypes.c_uint64),
+        ("publish_time_ns", ctypes.c_uint64),
+        ("chunk_id", ctypes.c_uint64),  # JointCommand.chunk_id while it executes
+        ("observation_seq", ctypes.c_uint64),  # JointState.seq behind the observation
+        ("observation_time_ns", ctypes.c_uint64),
+        ("ready_time_ns", ctypes.c_uint64),  # ready - observation = latency
+        ("start_shift_ns", ctypes.c_uint64),  # action 0 is for observation + start shift
+        ("period_ns", ctypes.c_uint64),
+        ("delay_steps", ctypes.c_uint32),
+        ("horizon", ctypes.c_uint32),  # rows of actions used
+        ("n_dof", ctypes.c_uint32),  # columns of actions used
+        ("reserved", ctypes.c_uint32),
+        ("actions", _F64xDOF * MAX_CHUNK_HORIZON),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The iceoryx2 type name."""
+        return TYPE_NAME_ACTION_CHUNK_MSG
+
+
+MESSAGE_TYPES = [CameraFrameHeader, JointState, JointCommand, ControllerStatus, RearmRequest,
+                 ActionChunkMsg]
 
 
 def layouts():
@@ -298,6 +328,7 @@ def constants():
     g = globals()
     prefixes = (
         "MAX_DOF",
+        "MAX_CHUNK_HORIZON",
         "CONTRACT_VERSION",
         "BUFFER_SIZE",
         "CAMERA_BUFFER_SIZE",
@@ -366,6 +397,10 @@ def joint_command_name(ns: str) -> str:
 
 def status_name(ns: str) -> str:
     return ns + "/status"
+
+
+def chunks_name(ns: str) -> str:
+    return ns + "/chunks"
 
 
 def rearm_name(ns: str) -> str:

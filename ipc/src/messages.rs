@@ -346,6 +346,70 @@ pub struct RearmRequest {
     pub reserved: u64,
 }
 
+// ---------------------------------------------------------------------------------------------
+// Action chunk (controller → recorders, viewers)
+// ---------------------------------------------------------------------------------------------
+
+/// Most actions a published chunk carries (π0 / π0.5: 50; more are cut, `horizon` says how many
+/// were kept).
+pub const MAX_CHUNK_HORIZON: usize = 128;
+
+/// Every chunk the controller's chunk source delivers, on `NS/chunks`: what the policy predicted,
+/// for recorders and viewers. Published by the inference thread when the chunk is handed to the
+/// control thread (the control tick does nothing for it); nobody waits for a subscriber.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("chunkrt.ActionChunk.v1")]
+#[repr(C)]
+pub struct ActionChunkMsg {
+    /// Message counter of this publisher, increasing by one per message.
+    pub seq: u64,
+    /// When the chunk was published (monotonic ns).
+    pub publish_time_ns: u64,
+    /// The controller's chunk id (`JointCommand::chunk_id` while it executes).
+    pub chunk_id: u64,
+    /// `seq` of the joint state behind the observation.
+    pub observation_seq: u64,
+    /// Capture time of the observation (monotonic ns).
+    pub observation_time_ns: u64,
+    /// When the chunk was ready (monotonic ns): `ready - observation` is its latency.
+    pub ready_time_ns: u64,
+    /// Action 0 is for `observation_time_ns + start_shift_ns` (future-state inference; 0:
+    /// from the observation itself).
+    pub start_shift_ns: u64,
+    /// Time between consecutive actions (ns).
+    pub period_ns: u64,
+    /// The inference delay (in actions) the request was made with.
+    pub delay_steps: u32,
+    /// Actions in `actions` (at most [`MAX_CHUNK_HORIZON`]).
+    pub horizon: u32,
+    /// Joints per action.
+    pub n_dof: u32,
+    /// Zero.
+    pub reserved: u32,
+    /// Actions `[horizon][MAX_DOF]`: rows `..horizon`, columns `..n_dof` are used (rad or m).
+    pub actions: [[f64; MAX_DOF]; MAX_CHUNK_HORIZON],
+}
+
+impl Default for ActionChunkMsg {
+    fn default() -> Self {
+        Self {
+            seq: 0,
+            publish_time_ns: 0,
+            chunk_id: 0,
+            observation_seq: 0,
+            observation_time_ns: 0,
+            ready_time_ns: 0,
+            start_shift_ns: 0,
+            period_ns: 0,
+            delay_steps: 0,
+            horizon: 0,
+            n_dof: 0,
+            reserved: 0,
+            actions: [[0.0; MAX_DOF]; MAX_CHUNK_HORIZON],
+        }
+    }
+}
+
 /// Oldest re-arm request the controller acts on (ns).
 pub const REARM_MAX_AGE_NS: u64 = 1_000_000_000;
 
@@ -523,6 +587,12 @@ pub fn layouts() -> Vec<(&'static str, (usize, Vec<FieldOffset>))> {
         (
             "RearmRequest",
             layout_of!(RearmRequest; seq, publish_time_ns, reserved),
+        ),
+        (
+            "ActionChunkMsg",
+            layout_of!(ActionChunkMsg; seq, publish_time_ns, chunk_id, observation_seq,
+                observation_time_ns, ready_time_ns, start_shift_ns, period_ns, delay_steps,
+                horizon, n_dof, reserved, actions),
         ),
     ]
 }

@@ -140,6 +140,11 @@ impl Namespace {
         format!("{}/status", self.0)
     }
 
+    /// `<ns>/chunks`
+    pub fn chunks(&self) -> String {
+        format!("{}/chunks", self.0)
+    }
+
     /// `<ns>/rearm`
     pub fn rearm(&self) -> String {
         format!("{}/rearm", self.0)
@@ -221,6 +226,11 @@ typed_service!(
     status_service,
     ControllerStatus,
     "Opens (or creates) a controller status service."
+);
+typed_service!(
+    chunk_service,
+    ActionChunkMsg,
+    "Opens (or creates) the action chunk service."
 );
 typed_service!(
     rearm_service,

@@ -1,0 +1,151 @@
+//! A run recorded into Rerun and read back with Rerun's own Python SDK: the demo robot, the
+//! fake camera and the controller with the reach policy run for a few seconds while
+//! `tools/python/chunkrt_record.py` (PyPI rerun-sdk 0.41.0, in the virtual environment of
+//! `scripts/rerun-env.sh`; `.ci/run` makes it) records the namespace; then
+//! `tools/python/rrd_check.py` loads the file and says what it holds. Without the environment
+//! the test says so loudly and, in CI, fails.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};
+
+#[path = "common/stack.rs"]
+mod stack;
+use stack::*;
+
+#[path = "common/python.rs"]
+#[allow(dead_code)]
+mod python;
+
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+/// The recorder's interpreter (`CHUNKRT_RERUN_PYTHON`, else scripts/rerun-env.sh's default
+/// prefix), or None, said loudly (a failure in CI).
+fn rerun_python(test: &str) -> Option<String> {
+    let prefix = std::env::var("CHUNKRT_RERUN_PREFIX")
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| {
+            PathBuf::from(std::env::var("HOME").unwrap_or_default()).join(".cache/chunkrt-rerun")
+        });
+    let py = std::env::var("CHUNKRT_RERUN_PYTHON")
+        .unwrap_or_else(|_| prefix.join("venv/bin/python").display().to_string());
+    let probe = std::process::Command::new(&py)
+        .args(["-c", "import rerun, iceoryx2"])
+        .output();
+    let why = match probe {
+        Ok(o) if o.status.success() => return Some(py),
+        Ok(o) => String::from_utf8_lossy(&o.stderr).trim().to_string(),
+        Err(e) => format!("cannot run {py}: {e}"),
+    };
+    let msg = format!(
+        "\n!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!\n\
+         !!! {test}: the recorder's rerun-sdk is not usable: {why}\n\
+         !!! This test did NOT run (bash scripts/rerun-env.sh; .ci/run does).\n\
+         !!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!\n"
+    );
+    if python::in_ci() {
+        panic!("{msg}(CI is set: this is a failure)");
+    }
+    eprintln!("{msg}");
+    None
+}
+
+#[test]
+fn a_run_is_recorded_and_rerun_reads_it_back() {
+    let Some(py) = rerun_python("record_rerun") else {
+        return;
+    };
+    let _one = serial();
+    let ns = unique_namespace("record");
+    let dir = std::env::temp_dir().join(format!("chunkrt-record-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let rrd = dir.join("run.rrd");
+    let _robot = start("fake-robot", &ns, &[]);
+    let _camera = start("fake-camera", &ns, &["--scene", "reach"]);
+    let recorder = ChildGuard::spawn(
+        &py,
+        &[
+            &format!("{ROOT}/tools/python/chunkrt_record.py"),
+            "--namespace",
+            &ns,
+            "--out",
+            rrd.to_str().unwrap(),
+            "--cameras",
+            "base_0_rgb",
+            "--prompt",
+            "reach the red target",
+        ],
+    )
+    .expect("start the recorder");
+    std::thread::sleep(Duration::from_secs(2));
+    let ctl = start(
+        "run",
+        &ns,
+        &[
+            "--log-every",
+            "0",
+            "--duration",
+            "8",
+            "--prompt",
+            "reach the red target",
+        ],
+    );
+    let c_out = ctl.finish(Duration::from_secs(60));
+    assert_eq!(c_out.code, Some(0), "{}", c_out.stderr);
+    std::thread::sleep(Duration::from_millis(500));
+    let r_out = recorder.terminate(Duration::from_secs(30));
+    println!("recorder: {}", r_out.stdout.trim());
+    assert_eq!(r_out.code, Some(0), "{}\n{}", r_out.stdout, r_out.stderr);
+    let chunks = summary_value(&c_out.stdout, "chunks")
+        .or_else(|| summary_value(&c_out.stderr, "chunks"))
+        .unwrap_or_else(|| panic!("no chunks= in the controller's summary:\n{}", c_out.stdout));
+    let recorded_chunks = summary_value(&r_out.stdout, "chunks").expect(&r_out.stdout);
+    // read back with Rerun's own SDK
+    let check = std::process::Command::new(&py)
+        .arg(format!("{ROOT}/tools/python/rrd_check.py"))
+        .arg(&rrd)
+        .output()
+        .expect("run rrd_check.py");
+    let text = String::from_utf8_lossy(&check.stdout).to_string();
+    println!("{text}");
+    assert!(
+        check.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&check.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_str(text.lines().last().unwrap_or("{}"))
+        .unwrap_or_else(|e| panic!("rrd_check.py printed no JSON ({e}): {text}"));
+    let n = chunkrt::config::Config::embedded_default().n_dof();
+    for j in 0..n {
+        for series in ["measured", "command", "velocity", "target"] {
+            let rows = v["series"][format!("joints/{j}/{series}")]["rows"]
+                .as_u64()
+                .unwrap_or(0);
+            assert!(rows > 100, "joints/{j}/{series}: {rows} rows\n{text}");
+            assert_eq!(
+                v["series"][format!("joints/{j}/{series}")]["rising"].as_bool(),
+                Some(true),
+                "joints/{j}/{series}: its times go back\n{text}"
+            );
+        }
+    }
+    // every chunk the controller counted is in the file, as one series per joint
+    assert!(chunks >= 5.0, "only {chunks} chunks in 8 s");
+    assert_eq!(
+        recorded_chunks, chunks,
+        "the recorder saw {recorded_chunks} chunks, the controller made {chunks}"
+    );
+    assert_eq!(
+        v["chunk_series"].as_u64(),
+        Some(chunks as u64 * n as u64),
+        "chunk series in the file\n{text}"
+    );
+    let frames = v["frames"].as_u64().unwrap_or(0);
+    assert!(frames >= 10, "{frames} camera frames in the file\n{text}");
+    assert!(
+        v["text_logs"].as_u64().unwrap_or(0) >= chunks as u64,
+        "a log line per chunk\n{text}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
