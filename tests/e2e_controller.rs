@@ -1251,7 +1251,7 @@ fn a_status_forged_after_a_clean_stop_moves_nothing() {
 }
 
 /// A LeRobot checkpoint as shipped (its config and processor files, LeRobot's key names), run by
-/// the one command the README gives: `chunkrt run --checkpoint DIR --tokenizer FILE`; the
+/// the one command docs/policies.md gives: `chunkrt run --checkpoint DIR --tokenizer FILE`; the
 /// controller runs the policy and the robot follows its commands.
 #[test]
 fn run_takes_a_lerobot_checkpoint_as_shipped() {

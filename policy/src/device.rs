@@ -35,7 +35,7 @@ impl DeviceSpec {
                 if !cfg!(feature = "cuda") {
                     return Err(PolicyError::Config(format!(
                         "device {self}: this binary was built without CUDA support; rebuild with \
-                         `cargo build --release --features cuda` (README, section GPU)"
+                         `cargo build --release --features cuda` (docs/gpu.md)"
                     )));
                 }
                 #[cfg(feature = "cuda")]
@@ -44,7 +44,7 @@ impl DeviceSpec {
                         "device {self}: cannot load {missing}: install the NVIDIA driver (580 \
                          series, CUDA 13.0; it brings libcuda.so.1) and put the CUDA 13 \
                          libraries on the library path (a CUDA 13.0 toolkit, or the \
-                         nvidia-*-cu13 wheels; README, section GPU)"
+                         nvidia-*-cu13 wheels; docs/gpu.md)"
                     ))
                 })?;
                 let dev = Device::new_cuda(n).map_err(|e| {

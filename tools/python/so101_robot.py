@@ -93,7 +93,7 @@ def drain(subscriber, payload_type):
 
 
 class SessionGate:
-    """The session rule of chunkrt_ipc::SessionGate (README, "Session binding")."""
+    """The session rule of chunkrt_ipc::SessionGate (docs/realtime-and-safety.md, "Session binding")."""
 
     def __init__(self, timeout_ns):
         self.timeout_ns = timeout_ns
