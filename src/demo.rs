@@ -103,12 +103,12 @@ impl StackArgs {
     /// Loads the configuration into a namespace of its own (`tag` in its default name) and
     /// makes the log folder; `exe` replaces this binary for the processes.
     pub(crate) fn prepare(&self, tag: &str, exe: Option<&PathBuf>) -> anyhow::Result<Stack> {
-        let base = crate::run::load_config(self.config.as_ref(), None)?;
+        let base = crate::args::load_config(self.config.as_ref(), None)?;
         let ns = self
             .namespace
             .clone()
             .unwrap_or_else(|| format!("{}-{tag}-{}", base.robot.namespace, std::process::id()));
-        let cfg = crate::run::load_config(self.config.as_ref(), Some(&ns))?;
+        let cfg = crate::args::load_config(self.config.as_ref(), Some(&ns))?;
         let exe = match exe {
             Some(p) => p.clone(),
             None => std::env::current_exe().context("cannot find the chunkrt executable")?,

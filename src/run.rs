@@ -57,23 +57,10 @@ pub struct RunArgs {
     #[arg(long, value_name = "DIR", conflicts_with = "remote")]
     pub checkpoint: Option<PathBuf>,
     #[command(flatten)]
-    pub files: crate::policy_cli::LayoutArgs,
+    pub files: crate::args::LayoutArgs,
 }
 
-/// Loads the configuration named by `--config` (or the embedded default) and applies
-/// `--namespace`.
-pub fn load_config(config: Option<&PathBuf>, namespace: Option<&str>) -> anyhow::Result<Config> {
-    let mut cfg = match config {
-        Some(p) => Config::load(p)?,
-        None => Config::embedded_default(),
-    };
-    if let Some(ns) = namespace {
-        cfg.robot.namespace = ns.to_string();
-        let file = cfg.source.display().to_string();
-        cfg.validate(&format!("{file} (with --namespace)"))?;
-    }
-    Ok(cfg)
-}
+pub use crate::args::load_config;
 
 /// The chunk source the configuration names, loaded on a thread of its own so that SIGINT /
 /// SIGTERM during a long load (a large checkpoint, a server that does not answer) stops the

@@ -57,7 +57,7 @@ pub struct ServeArgs {
     #[arg(long)]
     pub max_message_mb: Option<f64>,
     #[command(flatten)]
-    pub files: crate::policy_cli::LayoutArgs,
+    pub files: crate::args::LayoutArgs,
     /// Connections served at once (more are refused with HTTP 503; default `[serve]
     /// max_connections`, 16).
     #[arg(long)]
@@ -208,7 +208,7 @@ pub struct Serving {
 
 /// Loads the policy and starts serving it.
 pub fn start(args: &ServeArgs) -> anyhow::Result<Serving> {
-    let mut cfg = crate::run::load_config(args.config.as_ref(), None)?;
+    let mut cfg = crate::args::load_config(args.config.as_ref(), None)?;
     if let Some(d) = args.device {
         cfg.policy.device = d;
     }

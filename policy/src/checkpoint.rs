@@ -267,16 +267,7 @@ pub fn load_tensors(path: &Path) -> Result<(HashMap<String, Tensor>, Vec<DType>)
     Ok((out, dtypes))
 }
 
-/// π0.5 checkpoints have `time_mlp_in`; π0 ones `state_proj`.
-pub fn detect_kind(t: &HashMap<String, Vec<usize>>) -> Option<ModelKind> {
-    if t.contains_key("time_mlp_in.weight") {
-        Some(ModelKind::Pi05)
-    } else if t.contains_key("state_proj.weight") {
-        Some(ModelKind::Pi0)
-    } else {
-        None
-    }
-}
+pub use crate::config::detect_kind;
 
 /// Compares the tensors with what `cfg` needs: one error listing every missing or mismatched
 /// tensor by name and shape. Unused tensors (e.g. the expert's `lm_head`) are ignored.

@@ -16,6 +16,18 @@ pub enum ModelKind {
     Pi05,
 }
 
+/// π0.5 checkpoints have `time_mlp_in`; π0 ones `state_proj` (tensor names → shapes). Here,
+/// below both the checkpoint reader and the layout, which ask it.
+pub fn detect_kind(t: &std::collections::HashMap<String, Vec<usize>>) -> Option<ModelKind> {
+    if t.contains_key("time_mlp_in.weight") {
+        Some(ModelKind::Pi05)
+    } else if t.contains_key("state_proj.weight") {
+        Some(ModelKind::Pi0)
+    } else {
+        None
+    }
+}
+
 impl ModelKind {
     /// `pi0` / `pi05`.
     pub fn name(self) -> &'static str {

@@ -25,8 +25,7 @@ use std::path::{Path, PathBuf};
 use serde::de::{Deserializer, IgnoredAny, MapAccess, Visitor};
 use serde::Deserialize;
 
-use crate::checkpoint::detect_kind;
-use crate::config::{ModelConfig, ModelKind};
+use crate::config::{detect_kind, ModelConfig, ModelKind};
 use crate::error::PolicyError;
 use crate::files::read_side_file;
 use crate::openpi_config::OpenpiConfig as TrainingConfig;
