@@ -67,11 +67,17 @@ fn default_joint_state_rate() -> f64 {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct JointConfig {
+    /// Joint name (logs, plots).
     pub name: String,
+    /// Lower position limit (rad, or m for a linear joint); commands are kept inside.
     pub position_min: f64,
+    /// Upper position limit (rad or m).
     pub position_max: f64,
+    /// Velocity limit of the command (per second), enforced by ruckig.
     pub max_velocity: f64,
+    /// Acceleration limit of the command (per second²).
     pub max_acceleration: f64,
+    /// Jerk limit of the command (per second³).
     pub max_jerk: f64,
     /// Position at start-up of simulated robots.
     #[serde(default)]
