@@ -466,7 +466,7 @@ pub struct ControllerStatus {
     pub stale_cameras: u64,
     /// iceoryx2's unique id of the publisher this controller sends its joint commands from
     /// (low 64 bits, high 64 bits; 0: not known yet). A robot obeys commands from this
-    /// publisher only (`SessionGate`): the session binding of README section "Isolation".
+    /// publisher only (`SessionGate`): the session binding of docs/realtime-and-safety.md ("Session binding").
     pub command_publisher_id: [u64; 2],
     /// `seq` of the last re-arm request the controller answered (0: none yet).
     pub rearm_seq: u64,
