@@ -236,9 +236,9 @@ pub struct Guard {
     /// The generator leads ([`Self::follow`]'s last resort) until the controller's motion
     /// passes again: an offset is not restarted meanwhile.
     generating: bool,
-    /// Calls of [`Self::follow`], and the call and offset size of the last offset restart.
+    /// Calls of [`Self::follow`], and the calls of its last two offset restarts.
     cycle: u64,
-    last_restart: Option<(u64, f64)>,
+    restarts: [u64; 2],
 }
 
 /// The largest of a joint vector's magnitudes.
@@ -246,18 +246,8 @@ fn size(x: &[f64; JOINTS]) -> f64 {
     x.iter().fold(0.0, |m, v| m.max(v.abs()))
 }
 
-/// How fast restarted offsets may grow from one restart to the next within [`RESTART_WINDOW`]
-/// (rad per cycle): a controller moving on beside the stream keeps them about the same; a
-/// stream running on past a stopped controller grows them by its speed (2.3e-3 rad a cycle at
-/// 2.3 rad/s).
-const RESTART_GROWTH: f64 = 2e-4;
-
-/// Cycles within which one restart is compared with the next.
+/// Cycles in which a third offset restart hands over to the generator instead.
 const RESTART_WINDOW: u64 = 50;
-
-/// The generator hands back to an offset once its stream is this close to the controller's
-/// (rad, rad/s): the restarted offset is small and decays at once.
-const GENERATOR_NEAR: (f64, f64) = (2e-3, 0.05);
 
 /// The offset's limits, as fractions of the robot's: what the controller's own motion leaves
 /// when it keeps to 0.8 of them (config/franka_fr3.toml), less the guard's margin.
@@ -313,8 +303,8 @@ impl Guard {
             path: 0,
             desired: None,
             generating: false,
-            cycle: 0,
-            last_restart: None,
+            cycle: RESTART_WINDOW,
+            restarts: [0; 2],
         })
     }
 
@@ -433,7 +423,8 @@ impl Guard {
         }
         // (re)start the offset: this cycle the stream goes on at constant acceleration, and
         // the difference to the controller's motion shrinks from the next
-        if q.iter().all(|x| x.is_finite()) {
+        let running = self.offset.map(|o| size(&o.0));
+        if !self.generating && q.iter().all(|x| x.is_finite()) {
             let (sq, sv, sa) = self.stream_state(prev);
             let dt = self.dt;
             let mut o = ([0.0; JOINTS], [0.0; JOINTS], [0.0; JOINTS]);
@@ -442,26 +433,15 @@ impl Guard {
                 o.1[j] = sv[j] + sa[j] * dt - vd[j];
                 o.2[j] = sa[j] - ad[j];
             }
-            // a restart whose offset is larger than the last one's by more than RESTART_GROWTH
-            // a cycle is not taken: restarted every few cycles (a controller whose every
-            // position breaks a limit, or whose own motion leaves the offset no room), the
-            // stream would go on at its speed, away from the controller's, to the envelope
-            let size_now = size(&o.0);
-            let growing = self.last_restart.is_some_and(|(c, sz)| {
-                let since = self.cycle - c;
-                since < RESTART_WINDOW && size_now > sz + RESTART_GROWTH * since as f64
-            });
-            // the generator, once in charge, hands back only when its stream is near the
-            // controller's (else the two would take turns)
-            let allowed = if self.generating {
-                size_now < GENERATOR_NEAR.0 && size(&o.1) < GENERATOR_NEAR.1
-            } else {
-                !growing
-            };
-            if allowed {
+            // a third restart within RESTART_WINDOW cycles is taken only while the offset
+            // shrinks: restarted every few cycles (a controller whose every position breaks a
+            // limit, or whose own motion leaves the offset no room), the stream would go on at
+            // its speed, away from the controller's, to the envelope
+            let growing = self.cycle < self.restarts[0] + RESTART_WINDOW
+                && running.is_none_or(|r| size(&o.0) >= r);
+            if !growing {
                 if let Some(m) = self.with_offset(prev, q, &vd, &ad, o, false) {
-                    self.last_restart = Some((self.cycle, size_now));
-                    self.generating = false;
+                    self.restarts = [self.restarts[1], self.cycle];
                     self.path = 2;
                     return (m, true);
                 }
