@@ -85,10 +85,6 @@ const SYNC_NONE: i32 = 3;
 /// from the generator's own (a robot that restarted or was moved) restarts the generator from
 /// the measured state (rad or unit).
 const RESUME_TOLERANCE: f64 = 0.01;
-/// A rejoin ends within this distance of the measured position (rad or unit) and below this
-/// speed (per second): tracking takes up the rest.
-const REJOINED: (f64, f64) = (1e-3, 1e-2);
-
 /// A gap between two ticks longer than this (ns) means the controller itself stood still (a
 /// SIGSTOP, a swapped-out process): the robot did not wait for it.
 const STALL_NS: u64 = 50_000_000;
@@ -141,12 +137,6 @@ pub struct Executor {
     last_tick_ns: u64,
     /// Re-seeds from the robot's measured state after a stall of this process.
     pub stall_reseeds: u64,
-    /// The generator is on its way from its own state to the robot's measured position
-    /// ([`Self::rejoin`]), which it follows here.
-    rejoining: bool,
-    rejoin_to: [f64; MAX_DOF],
-    /// Rejoins started.
-    pub rejoins: u64,
     chunk_tx: ChunkSender,
     req_rx: RequestReceiver,
     timing: TickTiming,
@@ -205,9 +195,6 @@ impl Executor {
             js_gap: false,
             last_tick_ns: 0,
             stall_reseeds: 0,
-            rejoining: false,
-            rejoin_to: [0.0; MAX_DOF],
-            rejoins: 0,
             chunk_tx,
             req_rx,
             timing: TickTiming::new(),
@@ -367,9 +354,6 @@ impl Executor {
             self.requests.landed();
         }
         let js = self.check_joint_state(now_ns, joint_state);
-        if let (true, true, Some(state)) = (self.rejoining, js.fresh, joint_state) {
-            self.rejoin_target(state);
-        }
         self.stale_seen = self
             .stale_cameras
             .load(std::sync::atomic::Ordering::Relaxed);
@@ -401,7 +385,7 @@ impl Executor {
             // (after a robot restart they can be far apart). A robot that followed the braking
             // keeps the generator's own (continuous) state.
             if self.safety.state() == State::Running && self.away_from(js) {
-                self.rejoin(js);
+                self.init_generator(js);
             }
         }
         let mut report = self.report(primary);
@@ -437,19 +421,14 @@ impl Executor {
             let ours = js.obeyed_publisher().is_none_or(|id| id == me);
             let far = js.status_flags & chunkrt_ipc::JOINT_STATUS_COMMAND_FAR != 0;
             check.obeyed = ours && !far;
-            if far {
-                // our command was refused as too far from the arm, which holds at rest: the
-                // robot takes the next command only near it, and a command that arrives moving
-                // makes its stop-to-rest and the new motion meet (a Franka reflex, seen); the
-                // robot refused every command in between, so to it the stream is continuous
+            if !check.obeyed {
+                // another controller moves the arm, nobody yet, or our command was refused as
+                // too far from the arm: command where the robot is, so nothing accumulates and
+                // the hand-over, when the robot binds this controller, starts from its measured
+                // state. (A rejoin through ruckig instead of this step made a sagging arm drift:
+                // the SO-101's jaw missed its grasp in 1 of 3 runs; and the FR3 tripped when a
+                // refused stream arrived moving.)
                 self.init_generator(js);
-            } else if !ours {
-                // another controller moves the arm, or nobody yet: follow the arm, so nothing
-                // accumulates and the hand-over, when the robot binds this controller, starts
-                // where the arm is; within the limits, not in steps to each measurement (the
-                // arm lags a command and the states arrive unevenly: 2.7 x the velocity limit
-                // in one tick)
-                self.rejoin(js);
             }
         }
         if !check.fresh {
@@ -459,7 +438,7 @@ impl Executor {
             if let Some(js) = joint_state {
                 let running = self.safety.state() == State::Running;
                 if self.initialized && !running && self.away_from(js) {
-                    self.rejoin(js);
+                    self.init_generator(js);
                 }
             }
         }
@@ -526,9 +505,7 @@ impl Executor {
         let running = self.safety.state() == State::Running;
         let mut r = OtgResult::Working;
         for _ in 0..std::mem::replace(&mut self.cycles, 1) {
-            if self.rejoining {
-                shaping::rejoin(&self.limits, &self.rejoin_to, &mut self.otg_in);
-            } else if running {
+            if running {
                 shaping::track(
                     &self.limits,
                     self.tracking_gain,
@@ -565,9 +542,6 @@ impl Executor {
             self.otg_in.current_position = out.position;
             self.otg_in.current_velocity = out.velocity;
             self.otg_in.current_acceleration = out.acceleration;
-            if self.rejoining && self.rejoined() {
-                self.rejoining = false;
-            }
             let stopped = self.otg_in.current_velocity[..n]
                 .iter()
                 .all(|v| v.abs() < STOPPED_VELOCITY)
@@ -658,47 +632,7 @@ impl Executor {
             .any(|j| (js.position[j] - self.otg_in.current_position[j]).abs() > RESUME_TOLERANCE)
     }
 
-    /// Re-seeds a generator that runs: from its own state (position, velocity, acceleration)
-    /// to the measured position at rest, within the limits, instead of a step there (a robot
-    /// that enforces continuity stops on a step; a robot that held refuses the commands until
-    /// they come near it). Only for a robot that reports its session, and with it the
-    /// hand-over's distance check (`JOINT_STATUS_COMMAND_FAR`): one that does not would follow
-    /// the rejoin's first commands, away from where it is, so it gets the measured state at
-    /// once, as does a generator that has no state yet.
-    fn rejoin(&mut self, js: &JointState) {
-        if !self.initialized || js.obeyed_publisher().is_none() {
-            self.init_generator(js);
-            return;
-        }
-        if !self.rejoining {
-            if self.away_from(js) {
-                self.rejoins += 1;
-            }
-            self.rejoining = true;
-            self.otg.reset();
-        }
-        self.rejoin_target(js);
-    }
-
-    fn rejoin_target(&mut self, js: &JointState) {
-        for j in 0..self.limits.n {
-            let p = js.position[j];
-            if p.is_finite() {
-                self.rejoin_to[j] = p.clamp(self.limits.pmin[j], self.limits.pmax[j]);
-            }
-        }
-    }
-
-    /// The rejoin has arrived: within [`REJOINED`] of the measured position, at rest.
-    fn rejoined(&self) -> bool {
-        (0..self.limits.n).all(|j| {
-            (self.otg_in.current_position[j] - self.rejoin_to[j]).abs() <= REJOINED.0
-                && self.otg_in.current_velocity[j].abs() <= REJOINED.1
-        })
-    }
-
     fn init_generator(&mut self, js: &JointState) {
-        self.rejoining = false;
         let n = self.limits.n;
         for j in 0..n {
             let p = js.position[j];

@@ -198,17 +198,6 @@ pub(crate) fn must_stop(amax: f64, jmax: f64, dt: f64, room: f64, v: f64, a: f64
     p1.max(0.0) + stop_distance(amax, jmax, v1, a1) >= room
 }
 
-/// A rejoin: to `to` at rest, time-optimally within the limits (the position interface), from
-/// wherever the generator is and however it moves.
-pub(crate) fn rejoin(l: &Limits, to: &[f64; MAX_DOF], inp: &mut OtgInput) {
-    inp.control_interface = CONTROL_POSITION;
-    for (j, p) in to.iter().enumerate().take(l.n) {
-        inp.target_position[j] = p.clamp(l.pmin[j], l.pmax[j]);
-    }
-    inp.target_velocity[..l.n].fill(0.0);
-    inp.target_acceleration[..l.n].fill(0.0);
-}
-
 /// HOLD, FAULT, STARTING: brake to zero velocity (jerk-limited) where the joints are.
 pub(crate) fn brake(n: usize, inp: &mut OtgInput) {
     inp.control_interface = CONTROL_VELOCITY;
