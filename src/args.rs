@@ -7,6 +7,23 @@ use anyhow::Context;
 
 use crate::config::Config;
 
+/// A tool's own virtual environment (the FR3 simulator's, the recorder's): its prefix
+/// (`$prefix_var`, else `~/.cache/<default_dir>`) and its interpreter (`$python_var`, else
+/// `<prefix>/venv/bin/python`).
+pub fn venv_python(prefix_var: &str, default_dir: &str, python_var: &str) -> (PathBuf, PathBuf) {
+    let prefix = std::env::var(prefix_var)
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| {
+            PathBuf::from(std::env::var("HOME").unwrap_or_default())
+                .join(".cache")
+                .join(default_dir)
+        });
+    let py = std::env::var(python_var)
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| prefix.join("venv/bin/python"));
+    (prefix, py)
+}
+
 /// Where a checkpoint's tokenizer and statistics are when its directory does not say
 /// (`chunkrt run`, `serve`, `sample`, `inspect`).
 #[derive(Debug, Clone, Default, clap::Args)]

@@ -36,14 +36,11 @@ pub struct RecordArgs {
 /// The interpreter of the recorder's virtual environment: `CHUNKRT_RERUN_PYTHON`, else
 /// `CHUNKRT_RERUN_PREFIX` (default `~/.cache/chunkrt-rerun`)`/venv/bin/python`.
 pub fn rerun_python() -> anyhow::Result<PathBuf> {
-    let prefix = std::env::var("CHUNKRT_RERUN_PREFIX")
-        .map(PathBuf::from)
-        .unwrap_or_else(|_| {
-            PathBuf::from(std::env::var("HOME").unwrap_or_default()).join(".cache/chunkrt-rerun")
-        });
-    let py = std::env::var("CHUNKRT_RERUN_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|_| prefix.join("venv/bin/python"));
+    let (_, py) = crate::args::venv_python(
+        "CHUNKRT_RERUN_PREFIX",
+        "chunkrt-rerun",
+        "CHUNKRT_RERUN_PYTHON",
+    );
     anyhow::ensure!(
         py.is_file(),
         "recording needs PyPI's rerun-sdk in its own environment: bash scripts/rerun-env.sh \

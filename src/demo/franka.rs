@@ -26,14 +26,11 @@ pub fn is_franka(cfg: &crate::config::Config) -> bool {
 
 /// The franka venv's python and the offline FR3 model (scripts/franka-env.sh).
 fn franka_env() -> anyhow::Result<(PathBuf, PathBuf)> {
-    let prefix = std::env::var("CHUNKRT_FRANKA_PREFIX")
-        .map(PathBuf::from)
-        .unwrap_or_else(|_| {
-            PathBuf::from(std::env::var("HOME").unwrap_or_default()).join(".cache/chunkrt-franka")
-        });
-    let py = std::env::var("CHUNKRT_FRANKA_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|_| prefix.join("venv/bin/python"));
+    let (prefix, py) = crate::args::venv_python(
+        "CHUNKRT_FRANKA_PREFIX",
+        "chunkrt-franka",
+        "CHUNKRT_FRANKA_PYTHON",
+    );
     let model = std::env::var("FR3_MJCF")
         .map(PathBuf::from)
         .unwrap_or_else(|_| prefix.join("fr3_model/fr3.xml"));
