@@ -194,48 +194,76 @@ fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
     .iter()
     .enumerate()
     {
-        let host = format!("127.0.0.{}", 20 + i);
-        let ns = unique_namespace("fr3-strat");
-        let cfg = scripted_config(strategy, strategy, "");
-        let sim_g = sim(&py, &model, &host, true);
-        let d = driver(&ns, &host, 14.0, &[]);
-        let c = start(
-            "run",
-            &ns,
-            &[
-                "--config",
-                cfg.to_str().unwrap(),
-                "--duration",
-                "11",
-                "--log-every",
-                "0",
-            ],
-        );
-        let c_out = c.finish(Duration::from_secs(40));
-        let d_out = d.finish(Duration::from_secs(20));
-        let s_out = sim_g.terminate(Duration::from_secs(5));
-        assert_eq!(
-            c_out.code,
-            Some(0),
-            "{strategy}: the controller failed:\n{}",
-            c_out.stderr
-        );
-        assert_no_reflex(strategy, &d_out, &s_out);
-        // every chunk switch at every delay in the sweep, the robot answered in time
-        let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
-        assert!(
-            chunks >= 12.0,
-            "{strategy}: {chunks} chunks (the sweep needs 9+)"
-        );
-        let rate = drv(&d_out, "success_rate_mean");
-        assert!(rate >= 0.999, "{strategy}: command success rate {rate}");
-        let err = drv(&d_out, "max_tracking_error");
-        assert!(err < 0.05, "{strategy}: tracking error {err} rad");
-        assert!(
-            drv(&d_out, "fresh") > 8000.0,
-            "{strategy}: the controller's commands did not reach the robot"
-        );
-        let _ = std::fs::remove_file(cfg);
+        // A driver the machine stalls for milliseconds misses robot cycles, and the FR3 goes on
+        // without it; after one the robot's reference and the driver's can part by micro-radians,
+        // which trips a reflex (measured: SIGSTOP of the driver for 4 ms, eight times a run, three
+        // or four reflexes a run). That is the test machine's doing, not the strategy's: a
+        // strategy whose run missed cycles and then failed runs once more, and says so.
+        for attempt in 0..2 {
+            let host = format!("127.0.{attempt}.{}", 20 + i);
+            let ns = unique_namespace("fr3-strat");
+            let cfg = scripted_config(strategy, strategy, "");
+            let sim_g = sim(&py, &model, &host, true);
+            // the driver's cycle trace, kept where a failure says (removed when it passes)
+            let trace =
+                std::env::temp_dir().join(format!("fr3_{strategy}_{}.csv", std::process::id()));
+            let tr = trace.display().to_string();
+            let d = driver(&ns, &host, 14.0, &["--trace", tr.as_str()]);
+            let c = start(
+                "run",
+                &ns,
+                &[
+                    "--config",
+                    cfg.to_str().unwrap(),
+                    "--duration",
+                    "11",
+                    "--log-every",
+                    "0",
+                ],
+            );
+            let c_out = c.finish(Duration::from_secs(40));
+            let d_out = d.finish(Duration::from_secs(20));
+            let s_out = sim_g.terminate(Duration::from_secs(5));
+            let _ = std::fs::remove_file(&cfg);
+            assert_eq!(
+                c_out.code,
+                Some(0),
+                "{strategy}: the controller failed:\n{}",
+                c_out.stderr
+            );
+            let missed = drv(&d_out, "missed");
+            let rate = drv(&d_out, "success_rate_mean");
+            let reflex = sim_reflexes(&s_out) > 0.0 || drv(&d_out, "reflexes") > 0.0;
+            if attempt == 0 && missed > 0.0 && (reflex || rate < 0.999) {
+                println!(
+                    "\n!!! {strategy}: the driver missed {missed} robot cycles (this machine stalled \
+                     it), then {}: run once more\n",
+                    if reflex {
+                        "the robot tripped a reflex".to_string()
+                    } else {
+                        format!("the command success rate fell to {rate}")
+                    }
+                );
+                continue;
+            }
+            println!("{strategy}: the driver's trace: {tr}");
+            assert_no_reflex(strategy, &d_out, &s_out);
+            // every chunk switch at every delay in the sweep, the robot answered in time
+            let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
+            assert!(
+                chunks >= 12.0,
+                "{strategy}: {chunks} chunks (the sweep needs 9+)"
+            );
+            assert!(rate >= 0.999, "{strategy}: command success rate {rate}");
+            let err = drv(&d_out, "max_tracking_error");
+            assert!(err < 0.05, "{strategy}: tracking error {err} rad");
+            assert!(
+                drv(&d_out, "fresh") > 8000.0,
+                "{strategy}: the controller's commands did not reach the robot"
+            );
+            let _ = std::fs::remove_file(trace);
+            break;
+        }
     }
 }
 

@@ -922,10 +922,15 @@ fn write_trace<'a>(
     for r in rows {
         n += 1;
         let _ = write!(text, "{},{}", r.seq, TRACE_PATHS[r.path as usize % 8]);
-        for x in [&r.measured, &r.desired, &r.desired_v, &r.sent] {
+        for x in [&r.measured, &r.desired, &r.desired_v] {
             for v in x {
                 let _ = write!(text, ",{v:.6}");
             }
+        }
+        // the command at a nanoradian: its second and third differences are what the robot
+        // checks (1e-9 rad is 1e-3 rad/s² at 1 kHz)
+        for v in &r.sent {
+            let _ = write!(text, ",{v:.9}");
         }
         text.push('\n');
     }
