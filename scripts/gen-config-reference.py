@@ -41,12 +41,17 @@ def structs():
         for m in re.finditer(r"pub struct (\w+) \{(.*?)\n\}", text, re.S):
             fields = []
             doc, attrs = [], []
+            open_attr = False  # inside an attribute rustfmt spread over lines
             for line in m.group(2).split("\n"):
                 s = line.strip()
-                if s.startswith("///"):
+                if open_attr:
+                    attrs[-1] += " " + s
+                    open_attr = not s.endswith("]")
+                elif s.startswith("///"):
                     doc.append(s[3:].strip())
                 elif s.startswith("#["):
                     attrs.append(s)
+                    open_attr = not s.endswith("]")
                 elif s.startswith("pub "):
                     fm = re.match(r"pub (\w+): (.+),$", s)
                     if fm:
@@ -124,6 +129,9 @@ def main():
         "default); every value is checked on load, and the error names the file, the key and what is allowed.",
         "Units are in the key's name (`_ms`, `_hz`, `_s`) or its description; joint quantities are rad (or m",
         "for a linear joint) per second, per second², per second³.",
+        "",
+        "`chunkrt run [--config FILE] [flags] --print-config` prints the effective configuration as TOML,",
+        "each value marked `file`, `default` or `flag`, and exits; the printout is itself a valid file.",
         "",
         "Written by `python3 scripts/gen-config-reference.py` from the configuration types' sources;",
         "`tests/config_reference.rs` fails when this page and the parser disagree on the set of keys.",

@@ -18,6 +18,7 @@
 //! Must not be depended on by the controller, the policy or the ipc crate.
 
 pub mod args;
+pub mod config_print;
 pub mod demo;
 pub mod eval;
 pub mod policy_cli;

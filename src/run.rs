@@ -58,6 +58,10 @@ pub struct RunArgs {
     pub checkpoint: Option<PathBuf>,
     #[command(flatten)]
     pub files: crate::args::LayoutArgs,
+    /// Print the effective configuration (TOML, each value marked file, default or flag) and
+    /// exit without starting anything.
+    #[arg(long)]
+    pub print_config: bool,
 }
 
 pub use crate::args::load_config;
@@ -187,6 +191,24 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         cfg.policy.scripted.latency_ms = latency;
         let file = cfg.source.display().to_string();
         cfg.validate(&format!("{file} (with --scripted)"))?;
+    }
+    if args.print_config {
+        let from_file = load_config(args.config.as_ref(), None)?;
+        let (text, name) = match &args.config {
+            Some(p) => (
+                chunkrt_ipc::config::read_config_file(p)?,
+                p.display().to_string(),
+            ),
+            None => (
+                crate::config::DEFAULT_TOML.to_string(),
+                "config/default.toml (embedded)".to_string(),
+            ),
+        };
+        print!(
+            "{}",
+            crate::config_print::render(&cfg, &from_file, &text, &name)?
+        );
+        return Ok(());
     }
     let stop_flag = chunkrt_tools::shutdown::flag();
     tracing::info!(

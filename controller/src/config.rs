@@ -11,7 +11,7 @@
 
 use std::path::{Path, PathBuf};
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 pub use chunkrt_ipc::config::{
     CameraConfig, Checker, ConfigError, ControlConfig, JointConfig, RobotConfig, SharedConfig,
@@ -22,7 +22,7 @@ use chunkrt_policy::config::ConfigOverrides;
 pub use chunkrt_policy::{DeviceSpec, Jacobian, LoadOptions, ModelKind, Precision};
 
 /// Whole controller configuration.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
     pub robot: RobotConfig,
@@ -45,7 +45,7 @@ pub struct Config {
 }
 
 /// `[serve]`: how many connections `chunkrt serve` holds and for how long (its flags override).
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ServeSettings {
     /// Connections served at once (more are refused with HTTP 503).
@@ -103,7 +103,7 @@ chunkrt_ipc::config_enum! {
 }
 
 /// `[policy.scripted]`: the scripted test double's chunks.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ScriptedSettings {
     /// Observation → chunk ready (ms): the delay a real policy's inference would add.
@@ -174,13 +174,26 @@ fn hold_or_kind<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<ModelKi
     }
 }
 
+/// `policy.kind` as the file writes it (`--print-config`).
+fn kind_or_hold<S: serde::Serializer>(k: &Option<ModelKind>, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(match k {
+        None => "hold",
+        Some(ModelKind::Pi0) => "pi0",
+        Some(ModelKind::Pi05) => "pi05",
+    })
+}
+
 /// `[policy]`: which chunk source feeds the control loop, and how the policy is loaded. The
 /// loading options are the policy crate's own types ([`Self::load_options`]).
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct PolicyConfig {
     /// `hold` (None: no policy, the controller holds), `pi0`, `pi05`.
-    #[serde(default, deserialize_with = "hold_or_kind")]
+    #[serde(
+        default,
+        deserialize_with = "hold_or_kind",
+        serialize_with = "kind_or_hold"
+    )]
     pub kind: Option<ModelKind>,
     /// `local` (the checkpoint in this process) or `remote` (a server at `url`).
     #[serde(default)]
@@ -368,7 +381,7 @@ chunkrt_ipc::config_enum! {
 }
 
 /// How chunks are executed (transitions, real-time chunking, watchdog). Owned by `control`.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ExecutionConfig {
     /// `replace`, `crossfade`, `temporal_ensemble` or `rtc`.
