@@ -72,6 +72,10 @@ fn main() {
         Command::Sample(a) => chunkrt::policy_cli::sample(a),
         Command::Inspect(a) => chunkrt::policy_cli::inspect(a),
         Command::BenchInference(a) => chunkrt::policy_cli::bench(a),
+        // a Rerun recording (`chunkrt record`, `--record`) or a folder of HdrHistogram logs
+        Command::Report(a) if a.dir.extension().is_some_and(|e| e == "rrd") => {
+            chunkrt::record::report(&a.dir, a.png.as_deref(), a.md.as_deref())
+        }
         Command::Report(a) => chunkrt::report::run(a),
         Command::Record(a) => chunkrt::record::run(a),
         Command::Train(a) => chunkrt::train::run(a),

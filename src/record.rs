@@ -122,3 +122,235 @@ pub fn run(args: RecordArgs) -> anyhow::Result<()> {
     anyhow::ensure!(status.success(), "the recorder ended with {status}");
     Ok(())
 }
+
+/// A recording's series as `rrd_export.py` writes them: path → (time ns, value), sorted.
+struct Exported {
+    series: std::collections::BTreeMap<String, Vec<(i64, f64)>>,
+    chunks: usize,
+}
+
+/// Reads `rrd_export.py`'s CSV; a line that does not parse is an error naming it.
+fn read_export(text: &str) -> anyhow::Result<Exported> {
+    let mut series: std::collections::BTreeMap<String, Vec<(i64, f64)>> = Default::default();
+    let mut chunks = 0;
+    for (i, line) in text.lines().enumerate().skip(1) {
+        if let Some(n) = line.strip_prefix("# chunks ") {
+            chunks = n.trim().parse()?;
+            continue;
+        }
+        let mut f = line.splitn(3, ',');
+        let (Some(p), Some(t), Some(v)) = (f.next(), f.next(), f.next()) else {
+            anyhow::bail!("line {}: {line:?} is not path,t_ns,value", i + 1);
+        };
+        let t: i64 = t.parse().with_context(|| format!("line {}", i + 1))?;
+        let v: f64 = v.parse().with_context(|| format!("line {}", i + 1))?;
+        series.entry(p.to_string()).or_default().push((t, v));
+    }
+    Ok(Exported { series, chunks })
+}
+
+/// `chunkrt report run.rrd`: the recording's commanded, measured and chunk-target positions
+/// per joint with every predicted chunk overlaid (`--png`, default beside the file), and a
+/// table of the tracking per joint (`--md`): the picture and the figures from the recorded
+/// data, read with Rerun's own SDK.
+pub fn report(rrd: &Path, png: Option<&Path>, md: Option<&Path>) -> anyhow::Result<()> {
+    anyhow::ensure!(rrd.is_file(), "no recording at {}", rrd.display());
+    let py = rerun_python()?;
+    let csv = std::env::temp_dir().join(format!("chunkrt-rrd-{}.csv", std::process::id()));
+    let script = recorder_script().with_file_name("rrd_export.py");
+    let out = std::process::Command::new(&py)
+        .arg(&script)
+        .arg(rrd)
+        .arg(&csv)
+        .output()
+        .with_context(|| format!("run {}", py.display()))?;
+    anyhow::ensure!(
+        out.status.success(),
+        "{} {}: {}",
+        script.display(),
+        rrd.display(),
+        String::from_utf8_lossy(&out.stderr).trim()
+    );
+    let text = std::fs::read_to_string(&csv);
+    let _ = std::fs::remove_file(&csv);
+    let data = read_export(&text?)?;
+    let joints: Vec<usize> = {
+        let mut j: Vec<usize> = data
+            .series
+            .keys()
+            .filter_map(|p| p.strip_prefix("joints/")?.split('/').next()?.parse().ok())
+            .collect();
+        j.dedup();
+        j
+    };
+    anyhow::ensure!(
+        !joints.is_empty(),
+        "{}: no joint series in the recording",
+        rrd.display()
+    );
+    let t0 = data
+        .series
+        .values()
+        .filter_map(|s| s.first().map(|p| p.0))
+        .min()
+        .unwrap_or(0);
+    let png = png.map_or_else(|| rrd.with_extension("png"), Path::to_path_buf);
+    let md = md.map_or_else(|| rrd.with_extension("md"), Path::to_path_buf);
+    plot_recording(&png, &data, &joints, t0, rrd)?;
+    // tracking per joint: the command against the measured position at the same time
+    let mut table = format!(
+        "# {}\n\n{} chunks; {:.1} s recorded.\n\n| joint | measured rows | command rows | \
+         \\|command − measured\\| RMS (rad) | max (rad) |\n|---|---|---|---|---|\n",
+        rrd.display(),
+        data.chunks,
+        data.series
+            .values()
+            .filter_map(|s| s.last().map(|p| p.0))
+            .max()
+            .map_or(0.0, |t| (t - t0) as f64 * 1e-9)
+    );
+    for &j in &joints {
+        let get = |k: &str| data.series.get(&format!("joints/{j}/{k}"));
+        let (m, c) = (get("measured"), get("command"));
+        let (rms, max) = match (m, c) {
+            (Some(m), Some(c)) if !m.is_empty() => tracking(m, c),
+            _ => (f64::NAN, f64::NAN),
+        };
+        table.push_str(&format!(
+            "| {j} | {} | {} | {rms:.4} | {max:.4} |\n",
+            m.map_or(0, Vec::len),
+            c.map_or(0, Vec::len)
+        ));
+    }
+    std::fs::write(&md, &table).with_context(|| format!("write {}", md.display()))?;
+    print!("{table}");
+    println!("\nplot: {}\ntable: {}", png.display(), md.display());
+    Ok(())
+}
+
+/// RMS and max of |command − measured| with the measured series held at each command's time.
+fn tracking(measured: &[(i64, f64)], command: &[(i64, f64)]) -> (f64, f64) {
+    let (mut i, mut sum, mut max, mut n) = (0usize, 0.0, 0.0f64, 0usize);
+    for &(t, c) in command {
+        while i + 1 < measured.len() && measured[i + 1].0 <= t {
+            i += 1;
+        }
+        if measured[i].0 > t {
+            continue;
+        }
+        let e = (c - measured[i].1).abs();
+        sum += e * e;
+        max = max.max(e);
+        n += 1;
+    }
+    if n == 0 {
+        (f64::NAN, f64::NAN)
+    } else {
+        ((sum / n as f64).sqrt(), max)
+    }
+}
+
+/// One panel per joint: every predicted chunk (thin, grey), the chunk target, the command and
+/// the measured position over the recording's time.
+fn plot_recording(
+    path: &Path,
+    data: &Exported,
+    joints: &[usize],
+    t0: i64,
+    rrd: &Path,
+) -> anyhow::Result<()> {
+    use plotters::prelude::*;
+    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot {}: {e}", path.display());
+    let secs = |t: i64| (t - t0) as f64 * 1e-9;
+    let root = BitMapBackend::new(path, (1200, 260 * joints.len() as u32 + 40)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let (top, body) = root.split_vertically(40);
+    top.draw_text(
+        &format!("{}: {} chunks", rrd.display(), data.chunks),
+        &("sans-serif", 20).into_font().color(&BLACK),
+        (10, 10),
+    )
+    .map_err(|e| err(&e))?;
+    let t_end = data
+        .series
+        .values()
+        .filter_map(|s| s.last().map(|p| secs(p.0)))
+        .fold(0.5f64, f64::max);
+    for (&j, area) in joints
+        .iter()
+        .zip(body.split_evenly((joints.len(), 1)).iter())
+    {
+        let prefix = format!("joints/{j}/");
+        let mine: Vec<(&String, &Vec<(i64, f64)>)> = data
+            .series
+            .iter()
+            .filter(|(p, _)| p.starts_with(&prefix))
+            .collect();
+        let (lo, hi) = mine
+            .iter()
+            .filter(|(p, _)| !p.contains("/chunks/"))
+            .flat_map(|(_, s)| s.iter().map(|p| p.1))
+            .fold((f64::MAX, f64::MIN), |(a, b), v| (a.min(v), b.max(v)));
+        let (lo, hi) = if lo <= hi {
+            let pad = 0.1 * (hi - lo).max(0.05);
+            (lo - pad, hi + pad)
+        } else {
+            (-1.0, 1.0)
+        };
+        let mut chart = ChartBuilder::on(area)
+            .caption(format!("joint {j}"), ("sans-serif", 16))
+            .margin(8)
+            .x_label_area_size(30)
+            .y_label_area_size(55)
+            .build_cartesian_2d(0f64..t_end, lo..hi)
+            .map_err(|e| err(&e))?;
+        chart
+            .configure_mesh()
+            .x_desc("robot time since the recording began (s)")
+            .y_desc("position")
+            .draw()
+            .map_err(|e| err(&e))?;
+        let mut first_chunk = true;
+        for (_, s) in mine.iter().filter(|(p, _)| p.contains("/chunks/")) {
+            let drawn = chart
+                .draw_series(LineSeries::new(
+                    s.iter().map(|&(t, v)| (secs(t), v.clamp(lo, hi))),
+                    BLACK.mix(0.25).stroke_width(1),
+                ))
+                .map_err(|e| err(&e))?;
+            if first_chunk {
+                drawn
+                    .label("predicted chunks")
+                    .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.mix(0.25)));
+                first_chunk = false;
+            }
+        }
+        for (kind, color, width) in [
+            ("target", GREEN.mix(0.9), 1),
+            ("measured", BLUE.mix(0.9), 3),
+            ("command", RED.mix(0.9), 1),
+        ] {
+            if let Some(s) = data.series.get(&format!("{prefix}{kind}")) {
+                chart
+                    .draw_series(LineSeries::new(
+                        s.iter().map(|&(t, v)| (secs(t), v)),
+                        color.stroke_width(width),
+                    ))
+                    .map_err(|e| err(&e))?
+                    .label(kind)
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(width))
+                    });
+            }
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK.mix(0.3))
+            .draw()
+            .map_err(|e| err(&e))?;
+    }
+    root.present().map_err(|e| err(&e))?;
+    Ok(())
+}

@@ -147,5 +147,35 @@ fn a_run_is_recorded_and_rerun_reads_it_back() {
         v["text_logs"].as_u64().unwrap_or(0) >= chunks as u64,
         "a log line per chunk\n{text}"
     );
+    // the report's plot and table come from the same file: `chunkrt report run.rrd`
+    let rep = std::process::Command::new(EXE)
+        .arg("report")
+        .arg(&rrd)
+        .env("CHUNKRT_RERUN_PYTHON", &py)
+        .output()
+        .expect("run chunkrt report");
+    let table = String::from_utf8_lossy(&rep.stdout).to_string();
+    println!("{table}");
+    assert!(
+        rep.status.success(),
+        "{table}\n{}",
+        String::from_utf8_lossy(&rep.stderr)
+    );
+    let png = std::fs::metadata(dir.join("run.png")).map_or(0, |m| m.len());
+    assert!(png > 20_000, "run.png: {png} bytes");
+    let md = std::fs::read_to_string(dir.join("run.md")).expect("run.md");
+    assert!(
+        md.contains(&format!("\n{} chunks;", chunks as u64)),
+        "the report's chunk count is not the controller's ({chunks}):\n{md}"
+    );
+    for j in 0..n {
+        let row = md
+            .lines()
+            .find(|l| l.starts_with(&format!("| {j} | ")))
+            .unwrap_or_else(|| panic!("no row for joint {j}:\n{md}"));
+        let rms: f64 = row.split('|').nth(4).unwrap().trim().parse().unwrap();
+        // the demo robot follows its command within a few milliradians
+        assert!(rms < 0.05, "joint {j}: command − measured RMS {rms}\n{md}");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

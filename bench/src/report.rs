@@ -132,7 +132,9 @@ pub fn plot_percentiles(
 /// Where `chunkrt report` writes (by default inside the folder it reads).
 #[derive(Debug, clap::Args)]
 pub struct ReportArgs {
-    /// Folder of HdrHistogram interval logs (`*.hlog`).
+    /// Folder of HdrHistogram interval logs (`*.hlog`), or a Rerun recording (`*.rrd`, from
+    /// `chunkrt record` or `--record`): then the plot is each joint's command, measured position
+    /// and predicted chunks, and the table the tracking per joint (default FILE.png / FILE.md).
     pub dir: PathBuf,
     /// Output PNG (default DIR/report.png).
     #[arg(long)]
