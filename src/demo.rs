@@ -737,6 +737,16 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         ),
         Err(e) => println!("no plot: {}", chunkrt_bench::report::plot_error_text(&e)),
     }
+    // with --record, the recording's own plot and tracking table beside the demo's
+    if let Some(rrd) = &args.stack.record {
+        let (png, md) = (
+            args.out.join("recording.png"),
+            args.out.join("recording.md"),
+        );
+        if let Err(e) = crate::record::report(rrd, Some(&png), Some(&md)) {
+            println!("no report from the recording {}: {e:#}", rrd.display());
+        }
+    }
     if let Some(e) = failure {
         return Err(e);
     }
