@@ -3,10 +3,11 @@
 Rerun's own SDK (``rerun.chunk.RrdReader``), for ``chunkrt report run.rrd``.
 
 Writes ``path,t_ns,value`` rows: ``joints/J/measured``, ``joints/J/command``, ``joints/J/target``
-(each decimated to at most ``--max-points`` rows, evenly by row) and every predicted chunk
-``joints/J/chunks/ID`` in full; then a comment line ``# chunks N`` with the chunk log's count.
+(each decimated to at most ``--max-points`` rows, evenly by row) and the predicted chunks
+``joints/J/chunks/ID`` in full (at most ``--max-chunks`` per joint, evenly spaced: a long run's file
+stays bounded); then a comment line ``# chunks N`` with the chunk log's count.
 
-    python3 tools/python/rrd_export.py run.rrd out.csv [--max-points 20000]
+    python3 tools/python/rrd_export.py run.rrd out.csv [--max-points 20000] [--max-chunks 2000]
 """
 
 import argparse
@@ -25,6 +26,7 @@ def main():
     ap.add_argument("rrd")
     ap.add_argument("out")
     ap.add_argument("--max-points", type=int, default=20000)
+    ap.add_argument("--max-chunks", type=int, default=2000)
     a = ap.parse_args()
     reader = rr.chunk.RrdReader(a.rrd)
     if not reader.recordings():
@@ -51,10 +53,21 @@ def main():
         if len(v) != len(t):
             continue  # a row holding several scalars is not one of chunkrt's series
         parts.setdefault(path, []).append((t, v))
+    # at most --max-chunks predicted chunks per joint, evenly spaced over the run
+    chunk_paths = {}
+    for path in parts:
+        if CHUNK.fullmatch(path):
+            chunk_paths.setdefault(path.split("/")[1], []).append(path)
+    drop = set()
+    for paths in chunk_paths.values():
+        if len(paths) > a.max_chunks:
+            paths.sort(key=lambda p: min(int(t[0].min()) for t in parts[p]))
+            keep = set(np.linspace(0, len(paths) - 1, a.max_chunks).astype(np.int64).tolist())
+            drop.update(p for i, p in enumerate(paths) if i not in keep)
     rows = 0
     with open(a.out, "w") as f:
         f.write("path,t_ns,value\n")
-        for path in sorted(parts):
+        for path in sorted(set(parts) - drop):
             t = np.concatenate([p[0] for p in parts[path]])
             v = np.concatenate([p[1] for p in parts[path]])
             order = np.argsort(t, kind="stable")
