@@ -404,6 +404,12 @@ pub struct ExecutionConfig {
     /// the chunk's state at the tick as a fixed target. 0: the fixed-target chase.
     #[serde(default = "default_tracking_gain")]
     pub tracking_gain: f64,
+    /// Tracking: the most the position-error term may add to the chunk's own velocity, as a
+    /// fraction of each joint's `max_velocity` (0–1]. Below 1, a large error (a new controller
+    /// taking over an arm the chunk starts away from, a re-seed, a switch onto a distant chunk)
+    /// closes at this share of the joint's speed instead of at its full speed.
+    #[serde(default = "default_correction_speed")]
+    pub correction_speed: f64,
     /// Future-state inference (VLASH): the policy observes the joint state the current chunk
     /// will have reached when the new chunk lands (rolled forward by the estimated delay), not
     /// the measured one, and the new chunk continues from there.
@@ -453,6 +459,9 @@ fn default_crossfade_ms() -> f64 {
 fn default_tracking_gain() -> f64 {
     10.0
 }
+fn default_correction_speed() -> f64 {
+    1.0
+}
 fn default_ensemble_decay() -> f64 {
     0.01
 }
@@ -484,6 +493,7 @@ impl Default for ExecutionConfig {
             hold_to_fault_ms: default_hold_to_fault_ms(),
             crossfade_ms: default_crossfade_ms(),
             tracking_gain: default_tracking_gain(),
+            correction_speed: default_correction_speed(),
             future_state: false,
             ensemble_decay: default_ensemble_decay(),
             trigger: Default::default(),
@@ -607,6 +617,7 @@ impl Config {
         )?;
         c.range("execution.crossfade_ms", e.crossfade_ms, 0.0, 10_000.0)?;
         c.range("execution.tracking_gain", e.tracking_gain, 0.0, 200.0)?;
+        c.range("execution.correction_speed", e.correction_speed, 0.01, 1.0)?;
         c.range("execution.ensemble_decay", e.ensemble_decay, 0.0, 10.0)?;
         c.range(
             "execution.execute_horizon",

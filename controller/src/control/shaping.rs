@@ -20,6 +20,8 @@ pub(crate) struct Limits {
     pub jmax: [f64; MAX_DOF],
     pub pmin: [f64; MAX_DOF],
     pub pmax: [f64; MAX_DOF],
+    /// Tracking: the most the position-error term may add to the chunk's velocity (rad/s).
+    pub correction: [f64; MAX_DOF],
     /// The control period (s): how far the generator moves before the next tick looks again.
     pub dt: f64,
 }
@@ -35,6 +37,7 @@ impl Limits {
             jmax: [1.0; MAX_DOF],
             pmin: [f64::NEG_INFINITY; MAX_DOF],
             pmax: [f64::INFINITY; MAX_DOF],
+            correction: [1.0; MAX_DOF],
             dt: config.control_period_ns().max(1) as f64 * 1e-9,
         };
         for (i, j) in config.robot.joints.iter().take(n).enumerate() {
@@ -44,6 +47,7 @@ impl Limits {
             l.jmax[i] = j.max_jerk;
             l.pmin[i] = j.position_min;
             l.pmax[i] = j.position_max;
+            l.correction[i] = config.execution.correction_speed * j.max_velocity;
         }
         l
     }
@@ -79,9 +83,9 @@ pub(crate) fn track(l: &Limits, gain: f64, target: &Sample, inp: &mut OtgInput) 
             from = inp.current_position[j].clamp(lo, hi);
             // proportional near the chunk; further out, no faster than the joint can still
             // brake to the error's end at half its acceleration (a large error after a switch
-            // closes without overshoot)
+            // closes without overshoot), and no faster than `correction_speed` allows
             let e = p - from;
-            let brake = stop_speed(0.5 * l.amax[j], l.jmax[j], e.abs());
+            let brake = stop_speed(0.5 * l.amax[j], l.jmax[j], e.abs()).min(l.correction[j]);
             v += (gain * e).clamp(-brake, brake);
         }
         // Towards a limit the target may only move as fast as the generator can still stop
@@ -224,6 +228,7 @@ mod tests {
             jmax: [JMAX; MAX_DOF],
             pmin: [f64::NEG_INFINITY; MAX_DOF],
             pmax: [f64::INFINITY; MAX_DOF],
+            correction: [VMAX; MAX_DOF],
             dt: DT,
         };
         l.pmin[0] = pmin;
@@ -404,5 +409,31 @@ mod tests {
             let pos = follow(&l, gain, 0.0, |k| targets[k / 20], 60_000);
             assert_inside_and_smooth(&pos, lo, hi, gain);
         }
+    }
+
+    /// A chunk held 1 rad away from the command (a new controller taking over an arm the chunk
+    /// starts away from): with `correction_speed` 1 the error closes at the joint's full speed;
+    /// with a correction of 0.3 × the joint's speed, never faster than that, and it still closes.
+    #[test]
+    fn a_large_error_closes_no_faster_than_the_correction_speed() {
+        let far = |_: usize| {
+            let mut s = Sample::default();
+            s.position[0] = 1.0;
+            s
+        };
+        let peak = |pos: &[f64]| {
+            pos.windows(2)
+                .map(|w| ((w[1] - w[0]) / DT).abs())
+                .fold(0.0, f64::max)
+        };
+        let full = one_joint(-2.0, 2.0);
+        let fast = follow(&full, 10.0, 0.0, far, 3000);
+        assert!(peak(&fast) > 0.95 * VMAX, "{}", peak(&fast));
+        let mut slow_l = one_joint(-2.0, 2.0);
+        slow_l.correction[0] = 0.3 * VMAX;
+        let slow = follow(&slow_l, 10.0, 0.0, far, 6000);
+        assert!(peak(&slow) <= 0.3 * VMAX + 1e-6, "{}", peak(&slow));
+        assert!((slow[5999] - 1.0).abs() < 1e-3, "{}", slow[5999]);
+        assert_inside_and_smooth(&slow, -2.0, 2.0, 10.0);
     }
 }
