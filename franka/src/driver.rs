@@ -270,6 +270,10 @@ struct Core {
     extrapolate_cycles: u32,
     no_guard: bool,
     clamped_last: bool,
+    /// The last cycle was the driver's own stop or hold (brake, rest): the state says HOLDING.
+    holding: bool,
+    /// The last cycle held the arm at rest at the driver's own command: AT_REST.
+    at_rest: bool,
     motion_cycles: u64,
     end_ns: u64,
     stop: &'static AtomicBool,
@@ -292,6 +296,8 @@ const TRACE_CYCLES: usize = 120_000;
 struct TraceRow {
     seq: u64,
     path: u8,
+    /// The guard's first broken limit that cycle: (joint, code), or none.
+    broke: Option<(u8, u8)>,
     measured: [f64; JOINTS],
     desired: [f64; JOINTS],
     desired_v: [f64; JOINTS],
@@ -361,6 +367,14 @@ impl Core {
         if self.clamped_last {
             flags |= JOINT_STATUS_LIMIT_CLAMPED;
         }
+        if self.holding {
+            // the driver's own stop or hold, no controller's motion
+            flags |= JOINT_STATUS_HOLDING;
+        }
+        if self.at_rest {
+            // held still at its own command: a controller starts from here at rest
+            flags |= JOINT_STATUS_AT_REST;
+        }
         let mut msg = JointState {
             seq,
             measurement_time_ns: now,
@@ -417,6 +431,7 @@ impl Core {
         let mut clamped = false;
         let mut desired = ([f64::NAN; JOINTS], [f64::NAN; JOINTS]);
         let path: u8;
+        let mut guard_broke = None;
         let next = match live {
             // the answer to this cycle's state; an answer to an earlier one comes too late (its
             // cycle was already continued) and would move the arm back
@@ -441,6 +456,7 @@ impl Core {
                     let (m, c) = self.guard.follow(&self.last, &q, &v, &a);
                     clamped = c;
                     path = self.guard.path;
+                    guard_broke = self.guard.broke;
                     m
                 }
             }
@@ -479,6 +495,8 @@ impl Core {
             }
         }
         self.clamped_last = clamped;
+        self.holding = path == 5 || path == 6;
+        self.at_rest = path == 6;
         self.last = next;
         if let Some(r) = &mut self.record {
             if r.len() < r.capacity() {
@@ -489,6 +507,7 @@ impl Core {
             let row = TraceRow {
                 seq,
                 path,
+                broke: guard_broke,
                 measured: st.q,
                 desired: desired.0,
                 desired_v: desired.1,
@@ -691,6 +710,8 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         extrapolate_cycles: args.extrapolate_cycles,
         no_guard: args.no_guard,
         clamped_last: false,
+        holding: true,
+        at_rest: true,
         motion_cycles: 0,
         end_ns,
         stop,
@@ -912,7 +933,7 @@ fn write_trace<'a>(
     use std::fmt::Write as _;
     let mut text = String::with_capacity(TRACE_CYCLES * 30 * 12 + 512);
     let mut n = 0usize;
-    text.push_str("seq,path");
+    text.push_str("seq,path,broke");
     for name in ["measured", "desired", "desired_v", "sent"] {
         for j in 1..=JOINTS {
             let _ = write!(text, ",{name}_{j}");
@@ -921,10 +942,18 @@ fn write_trace<'a>(
     text.push('\n');
     for r in rows {
         n += 1;
-        let _ = write!(text, "{},{}", r.seq, TRACE_PATHS[r.path as usize % 8]);
-        for x in [&r.measured, &r.desired, &r.desired_v] {
+        let _ = write!(text, "{},{},", r.seq, TRACE_PATHS[r.path as usize % 8]);
+        if let Some((j, b)) = r.broke {
+            let name = crate::guard::Broken::NAMES[b as usize % 5];
+            let _ = write!(text, "j{}:{name}", j + 1);
+        }
+        for v in &r.measured {
+            let _ = write!(text, ",{v:.6}");
+        }
+        // the desired positions at a nanoradian too: their differences are what the guard judges
+        for x in [&r.desired, &r.desired_v] {
             for v in x {
-                let _ = write!(text, ",{v:.6}");
+                let _ = write!(text, ",{v:.9}");
             }
         }
         // the command at a nanoradian: its second and third differences are what the robot

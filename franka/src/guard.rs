@@ -227,6 +227,9 @@ pub struct Guard {
     offset_in: OtgInput,
     offset_out: OtgOutput,
     offset: Option<([f64; JOINTS], [f64; JOINTS], [f64; JOINTS])>,
+    /// The first limit the last [`Self::follow`]'s candidate command broke, as (joint, code
+    /// of [`Broken`]), when one did: the desired position's, else the offset's (diagnostics).
+    pub broke: Option<(u8, u8)>,
     /// Which path the last [`Self::follow`] took: 0 passed, 1 offset, 2 offset restarted,
     /// 3 generator (for tests and diagnostics).
     pub path: u8,
@@ -301,6 +304,7 @@ impl Guard {
             offset_out: OtgOutput::default(),
             offset: None,
             path: 0,
+            broke: None,
             desired: None,
             generating: false,
             cycle: RESTART_WINDOW,
@@ -342,6 +346,7 @@ impl Guard {
         };
         let (mut vd, mut ad) = (fin(v), fin(a));
         self.cycle += 1;
+        self.broke = None;
         // the velocity and acceleration fields are trusted only where they agree with the
         // desired positions' own differences (else those differences stand in for them)
         if let Some((pq, pv)) = self.desired {
@@ -383,14 +388,21 @@ impl Guard {
         }
         let q = &inside;
         if self.offset.is_none() {
-            match (0..JOINTS).find_map(|j| self.limits.broken(j, prev, q[j], self.dt)) {
+            match (0..JOINTS).find_map(|j| {
+                self.limits
+                    .broken(j, prev, q[j], self.dt)
+                    .map(|b| (j as u8, b))
+            }) {
                 None => {
                     self.planned = Some((*q, vd, ad));
                     self.generating = false;
                     self.path = 0;
                     return (Motion::after(prev, q, self.dt), false);
                 }
-                Some(b) => self.acted[b as usize] += 1,
+                Some((j, b)) => {
+                    self.acted[b as usize] += 1;
+                    self.broke = Some((j, b as u8));
+                }
             }
         } else if let Some((oq, ov, oa)) = self.offset {
             // the offset's next step on the controller's motion
@@ -480,7 +492,12 @@ impl Guard {
         for j in 0..JOINTS {
             out[j] = q[j] + o.0[j];
         }
-        if !(0..JOINTS).all(|j| self.limits.passes(j, prev, out[j], self.dt)) {
+        if let Some((j, b)) = (0..JOINTS).find_map(|j| {
+            self.limits
+                .broken(j, prev, out[j], self.dt)
+                .map(|b| (j as u8, b))
+        }) {
+            self.broke.get_or_insert((j, b as u8));
             return None;
         }
         let (mut pv, mut pa) = (*vd, *ad);

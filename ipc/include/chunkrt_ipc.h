@@ -108,6 +108,10 @@ typedef struct CameraFrameHeader {
 #define CHUNKRT_JOINT_STATUS_COMMAND_FAR (1u << 6)
 /** The robot itself reports an error or a reflex and follows no command until it clears. */
 #define CHUNKRT_JOINT_STATUS_ROBOT_ERROR (1u << 7)
+/** The driver holds the arm still at its own commanded position (its commanded velocity and
+ *  acceleration are zero): a controller that starts from this state starts at rest, whatever the
+ *  measured velocity's noise says. */
+#define CHUNKRT_JOINT_STATUS_AT_REST (1u << 8)
 
 /** Measured joint state published by the robot driver. */
 typedef struct JointState {

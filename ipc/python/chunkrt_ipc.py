@@ -65,6 +65,7 @@ JOINT_STATUS_LIMIT_CLAMPED = 1 << 4
 JOINT_STATUS_SESSION_REPORTED = 1 << 5
 JOINT_STATUS_COMMAND_FAR = 1 << 6
 JOINT_STATUS_ROBOT_ERROR = 1 << 7
+JOINT_STATUS_AT_REST = 1 << 8
 
 # ---- command modes --------------------------------------------------------------------------
 

@@ -104,6 +104,11 @@ pub const JOINT_STATUS_COMMAND_FAR: u32 = 1 << 6;
 /// The robot itself reports an error or a reflex (its own safety stopped the motion; e.g. the
 /// Franka's `robot_mode` Reflex): it is recovering and follows no command until it clears.
 pub const JOINT_STATUS_ROBOT_ERROR: u32 = 1 << 7;
+/// The driver holds the arm still at its own commanded position (its commanded velocity and
+/// acceleration are zero): a controller that starts from this state starts at rest, whatever the
+/// measured velocity's noise says (franka-sim's joint 7: ±0.08 rad/s at rest). Unlike
+/// `JOINT_STATUS_HOLDING`, which a robot may report while its arm still settles.
+pub const JOINT_STATUS_AT_REST: u32 = 1 << 8;
 
 /// Measured joint state published by the robot driver.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]

@@ -264,6 +264,7 @@ fn fmt_joints(v: &[f64], n: usize, wide: bool) -> String {
 fn joint_flags(flags: u32) -> String {
     let names = [
         (JOINT_STATUS_HOLDING, "HOLDING"),
+        (JOINT_STATUS_AT_REST, "AT_REST"),
         (JOINT_STATUS_COMMAND_EXPIRED, "EXPIRED"),
         (JOINT_STATUS_COMMAND_TIMEOUT, "TIMEOUT"),
         (JOINT_STATUS_COMMAND_REJECTED, "REJECTED"),

@@ -372,7 +372,12 @@ impl Executor {
         // where the robot is, not a step there after the robot refused the stale ones: the
         // command stream stays continuous across the gap (0.17 rad in one tick before).
         if let (true, true, true, Some(js)) = (stalled, js.fresh, self.initialized, joint_state) {
-            if self.away_from(js) {
+            // the robot ran on meanwhile: one period from here, not the stall's cycles at once;
+            // a robot whose driver holds it at rest was stopped by its driver, whatever our
+            // generator was doing when this process stood still
+            self.cycles = 1;
+            let at_rest = js.status_flags & chunkrt_ipc::JOINT_STATUS_AT_REST != 0;
+            if self.away_from(js) || at_rest {
                 self.init_generator(js);
                 self.stall_reseeds += 1;
             }
@@ -634,9 +639,15 @@ impl Executor {
 
     fn init_generator(&mut self, js: &JointState) {
         let n = self.limits.n;
+        // a robot whose driver holds it still at its own command (`AT_REST`): its measured
+        // velocity is sensor noise (franka-sim's joint 7: ±0.08 rad/s), and a generator seeded
+        // moving at it starts with a velocity the robot's stream does not have (the FR3 driver's
+        // guard then led the takeover for seconds). (`HOLDING` alone is not enough: the fake
+        // robot's arm still settles while it holds, and a seed at rest fell 0.05 rad behind it.)
+        let at_rest = js.status_flags & chunkrt_ipc::JOINT_STATUS_AT_REST != 0;
         for j in 0..n {
             let p = js.position[j];
-            let v = js.velocity[j];
+            let v = if at_rest { 0.0 } else { js.velocity[j] };
             self.otg_in.current_position[j] = if p.is_finite() { p } else { 0.0 };
             self.otg_in.current_velocity[j] = if v.is_finite() {
                 v.clamp(-self.limits.vmax[j], self.limits.vmax[j])
@@ -646,6 +657,9 @@ impl Executor {
             self.otg_in.current_acceleration[j] = 0.0;
         }
         self.otg.reset();
+        // the seed is the robot's state now: one period from it, not the robot cycles missed
+        // since the last tick (after a stall those are the stall's, up to 50 periods at once)
+        self.cycles = 1;
         self.initialized = js.position[..n].iter().all(|p| p.is_finite());
     }
 }
