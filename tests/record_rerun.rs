@@ -177,5 +177,46 @@ fn a_run_is_recorded_and_rerun_reads_it_back() {
         // the demo robot follows its command within a few milliradians
         assert!(rms < 0.05, "joint {j}: command − measured RMS {rms}\n{md}");
     }
+    // Rerun's own viewer (the pinned rerun-sdk's, headless) opens the file and draws it
+    // (tools/python/rrd_screenshot.py; docs/rerun-demo.png was made with it)
+    let shot = dir.join("viewer.png");
+    let view = std::process::Command::new(&py)
+        .arg(format!("{ROOT}/tools/python/rrd_screenshot.py"))
+        .arg(&rrd)
+        .arg(&shot)
+        .output()
+        .expect("run rrd_screenshot.py");
+    let said = format!(
+        "{}{}",
+        String::from_utf8_lossy(&view.stdout),
+        String::from_utf8_lossy(&view.stderr)
+    );
+    if view.status.code() == Some(3) {
+        // no graphics adapter on this machine (.ci/run installs no system packages)
+        eprintln!(
+            "\n!!! record_rerun: the viewer's screenshot did NOT run: no graphics adapter here \
+             (a GPU, or Mesa's lavapipe: apt install mesa-vulkan-drivers)\n{}\n",
+            said.lines()
+                .filter(|l| l.starts_with("rrd_screenshot"))
+                .collect::<Vec<_>>()
+                .join("\n")
+        );
+    } else {
+        assert!(view.status.success(), "rrd_screenshot.py failed:\n{said}");
+        let bytes = std::fs::metadata(&shot).map_or(0, |m| m.len());
+        assert!(bytes > 50_000, "viewer.png: {bytes} bytes\n{said}");
+        // what the viewer itself loaded: every chunk of every joint, and the measured series
+        let held = said
+            .lines()
+            .find(|l| l.contains("the viewer holds"))
+            .unwrap_or_else(|| panic!("the viewer said nothing of what it holds:\n{said}"));
+        println!("{held}; {bytes} bytes of PNG");
+        let series = held
+            .split(", ")
+            .find_map(|p| p.strip_suffix(" chunk series"))
+            .and_then(|n| n.trim().parse::<u64>().ok());
+        assert_eq!(series, Some(chunks as u64 * n as u64), "{held}");
+        assert!(held.ends_with("joints/0/measured yes"), "{held}");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -18,6 +18,10 @@ it is counted). In the recording:
   ``controller/lateness_p99_us``;
 - ``properties``: the namespace, prompt, configuration text and versions, as given.
 
+The file carries a default layout (a Rerun blueprint): joints 0 and 1 with their commanded,
+measured and target positions and the predicted chunks overlaid, the cameras, the controller's
+state and the logs.
+
 Bounded: it stops writing data (and says so) past ``--max-mb`` megabytes of payload, and ends
 cleanly on SIGINT / SIGTERM or after ``--duration`` seconds. Open the file with the viewer of the
 same rerun-sdk: ``rerun run.rrd``.
@@ -34,11 +38,25 @@ import time
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "ipc", "python"))
 import chunkrt_ipc as c  # noqa: E402
 
 STATE_NAMES = {k: v.upper() for k, v in c.CONTROLLER_STATE_NAMES.items()}
+
+
+def layout(cameras):
+    """The recording's default blueprint: what a robotics engineer looks at first."""
+    joints = [
+        rrb.TimeSeriesView(origin=f"joints/{j}", contents=["+ $origin/**", "- $origin/velocity"],
+                           name=f"joint {j}: command, measured, target, predicted chunks")
+        for j in (0, 1)
+    ]
+    right = [rrb.Spatial2DView(origin=f"cameras/{n}", name=n) for n in cameras]
+    right.append(rrb.TimeSeriesView(origin="controller", name="controller"))
+    right.append(rrb.TextLogView(origin="/", contents=["+ chunks/log", "+ controller/log"], name="log"))
+    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*joints), rrb.Vertical(*right), column_shares=[3, 2]))
 
 
 def secs(ns):
@@ -226,7 +244,7 @@ def main():
     signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
 
     rr.init("chunkrt", recording_id=f"{args.namespace}-{os.getpid()}", spawn=False)
-    rr.save(args.out)
+    rr.save(args.out, default_blueprint=layout([n for n in args.cameras.split(",") if n]))
     props = {"namespace": args.namespace, "prompt": args.prompt, "rerun_sdk": rr.__version__,
              "iceoryx2_contract": str(c.CONTRACT_VERSION)}
     for p in args.property:
