@@ -40,6 +40,22 @@ def chunk_starts(path, joint):
     return sorted(starts)
 
 
+def viewer_alive(viewer):
+    """Whether the spawned viewer process still runs (it exits when it cannot render)."""
+    pid = getattr(viewer, "_pid", None)
+    if pid is None:
+        return True
+    try:
+        done, _ = os.waitpid(pid, os.WNOHANG)
+        return done == 0
+    except ChildProcessError:
+        try:
+            os.kill(pid, 0)
+            return True
+        except OSError:
+            return False
+
+
 def free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -64,12 +80,13 @@ def main():
     os.environ.setdefault("XDG_RUNTIME_DIR", tempfile.gettempdir())
     # the viewer of this interpreter's rerun-sdk (its venv's bin/ need not be on PATH)
     exe = os.path.join(os.path.dirname(sys.executable), "rerun")
+    why = ("it needs a graphics adapter: a GPU, or Mesa's software Vulkan "
+           "(apt install mesa-vulkan-drivers)")
     try:
         viewer = ViewerClient.spawn(headless=True, port=free_port(), hide_welcome_screen=True,
                                     executable_path=exe if os.path.exists(exe) else None)
     except Exception as e:  # the viewer exits at once without a graphics adapter
-        print(f"rrd_screenshot: the viewer did not start ({e}); it needs a graphics adapter: a GPU, "
-              "or Mesa's software Vulkan (apt install mesa-vulkan-drivers)", file=sys.stderr)
+        print(f"rrd_screenshot: the viewer did not start ({e}); {why}", file=sys.stderr)
         return NO_ADAPTER
     try:
         viewer.open(rrd)
@@ -83,8 +100,16 @@ def main():
         held = sum(1 for p in paths if CHUNK.fullmatch(p))
         print(f"rrd_screenshot: the viewer holds {len(paths)} entities, {held} chunk series, "
               f"joints/0/measured {'yes' if 'joints/0/measured' in paths else 'NO'}")
+    except ConnectionError as e:
+        if viewer_alive(viewer):
+            raise  # the viewer refused what this script asked: a fault here, not the machine's
+        print(f"rrd_screenshot: the viewer exited ({e}); {why}", file=sys.stderr)
+        return NO_ADAPTER
     finally:
-        viewer.quit()
+        try:
+            viewer.quit()
+        except Exception:
+            pass
     print(f"rrd_screenshot: {a.png} (chunk switch at robot time {at * 1e-9:.3f} s, "
           f"{len(starts)} chunks of joint {a.joint})")
     return 0
