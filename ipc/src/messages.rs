@@ -95,7 +95,7 @@ pub const JOINT_STATUS_COMMAND_REJECTED: u32 = 1 << 3;
 /// A commanded value was outside the robot's limits and was clamped.
 pub const JOINT_STATUS_LIMIT_CLAMPED: u32 = 1 << 4;
 /// `session` is set: the robot says which command publisher it obeys (0: none). A controller
-/// that is not the one named holds and commands the measured position (bumpless hand-over). A
+/// that is not the one named holds and tracks the measured position (bumpless hand-over). A
 /// driver without the flag is trusted to obey (no check possible).
 pub const JOINT_STATUS_SESSION_REPORTED: u32 = 1 << 5;
 /// The last command was refused because it started too far from the measured position (the

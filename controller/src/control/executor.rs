@@ -85,6 +85,9 @@ const SYNC_NONE: i32 = 3;
 /// from the generator's own (a robot that restarted or was moved) restarts the generator from
 /// the measured state (rad or unit).
 const RESUME_TOLERANCE: f64 = 0.01;
+/// The least tracking gain (1/s) of a rejoin (a controller the robot does not obey following
+/// the measured arm): also with the fixed-target chase (`tracking_gain` 0).
+const REJOIN_GAIN: f64 = 10.0;
 /// A gap between two ticks longer than this (ns) means the controller itself stood still (a
 /// SIGSTOP, a swapped-out process): the robot did not wait for it.
 const STALL_NS: u64 = 50_000_000;
@@ -142,6 +145,11 @@ pub struct Executor {
     timing: TickTiming,
     target: Sample,
     scratch: Sample,
+    /// While the robot obeys another controller (or nobody yet): the measured state the
+    /// generator tracks instead of stepping to it, so that this controller's own command stream
+    /// stays continuous and, when the robot binds it, starts near the arm.
+    rejoin: Sample,
+    rejoining: bool,
     last_primary: u64,
     tracking_gain: f64,
     control_period_ns: u64,
@@ -200,6 +208,8 @@ impl Executor {
             timing: TickTiming::new(),
             target: Sample::default(),
             scratch: Sample::default(),
+            rejoin: Sample::default(),
+            rejoining: false,
             last_primary: 0,
             tracking_gain: e.tracking_gain,
             control_period_ns,
@@ -225,8 +235,9 @@ impl Executor {
     /// The iceoryx2 id of the publisher the commands leave by. From then on a robot that reports
     /// the session it obeys (`JOINT_STATUS_SESSION_REPORTED`) is checked at every tick: when it
     /// obeys another publisher or none, or refused the last command as too far from where it
-    /// is, the executor holds ([`Reason::NotObeyed`]) and commands the measured position, so the
-    /// hand-over is bumpless when the robot binds it. No allocation.
+    /// is, the executor holds ([`Reason::NotObeyed`]) and its generator tracks the measured arm
+    /// (a refused command: steps to it), so the hand-over is bumpless when the robot binds it and
+    /// the command stream stays continuous. No allocation.
     pub fn set_command_publisher(&mut self, id: u128) {
         self.command_publisher = Some(id);
     }
@@ -426,14 +437,31 @@ impl Executor {
             let ours = js.obeyed_publisher().is_none_or(|id| id == me);
             let far = js.status_flags & chunkrt_ipc::JOINT_STATUS_COMMAND_FAR != 0;
             check.obeyed = ours && !far;
-            if !check.obeyed {
-                // another controller moves the arm, nobody yet, or our command was refused as
-                // too far from the arm: command where the robot is, so nothing accumulates and
-                // the hand-over, when the robot binds this controller, starts from its measured
-                // state. (A rejoin through ruckig instead of this step made a sagging arm drift:
-                // the SO-101's jaw missed its grasp in 1 of 3 runs; and the FR3 tripped when a
-                // refused stream arrived moving.)
+            let was_rejoining = std::mem::replace(&mut self.rejoining, false);
+            if (far && !was_rejoining) || (!check.obeyed && !self.initialized) {
+                // our command was refused as too far from the arm (after the robot held): the
+                // next one starts where the robot is (a step, into a refusal: the robot moved
+                // nothing). (A continuous rejoin of such a stream once reached the FR3 moving and
+                // tripped a reflex.) A rejoin already under way goes on instead: the robot
+                // stopped the arm it tracked (the other controller died), and the tracking
+                // brakes onto it within the limits, refused until it is near.
                 self.init_generator(js);
+            } else if !check.obeyed {
+                // another controller moves the arm, or nobody yet: the generator tracks the
+                // measured state within the limits, so nothing accumulates, this controller's
+                // own stream stays continuous (it stepped to each measured state before, up to
+                // 2.3 x a joint's velocity limit in one tick), and the hand-over, when the robot
+                // binds it, starts near the arm. The tracking ends the tick the robot obeys (a
+                // rejoin that kept following a sagging arm after that made the SO-101 drift).
+                self.rejoining = true;
+                // a robot its driver holds at rest: at rest (its velocity is noise)
+                let at_rest = js.status_flags & chunkrt_ipc::JOINT_STATUS_AT_REST != 0;
+                for j in 0..self.limits.n {
+                    let (p, v) = (js.position[j], if at_rest { 0.0 } else { js.velocity[j] });
+                    self.rejoin.position[j] = if p.is_finite() { p } else { 0.0 };
+                    self.rejoin.velocity[j] = if v.is_finite() { v } else { 0.0 };
+                    self.rejoin.acceleration[j] = 0.0;
+                }
             }
         }
         if !check.fresh {
@@ -515,6 +543,13 @@ impl Executor {
                     &self.limits,
                     self.tracking_gain,
                     &self.target,
+                    &mut self.otg_in,
+                );
+            } else if self.rejoining {
+                shaping::track(
+                    &self.limits,
+                    self.tracking_gain.max(REJOIN_GAIN),
+                    &self.rejoin,
                     &mut self.otg_in,
                 );
             } else {
