@@ -280,7 +280,53 @@ fn openpi_server_with_random_droid_velocities_trips_no_reflex() {
         return;
     }
     let _one = serial();
-    let host = "127.0.0.30";
+    // the same rule as the strategies test: a run in which this machine stalled the driver
+    // (missed robot cycles) and the robot then tripped is said loudly and run once more; a
+    // reflex with no cycle missed fails at once
+    for attempt in 0..2 {
+        let host = format!("127.0.{attempt}.30");
+        let (c_out, d_out, cam_out, srv_out, s_out) = droid_once(&py, &model, &host);
+        assert_eq!(
+            c_out.code,
+            Some(0),
+            "the controller failed:\n{}",
+            c_out.stderr
+        );
+        let reflexes = sim_reflexes(&s_out) + drv(&d_out, "reflexes");
+        if attempt == 0 && reflexes > 0.0 && drv(&d_out, "missed") > 0.0 {
+            println!(
+                "\n!!! droid random: the driver missed {} robot cycles (this machine stalled it), then \
+                 the robot tripped a reflex: run once more\n",
+                drv(&d_out, "missed")
+            );
+            continue;
+        }
+        assert_no_reflex("droid random", &d_out, &s_out);
+        println!("{}", cam_out.stdout.trim());
+        println!("{}", srv_out.stdout.lines().last().unwrap_or(""));
+        let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
+        assert!(
+            chunks >= 10.0,
+            "{chunks} chunks from openpi's server:\n{}",
+            c_out.stdout
+        );
+        let requests = summary_value(&srv_out.stdout, "requests").unwrap_or(0.0);
+        let bad = summary_value(&srv_out.stdout, "bad").unwrap_or(-1.0);
+        assert!(
+            requests >= 10.0 && bad == 0.0,
+            "the DROID server saw {requests} requests, {bad} bad"
+        );
+        break;
+    }
+}
+
+/// One run of openpi's server (the scripted DROID test double, random velocities) driving the
+/// FR3 on `host`: the controller's, driver's, camera's, server's and simulator's output.
+fn droid_once(
+    py: &str,
+    model: &str,
+    host: &str,
+) -> (Finished, Finished, Finished, Finished, Finished) {
     let ns = unique_namespace("fr3-droid");
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
@@ -301,11 +347,11 @@ fn openpi_server_with_random_droid_velocities_trips_no_reflex() {
         ],
     )
     .unwrap();
-    let sim_g = sim(&py, &model, host, true);
+    let sim_g = sim(py, model, host, true);
     let d = driver(&ns, host, 18.0, &[]);
     let cfg = format!("{ROOT}/config/franka_fr3.toml");
     let camera = ChildGuard::spawn(
-        &py,
+        py,
         &[
             &format!("{ROOT}/tools/python/franka_camera.py"),
             "--config",
@@ -313,7 +359,7 @@ fn openpi_server_with_random_droid_velocities_trips_no_reflex() {
             "--namespace",
             &ns,
             "--model",
-            &model,
+            model,
             "--duration",
             "17",
         ],
@@ -339,27 +385,7 @@ fn openpi_server_with_random_droid_velocities_trips_no_reflex() {
     let cam_out = camera.finish(Duration::from_secs(10));
     let srv_out = server.terminate(Duration::from_secs(5));
     let s_out = sim_g.terminate(Duration::from_secs(5));
-    assert_eq!(
-        c_out.code,
-        Some(0),
-        "the controller failed:\n{}",
-        c_out.stderr
-    );
-    assert_no_reflex("droid random", &d_out, &s_out);
-    println!("{}", cam_out.stdout.trim());
-    println!("{}", srv_out.stdout.lines().last().unwrap_or(""));
-    let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
-    assert!(
-        chunks >= 10.0,
-        "{chunks} chunks from openpi's server:\n{}",
-        c_out.stdout
-    );
-    let requests = summary_value(&srv_out.stdout, "requests").unwrap_or(0.0);
-    let bad = summary_value(&srv_out.stdout, "bad").unwrap_or(-1.0);
-    assert!(
-        requests >= 10.0 && bad == 0.0,
-        "the DROID server saw {requests} requests, {bad} bad"
-    );
+    (c_out, d_out, cam_out, srv_out, s_out)
 }
 
 #[test]
@@ -368,23 +394,20 @@ fn stall_kill_takeover_and_a_restarted_robot_trip_no_reflex() {
         return;
     };
     let _one = serial();
-    // Known and open (docs/status.md): on this 2-core VM about one run in four of this scenario
-    // trips a reflex (seen: the measured velocity of joint 1 at 2.73 rad/s with no cycle missed;
-    // a jerk of 5 196 rad/s³ after three missed cycles). The first such run is said loudly and
-    // the scenario runs once more; a second fails the test.
+    // the same rule as the strategies test: a run in which this machine stalled the driver
+    // (missed robot cycles) and the robot then tripped is said loudly and run once more; a
+    // reflex with no cycle missed fails at once. (It did, in about one run in seven, before a
+    // new controller joined its chunk at 0.3 x the joints' speed and started at rest from a robot
+    // held at rest (AT_REST): franka-sim measured joint 1 at 2.73 rad/s once, no cycle missed.)
     for attempt in 0..2 {
         let host = format!("127.0.{attempt}.31");
         let (d_out, s_a, s_b, b_out) = takeover_once(&py, &model, &host);
         let reflexes = sim_reflexes(&s_a) + sim_reflexes(&s_b) + drv(&d_out, "reflexes");
-        if attempt == 0 && reflexes > 0.0 {
+        if attempt == 0 && reflexes > 0.0 && drv(&d_out, "missed") > 0.0 {
             println!(
-                "\n!!! takeover: the robot tripped a reflex (a known, open failure of about one run in \
-                 four here):\n{}\n{}\n!!! run once more\n",
-                d_out
-                    .stdout
-                    .lines()
-                    .find(|l| l.starts_with("franka summary"))
-                    .unwrap_or(""),
+                "\n!!! takeover: the driver missed {} robot cycles (this machine stalled it), then the \
+                 robot tripped a reflex:\n{}\n!!! run once more\n",
+                drv(&d_out, "missed"),
                 s_a.stdout
                     .lines()
                     .chain(s_b.stdout.lines())
