@@ -542,28 +542,43 @@ fn libfranka_replays_a_recorded_command_stream_without_a_reflex() {
     };
     let _one = serial();
     let host = "127.0.0.33";
-    let ns = unique_namespace("fr3-record");
     let cfg = scripted_config("record", "rtc", "");
     let stream = std::env::temp_dir().join(format!("fr3_stream_{}.txt", std::process::id()));
     let stream_s = stream.to_str().unwrap().to_string();
-    let sim_g = sim(&py, &model, host, true);
-    let d = driver(&ns, host, 10.0, &["--record", &stream_s]);
-    let c = start(
-        "run",
-        &ns,
-        &[
-            "--config",
-            cfg.to_str().unwrap(),
-            "--duration",
-            "8",
-            "--log-every",
-            "0",
-        ],
-    );
-    let _ = c.finish(Duration::from_secs(30));
-    let d_out = d.finish(Duration::from_secs(20));
-    let s_out = sim_g.terminate(Duration::from_secs(5));
-    assert_no_reflex("recording", &d_out, &s_out);
+    // the recording: the same rule as the strategies test (a run in which this machine stalled
+    // the driver and the robot then tripped is said loudly and run once more; a reflex with no
+    // cycle missed fails at once)
+    for attempt in 0..2 {
+        let ns = unique_namespace("fr3-record");
+        let sim_g = sim(&py, &model, host, true);
+        let d = driver(&ns, host, 10.0, &["--record", &stream_s]);
+        let c = start(
+            "run",
+            &ns,
+            &[
+                "--config",
+                cfg.to_str().unwrap(),
+                "--duration",
+                "8",
+                "--log-every",
+                "0",
+            ],
+        );
+        let _ = c.finish(Duration::from_secs(30));
+        let d_out = d.finish(Duration::from_secs(20));
+        let s_out = sim_g.terminate(Duration::from_secs(5));
+        let reflexes = sim_reflexes(&s_out) + drv(&d_out, "reflexes");
+        if attempt == 0 && reflexes > 0.0 && drv(&d_out, "missed") > 0.0 {
+            println!(
+                "\n!!! recording: the driver missed {} robot cycles (this machine stalled it), then \
+                 the robot tripped a reflex: run once more\n",
+                drv(&d_out, "missed")
+            );
+            continue;
+        }
+        assert_no_reflex("recording", &d_out, &s_out);
+        break;
+    }
     // the same positions through Franka's own client, against a fresh robot
     let sim_g = sim(&py, &model, host, true);
     std::thread::sleep(Duration::from_secs(3));
