@@ -178,6 +178,33 @@ fn assert_no_reflex(what: &str, d: &Finished, sim_out: &Finished) {
     assert_eq!(drv(d, "reflexes"), 0.0, "{what}: {line}");
 }
 
+/// A controller on `cfg` (a file path) in `ns` for `seconds`, without its periodic log.
+fn controller(ns: &str, cfg: &std::path::Path, seconds: &str) -> ChildGuard {
+    let cfg = cfg.to_str().unwrap();
+    start(
+        "run",
+        ns,
+        &["--config", cfg, "--duration", seconds, "--log-every", "0"],
+    )
+}
+
+/// The FR3 tests' rerun rule: a first run in which this machine stalled the driver (missed
+/// robot cycles) and the robot then tripped (`why`, or None: it did not) is said loudly and
+/// runs once more; a reflex with no cycle missed fails the test as any other.
+fn stalled_then_failed(what: &str, attempt: usize, d: &Finished, why: Option<String>) -> bool {
+    let missed = drv(d, "missed");
+    match why {
+        Some(why) if attempt == 0 && missed > 0.0 => {
+            println!(
+                "\n!!! {what}: the driver missed {missed} robot cycles (this machine stalled it), \
+                 then {why}: run once more\n"
+            );
+            true
+        }
+        _ => false,
+    }
+}
+
 #[test]
 fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
     let Some((py, model)) = franka_env("franka_sim: strategies") else {
@@ -209,18 +236,7 @@ fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
                 std::env::temp_dir().join(format!("fr3_{strategy}_{}.csv", std::process::id()));
             let tr = trace.display().to_string();
             let d = driver(&ns, &host, 14.0, &["--trace", tr.as_str()]);
-            let c = start(
-                "run",
-                &ns,
-                &[
-                    "--config",
-                    cfg.to_str().unwrap(),
-                    "--duration",
-                    "11",
-                    "--log-every",
-                    "0",
-                ],
-            );
+            let c = controller(&ns, &cfg, "11");
             let c_out = c.finish(Duration::from_secs(40));
             let d_out = d.finish(Duration::from_secs(20));
             let s_out = sim_g.terminate(Duration::from_secs(5));
@@ -231,19 +247,15 @@ fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
                 "{strategy}: the controller failed:\n{}",
                 c_out.stderr
             );
-            let missed = drv(&d_out, "missed");
             let rate = drv(&d_out, "success_rate_mean");
-            let reflex = sim_reflexes(&s_out) > 0.0 || drv(&d_out, "reflexes") > 0.0;
-            if attempt == 0 && missed > 0.0 && (reflex || rate < 0.999) {
-                println!(
-                    "\n!!! {strategy}: the driver missed {missed} robot cycles (this machine stalled \
-                     it), then {}: run once more\n",
-                    if reflex {
-                        "the robot tripped a reflex".to_string()
-                    } else {
-                        format!("the command success rate fell to {rate}")
-                    }
-                );
+            let why = if sim_reflexes(&s_out) > 0.0 || drv(&d_out, "reflexes") > 0.0 {
+                Some("the robot tripped a reflex".to_string())
+            } else if rate < 0.999 {
+                Some(format!("the command success rate fell to {rate}"))
+            } else {
+                None
+            };
+            if stalled_then_failed(strategy, attempt, &d_out, why) {
                 continue;
             }
             println!("{strategy}: the driver's trace: {tr}");
@@ -292,13 +304,9 @@ fn openpi_server_with_random_droid_velocities_trips_no_reflex() {
             "the controller failed:\n{}",
             c_out.stderr
         );
-        let reflexes = sim_reflexes(&s_out) + drv(&d_out, "reflexes");
-        if attempt == 0 && reflexes > 0.0 && drv(&d_out, "missed") > 0.0 {
-            println!(
-                "\n!!! droid random: the driver missed {} robot cycles (this machine stalled it), then \
-                 the robot tripped a reflex: run once more\n",
-                drv(&d_out, "missed")
-            );
+        let tripped = sim_reflexes(&s_out) + drv(&d_out, "reflexes") > 0.0;
+        let why = tripped.then(|| "the robot tripped a reflex".to_string());
+        if stalled_then_failed("droid random", attempt, &d_out, why) {
             continue;
         }
         assert_no_reflex("droid random", &d_out, &s_out);
@@ -402,19 +410,17 @@ fn stall_kill_takeover_and_a_restarted_robot_trip_no_reflex() {
     for attempt in 0..2 {
         let host = format!("127.0.{attempt}.31");
         let (d_out, s_a, s_b, b_out) = takeover_once(&py, &model, &host);
-        let reflexes = sim_reflexes(&s_a) + sim_reflexes(&s_b) + drv(&d_out, "reflexes");
-        if attempt == 0 && reflexes > 0.0 && drv(&d_out, "missed") > 0.0 {
-            println!(
-                "\n!!! takeover: the driver missed {} robot cycles (this machine stalled it), then the \
-                 robot tripped a reflex:\n{}\n!!! run once more\n",
-                drv(&d_out, "missed"),
-                s_a.stdout
-                    .lines()
-                    .chain(s_b.stdout.lines())
-                    .filter(|l| l.contains("REFLEX"))
-                    .collect::<Vec<_>>()
-                    .join("\n")
-            );
+        let tripped = sim_reflexes(&s_a) + sim_reflexes(&s_b) + drv(&d_out, "reflexes") > 0.0;
+        let why = tripped.then(|| {
+            let lines: Vec<&str> = s_a
+                .stdout
+                .lines()
+                .chain(s_b.stdout.lines())
+                .filter(|l| l.contains("REFLEX"))
+                .collect();
+            format!("the robot tripped a reflex ({})", lines.join("; "))
+        });
+        if stalled_then_failed("takeover", attempt, &d_out, why) {
             continue;
         }
         assert_no_reflex("takeover (first robot)", &d_out, &s_a);
@@ -448,14 +454,9 @@ fn stall_kill_takeover_and_a_restarted_robot_trip_no_reflex() {
 fn takeover_once(py: &str, model: &str, host: &str) -> (Finished, Finished, Finished, Finished) {
     let ns = unique_namespace("fr3-takeover");
     let cfg = scripted_config("takeover", "rtc", "");
-    let cfg_s = cfg.to_str().unwrap().to_string();
     let sim_a = sim(py, model, host, true);
     let d = driver(&ns, host, 40.0, &[]);
-    let a = start(
-        "run",
-        &ns,
-        &["--config", &cfg_s, "--duration", "60", "--log-every", "0"],
-    );
+    let a = controller(&ns, &cfg, "60");
     std::thread::sleep(Duration::from_secs(6));
     // SIGSTOP mid-motion for 2 s: the driver continues, then stops the arm within the limits
     // SAFETY: kill(2) on our own child
@@ -466,11 +467,7 @@ fn takeover_once(py: &str, model: &str, host: &str) -> (Finished, Finished, Fini
     // SIGKILL mid-motion: the same stop; a second controller takes over without a step
     kill9(a);
     std::thread::sleep(Duration::from_millis(1500));
-    let b = start(
-        "run",
-        &ns,
-        &["--config", &cfg_s, "--duration", "60", "--log-every", "0"],
-    );
+    let b = controller(&ns, &cfg, "60");
     std::thread::sleep(Duration::from_secs(6));
     // the robot restarts (a new simulator on the same address): the driver connects again and
     // the controller re-seeds from where the arm is
@@ -503,18 +500,7 @@ fn the_check_can_fail_an_unguarded_stream_at_twice_the_limits_is_refused() {
     std::fs::write(&cfg, text).unwrap();
     let sim_g = sim(&py, &model, host, true);
     let d = driver(&ns, host, 12.0, &["--no-guard", "--stop-on-reflex"]);
-    let c = start(
-        "run",
-        &ns,
-        &[
-            "--config",
-            cfg.to_str().unwrap(),
-            "--duration",
-            "10",
-            "--log-every",
-            "0",
-        ],
-    );
+    let c = controller(&ns, &cfg, "10");
     let _ = c.finish(Duration::from_secs(30));
     let d_out = d.finish(Duration::from_secs(20));
     let s_out = sim_g.terminate(Duration::from_secs(5));
@@ -552,28 +538,13 @@ fn libfranka_replays_a_recorded_command_stream_without_a_reflex() {
         let ns = unique_namespace("fr3-record");
         let sim_g = sim(&py, &model, host, true);
         let d = driver(&ns, host, 10.0, &["--record", &stream_s]);
-        let c = start(
-            "run",
-            &ns,
-            &[
-                "--config",
-                cfg.to_str().unwrap(),
-                "--duration",
-                "8",
-                "--log-every",
-                "0",
-            ],
-        );
+        let c = controller(&ns, &cfg, "8");
         let _ = c.finish(Duration::from_secs(30));
         let d_out = d.finish(Duration::from_secs(20));
         let s_out = sim_g.terminate(Duration::from_secs(5));
-        let reflexes = sim_reflexes(&s_out) + drv(&d_out, "reflexes");
-        if attempt == 0 && reflexes > 0.0 && drv(&d_out, "missed") > 0.0 {
-            println!(
-                "\n!!! recording: the driver missed {} robot cycles (this machine stalled it), then \
-                 the robot tripped a reflex: run once more\n",
-                drv(&d_out, "missed")
-            );
+        let tripped = sim_reflexes(&s_out) + drv(&d_out, "reflexes") > 0.0;
+        let why = tripped.then(|| "the robot tripped a reflex".to_string());
+        if stalled_then_failed("recording", attempt, &d_out, why) {
             continue;
         }
         assert_no_reflex("recording", &d_out, &s_out);
