@@ -77,6 +77,11 @@ def parse_args(argv):
         help="obey the controller's announced command publisher (default) or the first heard",
     )
     p.add_argument("--stop-on-success", action="store_true", help="exit once the task succeeds")
+    p.add_argument(
+        "--trace", metavar="FILE.npz",
+        help="write every physics step's servo targets and joint positions, and the block's "
+        "position, to FILE.npz (tools/python/so101_trace.py replays and compares them)",
+    )
     return p.parse_args(argv)
 
 
@@ -270,6 +275,7 @@ def main(argv):
     next_tick = start
     next_frame = start
     seq = frame_seq = steps = 0
+    trace = None if not args.trace else dict(ctrl=[], qpos=[], block=[], wall_ns=[])
 
     while not stop:
         now = c.monotonic_ns()
@@ -347,6 +353,11 @@ def main(argv):
             steps += due - 50
             due = 50
         for _ in range(int(due)):
+            if trace is not None:
+                trace["ctrl"].append(data.ctrl[act].copy())
+                trace["qpos"].append(data.qpos[qadr].copy())
+                trace["block"].append(block.copy())
+                trace["wall_ns"].append(c.monotonic_ns() - start)
             mujoco.mj_step(model, data)
             steps += 1
 
@@ -405,6 +416,11 @@ def main(argv):
             time.sleep(-late * 1e-9)
 
     camera.close()
+    if trace is not None:
+        np.savez_compressed(
+            args.trace, seed=args.seed, dt=dt, steps_dropped=s["steps_dropped"],
+            **{k: np.asarray(v) for k, v in trace.items()},
+        )
 
     def pct(v, q):
         return float(np.percentile(v, q)) if v else 0.0
