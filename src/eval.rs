@@ -119,6 +119,12 @@ pub struct EvalArgs {
     /// is reseeded per episode, so the sweep sees the same noise as in process).
     #[arg(long, value_name = "URL")]
     pub remote: Option<String>,
+    /// `--task so101`: instead of a policy, each episode's plan of the package's scripted expert
+    /// (`tools/python/so101_plan.py record`: the joint targets it commanded in its own run in
+    /// simulated time) replayed by the observation's time, a TEST DOUBLE: whether the
+    /// controller, under the configured limits, carries out a plan that succeeds.
+    #[arg(long, conflicts_with_all = ["remote", "checkpoint"])]
+    pub expert_plan: bool,
 }
 
 /// First scene seed of the open-loop probe's episodes.
@@ -216,6 +222,8 @@ pub struct World {
     pub drift: Option<crate::task::sim::Drift>,
     /// The SO-101 pick-and-place instead of the reach task.
     pub so101: bool,
+    /// The SO-101 expert's plans replayed instead of the policy (`EvalArgs::expert_plan`).
+    pub expert_plan: bool,
 }
 
 /// The configuration of a cell: strategy `s` (a sweep name, `sync` keeping the configured one
@@ -290,18 +298,31 @@ pub fn sweep(
     } else {
         None
     };
-    let (mut policy, committed_max): (Box<dyn ChunkSource>, usize) = match cfg.policy.source {
-        PolicySource::Local => {
-            let p = LocalPolicy::load(cfg)?;
-            let max = p.committed_max();
-            (Box::new(p), max)
+    let (mut policy, committed_max): (Box<dyn ChunkSource>, usize) = if world.expert_plan {
+        let seeds = specs.iter().map(|e| e.scene_seed);
+        let (a, b) = (
+            seeds.clone().min().unwrap_or(0),
+            seeds.max().map_or(0, |s| s + 1),
+        );
+        eprintln!("eval: recording the expert's plans of seeds {a}..{b}");
+        (
+            Box::new(crate::task::so101::PlanReplay::record(cfg, a..b)?),
+            0,
+        )
+    } else {
+        match cfg.policy.source {
+            PolicySource::Local => {
+                let p = LocalPolicy::load(cfg)?;
+                let max = p.committed_max();
+                (Box::new(p), max)
+            }
+            PolicySource::Remote => {
+                let r = RemoteSource::connect(cfg)?;
+                let max = r.server().map_or(0, |m| m.rtc_prefix_max);
+                (Box::new(r), max)
+            }
+            PolicySource::Scripted => (Box::new(crate::run::scripted_source(cfg)), usize::MAX),
         }
-        PolicySource::Remote => {
-            let r = RemoteSource::connect(cfg)?;
-            let max = r.server().map_or(0, |m| m.rtc_prefix_max);
-            (Box::new(r), max)
-        }
-        PolicySource::Scripted => (Box::new(crate::run::scripted_source(cfg)), usize::MAX),
     };
     if strategies
         .iter()
@@ -423,6 +444,10 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
             cfg.policy.kind = Some(crate::config::ModelKind::Pi05);
         }
     }
+    anyhow::ensure!(
+        so101 || !args.expert_plan,
+        "--expert-plan replays the SO-101 expert's plans: pass --task so101"
+    );
     if args.open_loop {
         anyhow::ensure!(!so101, "--open-loop probes the reach task");
         anyhow::ensure!(
@@ -493,6 +518,7 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
             retarget_at: args.retarget_at,
             drift,
             so101,
+            expert_plan: args.expert_plan,
         },
         |done, total, s, d| {
             let now = t0.elapsed().as_secs_f64();

@@ -463,3 +463,205 @@ pub fn success_rate(
     }
     Ok((ok, if ok > 0 { t / ok as f64 } else { f64::NAN }))
 }
+
+/// The package expert's joint plans replayed by the observation's time: a scripted chunk source,
+/// a TEST DOUBLE (it looks at nothing but the observation's time). Each episode's plan is the
+/// joint targets the expert commanded every 0.1 s of its own run in simulated time
+/// (`tools/python/so101_plan.py record --seeds A..B`, through the env's IK); row `i` is due
+/// `i · dt` after the episode's first observation. A chunk's action `k` is the plan at the
+/// observation's time plus `k` action periods, the arm's rows interpolated linearly, the jaw's
+/// held. `chunkrt eval --task so101 --expert-plan` runs it: whether the controller, under the
+/// configured limits, carries out a plan that succeeds.
+pub struct PlanReplay {
+    plans: std::collections::HashMap<u64, Vec<[f64; SO101_DOF]>>,
+    dt: f64,
+    period_ns: u64,
+    horizon: usize,
+    seed: u64,
+    t0: Option<u64>,
+}
+
+#[derive(serde::Deserialize)]
+struct PlanFile {
+    plans: Vec<PlanJson>,
+}
+
+#[derive(serde::Deserialize)]
+struct PlanJson {
+    seed: u64,
+    dt: f64,
+    rows: Vec<[f64; SO101_DOF]>,
+}
+
+impl PlanReplay {
+    /// Chunks of this many actions (what `so101_plan.py serve` answers by default).
+    pub const HORIZON: usize = 10;
+
+    /// Records the expert's plans of episodes `seeds` (`so101_plan.py record --seeds`, next to
+    /// `so101_sim.py`) and replays them at the configured action rate.
+    pub fn record(cfg: &Config, seeds: std::ops::Range<u64>) -> anyhow::Result<Self> {
+        let script = sim_script().with_file_name("so101_plan.py");
+        let py = python();
+        let out =
+            std::env::temp_dir().join(format!("chunkrt_so101_plans_{}.json", std::process::id()));
+        let status = Command::new(&py)
+            .arg(&script)
+            .arg("record")
+            .arg("--seeds")
+            .arg(format!("{}..{}", seeds.start, seeds.end))
+            .arg("--out")
+            .arg(&out)
+            .stdout(Stdio::null())
+            .status()
+            .with_context(|| format!("cannot run {py} {}", script.display()))?;
+        anyhow::ensure!(
+            status.success(),
+            "{py} {} record failed ({status})",
+            script.display()
+        );
+        let text = std::fs::read_to_string(&out);
+        std::fs::remove_file(&out).ok();
+        let file: PlanFile = serde_json::from_str(&text?).context("the expert's plans")?;
+        Self::new(cfg, file.plans.into_iter().map(|p| (p.seed, p.dt, p.rows)))
+    }
+
+    /// Plans `(seed, dt, rows)`.
+    pub fn new(
+        cfg: &Config,
+        plans: impl IntoIterator<Item = (u64, f64, Vec<[f64; SO101_DOF]>)>,
+    ) -> anyhow::Result<Self> {
+        anyhow::ensure!(
+            cfg.n_dof() == SO101_DOF,
+            "the plans are the SO-101's 6 joints"
+        );
+        let mut dt = None;
+        let mut map = std::collections::HashMap::new();
+        for (seed, d, rows) in plans {
+            anyhow::ensure!(
+                d > 0.0 && dt.is_none_or(|x| x == d),
+                "plan of seed {seed}: a step of {d} s"
+            );
+            anyhow::ensure!(
+                !rows.is_empty() && rows.iter().flatten().all(|v| v.is_finite()),
+                "plan of seed {seed}: empty or not finite"
+            );
+            dt = Some(d);
+            map.insert(seed, rows);
+        }
+        Ok(Self {
+            plans: map,
+            dt: dt.context("no plan")?,
+            period_ns: (1e9 / cfg.policy.action_rate_hz).round() as u64,
+            horizon: Self::HORIZON,
+            seed: 0,
+            t0: None,
+        })
+    }
+
+    /// The plan at row time `r` (fractional): the arm interpolated, the jaw held.
+    fn at(rows: &[[f64; SO101_DOF]], r: f64, out: &mut [f64]) {
+        let last = rows.len() - 1;
+        let r = r.clamp(0.0, last as f64);
+        let k = (r.floor() as usize).min(last);
+        let k1 = (k + 1).min(last);
+        let s = r - k as f64;
+        for j in 0..SO101_DOF {
+            out[j] = if j == SO101_DOF - 1 {
+                rows[k][j]
+            } else {
+                rows[k][j] + s * (rows[k1][j] - rows[k][j])
+            };
+        }
+    }
+}
+
+impl ChunkSource for PlanReplay {
+    fn name(&self) -> &str {
+        "so101 expert plan replay (test double)"
+    }
+
+    fn compute(
+        &mut self,
+        obs: &Observation,
+        _request: &crate::contract::InferenceRequest,
+    ) -> anyhow::Result<Option<crate::contract::ActionChunk>> {
+        let rows = self
+            .plans
+            .get(&self.seed)
+            .with_context(|| format!("no expert plan recorded for seed {}", self.seed))?;
+        let t = obs.t_obs_ns();
+        let t0 = *self.t0.get_or_insert(t);
+        let r0 = t.saturating_sub(t0) as f64 * 1e-9 / self.dt;
+        let step = self.period_ns as f64 * 1e-9 / self.dt;
+        let mut actions = vec![0.0; self.horizon * SO101_DOF];
+        for (k, a) in actions.chunks_exact_mut(SO101_DOF).enumerate() {
+            Self::at(rows, r0 + k as f64 * step, a);
+        }
+        let chunk = crate::contract::ActionChunk {
+            id: chunkrt_controller::inference::next_chunk_id(),
+            observation_seq: obs.joint_state.seq,
+            t_obs_ns: t,
+            period_ns: self.period_ns,
+            n_dof: SO101_DOF,
+            actions,
+            ready_ns: t,
+            start_shift_ns: 0,
+        };
+        chunk.validate()?;
+        Ok(Some(chunk))
+    }
+
+    fn reseed(&mut self, seed: u64) {
+        self.seed = seed;
+        self.t0 = None;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::contract::InferenceRequest;
+
+    /// The replay's chunk is the plan at the observation's time: the arm interpolated between
+    /// the rows around it, the jaw held at the row in force, the last row held past the end, and
+    /// each episode (`reseed`) timed from its own first observation.
+    #[test]
+    fn the_plan_replay_samples_the_plan_at_the_observations_time() {
+        let cfg = Config::load(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/so101.toml"
+        )))
+        .unwrap();
+        let row = |a: f64, jaw: f64| [a, -a, 2.0 * a, 0.0, 0.0, jaw];
+        let rows = vec![row(0.0, 1.7), row(1.0, 1.7), row(2.0, -0.1)];
+        let mut p = PlanReplay::new(&cfg, [(7, 0.1, rows)]).unwrap();
+        p.reseed(7);
+        let mut obs = Observation::with_views(&cfg, &[]);
+        let req = InferenceRequest::default();
+        let chunk_at = |p: &mut PlanReplay, obs: &mut Observation, t_ns: u64| {
+            obs.joint_state.measurement_time_ns = t_ns;
+            p.compute(obs, &req)
+        };
+        let c = chunk_at(&mut p, &mut obs, 5_000_000_000).unwrap().unwrap();
+        assert_eq!(
+            (c.horizon(), c.period_ns, c.t_obs_ns),
+            (10, 100_000_000, 5_000_000_000)
+        );
+        assert_eq!(c.action(0), &row(0.0, 1.7));
+        assert_eq!(c.action(2), &row(2.0, -0.1));
+        assert_eq!(c.action(9), &row(2.0, -0.1));
+        // 150 ms in: halfway between rows 1 and 2, the jaw still at row 1's
+        let c = chunk_at(&mut p, &mut obs, 5_150_000_000).unwrap().unwrap();
+        for (a, b) in c.action(0).iter().zip(row(1.5, 1.7)) {
+            assert!((a - b).abs() < 1e-9, "{:?}", c.action(0));
+        }
+        p.reseed(7);
+        let c = chunk_at(&mut p, &mut obs, 9_000_000_000).unwrap().unwrap();
+        assert_eq!(c.action(0), &row(0.0, 1.7));
+        p.reseed(8);
+        assert!(
+            chunk_at(&mut p, &mut obs, 9_100_000_000).is_err(),
+            "no plan for seed 8"
+        );
+    }
+}

@@ -4,14 +4,15 @@ a TEST DOUBLE (it does not look at the observation), to show chunkrt's controlle
 simulated arm before a learned policy exists.
 
     record  the package's scripted expert (lerobot_env_so101.scripted.PickPlaceController) run
-            through the env's own IK in simulated time, episode --seed: the joint targets it
-            commanded every control step (0.1 s), five arm joints + the jaw, and whether the
-            package's success check passed.
+            through the env's own IK in simulated time, episode --seed (or each of --seeds A..B,
+            for `chunkrt eval --task so101 --expert-plan`): the joint targets it commanded every
+            control step (0.1 s), five arm joints + the jaw, and whether the package's success
+            check passed.
     wiggle  a short hand-written plan: the shoulder turns 0.3 rad and back while the jaw closes
             and opens (the default test suite's closed loop).
-    serve   openpi's own server (PyPI openpi-server) answering every request with the plan's
-            next --horizon rows, indexed by the time since its first request at the plan's
-            step (a replay by the clock; `chunkrt run --remote ws://127.0.0.1:PORT`).
+    serve   openpi's own server (PyPI openpi-server) answering every request with --horizon
+            actions of the plan from the time since its first request on, at the plan's step
+            (a replay by the clock; `chunkrt run --remote ws://127.0.0.1:PORT`).
 
     python3 tools/python/so101_plan.py record --seed 0 --out /tmp/plan.json
     python3 tools/python/so101_plan.py serve --plan /tmp/plan.json --port 8765
@@ -27,15 +28,16 @@ import numpy as np
 JOINTS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
 
 
-def record(args):
+def record_plan(seed, max_steps):
+    """The expert's episode `seed` in simulated time: its joint plan (a dict, see `record`)."""
     from lerobot_env_so101.pick_place_env import SO101PickPlaceGymEnv
     from lerobot_env_so101.policy import DEFAULT_ACTION_SCALE
     from lerobot_env_so101.scripted.pick_place import PickPlaceController
 
     env = SO101PickPlaceGymEnv(
-        seed=args.seed, random_block_position=True, action_scale=DEFAULT_ACTION_SCALE
+        seed=seed, random_block_position=True, action_scale=DEFAULT_ACTION_SCALE
     )
-    env.reset(seed=args.seed)
+    env.reset(seed=seed)
     act = [env.model.actuator(j).id for j in JOINTS]
     expert = PickPlaceController(DEFAULT_ACTION_SCALE)
     expert.reset()
@@ -44,7 +46,7 @@ def record(args):
     qvel = [env.model.jnt_dofadr[j] for j in qvel]
     peak = np.zeros(len(JOINTS))
     success = False
-    for _ in range(args.max_steps):
+    for _ in range(max_steps):
         a = expert.act(env.ik_point_pos, env.data.sensor("block_pos").data.copy(), env.goal_pos)
         _, _, terminated, _, info = env.step(a)
         rows.append(env.data.ctrl[act].tolist())
@@ -55,14 +57,27 @@ def record(args):
             break
     # a few rows of the final pose, so the replay ends holding still
     rows += [rows[-1]] * 10
-    plan = {"joints": JOINTS, "dt": env.control_dt, "seed": args.seed, "rows": rows,
+    return {"joints": JOINTS, "dt": env.control_dt, "seed": seed, "rows": rows,
             "expert_success": success, "expert_steps": len(rows) - 11,
             "expert_peak_velocity": peak.tolist()}
+
+
+def record(args):
+    if args.seeds:
+        a, b = (int(x) for x in args.seeds.split(".."))
+        plans = [record_plan(seed, args.max_steps) for seed in range(a, b)]
+        with open(args.out, "w") as f:
+            json.dump({"plans": plans}, f)
+        ok = sum(p["expert_success"] for p in plans)
+        print(f"plans of seeds {a}..{b}: expert success {ok} / {len(plans)}", flush=True)
+        return 0
+    plan = record_plan(args.seed, args.max_steps)
     with open(args.out, "w") as f:
         json.dump(plan, f)
-    print(f"plan: {len(rows)} rows of {env.control_dt} s, expert success {success}, peak joint "
-          f"speed {np.round(peak, 2).tolist()} rad/s", flush=True)
-    return 0 if success else 1
+    print(f"plan: {len(plan['rows'])} rows of {plan['dt']} s, expert success "
+          f"{plan['expert_success']}, peak joint speed "
+          f"{np.round(plan['expert_peak_velocity'], 2).tolist()} rad/s", flush=True)
+    return 0 if plan["expert_success"] else 1
 
 
 def wiggle(args):
@@ -80,15 +95,35 @@ def wiggle(args):
 
 
 class PlanReplay:
-    """Answers with the plan's next rows by the clock (a test double: the observation is unused
-    but for its shape)."""
+    """Answers with the plan from the request's time on (a test double: the observation is unused
+    but for its shape).
+
+    The plan is sampled at the request's own time, not at the row the clock has reached: row i is
+    due i * dt after the first request, and the answer's action k is the plan at now + k * dt, the
+    arm's rows interpolated linearly between the rows around it, the jaw's held (a step channel).
+    Rounding the time down to a row (as this replay did before) starts each chunk up to one row
+    (0.1 s) early, by a different amount each request: consecutive chunks then disagree about where
+    the arm should be, and their blend bends the arm's path by millimetres, enough for a jaw pad to
+    land on the block."""
 
     def __init__(self, plan, horizon, lead=0):
-        self.rows = np.asarray(plan["rows"], dtype=np.float32)
+        self.rows = np.asarray(plan["rows"], dtype=np.float64)
+        self.jaw = [i for i, j in enumerate(plan["joints"]) if j == "gripper"]
         self.dt = float(plan["dt"])
         self.horizon = horizon
         self.lead = lead
         self.t0 = None
+
+    def at(self, r):
+        """The plan at row times `r` (fractional, clipped to the plan)."""
+        last = len(self.rows) - 1
+        r = np.clip(r, 0.0, last)
+        k = np.minimum(np.floor(r).astype(int), max(last - 1, 0))
+        s = (r - k)[:, None]
+        out = self.rows[k] + s * (self.rows[np.minimum(k + 1, last)] - self.rows[k])
+        held = self.rows[np.floor(r).astype(int)]
+        out[:, self.jaw] = held[:, self.jaw]
+        return out.astype(np.float32)
 
     def infer(self, obs):
         state = np.asarray(obs["observation/state"])
@@ -96,9 +131,8 @@ class PlanReplay:
         now = time.monotonic()
         if self.t0 is None:
             self.t0 = now
-        i = int((now - self.t0) / self.dt) + self.lead
-        idx = np.minimum(np.arange(i, i + self.horizon), len(self.rows) - 1)
-        return {"actions": self.rows[idx].copy(), "policy_timing": {"infer_ms": 0.0}}
+        r = (now - self.t0) / self.dt + self.lead + np.arange(self.horizon)
+        return {"actions": self.at(r), "policy_timing": {"infer_ms": 0.0}}
 
 
 def serve(args):
@@ -119,6 +153,8 @@ def main(argv):
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("record")
     r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seeds", metavar="A..B",
+                   help="every episode of seeds A..B-1 into one file ({\"plans\": [...]})")
     r.add_argument("--max-steps", type=int, default=150)
     r.add_argument("--out", required=True)
     w = sub.add_parser("wiggle")
