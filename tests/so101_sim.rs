@@ -169,6 +169,65 @@ fn the_experts_plan_replayed_through_the_controller_succeeds() {
     std::fs::remove_file(&plan).ok();
 }
 
+/// The package's expert's plans of ten episodes (seeds 10 000..10 010) replayed through the
+/// controller in simulated time (`chunkrt eval --task so101 --expert-plan`, a TEST DOUBLE chunk
+/// source; lock-step physics, so the outcome does not depend on the machine's load), the chunks
+/// landing one and two action periods after their observation: under `config/so101.toml`'s
+/// limits the controller carries the plans out (20 of 20 here; one spared for a platform's
+/// floating point). With the limits before (jerk 200–250 rad/s³, acceleration 10–12 rad/s²) 17
+/// of 20 placed: the joints lagged the plan by different amounts wherever its speed changed, the
+/// gripper's path bent by millimetres and a jaw pad landed on the block.
+#[test]
+fn the_configured_limits_carry_out_the_experts_plan() {
+    if !so101_python() {
+        return;
+    }
+    let _serial = serial();
+    let dir = std::env::temp_dir().join(format!("so101_plan_eval_{}", std::process::id()));
+    let out = std::process::Command::new(EXE)
+        .args([
+            "eval",
+            "--task",
+            "so101",
+            "--expert-plan",
+            "--strategies",
+            "rtc",
+            "--delays",
+            "1,2",
+            "--episodes",
+            "10",
+            "--out",
+        ])
+        .arg(&dir)
+        .current_dir(ROOT)
+        .output()
+        .expect("chunkrt eval");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let csv = std::fs::read_to_string(dir.join("so101_episodes.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(1)
+        .map(|r| r.split(',').collect())
+        .collect();
+    assert_eq!(rows.len(), 20, "{csv}");
+    let missed: Vec<String> = rows
+        .iter()
+        .filter(|f| f[3] != "1")
+        .map(|f| format!("seed {} at delay {}", f[2], f[1]))
+        .collect();
+    eprintln!(
+        "expert's plan through the controller: {} / 20 placed",
+        20 - missed.len()
+    );
+    assert!(missed.len() <= 1, "missed: {missed:?}\n{text}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `chunkrt train --task so101 --quick`: the package's expert recorded through the env's IK into
 /// chunkrt's dataset schema (frames as the robot process renders them, joint targets as the
 /// chunks, the block's / goal's / jaw's image positions for the localisation head), a few
@@ -260,11 +319,11 @@ fn eval_drives_the_so101_physics_in_simulated_time() {
         // 2 s of motion from the home pose: the servos trail the command by a few hundredths
         assert!(p99 > 0.0 && p99 < 0.2, "tracking p99 {p99}: {r}");
         assert!(hold < 200, "{r}");
-        // every arm joint's command jerk within its limit (200–250 rad/s³), so the RMS too:
-        // before the stop guard in the limit rule, a command that ran into wrist_flex's limit
-        // was kinked by the backstop clamp (RMS 752 and 5883 here, spikes of 1e5)
+        // every arm joint's command jerk within its limit (500 rad/s³), so the RMS too: before
+        // the stop guard in the limit rule, a command that ran into wrist_flex's limit was
+        // kinked by the backstop clamp (RMS 752 and 5883 here, spikes of 1e5)
         let rms_jerk: f64 = f[14].parse().unwrap();
-        assert!(rms_jerk <= 250.0, "RMS jerk {rms_jerk}: {r}");
+        assert!(rms_jerk <= 500.0, "RMS jerk {rms_jerk}: {r}");
     }
     std::fs::remove_dir_all(&dir).ok();
 }
