@@ -60,6 +60,28 @@ fn make_plan(tag: &str, args: &[&str]) -> std::path::PathBuf {
     plan
 }
 
+/// `chunkrt eval --task so101 <args> --out <tmp>/so101_<tag>_<pid>`, which must succeed: the
+/// output folder, the printed table and `so101_episodes.csv`.
+fn so101_eval(tag: &str, args: &[&str]) -> (std::path::PathBuf, String, String) {
+    let dir = std::env::temp_dir().join(format!("so101_{tag}_{}", std::process::id()));
+    let out = std::process::Command::new(EXE)
+        .args(["eval", "--task", "so101"])
+        .args(args)
+        .arg("--out")
+        .arg(&dir)
+        .current_dir(ROOT)
+        .output()
+        .expect("chunkrt eval");
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let csv = std::fs::read_to_string(dir.join("so101_episodes.csv")).unwrap();
+    (dir, text, csv)
+}
+
 /// Runs the robot process, the plan server and the controller for `seconds`; the robot's summary.
 fn closed_loop(plan: &str, seed: u64, seconds: f64) -> String {
     let ns = unique_namespace("so101");
@@ -183,12 +205,9 @@ fn the_configured_limits_carry_out_the_experts_plan() {
         return;
     }
     let _serial = serial();
-    let dir = std::env::temp_dir().join(format!("so101_plan_eval_{}", std::process::id()));
-    let out = std::process::Command::new(EXE)
-        .args([
-            "eval",
-            "--task",
-            "so101",
+    let (dir, text, csv) = so101_eval(
+        "plan_eval",
+        &[
             "--expert-plan",
             "--strategies",
             "rtc",
@@ -196,19 +215,8 @@ fn the_configured_limits_carry_out_the_experts_plan() {
             "1,2",
             "--episodes",
             "10",
-            "--out",
-        ])
-        .arg(&dir)
-        .current_dir(ROOT)
-        .output()
-        .expect("chunkrt eval");
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{text}\n{}",
-        String::from_utf8_lossy(&out.stderr)
+        ],
     );
-    let csv = std::fs::read_to_string(dir.join("so101_episodes.csv")).unwrap();
     let rows: Vec<Vec<&str>> = csv
         .lines()
         .skip(1)
@@ -282,12 +290,9 @@ fn eval_drives_the_so101_physics_in_simulated_time() {
         return;
     }
     let _serial = serial();
-    let dir = std::env::temp_dir().join(format!("so101_eval_{}", std::process::id()));
-    let out = std::process::Command::new(EXE)
-        .args([
-            "eval",
-            "--task",
-            "so101",
+    let (dir, text, csv) = so101_eval(
+        "eval",
+        &[
             "--strategies",
             "replace,rtc",
             "--delays",
@@ -296,20 +301,9 @@ fn eval_drives_the_so101_physics_in_simulated_time() {
             "1",
             "--max-seconds",
             "2",
-            "--out",
-        ])
-        .arg(&dir)
-        .current_dir(ROOT)
-        .output()
-        .expect("chunkrt eval");
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{text}\n{}",
-        String::from_utf8_lossy(&out.stderr)
+        ],
     );
     assert!(text.contains("| rtc | 3 |"), "{text}");
-    let csv = std::fs::read_to_string(dir.join("so101_episodes.csv")).unwrap();
     let rows: Vec<&str> = csv.lines().skip(1).collect();
     assert_eq!(rows.len(), 4, "{csv}");
     for r in rows {
