@@ -72,8 +72,9 @@ pub struct Args {
     /// Stop after this many seconds (default: until SIGINT / SIGTERM).
     #[arg(long, value_name = "SECONDS")]
     pub duration: Option<f64>,
-    /// Write every commanded position (a line of 7 per cycle) to this file at the end: the
-    /// command stream to replay through another client (tools/python/fr3_replay.py).
+    /// Write every commanded position (a line of 7 per robot cycle, the cycles the robot
+    /// continued on its own without an answer included) to this file at the end: the command
+    /// stream to replay through another client (tools/python/fr3_replay.py).
     #[arg(long, value_name = "FILE")]
     pub record: Option<PathBuf>,
     /// Write a trace of the last 120 s of cycles (CSV, at the end): the robot's measured position, the
@@ -332,14 +333,17 @@ impl Core {
         let now = monotonic_ns();
         self.s.cycles += 1;
         // cycles the robot ran on its own: it continued the last command at constant
-        // acceleration (the FCI's rule for a lost packet), and judges the next one against that
+        // acceleration (the FCI's rule for a lost packet), and judges the next one against that;
+        // the recording keeps them, a line per robot cycle, or a replay at one line a cycle
+        // would take the next answer a cycle early (a velocity step)
         for _ in 1..elapsed.min(20) {
-            let mut q = self.last.q;
-            for (j, q) in q.iter_mut().enumerate() {
-                *q += (self.last.dq[j] + self.last.ddq[j] * CYCLE_S) * CYCLE_S;
-            }
-            self.last = Motion::after(&self.last, &q, CYCLE_S);
+            self.last = self.last.continued(CYCLE_S);
             self.s.missed += 1;
+            if let Some(r) = &mut self.record {
+                if r.len() < r.capacity() {
+                    r.push(self.last.q);
+                }
+            }
         }
         self.motion_cycles += 1;
         if self.motion_cycles > 100 {

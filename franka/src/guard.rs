@@ -66,6 +66,16 @@ impl Motion {
         }
         m
     }
+
+    /// The robot's own next cycle when no command came: the last command continued at constant
+    /// acceleration (FCI's rule for a lost motion-generator packet).
+    pub fn continued(&self, dt: f64) -> Motion {
+        let mut q = self.q;
+        for (j, q) in q.iter_mut().enumerate() {
+            *q += (self.dq[j] + self.ddq[j] * dt) * dt;
+        }
+        Motion::after(self, &q, dt)
+    }
 }
 
 /// The limits a command passes unchanged within: `margin` × the FR3's acceleration, jerk and
@@ -914,5 +924,50 @@ mod tests {
                 "{vmax} rad/s, jump {jump}: ended {end} rad off"
             );
         }
+    }
+
+    /// A stream of positions differenced by a client that sends one a cycle (a replay).
+    fn replayed(positions: &[[f64; JOINTS]]) -> Vec<Motion> {
+        let mut m = Motion::rest(positions[0]);
+        let mut seq = vec![m];
+        for q in &positions[1..] {
+            m = Motion::after(&m, q, CYCLE_S);
+            seq.push(m);
+        }
+        seq
+    }
+
+    #[test]
+    fn cycles_the_robot_continued_on_its_own_belong_in_a_stream_of_one_line_a_cycle() {
+        // a guarded motion at about 0.4 rad/s whose answers go missing for two cycles; the
+        // robot continues the last command at constant acceleration meanwhile
+        let mut g = Guard::new(GuardLimits::fr3(0.95, 0.02), CYCLE_S).unwrap();
+        let mut m = Motion::rest(home());
+        let (mut with_lost, mut answers) = (vec![m.q], vec![m.q]);
+        for k in 1..1500 {
+            if (700..702).contains(&k) {
+                assert!(m.dq[3] > 0.3, "{}", m.dq[3]);
+                m = m.continued(CYCLE_S);
+                with_lost.push(m.q);
+                continue;
+            }
+            let t = k as f64 * CYCLE_S;
+            let mut q = home();
+            q[3] += 0.2 * (1.0 - (std::f64::consts::PI * t / 1.5).cos());
+            m = g.follow(&m, &q, &[0.0; JOINTS], &[0.0; JOINTS]).0;
+            with_lost.push(m.q);
+            answers.push(m.q);
+        }
+        // the continuation keeps the acceleration: sent one a cycle, the robot accepts it
+        check(&replayed(&with_lost));
+        // the answers alone, one a cycle, take the motion after the gap a cycle early
+        let short = replayed(&answers);
+        let refused = short
+            .windows(2)
+            .any(|w| violation(&w[0].q, &w[0].dq, &w[0].ddq, &w[1].q).is_some());
+        assert!(
+            refused,
+            "a stream without the lost cycles passed the FR3's checks"
+        );
     }
 }

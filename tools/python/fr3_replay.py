@@ -7,6 +7,8 @@ checks enforced).
   $CHUNKRT_FRANKA_PYTHON tools/python/fr3_replay.py --host 127.0.0.x --stream FILE
 
 The stream must start where the robot is (a fresh franka-sim starts where the recording's did).
+It holds a line per cycle of the recorded robot, the cycles that robot continued on its own
+without an answer included (the driver writes its continuation), so a line a cycle keeps time.
 When the robot reports more than one cycle since the last (it went on without an answer) the
 replay skips as many lines, so the positions stay on the robot's time. Prints
 "fr3-replay summary: cycles=N sent=N skipped=N reflexes=R success_rate_mean=X error=..." and
