@@ -550,23 +550,43 @@ fn libfranka_replays_a_recorded_command_stream_without_a_reflex() {
         assert_no_reflex("recording", &d_out, &s_out);
         break;
     }
-    // the same positions through Franka's own client, against a fresh robot
-    let sim_g = sim(&py, &model, host, true);
-    std::thread::sleep(Duration::from_secs(3));
-    let replay = ChildGuard::spawn(
-        &py,
-        &[
-            &format!("{ROOT}/tools/python/fr3_replay.py"),
-            "--host",
-            host,
-            "--stream",
-            &stream_s,
-        ],
-    )
-    .unwrap()
-    .finish(Duration::from_secs(60));
-    let s_out = sim_g.terminate(Duration::from_secs(5));
-    println!("{}", replay.stdout.trim());
+    // the same positions through Franka's own client, against a fresh robot. That client is
+    // Python at 1 kHz: a replay this machine stalled (lines skipped: the robot went on without
+    // it, and its extrapolation parts from the stream by micro-radians; or 20 cycles lost: the
+    // robot stops it) and then failed is said loudly and runs once more; a reflex with no line
+    // skipped fails at once
+    let mut replay_out = None;
+    for attempt in 0..2 {
+        let sim_g = sim(&py, &model, host, true);
+        std::thread::sleep(Duration::from_secs(3));
+        let replay = ChildGuard::spawn(
+            &py,
+            &[
+                &format!("{ROOT}/tools/python/fr3_replay.py"),
+                "--host",
+                host,
+                "--stream",
+                &stream_s,
+            ],
+        )
+        .unwrap()
+        .finish(Duration::from_secs(60));
+        let s_out = sim_g.terminate(Duration::from_secs(5));
+        println!("{}", replay.stdout.trim());
+        let skipped = summary_value(&replay.stdout, "skipped").unwrap_or(0.0);
+        let stalled = skipped > 0.0 || replay.stdout.contains("communication_constraints");
+        if attempt == 0 && replay.code != Some(0) && stalled {
+            println!(
+                "\n!!! libfranka replay: this machine stalled the client ({skipped} lines skipped, \
+                 or the robot stopped it for 20 lost cycles), then it failed: run once more\n{}\n",
+                replay.stdout.trim()
+            );
+            continue;
+        }
+        replay_out = Some((replay, s_out));
+        break;
+    }
+    let (replay, s_out) = replay_out.expect("a replay ran");
     assert_eq!(
         replay.code,
         Some(0),
