@@ -571,17 +571,14 @@ impl Guard {
         self.offset = None;
         self.generating = false;
         self.desired = None;
-        let mut q = prev.q;
-        for (j, q) in q.iter_mut().enumerate() {
-            *q += (prev.dq[j] + prev.ddq[j] * self.dt) * self.dt;
-        }
-        if (0..JOINTS).all(|j| self.limits.passes(j, prev, q[j], self.dt)) {
+        let next = prev.continued(self.dt);
+        if (0..JOINTS).all(|j| self.limits.passes(j, prev, next.q[j], self.dt)) {
             let mut v = [0.0; JOINTS];
             for (j, v) in v.iter_mut().enumerate() {
                 *v = prev.dq[j] + prev.ddq[j] * self.dt;
             }
-            self.planned = Some((q, v, prev.ddq));
-            Motion::after(prev, &q, self.dt)
+            self.planned = Some((next.q, v, prev.ddq));
+            next
         } else {
             self.brake(prev).0
         }
