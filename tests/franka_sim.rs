@@ -189,15 +189,19 @@ fn controller(ns: &str, cfg: &std::path::Path, seconds: &str) -> ChildGuard {
 }
 
 /// The FR3 tests' rerun rule: a first run in which this machine stalled the driver (missed
-/// robot cycles) and the robot then tripped (`why`, or None: it did not) is said loudly and
-/// runs once more; a reflex with no cycle missed fails the test as any other.
+/// robot cycles) or the simulator (states that came less than half a cycle after the one
+/// before: its Python loop catching up, which leaves the answer less than a cycle) and that then
+/// failed (`why`, or None: it did not) is said loudly and runs once more; a reflex or a fallen
+/// success rate with neither fails the test as any other.
 fn stalled_then_failed(what: &str, attempt: usize, d: &Finished, why: Option<String>) -> bool {
     let missed = drv(d, "missed");
+    let short = drv(d, "short_cycles");
     match why {
-        Some(why) if attempt == 0 && missed > 0.0 => {
+        Some(why) if attempt == 0 && missed + short > 0.0 => {
             println!(
-                "\n!!! {what}: the driver missed {missed} robot cycles (this machine stalled it), \
-                 then {why}: run once more\n"
+                "\n!!! {what}: the driver missed {missed} robot cycles and {short} states came \
+                 early (this machine stalled the driver or the simulator), then {why}: run once \
+                 more\n"
             );
             true
         }
@@ -224,8 +228,11 @@ fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
         // A driver the machine stalls for milliseconds misses robot cycles, and the FR3 goes on
         // without it; after one the robot's reference and the driver's can part by micro-radians,
         // which trips a reflex (measured: SIGSTOP of the driver for 4 ms, eight times a run, three
-        // or four reflexes a run). That is the test machine's doing, not the strategy's: a
-        // strategy whose run missed cycles and then failed runs once more, and says so.
+        // or four reflexes a run). A simulator the machine stalls catches up by sending its next
+        // state early, and the robot loses an answer the driver believes delivered (the success
+        // rate falls with no cycle missed: 0.99892 once here). That is the test machine's doing,
+        // not the strategy's: a strategy whose run missed cycles or saw early states and then
+        // failed runs once more, and says so.
         for attempt in 0..2 {
             let host = format!("127.0.{attempt}.{}", 20 + i);
             let ns = unique_namespace("fr3-strat");
@@ -292,9 +299,9 @@ fn openpi_server_with_random_droid_velocities_trips_no_reflex() {
         return;
     }
     let _one = serial();
-    // the same rule as the strategies test: a run in which this machine stalled the driver
-    // (missed robot cycles) and the robot then tripped is said loudly and run once more; a
-    // reflex with no cycle missed fails at once
+    // the same rule as the strategies test: a run in which this machine stalled the driver or
+    // the simulator (missed robot cycles, early states) and the robot then tripped is said
+    // loudly and run once more; a reflex with neither fails at once
     for attempt in 0..2 {
         let host = format!("127.0.{attempt}.30");
         let (c_out, d_out, cam_out, srv_out, s_out) = droid_once(&py, &model, &host);
@@ -402,9 +409,9 @@ fn stall_kill_takeover_and_a_restarted_robot_trip_no_reflex() {
         return;
     };
     let _one = serial();
-    // the same rule as the strategies test: a run in which this machine stalled the driver
-    // (missed robot cycles) and the robot then tripped is said loudly and run once more; a
-    // reflex with no cycle missed fails at once. (It did, in about one run in seven, before a
+    // the same rule as the strategies test: a run in which this machine stalled the driver or
+    // the simulator (missed robot cycles, early states) and the robot then tripped is said
+    // loudly and run once more; a reflex with neither fails at once. (It did, in about one run in seven, before a
     // new controller joined its chunk at 0.3 x the joints' speed and started at rest from a robot
     // held at rest (AT_REST): franka-sim measured joint 1 at 2.73 rad/s once, no cycle missed.)
     for attempt in 0..2 {
@@ -532,8 +539,8 @@ fn libfranka_replays_a_recorded_command_stream_without_a_reflex() {
     let stream = std::env::temp_dir().join(format!("fr3_stream_{}.txt", std::process::id()));
     let stream_s = stream.to_str().unwrap().to_string();
     // the recording: the same rule as the strategies test (a run in which this machine stalled
-    // the driver and the robot then tripped is said loudly and run once more; a reflex with no
-    // cycle missed fails at once)
+    // the driver or the simulator and the robot then tripped is said loudly and run once more;
+    // a reflex with neither fails at once)
     for attempt in 0..2 {
         let ns = unique_namespace("fr3-record");
         let sim_g = sim(&py, &model, host, true);

@@ -24,6 +24,9 @@ use iceoryx2::port::subscriber::Subscriber;
 use crate::guard::{Guard, GuardLimits, Motion};
 use crate::limits::{CYCLE_S, JOINTS};
 
+/// Half the FCI's cycle (ns): a state sooner than this after the last is a short cycle.
+const HALF_CYCLE_NS: u64 = (CYCLE_S * 0.5e9) as u64;
+
 /// Command-line arguments.
 #[derive(Debug, Clone, clap::Args)]
 pub struct Args {
@@ -135,6 +138,10 @@ pub struct Summary {
     pub missed: u64,
     /// Cycles at rest without a command.
     pub rest: u64,
+    /// States that came less than half a cycle after the one before: the robot (or the
+    /// network, or a simulator catching up) left the answer less time than a cycle, and an
+    /// answer can then miss its cycle with none missed here.
+    pub short_cycles: u64,
     /// Cycles whose command the controller answered within the budget.
     pub answered: u64,
     /// Motions started (one, plus one per recovery).
@@ -167,7 +174,7 @@ impl std::fmt::Display for Summary {
         write!(
             f,
             "franka summary: cycles={} states_published={} fresh={} clamped={} late={} \
-             braking={} missed={} rest={} answered={} motions={} reconnects={} reflexes={} \
+             braking={} missed={} rest={} short_cycles={} answered={} motions={} reconnects={} reflexes={} \
              success_rate_min={:.4} success_rate_mean={:.5} \
              round_trip_p50_us={:.1} round_trip_p99_us={:.1} round_trip_max_us={:.1} \
              commands_applied={} commands_expired={} commands_rejected={} commands_unbound={} \
@@ -181,6 +188,7 @@ impl std::fmt::Display for Summary {
             self.braking,
             self.missed,
             self.rest,
+            self.short_cycles,
             self.answered,
             self.motions,
             self.reconnects,
@@ -268,6 +276,8 @@ struct Core {
     budget_ns: u64,
     last_cmd_seq: u64,
     late_run: u32,
+    /// When the last state came (monotonic ns; 0 before the first).
+    last_state_ns: u64,
     extrapolate_cycles: u32,
     no_guard: bool,
     clamped_last: bool,
@@ -332,6 +342,10 @@ impl Core {
     fn cycle(&mut self, st: &RobotState, elapsed: u64) -> JointPositions {
         let now = monotonic_ns();
         self.s.cycles += 1;
+        if self.last_state_ns != 0 && now.saturating_sub(self.last_state_ns) < HALF_CYCLE_NS {
+            self.s.short_cycles += 1;
+        }
+        self.last_state_ns = now;
         // cycles the robot ran on its own: it continued the last command at constant
         // acceleration (the FCI's rule for a lost packet), and judges the next one against that;
         // the recording keeps them, a line per robot cycle, or a replay at one line a cycle
@@ -711,6 +725,7 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         budget_ns: (budget_us * 1e3) as u64,
         last_cmd_seq: 0,
         late_run: 0,
+        last_state_ns: 0,
         extrapolate_cycles: args.extrapolate_cycles,
         no_guard: args.no_guard,
         clamped_last: false,
