@@ -12,8 +12,8 @@ use chunkrt_tools::common::{end_time_ns, open_node, CommonArgs};
 use chunkrt_tools::intake::CommandIntake;
 use chunkrt_tools::shutdown;
 use franka::{
-    ControllerMode, FrankaError, Gripper, JointPositions, RealtimeConfig, Robot, RobotMode,
-    RobotState, MAX_CUTOFF_FREQUENCY,
+    FrankaError, Gripper, JointPositions, MoveControllerMode, RealtimeConfig, Robot, RobotMode,
+    RobotState,
 };
 use hdrhistogram::Histogram;
 use iceoryx2::port::listener::Listener;
@@ -21,7 +21,7 @@ use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 
-use crate::guard::{Guard, GuardLimits, Motion};
+use crate::guard::{reconcile, Guard, GuardLimits, Motion, Reference};
 use crate::limits::{CYCLE_S, JOINTS};
 
 /// Half the FCI's cycle (ns): a state sooner than this after the last is a short cycle.
@@ -93,9 +93,18 @@ pub struct Args {
     #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
     pub wait_for_robot: f64,
     /// Print a status line (`franka status: ...`: cycles, the robot's command success rate,
-    /// reflexes, late and guarded cycles) every this many seconds (0: none).
+    /// reflexes, late and guarded cycles, the share the controller led) every this many seconds
+    /// (0: none).
     #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
     pub status_every: f64,
+    /// Withhold this fraction of the answers to the robot, at random (0..=0.05): a lost packet on
+    /// purpose, what a dropped UDP datagram is on a real arm. For tests; the robot continues
+    /// each withheld cycle on its own and reports the reference it used.
+    #[arg(long, value_name = "P", default_value_t = 0.0)]
+    pub drop_answers: f64,
+    /// Seed of `--drop-answers`' choice.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    pub drop_seed: u64,
 }
 
 /// What the FCI thread shares with the status line (relaxed atomics: one store each a cycle).
@@ -107,6 +116,11 @@ struct Live {
     late: AtomicU64,
     clamped: AtomicU64,
     braking: AtomicU64,
+    /// Fresh cycles, and those the controller's motion led.
+    fresh: AtomicU64,
+    led: AtomicU64,
+    /// The longest stretch of fresh cycles the controller did not lead (cycles = ms).
+    not_led_longest: AtomicU64,
 }
 
 /// `--realtime`.
@@ -167,6 +181,22 @@ pub struct Summary {
     pub max_tracking_error: f64,
     /// Why the guard acted on a fresh command, by limit ([`crate::guard::Broken`]).
     pub guard_acted: [u64; 5],
+    /// Answers withheld on purpose (`--drop-answers`).
+    pub dropped: u64,
+    /// Answers sent that the robot did not apply (its report shows the reference continued: the
+    /// answer came too late), and the next commands hedged to pass from either reference.
+    pub unapplied: u64,
+    pub hedged: u64,
+    /// How the robot's reported reference was taken, by [`Reference`]: an exact candidate,
+    /// corrected derivatives, adopted as reported, set aside.
+    pub reference: [u64; 4],
+    /// Of the fresh cycles, those whose command was the controller's motion (passed, or plus a
+    /// shrinking offset): the controller led. The rest the guard's generator led.
+    pub led: u64,
+    /// The longest stretch of fresh cycles the controller did not lead (ms).
+    pub not_led_longest_ms: u64,
+    /// |measured - the controller's command| over fresh cycles (rad): p99 and max.
+    pub controller_tracking: [f64; 2],
 }
 
 impl std::fmt::Display for Summary {
@@ -179,7 +209,9 @@ impl std::fmt::Display for Summary {
              round_trip_p50_us={:.1} round_trip_p99_us={:.1} round_trip_max_us={:.1} \
              commands_applied={} commands_expired={} commands_rejected={} commands_unbound={} \
              commands_far={} gripper_moves={} max_tracking_error={:.5} guard_acted={} \
-             reflex_errors={}",
+             dropped={} unapplied={} hedged={} reference_exact={} reference_corrected={} \
+             reference_adopted={} reference_kept={} led_share={:.5} not_led_longest_ms={} \
+             controller_tracking_p99={:.5} controller_tracking_max={:.5} reflex_errors={}",
             self.cycles,
             self.states_published,
             self.fresh,
@@ -218,6 +250,21 @@ impl std::fmt::Display for Summary {
                     v.join(",")
                 }
             },
+            self.dropped,
+            self.unapplied,
+            self.hedged,
+            self.reference[0],
+            self.reference[1],
+            self.reference[2],
+            self.reference[3],
+            if self.fresh > 0 {
+                self.led as f64 / self.fresh as f64
+            } else {
+                1.0
+            },
+            self.not_led_longest_ms,
+            self.controller_tracking[0],
+            self.controller_tracking[1],
             if self.reflex_errors.is_empty() {
                 "none"
             } else {
@@ -266,7 +313,23 @@ struct Core {
     n_dof: usize,
     intake: CommandIntake,
     guard: Guard,
+    /// The robot's reference at this cycle's state (what the answer is judged against), and the
+    /// answer: the next state tells which the robot applied.
+    reference: Motion,
     last: Motion,
+    /// Whether the last answer went out (`--drop-answers` withholds some).
+    sent_last: bool,
+    /// This cycle's answer is to be withheld (`--drop-answers`).
+    withhold: bool,
+    /// `--drop-answers`: the probability and the generator's state (xorshift64).
+    drop_p: f64,
+    rng: u64,
+    /// The current stretch of fresh cycles the controller did not lead.
+    not_led_run: u64,
+    /// This cycle's `TraceRow::notes`.
+    notes: u8,
+    /// |measured - the controller's command| over fresh cycles (µrad).
+    tracking: Histogram<u64>,
     seq: u64,
     state_pub: Publisher<Ipc, JointState, ()>,
     state_event: Notifier<Ipc>,
@@ -307,13 +370,24 @@ const TRACE_CYCLES: usize = 120_000;
 struct TraceRow {
     seq: u64,
     path: u8,
+    /// What this cycle knew of the robot's reference and did with the answer ([`TRACE_NOTES`]).
+    notes: u8,
     /// The guard's first broken limit that cycle: (joint, code), or none.
     broke: Option<(u8, u8)>,
     measured: [f64; JOINTS],
+    /// The robot's reported reference (`q_d`) and the one this cycle's answer was computed
+    /// against.
+    reported: [f64; JOINTS],
+    reference: [f64; JOINTS],
     desired: [f64; JOINTS],
     desired_v: [f64; JOINTS],
     sent: [f64; JOINTS],
 }
+
+/// `TraceRow::notes` bits, by name: the answer withheld (`--drop-answers`), the last answer
+/// not applied by the robot, this one hedged, the robot's reference taken from its report
+/// (corrected or adopted), a reflex ended the motion after this cycle.
+const TRACE_NOTES: [&str; 5] = ["withheld", "unapplied", "hedged", "reported", "reflex"];
 
 /// `TraceRow::path` names (0..=3: the guard's own paths).
 const TRACE_PATHS: [&str; 8] = [
@@ -331,10 +405,81 @@ impl Core {
     /// A new motion starts from rest at the robot's position.
     fn begin_motion(&mut self, q: [f64; JOINTS]) {
         self.last = Motion::rest(q);
+        self.reference = self.last;
+        self.sent_last = true;
         self.motion_cycles = 0;
         self.late_run = 0;
         self.intake.disarm();
         self.s.motions += 1;
+    }
+
+    /// What the robot did since the last answer, from its report (`q_d`, `dq_d`, `ddq_d`): it
+    /// applied the answer, or (withheld, or too late: the FCI drops it) continued the reference
+    /// it had; and it continued on its own for each cycle that had no answer (the FCI's rule for
+    /// a lost packet: the last command at constant acceleration). Sets `self.reference` to the
+    /// motion the robot judges this cycle's answer against. Returns the other reference to hedge
+    /// this answer against when the last one went out and the robot did not apply it in its
+    /// cycle: the FCI dropped it, a simulator may apply it late.
+    fn take_reference(&mut self, st: &RobotState, elapsed: u64) -> Option<Motion> {
+        let e = elapsed.clamp(1, 20);
+        self.s.missed += e - 1;
+        if self.motion_cycles == 0 {
+            // the motion's first state: at rest where the arm is (begin_motion)
+            self.reference = self.last;
+            return None;
+        }
+        let mut applied = self.last;
+        for _ in 1..e {
+            applied = applied.continued(CYCLE_S);
+        }
+        let mut skipped = self.reference;
+        for _ in 0..e {
+            skipped = skipped.continued(CYCLE_S);
+        }
+        let reported = Motion {
+            q: st.q_d,
+            dq: st.dq_d,
+            ddq: st.ddq_d,
+        };
+        let (r, how) = reconcile(&reported, &[applied, skipped]);
+        self.s.reference[match how {
+            Reference::Candidate(_) => 0,
+            Reference::Corrected(_) => 1,
+            Reference::Adopted => 2,
+            Reference::Kept => 3,
+        }] += 1;
+        let unapplied = matches!(how, Reference::Candidate(1) | Reference::Corrected(1));
+        self.notes = if unapplied { 2 } else { 0 }
+            | if matches!(how, Reference::Corrected(_) | Reference::Adopted) {
+                8
+            } else {
+                0
+            };
+        // the recording holds a line per robot cycle, what the robot applied: a replay at one
+        // line a cycle must not take the next answer a cycle early (a velocity step)
+        if let Some(rec) = &mut self.record {
+            let mut m = if unapplied { self.reference } else { self.last };
+            if unapplied {
+                m = m.continued(CYCLE_S);
+                if let Some(line) = rec.last_mut() {
+                    *line = m.q;
+                }
+            }
+            for _ in 1..e {
+                m = m.continued(CYCLE_S);
+                if rec.len() < rec.capacity() {
+                    rec.push(m.q);
+                }
+            }
+        }
+        let alt = if unapplied && self.sent_last {
+            self.s.unapplied += 1;
+            (e == 1).then_some(self.last)
+        } else {
+            None
+        };
+        self.reference = r;
+        alt
     }
 
     /// One FCI cycle, `elapsed` robot cycles after the last (1; more when the robot went on
@@ -346,19 +491,7 @@ impl Core {
             self.s.short_cycles += 1;
         }
         self.last_state_ns = now;
-        // cycles the robot ran on its own: it continued the last command at constant
-        // acceleration (the FCI's rule for a lost packet), and judges the next one against that;
-        // the recording keeps them, a line per robot cycle, or a replay at one line a cycle
-        // would take the next answer a cycle early (a velocity step)
-        for _ in 1..elapsed.min(20) {
-            self.last = self.last.continued(CYCLE_S);
-            self.s.missed += 1;
-            if let Some(r) = &mut self.record {
-                if r.len() < r.capacity() {
-                    r.push(self.last.q);
-                }
-            }
-        }
+        let hedge_from = self.take_reference(st, elapsed);
         self.motion_cycles += 1;
         if self.motion_cycles > 100 {
             let r = st.control_command_success_rate;
@@ -469,9 +602,9 @@ impl Core {
                 desired = (q, v);
                 if self.no_guard {
                     path = 7;
-                    Motion::after(&self.last, &q, CYCLE_S)
+                    Motion::after(&self.reference, &q, CYCLE_S)
                 } else {
-                    let (m, c) = self.guard.follow(&self.last, &q, &v, &a);
+                    let (m, c) = self.guard.follow(&self.reference, &q, &v, &a);
                     clamped = c;
                     path = self.guard.path;
                     guard_broke = self.guard.broke;
@@ -482,20 +615,50 @@ impl Core {
                 self.late_run += 1;
                 self.s.late += 1;
                 path = 4;
-                self.guard.extrapolate(&self.last)
+                self.guard.extrapolate(&self.reference)
             }
             _ => {
-                if self.last.at_rest() {
+                if self.reference.at_rest() {
                     self.s.rest += 1;
                     path = 6;
-                    Motion::rest(self.last.q)
+                    Motion::rest(self.reference.q)
                 } else {
                     self.s.braking += 1;
                     path = 5;
-                    self.guard.brake(&self.last).0
+                    self.guard.brake(&self.reference).0
                 }
             }
         };
+        // an answer the robot did not apply although it went out (late): the FCI dropped it, a
+        // simulator may still apply it; this one passes from either reference where it can
+        let next = match hedge_from {
+            Some(alt) if !self.no_guard => {
+                let (q, changed) = self.guard.hedge(&self.reference, &alt, &next.q);
+                self.s.hedged += changed as u64;
+                self.notes |= if changed { 4 } else { 0 };
+                if changed {
+                    Motion::after(&self.reference, &q, CYCLE_S)
+                } else {
+                    next
+                }
+            }
+            _ => next,
+        };
+        if desired.0[0].is_finite() {
+            // a fresh command: who led, and how far the arm is from the controller's command
+            let led = path <= 2;
+            self.s.led += led as u64;
+            if led {
+                self.not_led_run = 0;
+            } else {
+                self.not_led_run += 1;
+                self.s.not_led_longest_ms = self.s.not_led_longest_ms.max(self.not_led_run);
+            }
+            let e = (0..JOINTS).fold(0.0f64, |m, j| m.max((st.q[j] - desired.0[j]).abs()));
+            if e.is_finite() {
+                self.tracking.saturating_record((e * 1e6) as u64);
+            }
+        }
         self.s.clamped += clamped as u64;
         let l = &self.live;
         l.cycles.store(self.s.cycles, Ordering::Relaxed);
@@ -504,6 +667,10 @@ impl Core {
         l.late.store(self.s.late + self.s.missed, Ordering::Relaxed);
         l.clamped.store(self.s.clamped, Ordering::Relaxed);
         l.braking.store(self.s.braking, Ordering::Relaxed);
+        l.fresh.store(self.s.fresh, Ordering::Relaxed);
+        l.led.store(self.s.led, Ordering::Relaxed);
+        l.not_led_longest
+            .store(self.s.not_led_longest_ms, Ordering::Relaxed);
         if self.last_cmd_seq != 0 && live.is_some() {
             for j in 0..JOINTS {
                 let e = (self.last.q[j] - st.q[j]).abs();
@@ -521,12 +688,26 @@ impl Core {
                 r.push(next.q);
             }
         }
+        // --drop-answers: this answer is lost on purpose (never the one that ends the motion)
+        self.withhold = false;
+        if self.drop_p > 0.0 && !stopping {
+            self.rng ^= self.rng << 13;
+            self.rng ^= self.rng >> 7;
+            self.rng ^= self.rng << 17;
+            self.withhold = ((self.rng >> 11) as f64 / (1u64 << 53) as f64) < self.drop_p;
+            self.s.dropped += self.withhold as u64;
+        }
+        self.notes |= self.withhold as u8;
+        self.sent_last = !self.withhold;
         if let Some((rows, next_slot)) = &mut self.trace {
             let row = TraceRow {
                 seq,
                 path,
+                notes: self.notes,
                 broke: guard_broke,
                 measured: st.q,
+                reported: st.q_d,
+                reference: self.reference.q,
                 desired: desired.0,
                 desired_v: desired.1,
                 sent: next.q,
@@ -543,6 +724,23 @@ impl Core {
             out.motion_finished = true;
         }
         out
+    }
+}
+
+/// One FCI motion at 1 kHz on the robot's clock: each state in, the cycle, the answer out
+/// (unless withheld on purpose); until the motion finishes or the robot ends it.
+fn one_motion(robot: &Robot, core: &mut Core) -> Result<(), FrankaError> {
+    let mut motion = robot.start_joint_position_control(MoveControllerMode::JointImpedance)?;
+    loop {
+        let (state, period) = motion.read_once()?;
+        let answer = core.cycle(&state, period.as_millis().max(1));
+        if core.withhold && !answer.motion_finished {
+            continue;
+        }
+        motion.write_once(&answer, None)?;
+        if answer.motion_finished {
+            return Ok(());
+        }
     }
 }
 
@@ -576,6 +774,17 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         "--limit-margin {}: must be within 0.1..=1",
         args.limit_margin
     );
+    anyhow::ensure!(
+        args.drop_answers.is_finite() && (0.0..=0.05).contains(&args.drop_answers),
+        "--drop-answers {}: must be within 0..=0.05 (20 lost in a row stop the robot)",
+        args.drop_answers
+    );
+    if args.drop_answers > 0.0 {
+        tracing::warn!(
+            "franka: --drop-answers {}: that share of the answers is withheld on purpose",
+            args.drop_answers
+        );
+    }
     anyhow::ensure!(
         args.bind_tolerance.is_finite() && args.bind_tolerance > 0.0,
         "--bind-tolerance {}: must be > 0",
@@ -667,15 +876,22 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
                     while !stop.load(Ordering::Relaxed) {
                         std::thread::sleep(every);
                         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+                        let fresh = g(&live.fresh);
                         println!(
                             "franka status: cycles={} success_rate={:.3} reflexes={} late={} \
-                             guarded={} braking={}",
+                             guarded={} braking={} led={:.4} not_led_longest_ms={}",
                             g(&live.cycles),
                             f64::from_bits(g(&live.success_rate)),
                             g(&live.reflexes),
                             g(&live.late),
                             g(&live.clamped),
-                            g(&live.braking)
+                            g(&live.braking),
+                            if fresh > 0 {
+                                g(&live.led) as f64 / fresh as f64
+                            } else {
+                                1.0
+                            },
+                            g(&live.not_led_longest)
                         );
                     }
                 })
@@ -712,7 +928,17 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         n_dof,
         intake,
         guard: Guard::new(GuardLimits::fr3(args.limit_margin, 0.02), CYCLE_S)?,
+        reference: Motion::rest([0.0; JOINTS]),
         last: Motion::rest([0.0; JOINTS]),
+        sent_last: true,
+        withhold: false,
+        drop_p: args.drop_answers,
+        // xorshift64 needs a state other than 0
+        rng: args.drop_seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1,
+        not_led_run: 0,
+        notes: 0,
+        tracking: Histogram::new_with_bounds(1, 100_000_000, 3)
+            .expect("constant histogram bounds are valid"),
         seq: 0,
         state_pub: services::publisher(&state_service, &state_name)?,
         state_event: services::notifier(&state_events, &state_name)?,
@@ -789,16 +1015,17 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
             continue;
         }
         core.begin_motion(state.q);
-        let result = r.control_joint_positions(
-            |st, dt| core.cycle(st, dt.as_millis().max(1)),
-            ControllerMode::JointImpedance,
-            false,
-            MAX_CUTOFF_FREQUENCY,
-        );
+        let result = one_motion(r, &mut core);
         match result {
             Ok(()) => break,
             Err(FrankaError::Control(e)) => {
                 core.s.reflexes += 1;
+                if let Some((rows, next_slot)) = &mut core.trace {
+                    let i = (*next_slot + TRACE_CYCLES - 1) % TRACE_CYCLES;
+                    if let Some(r) = rows.get_mut(i) {
+                        r.notes |= 16;
+                    }
+                }
                 core.live.reflexes.store(core.s.reflexes, Ordering::Relaxed);
                 let names = e.last_motion_errors.names().join("+");
                 tracing::error!(
@@ -859,6 +1086,8 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         0.0
     };
     core.s.guard_acted = core.guard.acted;
+    let t = &core.tracking;
+    core.s.controller_tracking = [t.value_at_quantile(0.99) as f64 / 1e6, t.max() as f64 / 1e6];
     if let (Some(path), Some((rows, next_slot))) = (&args.trace, &core.trace) {
         // oldest first
         let (newer, older) = rows.split_at(*next_slot % rows.len().max(1));
@@ -952,8 +1181,15 @@ fn write_trace<'a>(
     use std::fmt::Write as _;
     let mut text = String::with_capacity(TRACE_CYCLES * 30 * 12 + 512);
     let mut n = 0usize;
-    text.push_str("seq,path,broke");
-    for name in ["measured", "desired", "desired_v", "sent"] {
+    text.push_str("seq,path,notes,broke");
+    for name in [
+        "measured",
+        "reported",
+        "reference",
+        "desired",
+        "desired_v",
+        "sent",
+    ] {
         for j in 1..=JOINTS {
             let _ = write!(text, ",{name}_{j}");
         }
@@ -962,6 +1198,12 @@ fn write_trace<'a>(
     for r in rows {
         n += 1;
         let _ = write!(text, "{},{},", r.seq, TRACE_PATHS[r.path as usize % 8]);
+        for (i, name) in TRACE_NOTES.iter().enumerate() {
+            if r.notes & (1 << i) != 0 {
+                let _ = write!(text, "{name};");
+            }
+        }
+        text.push(',');
         if let Some((j, b)) = r.broke {
             let name = crate::guard::Broken::NAMES[b as usize % 5];
             let _ = write!(text, "j{}:{name}", j + 1);
@@ -969,8 +1211,9 @@ fn write_trace<'a>(
         for v in &r.measured {
             let _ = write!(text, ",{v:.6}");
         }
-        // the desired positions at a nanoradian too: their differences are what the guard judges
-        for x in [&r.desired, &r.desired_v] {
+        // the references and desired positions at a nanoradian too: their differences are what
+        // the guard judges
+        for x in [&r.reported, &r.reference, &r.desired, &r.desired_v] {
             for v in x {
                 let _ = write!(text, ",{v:.9}");
             }

@@ -24,8 +24,8 @@ use chunkrt_controller::control::otg::{CONTROL_POSITION, CONTROL_VELOCITY};
 use chunkrt_controller::control::{Otg, OtgInput, OtgOutput, OtgResult};
 
 use crate::limits::{
-    DDDQ_MAX, DDQ_MAX, DQ_MAX, ENVELOPE_DECEL, ENVELOPE_EPS, ENVELOPE_OFFSET, ENVELOPE_Q_MAX,
-    ENVELOPE_Q_MIN, JOINTS, Q_MAX, Q_MIN,
+    lower_velocity, upper_velocity, DDDQ_MAX, DDQ_MAX, DQ_MAX, ENVELOPE_DECEL, ENVELOPE_EPS,
+    ENVELOPE_OFFSET, ENVELOPE_Q_MAX, ENVELOPE_Q_MIN, JOINTS, Q_MAX, Q_MIN,
 };
 
 /// The motion commanded last as the robot sees it: positions and their first and second
@@ -75,6 +75,85 @@ impl Motion {
             *q += (self.dq[j] + self.ddq[j] * dt) * dt;
         }
         Motion::after(self, &q, dt)
+    }
+}
+
+/// How the robot's own report of its reference was taken ([`reconcile`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Reference {
+    /// It is the candidate of this index, exactly (the robot's f32 report agrees with it).
+    Candidate(usize),
+    /// Its position is the candidate of this index (exact), its velocity and acceleration the
+    /// robot's report (they disagree with the candidate's: the robot differenced against
+    /// another history than the one this driver assumed).
+    Corrected(usize),
+    /// No candidate's position agrees with the report within `ADOPT_RAD`: the report itself
+    /// (f32-rounded).
+    Adopted,
+    /// The report is not finite or lies further than `ADOPT_RAD` from every candidate: the
+    /// first candidate, the robot's report set aside (counted; it should not happen).
+    Kept,
+}
+
+/// How far a report may lie from this driver's own candidates and still be taken (rad): a lost
+/// or late answer parts the robot from a candidate by micro-radians; more is not a reference
+/// this driver can reason about.
+pub const ADOPT_RAD: f64 = 1e-3;
+
+/// Whether an f64 value and the robot's f32 report of the same quantity agree: within two f32
+/// roundings of it, plus `slack`.
+fn agrees(exact: f64, reported: f64, slack: f64) -> bool {
+    (exact - reported).abs()
+        <= exact.abs().max(reported.abs()) * (2.0 * f32::EPSILON as f64) + slack
+}
+
+/// The robot's reference (the motion it will judge the next command against) from its report
+/// (`q_d`, `dq_d`, `ddq_d`: on FCI 10 f32, the last command the robot applied and its
+/// differences, the extrapolated one after a lost packet) and this driver's exact candidates
+/// for it (what it believes the robot applied: its own answer, or the reference continued when
+/// the answer was dropped). A candidate the report agrees with is taken exactly: the report's
+/// f32 positions alone would misstate the next command's acceleration by up to 0.1 rad/s² and
+/// its jerk by 100 rad/s³. One whose position agrees but whose derivatives do not keeps its
+/// exact position with the report's derivatives (their f32 error is below 1e-3 rad/s³ of jerk).
+/// libfranka's `limitRate` limits every command against the same three fields.
+pub fn reconcile(reported: &Motion, candidates: &[Motion]) -> (Motion, Reference) {
+    let finite = reported
+        .q
+        .iter()
+        .chain(&reported.dq)
+        .chain(&reported.ddq)
+        .all(|x| x.is_finite());
+    let Some(first) = candidates.first() else {
+        return (*reported, Reference::Adopted);
+    };
+    if !finite {
+        return (*first, Reference::Kept);
+    }
+    let q_agrees = |c: &Motion| (0..JOINTS).all(|j| agrees(c.q[j], reported.q[j], 1e-12));
+    let all_agree = |c: &Motion| {
+        q_agrees(c)
+            && (0..JOINTS).all(|j| {
+                agrees(c.dq[j], reported.dq[j], 1e-7) && agrees(c.ddq[j], reported.ddq[j], 1e-4)
+            })
+    };
+    if let Some(i) = candidates.iter().position(all_agree) {
+        return (candidates[i], Reference::Candidate(i));
+    }
+    if let Some(i) = candidates.iter().position(q_agrees) {
+        let m = Motion {
+            q: candidates[i].q,
+            dq: reported.dq,
+            ddq: reported.ddq,
+        };
+        return (m, Reference::Corrected(i));
+    }
+    let near = candidates
+        .iter()
+        .any(|c| (0..JOINTS).all(|j| (c.q[j] - reported.q[j]).abs() <= ADOPT_RAD));
+    if near {
+        (*reported, Reference::Adopted)
+    } else {
+        (*first, Reference::Kept)
     }
 }
 
@@ -236,22 +315,26 @@ pub struct Guard {
     offset_otg: Otg,
     offset_in: OtgInput,
     offset_out: OtgOutput,
-    offset: Option<([f64; JOINTS], [f64; JOINTS], [f64; JOINTS])>,
+    offset: Option<Offset>,
     /// The first limit the last [`Self::follow`]'s candidate command broke, as (joint, code
     /// of [`Broken`]), when one did: the desired position's, else the offset's (diagnostics).
     pub broke: Option<(u8, u8)>,
-    /// Which path the last [`Self::follow`] took: 0 passed, 1 offset, 2 offset restarted,
-    /// 3 generator (for tests and diagnostics).
+    /// Which path the last [`Self::follow`] took: 0 passed, 1 offset, 2 offset started,
+    /// 3 generator (for tests and diagnostics). 0–2: the controller's motion leads.
     pub path: u8,
     /// The last desired position and its difference velocity: what the next desired velocity
     /// field is checked against.
     desired: Option<([f64; JOINTS], [f64; JOINTS])>,
-    /// The generator leads ([`Self::follow`]'s last resort) until the controller's motion
-    /// passes again: an offset is not restarted meanwhile.
+    /// The generator leads ([`Self::follow`]'s last resort: a desired position that is not a
+    /// number, or one further than `TAKE_OVER_RAD` from the stream) until an offset from the
+    /// stream to the controller's motion is within `HAND_BACK_RAD`.
     generating: bool,
-    /// Calls of [`Self::follow`], and the calls of its last two offset restarts.
-    cycle: u64,
-    restarts: [u64; 2],
+    /// Offset steps [`Self::enforce`] had to hold within the limits (the offset then goes on
+    /// from what was sent).
+    pub enforced: u64,
+    /// This cycle's desired velocity and acceleration agreed with the desired positions'
+    /// differences (no jump, no noise).
+    fields_agree: bool,
 }
 
 /// The largest of a joint vector's magnitudes.
@@ -259,8 +342,13 @@ fn size(x: &[f64; JOINTS]) -> f64 {
     x.iter().fold(0.0, |m, v| m.max(v.abs()))
 }
 
-/// Cycles in which a third offset restart hands over to the generator instead.
-const RESTART_WINDOW: u64 = 50;
+/// An offset (stream minus the controller's motion): position, velocity, acceleration.
+type Offset = ([f64; JOINTS], [f64; JOINTS], [f64; JOINTS]);
+
+/// The largest offset (rad, any joint) the controller's motion plus a correction carries: past
+/// it (a jump no lost cycle makes) the generator leads, and hands back below `HAND_BACK_RAD`.
+const TAKE_OVER_RAD: f64 = 0.15;
+const HAND_BACK_RAD: f64 = 0.1;
 
 /// The offset's limits, as fractions of the robot's: what the controller's own motion leaves
 /// when it keeps to 0.8 of them (config/franka_fr3.toml), less the guard's margin.
@@ -317,8 +405,8 @@ impl Guard {
             broke: None,
             desired: None,
             generating: false,
-            cycle: RESTART_WINDOW,
-            restarts: [0; 2],
+            enforced: 0,
+            fields_agree: true,
         })
     }
 
@@ -355,8 +443,8 @@ impl Guard {
             o
         };
         let (mut vd, mut ad) = (fin(v), fin(a));
-        self.cycle += 1;
         self.broke = None;
+        self.fields_agree = true;
         // the velocity and acceleration fields are trusted only where they agree with the
         // desired positions' own differences (else those differences stand in for them)
         if let Some((pq, pv)) = self.desired {
@@ -368,9 +456,11 @@ impl Guard {
                 let a_fd = (v_fd - pv[j]) / self.dt;
                 if (vd[j] - v_fd).abs() > self.limits.ddq * self.dt + 1e-3 {
                     vd[j] = v_fd;
+                    self.fields_agree = false;
                 }
                 if (ad[j] - a_fd).abs() > 0.5 * self.limits.ddq {
                     ad[j] = a_fd.clamp(-self.limits.ddq, self.limits.ddq);
+                    self.fields_agree = false;
                 }
             }
         }
@@ -397,7 +487,8 @@ impl Guard {
             }
         }
         let q = &inside;
-        if self.offset.is_none() {
+        let finite = q.iter().all(|x| x.is_finite());
+        if self.offset.is_none() && !self.generating {
             match (0..JOINTS).find_map(|j| {
                 self.limits
                     .broken(j, prev, q[j], self.dt)
@@ -405,7 +496,6 @@ impl Guard {
             }) {
                 None => {
                     self.planned = Some((*q, vd, ad));
-                    self.generating = false;
                     self.path = 0;
                     return (Motion::after(prev, q, self.dt), false);
                 }
@@ -414,64 +504,33 @@ impl Guard {
                     self.broke = Some((j, b as u8));
                 }
             }
-        } else if let Some((oq, ov, oa)) = self.offset {
-            // the offset's next step on the controller's motion
-            for j in 0..JOINTS {
-                // the offset may use what the controller's own acceleration leaves
-                self.offset_in.max_acceleration[j] =
-                    (0.9 * self.limits.ddq - ad[j].abs()).max(DDQ_MAX * OFFSET_ACCELERATION);
-                self.offset_in.current_position[j] = oq[j];
-                self.offset_in.current_velocity[j] = ov[j];
-                self.offset_in.current_acceleration[j] = oa[j];
-                self.offset_in.target_position[j] = 0.0;
-                self.offset_in.target_velocity[j] = 0.0;
-                self.offset_in.target_acceleration[j] = 0.0;
-            }
-            let r = self
-                .offset_otg
-                .update(&self.offset_in, &mut self.offset_out);
-            if r.is_ok() && q.iter().all(|x| x.is_finite()) {
-                let st = &self.offset_out.state;
-                let mut o = ([0.0; JOINTS], [0.0; JOINTS], [0.0; JOINTS]);
-                o.0.copy_from_slice(&st.position[..JOINTS]);
-                o.1.copy_from_slice(&st.velocity[..JOINTS]);
-                o.2.copy_from_slice(&st.acceleration[..JOINTS]);
-                let done = r == OtgResult::Finished;
-                if let Some(m) = self.with_offset(prev, q, &vd, &ad, o, done) {
-                    self.path = 1;
-                    return (m, true);
-                }
+        }
+        if finite {
+            // the offset this cycle: the running one's next step, or (the controller's motion
+            // does not pass from the stream: a lost or late answer, a jump, a new controller)
+            // a new one, whose first step is the stream's own continuation
+            let (o, done, path) = match self.offset {
+                Some(o) => match self.offset_step(o, &ad) {
+                    Some((o, done)) => (Some(o), done, 1),
+                    None => (None, false, 3),
+                },
+                None => (Some(self.offset_from(prev, q, &vd, &ad)), false, 2),
+            };
+            // the generator leads while the stream is far from the controller's motion, and
+            // hands back once it is near (hysteresis)
+            let reach = if self.generating {
+                HAND_BACK_RAD
+            } else {
+                TAKE_OVER_RAD
+            };
+            if let Some(o) = o.filter(|o| size(&o.0) <= reach) {
+                self.generating = false;
+                self.path = path;
+                return (self.apply_offset(prev, q, &vd, &ad, o, done), true);
             }
         }
-        // (re)start the offset: this cycle the stream goes on at constant acceleration, and
-        // the difference to the controller's motion shrinks from the next
-        let running = self.offset.map(|o| size(&o.0));
-        if !self.generating && q.iter().all(|x| x.is_finite()) {
-            let (sq, sv, sa) = self.stream_state(prev);
-            let dt = self.dt;
-            let mut o = ([0.0; JOINTS], [0.0; JOINTS], [0.0; JOINTS]);
-            for j in 0..JOINTS {
-                o.0[j] = sq[j] + sv[j] * dt + 0.5 * sa[j] * dt * dt - q[j];
-                o.1[j] = sv[j] + sa[j] * dt - vd[j];
-                o.2[j] = sa[j] - ad[j];
-            }
-            // a third restart within RESTART_WINDOW cycles is taken only while the offset
-            // shrinks: restarted every few cycles (a controller whose every position breaks a
-            // limit, or whose own motion leaves the offset no room), the stream would go on at
-            // its speed, away from the controller's, to the envelope
-            let growing = self.cycle < self.restarts[0] + RESTART_WINDOW
-                && running.is_none_or(|r| size(&o.0) >= r);
-            if !growing {
-                if let Some(m) = self.with_offset(prev, q, &vd, &ad, o, false) {
-                    self.restarts = [self.restarts[1], self.cycle];
-                    self.path = 2;
-                    return (m, true);
-                }
-            }
-        }
-        // not even the stream's own continuation keeps within the limits (it meets the
-        // envelope), or the offset could not: the generator steps towards the controller's
-        // state within slower limits until that state passes
+        // the desired position is not a number, or lies further from the stream than an offset
+        // should carry: the generator steps towards it (or holds) within slower limits
         self.offset = None;
         self.generating = true;
         self.path = 3;
@@ -487,37 +546,99 @@ impl Guard {
         (self.generate(prev), true)
     }
 
-    /// The command `q + o` if it keeps within the limits (then `o` is the offset from now on,
-    /// cleared when `done`), else `None`.
-    fn with_offset(
+    /// A new offset: the stream continued one cycle at constant acceleration from its own
+    /// state, minus the controller's desired state (`q`, `vd`, `ad`).
+    fn offset_from(
+        &self,
+        prev: &Motion,
+        q: &[f64; JOINTS],
+        vd: &[f64; JOINTS],
+        ad: &[f64; JOINTS],
+    ) -> Offset {
+        let (sq, sv, sa) = self.stream_state(prev);
+        let dt = self.dt;
+        let mut o = ([0.0; JOINTS], [0.0; JOINTS], [0.0; JOINTS]);
+        for j in 0..JOINTS {
+            o.0[j] = sq[j] + sv[j] * dt + 0.5 * sa[j] * dt * dt - q[j];
+            o.1[j] = sv[j] + sa[j] * dt - vd[j];
+            o.2[j] = sa[j] - ad[j];
+        }
+        o
+    }
+
+    /// The offset's next step towards zero on its own jerk-limited trajectory (within what
+    /// the controller's own acceleration `ad` leaves), and whether it got there; `None` when
+    /// the generator cannot plan from it.
+    fn offset_step(&mut self, o: Offset, ad: &[f64; JOINTS]) -> Option<(Offset, bool)> {
+        for j in 0..JOINTS {
+            self.offset_in.max_acceleration[j] =
+                (0.9 * self.limits.ddq - ad[j].abs()).max(DDQ_MAX * OFFSET_ACCELERATION);
+            self.offset_in.current_position[j] = o.0[j];
+            self.offset_in.current_velocity[j] = o.1[j];
+            self.offset_in.current_acceleration[j] = o.2[j];
+            self.offset_in.target_position[j] = 0.0;
+            self.offset_in.target_velocity[j] = 0.0;
+            self.offset_in.target_acceleration[j] = 0.0;
+        }
+        let r = self
+            .offset_otg
+            .update(&self.offset_in, &mut self.offset_out);
+        if !r.is_ok() {
+            return None;
+        }
+        let st = &self.offset_out.state;
+        let mut n = ([0.0; JOINTS], [0.0; JOINTS], [0.0; JOINTS]);
+        n.0.copy_from_slice(&st.position[..JOINTS]);
+        n.1.copy_from_slice(&st.velocity[..JOINTS]);
+        n.2.copy_from_slice(&st.acceleration[..JOINTS]);
+        Some((n, r == OtgResult::Finished))
+    }
+
+    /// The command `q + o`, held within the limits from `prev` ([`Self::enforce`]): where it
+    /// had to be, the offset from now on starts from the position the stream actually has, so
+    /// that the next step closes the distance the limits left. The offset ends when it reached
+    /// zero.
+    fn apply_offset(
         &mut self,
         prev: &Motion,
         q: &[f64; JOINTS],
         vd: &[f64; JOINTS],
         ad: &[f64; JOINTS],
-        o: ([f64; JOINTS], [f64; JOINTS], [f64; JOINTS]),
+        o: Offset,
         done: bool,
-    ) -> Option<Motion> {
+    ) -> Motion {
         let mut out = [0.0; JOINTS];
         for j in 0..JOINTS {
             out[j] = q[j] + o.0[j];
         }
-        if let Some((j, b)) = (0..JOINTS).find_map(|j| {
-            self.limits
-                .broken(j, prev, out[j], self.dt)
-                .map(|b| (j as u8, b))
-        }) {
-            self.broke.get_or_insert((j, b as u8));
-            return None;
+        let held = self.enforce(prev, &out);
+        if held == out {
+            let (mut pv, mut pa) = (*vd, *ad);
+            for j in 0..JOINTS {
+                pv[j] += o.1[j];
+                pa[j] += o.2[j];
+            }
+            self.planned = Some((out, pv, pa));
+            self.offset = if done { None } else { Some(o) };
+            return Motion::after(prev, &out, self.dt);
         }
-        let (mut pv, mut pa) = (*vd, *ad);
+        self.enforced += 1;
+        // the state the stream has: its position, and its differences against the controller's
+        // velocity and acceleration when those agree with the controller's own positions; when
+        // they do not (a jump, noise), the plan's velocity and acceleration stay (differences
+        // against noise would make the plan chase it)
+        let m = Motion::after(prev, &held, self.dt);
+        let mut actual = o;
         for j in 0..JOINTS {
-            pv[j] += o.1[j];
-            pa[j] += o.2[j];
+            actual.0[j] = held[j] - q[j];
+            if self.fields_agree {
+                actual.1[j] = m.dq[j] - vd[j];
+                actual.2[j] = m.ddq[j] - ad[j];
+            }
         }
-        self.planned = Some((out, pv, pa));
-        self.offset = if done { None } else { Some(o) };
-        Some(Motion::after(prev, &out, self.dt))
+        self.planned = None;
+        self.offset = Some(actual);
+        m
     }
 
     /// `q` when it keeps within the limits from `prev`; else, per joint that does not, the
@@ -563,6 +684,61 @@ impl Guard {
             (v[j] - prev.dq[j]).abs() <= self.limits.ddq * self.dt + 1e-6
                 && (a[j] - prev.ddq[j]).abs() <= self.limits.dddq * self.dt + 1e-6
         })
+    }
+
+    /// The command nearest `q` that the robot accepts from either of two references, `a` (the
+    /// one this driver computed `q` against) and `b`: after an answer that came late, the FCI
+    /// dropped it (the report shows the reference continued) while a simulator may still apply
+    /// it. Per joint, the positions within the robot's own velocity envelope, acceleration and
+    /// jerk from both; where none is within both (the late answer's own jerk was past two thirds
+    /// of the limit), the one midway between the two references' jerk-limited ranges, within
+    /// `a`'s. Returns it and whether it changed `q`.
+    pub fn hedge(&self, a: &Motion, b: &Motion, q: &[f64; JOINTS]) -> ([f64; JOINTS], bool) {
+        let dt = self.dt;
+        let shrink = 1.0 - 1e-6;
+        let range = |r: &Motion, j: usize| -> [(f64, f64); 3] {
+            let glide = r.q[j] + r.dq[j] * dt;
+            let p = glide + r.ddq[j] * dt * dt;
+            let (jd, ad) = (DDDQ_MAX * shrink * dt * dt * dt, DDQ_MAX * shrink * dt * dt);
+            [
+                (p - jd, p + jd),
+                (glide - ad, glide + ad),
+                (
+                    r.q[j] + (lower_velocity(j, r.q[j]) + 1e-6) * dt,
+                    r.q[j] + (upper_velocity(j, r.q[j]) - 1e-6) * dt,
+                ),
+            ]
+        };
+        let mut out = *q;
+        let mut changed = false;
+        for j in 0..JOINTS {
+            let (ra, rb) = (range(a, j), range(b, j));
+            let (mut lo, mut hi) = (Q_MIN[j], Q_MAX[j]);
+            for (l, h) in ra.iter().chain(&rb) {
+                lo = lo.max(*l);
+                hi = hi.min(*h);
+            }
+            let x = if lo <= hi {
+                q[j].clamp(lo, hi)
+            } else {
+                let (mut alo, mut ahi) = (Q_MIN[j], Q_MAX[j]);
+                for (l, h) in &ra {
+                    alo = alo.max(*l);
+                    ahi = ahi.min(*h);
+                }
+                let mid = 0.5 * (ra[0].0 + ra[0].1 + rb[0].0 + rb[0].1) * 0.5;
+                if alo <= ahi {
+                    mid.clamp(alo, ahi)
+                } else {
+                    q[j]
+                }
+            };
+            if x != q[j] {
+                changed = true;
+                out[j] = x;
+            }
+        }
+        (out, changed)
     }
 
     /// One cycle without a new command: constant acceleration from `prev` when that keeps
