@@ -176,7 +176,7 @@ pub struct GuardLimits {
 /// Positions the generator keeps inside the envelope's limits (rad).
 const GENERATOR_POSITION_MARGIN: f64 = 0.15;
 /// Fraction of the robot's acceleration and jerk the generator plans with.
-const GENERATOR_MARGIN: f64 = 0.8;
+const GENERATOR_MARGIN: f64 = 0.7;
 
 impl GuardLimits {
     /// The FR3's limits scaled by `margin` (0 < margin ≤ 1), positions `position_margin` inside.
@@ -570,9 +570,9 @@ impl Guard {
     /// the controller's own acceleration `ad` leaves), and whether it got there; `None` when
     /// the generator cannot plan from it.
     fn offset_step(&mut self, o: Offset, ad: &[f64; JOINTS]) -> Option<(Offset, bool)> {
-        for j in 0..JOINTS {
+        for (j, a) in ad.iter().enumerate() {
             self.offset_in.max_acceleration[j] =
-                (0.9 * self.limits.ddq - ad[j].abs()).max(DDQ_MAX * OFFSET_ACCELERATION);
+                (0.9 * self.limits.ddq - a.abs()).max(DDQ_MAX * OFFSET_ACCELERATION);
             self.offset_in.current_position[j] = o.0[j];
             self.offset_in.current_velocity[j] = o.1[j];
             self.offset_in.current_acceleration[j] = o.2[j];

@@ -55,6 +55,26 @@ class Counter(logging.Handler):
             print(f"franka-sim: ready {self.where}", flush=True)
 
 
+def strict(f):
+    """Scales franka-sim's joint motion limits by f where its checker reads them: the
+    acceleration and jerk tables (imported by name into the checker) and the position-based
+    velocity envelope (maximum velocity, deceleration) that its limit functions read."""
+    from franka_sim.limits import checker, tables
+
+    for mod in (checker, tables):
+        for name in ("MAX_JOINT_ACCELERATION", "MAX_JOINT_JERK"):
+            if not hasattr(mod, name):
+                sys.exit(f"fr3_sim.py: franka-sim has no {mod.__name__}.{name} (its layout changed)")
+            setattr(mod, name, tuple(f * x for x in getattr(mod, name)))
+    env = getattr(tables, "POSITION_BASED_VELOCITY_LIMITS", None)
+    if env is None:
+        sys.exit("fr3_sim.py: franka-sim has no POSITION_BASED_VELOCITY_LIMITS (its layout changed)")
+    tables.POSITION_BASED_VELOCITY_LIMITS = tuple(
+        (f * vmax, offset, f * decel) for vmax, offset, decel in env)
+    print(f"franka-sim: limits x {f}: acceleration {checker.MAX_JOINT_ACCELERATION[0]:.2f}, "
+          f"jerk {checker.MAX_JOINT_JERK[0]:.0f}", flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--host", default="127.0.0.1")
@@ -65,7 +85,12 @@ def main():
     ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     ap.add_argument("--log", default=None, help="franka-sim's own log (default: stderr, warnings only)")
     ap.add_argument("--model", default=None, help="the FR3 MJCF (default: $FR3_MJCF)")
+    ap.add_argument("--strict", type=float, default=1.0, metavar="F",
+                    help="a stricter robot: franka-sim's joint acceleration and jerk limits and its "
+                         "velocity envelope (maximum velocity and deceleration) times F (0.5..1)")
     args = ap.parse_args()
+    if not 0.5 <= args.strict <= 1.0:
+        sys.exit(f"fr3_sim.py: --strict {args.strict}: must be within 0.5..1")
     if args.model:
         os.environ["FR3_MJCF"] = args.model
     if not os.environ.get("FR3_MJCF"):
@@ -81,6 +106,9 @@ def main():
     root.addHandler(sink)
 
     from franka_sim.franka_sim_server import FrankaSimServer
+
+    if args.strict != 1.0:
+        strict(args.strict)
 
     enforce = not args.no_enforce
     server = FrankaSimServer(host=args.host, port=args.port, enable_gripper=not args.no_gripper,
