@@ -188,27 +188,6 @@ fn controller(ns: &str, cfg: &std::path::Path, seconds: &str) -> ChildGuard {
     )
 }
 
-/// The FR3 tests' rerun rule: a first run in which this machine stalled the driver (missed
-/// robot cycles) or the simulator (states that came less than half a cycle after the one
-/// before: its Python loop catching up, which leaves the answer less than a cycle) and that then
-/// failed (`why`, or None: it did not) is said loudly and runs once more; a reflex or a fallen
-/// success rate with neither fails the test as any other.
-fn stalled_then_failed(what: &str, attempt: usize, d: &Finished, why: Option<String>) -> bool {
-    let missed = drv(d, "missed");
-    let short = drv(d, "short_cycles");
-    match why {
-        Some(why) if attempt == 0 && missed + short > 0.0 => {
-            println!(
-                "\n!!! {what}: the driver missed {missed} robot cycles and {short} states came \
-                 early (this machine stalled the driver or the simulator), then {why}: run once \
-                 more\n"
-            );
-            true
-        }
-        _ => false,
-    }
-}
-
 #[test]
 fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
     let Some((py, model)) = franka_env("franka_sim: strategies") else {
@@ -225,65 +204,60 @@ fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
     .iter()
     .enumerate()
     {
-        // A driver the machine stalls for milliseconds misses robot cycles, and the FR3 goes on
-        // without it; after one the robot's reference and the driver's can part by micro-radians,
-        // which trips a reflex (measured: SIGSTOP of the driver for 4 ms, eight times a run, three
-        // or four reflexes a run). A simulator the machine stalls catches up by sending its next
-        // state early, and the robot loses an answer the driver believes delivered (the success
-        // rate falls with no cycle missed: 0.99892 once here). That is the test machine's doing,
-        // not the strategy's: a strategy whose run missed cycles or saw early states and then
-        // failed runs once more, and says so.
-        for attempt in 0..2 {
-            let host = format!("127.0.{attempt}.{}", 20 + i);
-            let ns = unique_namespace("fr3-strat");
-            let cfg = scripted_config(strategy, strategy, "");
-            let sim_g = sim(&py, &model, &host, true);
-            // the driver's cycle trace, kept where a failure says (removed when it passes)
-            let trace =
-                std::env::temp_dir().join(format!("fr3_{strategy}_{}.csv", std::process::id()));
-            let tr = trace.display().to_string();
-            let d = driver(&ns, &host, 14.0, &["--trace", tr.as_str()]);
-            let c = controller(&ns, &cfg, "11");
-            let c_out = c.finish(Duration::from_secs(40));
-            let d_out = d.finish(Duration::from_secs(20));
-            let s_out = sim_g.terminate(Duration::from_secs(5));
-            let _ = std::fs::remove_file(&cfg);
-            assert_eq!(
-                c_out.code,
-                Some(0),
-                "{strategy}: the controller failed:\n{}",
-                c_out.stderr
-            );
-            let rate = drv(&d_out, "success_rate_mean");
-            let why = if sim_reflexes(&s_out) > 0.0 || drv(&d_out, "reflexes") > 0.0 {
-                Some("the robot tripped a reflex".to_string())
-            } else if rate < 0.999 {
-                Some(format!("the command success rate fell to {rate}"))
-            } else {
-                None
-            };
-            if stalled_then_failed(strategy, attempt, &d_out, why) {
-                continue;
-            }
-            println!("{strategy}: the driver's trace: {tr}");
-            assert_no_reflex(strategy, &d_out, &s_out);
-            // every chunk switch at every delay in the sweep, the robot answered in time
-            let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
-            assert!(
-                chunks >= 12.0,
-                "{strategy}: {chunks} chunks (the sweep needs 9+)"
-            );
-            assert!(rate >= 0.999, "{strategy}: command success rate {rate}");
-            let err = drv(&d_out, "max_tracking_error");
-            assert!(err < 0.05, "{strategy}: tracking error {err} rad");
-            assert!(
-                drv(&d_out, "fresh") > 8000.0,
-                "{strategy}: the controller's commands did not reach the robot"
-            );
-            let _ = std::fs::remove_file(trace);
-            break;
-        }
+        // once each, no rerun: a cycle this machine makes the driver miss, or an answer it
+        // makes late, is a lost packet the driver must take in its stride
+        let host = format!("127.0.0.{}", 20 + i);
+        let ns = unique_namespace("fr3-strat");
+        let cfg = scripted_config(strategy, strategy, "");
+        let sim_g = sim(&py, &model, &host, true);
+        // the driver's cycle trace, kept where a failure says (removed when it passes)
+        let trace = std::env::temp_dir().join(format!("fr3_{strategy}_{}.csv", std::process::id()));
+        let tr = trace.display().to_string();
+        let d = driver(&ns, &host, 14.0, &["--trace", tr.as_str()]);
+        let c = controller(&ns, &cfg, "11");
+        let c_out = c.finish(Duration::from_secs(40));
+        let d_out = d.finish(Duration::from_secs(20));
+        let s_out = sim_g.terminate(Duration::from_secs(5));
+        let _ = std::fs::remove_file(&cfg);
+        assert_eq!(
+            c_out.code,
+            Some(0),
+            "{strategy}: the controller failed:\n{}",
+            c_out.stderr
+        );
+        println!("{strategy}: the driver's trace: {tr}");
+        assert_no_reflex(strategy, &d_out, &s_out);
+        assert_led(strategy, &d_out);
+        // every chunk switch at every delay in the sweep, the robot answered in time
+        let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
+        assert!(
+            chunks >= 12.0,
+            "{strategy}: {chunks} chunks (the sweep needs 9+)"
+        );
+        // the robot's share of cycles answered in time: a loaded machine loses some (each a
+        // non-event now); far fewer would be a driver that cannot keep the cycle
+        let rate = drv(&d_out, "success_rate_mean");
+        assert!(rate >= 0.99, "{strategy}: command success rate {rate}");
+        let err = drv(&d_out, "max_tracking_error");
+        assert!(err < 0.05, "{strategy}: tracking error {err} rad");
+        assert!(
+            drv(&d_out, "fresh") > 8000.0,
+            "{strategy}: the controller's commands did not reach the robot"
+        );
+        let _ = std::fs::remove_file(trace);
     }
+}
+
+/// The controller's motion led the arm: at least 99.5 % of the cycles it answered, and never
+/// more than 50 ms in a row not (the guard's generator leading).
+fn assert_led(what: &str, d: &Finished) {
+    let share = drv(d, "led_share");
+    let longest = drv(d, "not_led_longest_ms");
+    assert!(
+        share >= 0.995 && longest <= 50.0,
+        "{what}: the controller led {share} of its cycles, the longest stretch it did not \
+         {longest} ms"
+    );
 }
 
 #[test]
@@ -299,40 +273,29 @@ fn openpi_server_with_random_droid_velocities_trips_no_reflex() {
         return;
     }
     let _one = serial();
-    // the same rule as the strategies test: a run in which this machine stalled the driver or
-    // the simulator (missed robot cycles, early states) and the robot then tripped is said
-    // loudly and run once more; a reflex with neither fails at once
-    for attempt in 0..2 {
-        let host = format!("127.0.{attempt}.30");
-        let (c_out, d_out, cam_out, srv_out, s_out) = droid_once(&py, &model, &host);
-        assert_eq!(
-            c_out.code,
-            Some(0),
-            "the controller failed:\n{}",
-            c_out.stderr
-        );
-        let tripped = sim_reflexes(&s_out) + drv(&d_out, "reflexes") > 0.0;
-        let why = tripped.then(|| "the robot tripped a reflex".to_string());
-        if stalled_then_failed("droid random", attempt, &d_out, why) {
-            continue;
-        }
-        assert_no_reflex("droid random", &d_out, &s_out);
-        println!("{}", cam_out.stdout.trim());
-        println!("{}", srv_out.stdout.lines().last().unwrap_or(""));
-        let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
-        assert!(
-            chunks >= 10.0,
-            "{chunks} chunks from openpi's server:\n{}",
-            c_out.stdout
-        );
-        let requests = summary_value(&srv_out.stdout, "requests").unwrap_or(0.0);
-        let bad = summary_value(&srv_out.stdout, "bad").unwrap_or(-1.0);
-        assert!(
-            requests >= 10.0 && bad == 0.0,
-            "the DROID server saw {requests} requests, {bad} bad"
-        );
-        break;
-    }
+    let (c_out, d_out, cam_out, srv_out, s_out) = droid_once(&py, &model, "127.0.0.30");
+    assert_eq!(
+        c_out.code,
+        Some(0),
+        "the controller failed:\n{}",
+        c_out.stderr
+    );
+    assert_no_reflex("droid random", &d_out, &s_out);
+    assert_led("droid random", &d_out);
+    println!("{}", cam_out.stdout.trim());
+    println!("{}", srv_out.stdout.lines().last().unwrap_or(""));
+    let chunks = summary_value(&c_out.stdout, "chunks").unwrap_or(0.0);
+    assert!(
+        chunks >= 10.0,
+        "{chunks} chunks from openpi's server:\n{}",
+        c_out.stdout
+    );
+    let requests = summary_value(&srv_out.stdout, "requests").unwrap_or(0.0);
+    let bad = summary_value(&srv_out.stdout, "bad").unwrap_or(-1.0);
+    assert!(
+        requests >= 10.0 && bad == 0.0,
+        "the DROID server saw {requests} requests, {bad} bad"
+    );
 }
 
 /// One run of openpi's server (the scripted DROID test double, random velocities) driving the
@@ -409,51 +372,32 @@ fn stall_kill_takeover_and_a_restarted_robot_trip_no_reflex() {
         return;
     };
     let _one = serial();
-    // the same rule as the strategies test: a run in which this machine stalled the driver or
-    // the simulator (missed robot cycles, early states) and the robot then tripped is said
-    // loudly and run once more; a reflex with neither fails at once. (It did, in about one run in seven, before a
-    // new controller joined its chunk at 0.3 x the joints' speed and started at rest from a robot
-    // held at rest (AT_REST): franka-sim measured joint 1 at 2.73 rad/s once, no cycle missed.)
-    for attempt in 0..2 {
-        let host = format!("127.0.{attempt}.31");
-        let (d_out, s_a, s_b, b_out) = takeover_once(&py, &model, &host);
-        let tripped = sim_reflexes(&s_a) + sim_reflexes(&s_b) + drv(&d_out, "reflexes") > 0.0;
-        let why = tripped.then(|| {
-            let lines: Vec<&str> = s_a
-                .stdout
-                .lines()
-                .chain(s_b.stdout.lines())
-                .filter(|l| l.contains("REFLEX"))
-                .collect();
-            format!("the robot tripped a reflex ({})", lines.join("; "))
-        });
-        if stalled_then_failed("takeover", attempt, &d_out, why) {
-            continue;
-        }
-        assert_no_reflex("takeover (first robot)", &d_out, &s_a);
-        assert_eq!(
-            sim_reflexes(&s_b),
-            0.0,
-            "the restarted robot aborted a motion:\n{}",
-            s_b.stdout
-        );
-        assert!(
-            drv(&d_out, "braking") > 50.0,
-            "the stops to rest did not run"
-        );
-        assert!(
-            drv(&d_out, "reconnects") >= 1.0,
-            "the driver did not connect to the restarted robot"
-        );
-        assert!(drv(&d_out, "motions") >= 2.0);
-        // the second controller's commands were followed on both robots
-        assert!(
-            summary_value(&b_out.stdout, "commands").unwrap_or(0.0) > 5000.0,
-            "{}",
-            b_out.stdout
-        );
-        break;
-    }
+    // once, no rerun (a reflex here once came from a new controller stepping onto a robot that
+    // held at rest; it now joins its chunk at 0.3 x the joints' speed and starts from AT_REST)
+    let (d_out, s_a, s_b, b_out) = takeover_once(&py, &model, "127.0.0.31");
+    assert_no_reflex("takeover (first robot)", &d_out, &s_a);
+    assert_eq!(
+        sim_reflexes(&s_b),
+        0.0,
+        "the restarted robot aborted a motion:\n{}",
+        s_b.stdout
+    );
+    assert_led("takeover", &d_out);
+    assert!(
+        drv(&d_out, "braking") > 50.0,
+        "the stops to rest did not run"
+    );
+    assert!(
+        drv(&d_out, "reconnects") >= 1.0,
+        "the driver did not connect to the restarted robot"
+    );
+    assert!(drv(&d_out, "motions") >= 2.0);
+    // the second controller's commands were followed on both robots
+    assert!(
+        summary_value(&b_out.stdout, "commands").unwrap_or(0.0) > 5000.0,
+        "{}",
+        b_out.stdout
+    );
 }
 
 /// One run of the takeover scenario on `host`: the driver's, both simulators' and the second
@@ -506,7 +450,8 @@ fn the_check_can_fail_an_unguarded_stream_at_twice_the_limits_is_refused() {
     let cfg = std::env::temp_dir().join(format!("fr3_noguard2_{}.toml", std::process::id()));
     std::fs::write(&cfg, text).unwrap();
     let sim_g = sim(&py, &model, host, true);
-    let d = driver(&ns, host, 12.0, &["--no-guard", "--stop-on-reflex"]);
+    // recovery after each reflex, until the second within 10 s: then the driver gives up
+    let d = driver(&ns, host, 12.0, &["--no-guard", "--max-reflexes", "2"]);
     let c = controller(&ns, &cfg, "10");
     let _ = c.finish(Duration::from_secs(30));
     let d_out = d.finish(Duration::from_secs(20));
@@ -524,167 +469,147 @@ fn the_check_can_fail_an_unguarded_stream_at_twice_the_limits_is_refused() {
         sim_reflexes(&s_out) >= 1.0,
         "the simulator accepted a stream at twice its limits"
     );
-    assert!(drv(&d_out, "reflexes") >= 1.0);
+    assert!(drv(&d_out, "reflexes") >= 2.0, "{}", d_out.stdout);
+    assert_eq!(d_out.code, Some(1), "{}", d_out.stderr);
+    assert!(
+        d_out.stderr.contains("recovery gives up") && !d_out.stderr.contains("panicked"),
+        "{}",
+        d_out.stderr
+    );
     let _ = std::fs::remove_file(cfg);
 }
 
+/// franka-sim on `host` with both checks enforced and its motion limits times `strict`.
+fn strict_sim(py: &str, model: &str, host: &str, strict: &str) -> ChildGuard {
+    let script = format!("{ROOT}/tools/python/fr3_sim.py");
+    let args = [
+        script.as_str(),
+        "--host",
+        host,
+        "--model",
+        model,
+        "--no-gripper",
+        "--strict",
+        strict,
+    ];
+    ChildGuard::spawn(py, &args).expect("start franka-sim")
+}
+
+/// Stops `pid` with SIGSTOP for each of `stalls` (ms; a sleep, which overshoots by tens of
+/// µs), one every
+/// 100–250 ms after `start`; returns how many it made.
+fn stall(pid: u32, start: Duration, stalls: Vec<f64>) -> std::thread::JoinHandle<usize> {
+    std::thread::spawn(move || {
+        std::thread::sleep(start);
+        let mut made = 0;
+        for (k, ms) in stalls.iter().enumerate() {
+            std::thread::sleep(Duration::from_millis(100 + (k as u64 * 7919) % 150));
+            // SAFETY: kill(2) on our own child; a child that is gone answers ESRCH
+            if unsafe { libc::kill(pid as libc::pid_t, libc::SIGSTOP) } != 0 {
+                break;
+            }
+            std::thread::sleep(Duration::from_secs_f64(ms / 1e3));
+            unsafe { libc::kill(pid as libc::pid_t, libc::SIGCONT) };
+            made += 1;
+        }
+        made
+    })
+}
+
 #[test]
-fn libfranka_replays_a_recorded_command_stream_without_a_reflex() {
-    let Some((py, model)) = franka_env("franka_sim: libfranka replay") else {
+fn lost_answers_on_a_stricter_robot_trip_no_reflex_and_the_controller_leads() {
+    // A lost cycle on purpose (issue: it must be a non-event): 1 % of the driver's answers
+    // withheld at random (a dropped UDP packet on a real arm: the robot continues its
+    // reference at constant acceleration and reports it), under chunk switches at every delay,
+    // against a robot whose acceleration, jerk and velocity limits are 15 % stricter than the
+    // datasheet's (the shipped margins must still hold).
+    let Some((py, model)) = franka_env("franka_sim: lost answers") else {
         return;
     };
     let _one = serial();
-    let host = "127.0.0.33";
-    let cfg = scripted_config("record", "rtc", "");
-    let stream = std::env::temp_dir().join(format!("fr3_stream_{}.txt", std::process::id()));
-    let stream_s = stream.to_str().unwrap().to_string();
-    // the recording: the same rule as the strategies test (a run in which this machine stalled
-    // the driver or the simulator and the robot then tripped is said loudly and run once more;
-    // a reflex with neither fails at once)
-    for attempt in 0..2 {
-        let ns = unique_namespace("fr3-record");
-        let sim_g = sim(&py, &model, host, true);
-        let d = driver(&ns, host, 10.0, &["--record", &stream_s]);
-        let c = controller(&ns, &cfg, "8");
-        let _ = c.finish(Duration::from_secs(30));
-        let d_out = d.finish(Duration::from_secs(20));
-        let s_out = sim_g.terminate(Duration::from_secs(5));
-        let tripped = sim_reflexes(&s_out) + drv(&d_out, "reflexes") > 0.0;
-        let why = tripped.then(|| "the robot tripped a reflex".to_string());
-        if stalled_then_failed("recording", attempt, &d_out, why) {
-            continue;
-        }
-        assert_no_reflex("recording", &d_out, &s_out);
-        break;
-    }
-    // the same positions through Franka's own client, against a fresh robot. That client is
-    // Python at 1 kHz: a replay this machine stalled (lines skipped: the robot went on without
-    // it, and its extrapolation parts from the stream by micro-radians; or 20 cycles lost: the
-    // robot stops it) and then failed is said loudly and runs once more; a reflex with no line
-    // skipped fails at once
-    let mut replay_out = None;
-    for attempt in 0..2 {
-        let sim_g = sim(&py, &model, host, true);
-        std::thread::sleep(Duration::from_secs(3));
-        let replay = ChildGuard::spawn(
-            &py,
-            &[
-                &format!("{ROOT}/tools/python/fr3_replay.py"),
-                "--host",
-                host,
-                "--stream",
-                &stream_s,
-            ],
-        )
-        .unwrap()
-        .finish(Duration::from_secs(60));
-        let s_out = sim_g.terminate(Duration::from_secs(5));
-        println!("{}", replay.stdout.trim());
-        let skipped = summary_value(&replay.stdout, "skipped").unwrap_or(0.0);
-        let stalled = skipped > 0.0 || replay.stdout.contains("communication_constraints");
-        if attempt == 0 && replay.code != Some(0) && stalled {
-            println!(
-                "\n!!! libfranka replay: this machine stalled the client ({skipped} lines skipped, \
-                 or the robot stopped it for 20 lost cycles), then it failed: run once more\n{}\n",
-                replay.stdout.trim()
-            );
-            continue;
-        }
-        replay_out = Some((replay, s_out));
-        break;
-    }
-    let (replay, s_out) = replay_out.expect("a replay ran");
-    assert_eq!(
-        replay.code,
-        Some(0),
-        "libfranka's replay failed:\n{}\n{}",
-        replay.stdout,
-        replay.stderr
+    let host = "127.0.0.34";
+    let ns = unique_namespace("fr3-drops");
+    let cfg = scripted_config("drops", "rtc", "");
+    let sim_g = strict_sim(&py, &model, host, "0.85");
+    let trace = std::env::temp_dir().join(format!("fr3_drops_{}.csv", std::process::id()));
+    let tr = trace.display().to_string();
+    let d = driver(
+        &ns,
+        host,
+        33.0,
+        &["--drop-answers", "0.01", "--drop-seed", "7", "--trace", &tr],
     );
-    assert_eq!(sim_reflexes(&s_out), 0.0, "{}", s_out.stdout);
-    let sent = summary_value(&replay.stdout, "sent").unwrap_or(0.0);
-    assert!(sent > 5000.0, "only {sent} commands replayed");
-    let _ = std::fs::remove_file(stream);
-    let _ = std::fs::remove_file(cfg);
+    let c = controller(&ns, &cfg, "30");
+    let c_out = c.finish(Duration::from_secs(60));
+    let d_out = d.finish(Duration::from_secs(20));
+    let s_out = sim_g.terminate(Duration::from_secs(5));
+    let _ = std::fs::remove_file(&cfg);
+    println!("lost answers: the driver's trace: {tr}");
+    println!("{}", s_out.stdout.trim());
+    assert_eq!(c_out.code, Some(0), "{}", c_out.stderr);
+    assert_no_reflex("lost answers", &d_out, &s_out);
+    assert!(
+        drv(&d_out, "dropped") >= 150.0,
+        "too few answers withheld: {}",
+        d_out.stdout
+    );
+    assert_led("lost answers", &d_out);
+    let err = drv(&d_out, "controller_tracking_max");
+    assert!(
+        err < 0.05,
+        "the arm {err} rad from the controller's command"
+    );
+    let _ = std::fs::remove_file(trace);
 }
 
-/// Bad input at the FCI boundary, with no simulator needed: no robot at the address, and a peer
-/// on FCI's port that answers the connection with garbage and hangs up. Each gets a clear error
-/// naming the address and a failed exit, never a panic; the wrong-model check (an FER / Panda
-/// answers FCI version 5) sits in the same place, but no simulator here speaks version 5.
 #[test]
-fn an_absent_robot_and_a_peer_speaking_garbage_get_a_clear_error() {
-    let ns = unique_namespace("fr3-bad");
-    // nothing listens on 127.0.0.41:1337
-    let t0 = std::time::Instant::now();
-    let out = driver_once(&ns, "127.0.0.41");
-    println!(
-        "absent robot: exit {:?} after {:.1} s",
-        out.code,
-        t0.elapsed().as_secs_f64()
-    );
-    assert_eq!(out.code, Some(1), "{}\n{}", out.stdout, out.stderr);
+#[ignore = "a known, open failure: about one or two reflexes in 100 driver stalls against franka-sim (BENCHMARKS §9); cargo test --test franka_sim -- --ignored driver_stalls"]
+fn driver_stalls_of_1_to_5_ms_trip_no_reflex_and_one_past_20_cycles_restarts_cleanly() {
+    // The driver stopped (SIGSTOP) for 1-5 ms a hundred times under chunk switches, then once
+    // for 60 ms (three times what the FCI allows: the robot's own stop,
+    // communication_constraints_violation, a recovery and a new motion)
+    let Some((py, model)) = franka_env("franka_sim: stalls") else {
+        return;
+    };
+    let _one = serial();
+    let host = "127.0.0.35";
+    let ns = unique_namespace("fr3-stalls");
+    let cfg = scripted_config("stalls", "rtc", "");
+    let sim_g = sim(&py, &model, host, true);
+    let trace = std::env::temp_dir().join(format!("fr3_stalls_{}.csv", std::process::id()));
+    let tr = trace.display().to_string();
+    let d = driver(&ns, host, 34.0, &["--trace", &tr]);
+    let c = controller(&ns, &cfg, "31");
+    let mut stalls: Vec<f64> = (0..100).map(|k| 1.0 + (k % 5) as f64).collect();
+    stalls.push(60.0);
+    let stalled = stall(d.id(), Duration::from_secs(4), stalls);
+    let c_out = c.finish(Duration::from_secs(60));
+    let made = stalled.join().unwrap();
+    let d_out = d.finish(Duration::from_secs(20));
+    let s_out = sim_g.terminate(Duration::from_secs(5));
+    let _ = std::fs::remove_file(&cfg);
+    let line = d_out
+        .stdout
+        .lines()
+        .find(|l| l.starts_with("franka summary"))
+        .unwrap_or("");
+    println!("stalls: {made} made; {line}");
+    println!("stalls: the driver's trace: {tr}");
+    println!("{}", s_out.stdout.trim());
+    assert_eq!(c_out.code, Some(0), "{}", c_out.stderr);
+    assert_eq!(made, 101, "the stalls were not all made");
+    // the only reflex: the robot's own stop for the long stall, which the driver recovers from
+    let errors = line
+        .split_whitespace()
+        .find_map(|kv| kv.strip_prefix("reflex_errors="))
+        .unwrap_or("");
     assert!(
-        out.stderr.contains("127.0.0.41") && !out.stderr.contains("panicked"),
-        "{}",
-        out.stderr
+        errors
+            .split(',')
+            .all(|e| e == "communication_constraints_violation"),
+        "a reflex that is not the long stall's: {errors}\n{}",
+        s_out.stdout
     );
-    assert!(t0.elapsed() < Duration::from_secs(20));
-
-    // a peer that accepts, sends 64 bytes of garbage and closes, every time
-    let listener = std::net::TcpListener::bind("127.0.0.42:1337").expect("bind 127.0.0.42:1337");
-    let peer = std::thread::spawn(move || {
-        use std::io::{Read, Write};
-        listener.set_nonblocking(false).ok();
-        let mut served = 0;
-        while let Ok((mut s, _)) = listener.accept() {
-            s.set_read_timeout(Some(Duration::from_millis(200))).ok();
-            let mut buf = [0u8; 256];
-            let _ = s.read(&mut buf);
-            let _ = s.write_all(&[0xA5; 64]);
-            served += 1;
-            if served >= 1 {
-                return served;
-            }
-        }
-        served
-    });
-    let out = driver_once(&ns, "127.0.0.42");
-    println!(
-        "garbage peer: exit {:?}; {}",
-        out.code,
-        out.stderr.lines().last().unwrap_or("")
-    );
-    assert_eq!(out.code, Some(1), "{}\n{}", out.stdout, out.stderr);
-    assert!(
-        out.stderr.contains("127.0.0.42") && !out.stderr.contains("panicked"),
-        "{}",
-        out.stderr
-    );
-    assert!(
-        peer.join().unwrap() >= 1,
-        "the driver never connected to the peer"
-    );
-}
-
-/// `chunkrt franka` on `host` that does not wait for the robot; its output when it exits.
-fn driver_once(ns: &str, host: &str) -> Finished {
-    let cfg = format!("{ROOT}/config/franka_fr3.toml");
-    start(
-        "franka",
-        ns,
-        &[
-            "--config",
-            cfg.as_str(),
-            "--robot",
-            host,
-            "--realtime",
-            "ignore",
-            "--gripper",
-            "none",
-            "--duration",
-            "5",
-        ],
-    )
-    .finish(Duration::from_secs(30))
+    assert!(drv(&d_out, "reflexes") <= 1.0, "{line}");
+    let _ = std::fs::remove_file(trace);
 }

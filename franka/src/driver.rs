@@ -27,6 +27,9 @@ use crate::limits::{CYCLE_S, JOINTS};
 /// Half the FCI's cycle (ns): a state sooner than this after the last is a short cycle.
 const HALF_CYCLE_NS: u64 = (CYCLE_S * 0.5e9) as u64;
 
+/// An answer ready this long after its state came (ns) misses the robot's cycle: withheld.
+const LATE_NS: u64 = 900_000;
+
 /// Command-line arguments.
 #[derive(Debug, Clone, clap::Args)]
 pub struct Args {
@@ -91,6 +94,14 @@ pub struct Args {
     /// End at the first reflex instead of recovering and starting a new motion.
     #[arg(long)]
     pub stop_on_reflex: bool,
+    /// Give up (exit with an error, the arm at rest in the robot's own stop) after this many
+    /// reflexes within `--reflex-window-s`: a robot that keeps tripping needs a person, not
+    /// another automatic recovery.
+    #[arg(long, value_name = "N", default_value_t = 3)]
+    pub max_reflexes: u32,
+    /// The window of `--max-reflexes` (s).
+    #[arg(long, value_name = "SECONDS", default_value_t = 10.0)]
+    pub reflex_window_s: f64,
     /// Wait up to this long for the robot to accept the first connection (s; 0: fail at once).
     #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
     pub wait_for_robot: f64,
@@ -185,6 +196,15 @@ pub struct Summary {
     pub guard_acted: [u64; 5],
     /// Answers withheld on purpose (`--drop-answers`).
     pub dropped: u64,
+    /// Answers withheld because they were ready too late for their cycle (the machine stalled
+    /// the driver between the state and the answer).
+    pub withheld_late: u64,
+    /// Short cycles answered with the reference's continuation instead of the controller's
+    /// command (an answer that may come after the next state).
+    pub short_continued: u64,
+    /// Late answers the robot's later report shows it applied after all (a simulator does; the
+    /// FCI drops them).
+    pub late_applied: u64,
     /// Answers sent that the robot did not apply (its report shows the reference continued: the
     /// answer came too late), and the next commands hedged to pass from either reference.
     pub unapplied: u64,
@@ -212,7 +232,8 @@ impl std::fmt::Display for Summary {
              round_trip_p50_us={:.1} round_trip_p99_us={:.1} round_trip_max_us={:.1} \
              commands_applied={} commands_expired={} commands_rejected={} commands_unbound={} \
              commands_far={} gripper_moves={} max_tracking_error={:.5} guard_acted={} \
-             dropped={} unapplied={} hedged={} reference_exact={} reference_corrected={} \
+             dropped={} withheld_late={} short_continued={} unapplied={} late_applied={} \
+             hedged={} reference_exact={} reference_corrected={} \
              reference_adopted={} reference_kept={} reference_stale={} led_share={:.5} not_led_longest_ms={} \
              controller_tracking_p99={:.5} controller_tracking_max={:.5} reflex_errors={}",
             self.cycles,
@@ -254,7 +275,10 @@ impl std::fmt::Display for Summary {
                 }
             },
             self.dropped,
+            self.withheld_late,
+            self.short_continued,
             self.unapplied,
+            self.late_applied,
             self.hedged,
             self.reference[0],
             self.reference[1],
@@ -332,6 +356,11 @@ struct Core {
     not_led_run: u64,
     /// This cycle's `TraceRow::notes`.
     notes: u8,
+    /// The other reference of an ambiguous cycle (the answer before went out late): the next
+    /// state tells which the robot judged this cycle's answer against.
+    ambiguous: Option<Motion>,
+    /// This robot has applied an answer that its next report showed as not applied.
+    late_applied_seen: bool,
     /// |measured - the controller's command| over fresh cycles (µrad).
     tracking: Histogram<u64>,
     seq: u64,
@@ -411,6 +440,7 @@ impl Core {
         self.last = Motion::rest(q);
         self.reference = self.last;
         self.sent_last = true;
+        self.ambiguous = None;
         self.motion_cycles = 0;
         self.late_run = 0;
         self.intake.disarm();
@@ -424,7 +454,7 @@ impl Core {
     /// motion the robot judges this cycle's answer against. Returns the other reference to hedge
     /// this answer against when the last one went out and the robot did not apply it in its
     /// cycle: the FCI dropped it, a simulator may apply it late.
-    fn take_reference(&mut self, st: &RobotState, elapsed: u64) -> Option<Motion> {
+    fn take_reference(&mut self, st: &RobotState, elapsed: u64) -> Option<(Motion, u64)> {
         let e = elapsed.clamp(1, 20);
         self.s.missed += e - 1;
         if self.motion_cycles == 0 {
@@ -445,7 +475,24 @@ impl Core {
             dq: st.dq_d,
             ddq: st.ddq_d,
         };
-        let (mut r, mut how) = reconcile(&reported, &[applied, skipped, self.reference]);
+        // after a cycle that was ambiguous (the answer before went out late), the history the
+        // robot judged the last answer against: the reference the driver believed, or the other
+        // one (a robot that applies a late answer: a simulator)
+        let other = match self.ambiguous {
+            Some(o) if e == 1 => Motion::after(&o, &self.last.q, CYCLE_S),
+            _ => applied,
+        };
+        self.ambiguous = None;
+        let (mut r, mut how) = reconcile(&reported, &[applied, skipped, self.reference, other]);
+        if matches!(how, Reference::Candidate(3) | Reference::Corrected(3))
+            && !matches!(reconcile(&reported, &[applied]).1, Reference::Candidate(0))
+        {
+            // this robot applied an answer its report had shown as not applied: from now on,
+            // when an answer went out and the next report shows the reference continued, the
+            // driver believes the robot will still apply it
+            self.s.late_applied += 1;
+            self.late_applied_seen = true;
+        }
         if matches!(how, Reference::Candidate(2) | Reference::Corrected(2))
             && !self.reference.at_rest()
         {
@@ -488,12 +535,27 @@ impl Core {
         }
         let alt = if unapplied && self.sent_last {
             self.s.unapplied += 1;
-            (e == 1).then_some(self.last)
+            Some((self.last, e))
         } else {
             None
         };
         self.reference = r;
-        alt
+        match alt {
+            // a robot seen to apply late answers will apply this one: it is the reference, the
+            // report's continuation the other
+            Some((late, 1)) if self.late_applied_seen => {
+                self.reference = late;
+                self.ambiguous = Some(r);
+                Some((r, 1))
+            }
+            Some((late, k)) => {
+                if k == 1 {
+                    self.ambiguous = Some(late);
+                }
+                Some((late, k))
+            }
+            None => None,
+        }
     }
 
     /// One FCI cycle, `elapsed` robot cycles after the last (1; more when the robot went on
@@ -501,9 +563,9 @@ impl Core {
     fn cycle(&mut self, st: &RobotState, elapsed: u64) -> JointPositions {
         let now = monotonic_ns();
         self.s.cycles += 1;
-        if self.last_state_ns != 0 && now.saturating_sub(self.last_state_ns) < HALF_CYCLE_NS {
-            self.s.short_cycles += 1;
-        }
+        let short =
+            self.last_state_ns != 0 && now.saturating_sub(self.last_state_ns) < HALF_CYCLE_NS;
+        self.s.short_cycles += short as u64;
         self.last_state_ns = now;
         let hedge_from = self.take_reference(st, elapsed);
         self.motion_cycles += 1;
@@ -617,6 +679,15 @@ impl Core {
                 if self.no_guard {
                     path = 7;
                     Motion::after(&self.reference, &q, CYCLE_S)
+                } else if short {
+                    // a state less than half a cycle after the last: the robot (a simulator
+                    // catching up, a delayed packet) left this answer less than a cycle, and it
+                    // may arrive after the next state. The reference's own continuation is the
+                    // one answer that is the same whether the robot takes it or continues
+                    // without it: no guess about which it did can then be wrong
+                    self.s.short_continued += 1;
+                    path = 4;
+                    self.guard.extrapolate(&self.reference)
                 } else {
                     let (m, c) = self.guard.follow(&self.reference, &q, &v, &a);
                     clamped = c;
@@ -646,8 +717,8 @@ impl Core {
         // an answer the robot did not apply although it went out (late): the FCI dropped it, a
         // simulator may still apply it; this one passes from either reference where it can
         let next = match hedge_from {
-            Some(alt) if !self.no_guard => {
-                let (q, changed) = self.guard.hedge(&self.reference, &alt, &next.q);
+            Some((alt, cycles)) if !self.no_guard => {
+                let (q, changed) = self.guard.hedge(&self.reference, &alt, cycles, &next.q);
                 self.s.hedged += changed as u64;
                 self.notes |= if changed { 4 } else { 0 };
                 if changed {
@@ -702,14 +773,19 @@ impl Core {
                 r.push(next.q);
             }
         }
+        // an answer this late (the machine stalled the driver after the state came) misses its
+        // cycle: the FCI would drop it, a simulator might apply it a cycle late; withheld, the
+        // robot continues its reference as for any lost packet, and says so in the next state
+        self.withhold = monotonic_ns().saturating_sub(now) > LATE_NS;
+        self.s.withheld_late += self.withhold as u64;
         // --drop-answers: this answer is lost on purpose (never the one that ends the motion)
-        self.withhold = false;
         if self.drop_p > 0.0 && !stopping {
             self.rng ^= self.rng << 13;
             self.rng ^= self.rng >> 7;
             self.rng ^= self.rng << 17;
-            self.withhold = ((self.rng >> 11) as f64 / (1u64 << 53) as f64) < self.drop_p;
-            self.s.dropped += self.withhold as u64;
+            let drop = ((self.rng >> 11) as f64 / (1u64 << 53) as f64) < self.drop_p;
+            self.s.dropped += (drop && !self.withhold) as u64;
+            self.withhold |= drop;
         }
         self.notes |= self.withhold as u8;
         self.sent_last = !self.withhold;
@@ -787,6 +863,14 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         args.limit_margin.is_finite() && (0.1..=1.0).contains(&args.limit_margin),
         "--limit-margin {}: must be within 0.1..=1",
         args.limit_margin
+    );
+    anyhow::ensure!(
+        args.max_reflexes >= 1
+            && args.reflex_window_s.is_finite()
+            && (0.1..=3600.0).contains(&args.reflex_window_s),
+        "--max-reflexes {} --reflex-window-s {}: at least 1, within 0.1..=3600 s",
+        args.max_reflexes,
+        args.reflex_window_s
     );
     anyhow::ensure!(
         args.drop_answers.is_finite() && (0.0..=0.05).contains(&args.drop_answers),
@@ -951,6 +1035,8 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         rng: args.drop_seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1,
         not_led_run: 0,
         notes: 0,
+        ambiguous: None,
+        late_applied_seen: false,
         tracking: Histogram::new_with_bounds(1, 100_000_000, 3)
             .expect("constant histogram bounds are valid"),
         seq: 0,
@@ -995,6 +1081,9 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
     );
 
     let mut failure = None;
+    // the times of the reflexes within the window (a few: allocated here, once)
+    let window_ns = (args.reflex_window_s * 1e9) as u64;
+    let mut recent_reflexes: Vec<u64> = Vec::with_capacity(args.max_reflexes as usize + 1);
     while !stop.load(Ordering::Relaxed) && monotonic_ns() < end_ns {
         let Some(r) = robot.as_ref() else {
             // the robot went away (a restarted control box or simulator): try again, holding
@@ -1062,6 +1151,20 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
                     });
                 }
                 if args.stop_on_reflex {
+                    break;
+                }
+                let t = monotonic_ns();
+                recent_reflexes.retain(|&at| t.saturating_sub(at) < window_ns);
+                recent_reflexes.push(t);
+                if recent_reflexes.len() >= args.max_reflexes as usize {
+                    failure = Some(anyhow::anyhow!(
+                        "franka: {} reflexes within {} s ({}): recovery gives up (--max-reflexes, \
+                         --reflex-window-s); the robot is in its own stop. Read the reflexes' \
+                         names above, then restart the driver",
+                        recent_reflexes.len(),
+                        args.reflex_window_s,
+                        core.s.reflex_errors
+                    ));
                     break;
                 }
                 if let Err(e) = r.automatic_error_recovery() {

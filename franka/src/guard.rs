@@ -24,8 +24,8 @@ use chunkrt_controller::control::otg::{CONTROL_POSITION, CONTROL_VELOCITY};
 use chunkrt_controller::control::{Otg, OtgInput, OtgOutput, OtgResult};
 
 use crate::limits::{
-    lower_velocity, upper_velocity, DDDQ_MAX, DDQ_MAX, DQ_MAX, ENVELOPE_DECEL, ENVELOPE_EPS,
-    ENVELOPE_OFFSET, ENVELOPE_Q_MAX, ENVELOPE_Q_MIN, JOINTS, Q_MAX, Q_MIN,
+    DDDQ_MAX, DDQ_MAX, DQ_MAX, ENVELOPE_DECEL, ENVELOPE_EPS, ENVELOPE_OFFSET, ENVELOPE_Q_MAX,
+    ENVELOPE_Q_MIN, JOINTS, Q_MAX, Q_MIN,
 };
 
 /// The motion commanded last as the robot sees it: positions and their first and second
@@ -100,11 +100,17 @@ pub enum Reference {
 /// this driver can reason about.
 pub const ADOPT_RAD: f64 = 1e-3;
 
-/// Whether an f64 value and the robot's f32 report of the same quantity agree: within two f32
-/// roundings of it, plus `slack`.
-fn agrees(exact: f64, reported: f64, slack: f64) -> bool {
-    (exact - reported).abs()
-        <= exact.abs().max(reported.abs()) * (2.0 * f32::EPSILON as f64) + slack
+/// Whether an f64 value and the robot's f32 report of the same quantity agree: the value
+/// rounds to the report, or to within `ulps` f32 steps of it, or lies within `slack` of it.
+fn agrees(exact: f64, reported: f64, ulps: u32, slack: f64) -> bool {
+    let (a, b) = (exact as f32, reported as f32);
+    if a == b || (exact - reported).abs() <= slack {
+        return true;
+    }
+    if !a.is_finite() || !b.is_finite() || a.is_sign_negative() != b.is_sign_negative() {
+        return false;
+    }
+    a.to_bits().abs_diff(b.to_bits()) <= ulps
 }
 
 /// The robot's reference (the motion it will judge the next command against) from its report
@@ -129,11 +135,16 @@ pub fn reconcile(reported: &Motion, candidates: &[Motion]) -> (Motion, Reference
     if !finite {
         return (*first, Reference::Kept);
     }
-    let q_agrees = |c: &Motion| (0..JOINTS).all(|j| agrees(c.q[j], reported.q[j], 1e-12));
+    // a position must round to the report: one f32 step at 2 rad is 2.4e-7 rad, which is
+    // 0.24 rad/s² in the next command's acceleration
+    let q_agrees = |c: &Motion| (0..JOINTS).all(|j| agrees(c.q[j], reported.q[j], 0, 0.0));
     let all_agree = |c: &Motion| {
         q_agrees(c)
             && (0..JOINTS).all(|j| {
-                agrees(c.dq[j], reported.dq[j], 1e-7) && agrees(c.ddq[j], reported.ddq[j], 1e-4)
+                // the derivatives within 1e-7 rad/s and 1e-4 rad/s² (1e-4 rad/s² and 0.1
+                // rad/s³ in the next command), or two f32 steps
+                agrees(c.dq[j], reported.dq[j], 2, 1e-7)
+                    && agrees(c.ddq[j], reported.ddq[j], 2, 1e-4)
             })
     };
     if let Some(i) = candidates.iter().position(all_agree) {
@@ -686,49 +697,67 @@ impl Guard {
         })
     }
 
-    /// The command nearest `q` that the robot accepts from either of two references, `a` (the
-    /// one this driver computed `q` against) and `b`: after an answer that came late, the FCI
-    /// dropped it (the report shows the reference continued) while a simulator may still apply
-    /// it. Per joint, the positions within the robot's own velocity envelope, acceleration and
-    /// jerk from both; where none is within both (the late answer's own jerk was past two thirds
-    /// of the limit), the one midway between the two references' jerk-limited ranges, within
-    /// `a`'s. Returns it and whether it changed `q`.
-    pub fn hedge(&self, a: &Motion, b: &Motion, q: &[f64; JOINTS]) -> ([f64; JOINTS], bool) {
-        let dt = self.dt;
+    /// The command nearest `q` that passes this guard's limits from either of two references:
+    /// `a`, the one `q` was computed against (one cycle back), and `b`, `b_cycles` back. After
+    /// an answer that went out late the FCI dropped it (its report shows the reference
+    /// continued: `a`), while a simulator may still apply it and difference the next command
+    /// against it over the cycles since (`b`). Per joint, the positions within the velocity
+    /// envelope, acceleration and jerk from both; where none is within both (the late answer's
+    /// own jerk was past two thirds of the limit), the one within `a`'s nearest to `b`'s: `a`
+    /// is the reference the driver believes. Returns it and whether it changed `q`.
+    pub fn hedge(
+        &self,
+        a: &Motion,
+        b: &Motion,
+        b_cycles: u64,
+        q: &[f64; JOINTS],
+    ) -> ([f64; JOINTS], bool) {
+        let l = &self.limits;
         let shrink = 1.0 - 1e-6;
-        let range = |r: &Motion, j: usize| -> [(f64, f64); 3] {
-            let glide = r.q[j] + r.dq[j] * dt;
-            let p = glide + r.ddq[j] * dt * dt;
-            let (jd, ad) = (DDDQ_MAX * shrink * dt * dt * dt, DDQ_MAX * shrink * dt * dt);
+        let range = |r: &Motion, j: usize, h: f64| -> [(f64, f64); 3] {
+            let glide = r.q[j] + r.dq[j] * h;
+            let p = glide + r.ddq[j] * h * h;
+            let (jd, ad) = (l.dddq * shrink * h * h * h, l.ddq * shrink * h * h);
             [
                 (p - jd, p + jd),
                 (glide - ad, glide + ad),
                 (
-                    r.q[j] + (lower_velocity(j, r.q[j]) + 1e-6) * dt,
-                    r.q[j] + (upper_velocity(j, r.q[j]) - 1e-6) * dt,
+                    r.q[j] + l.lower(j, r.q[j]) * h,
+                    r.q[j] + l.upper(j, r.q[j]) * h,
                 ),
             ]
         };
+        let hb = self.dt * b_cycles.max(1) as f64;
         let mut out = *q;
         let mut changed = false;
         for j in 0..JOINTS {
-            let (ra, rb) = (range(a, j), range(b, j));
-            let (mut lo, mut hi) = (Q_MIN[j], Q_MAX[j]);
-            for (l, h) in ra.iter().chain(&rb) {
-                lo = lo.max(*l);
-                hi = hi.min(*h);
+            let (ra, rb) = (range(a, j, self.dt), range(b, j, hb));
+            let (mut lo, mut hi) = (l.q_min[j], l.q_max[j]);
+            for (lo_k, hi_k) in ra.iter().chain(&rb) {
+                lo = lo.max(*lo_k);
+                hi = hi.min(*hi_k);
             }
             let x = if lo <= hi {
                 q[j].clamp(lo, hi)
             } else {
-                let (mut alo, mut ahi) = (Q_MIN[j], Q_MAX[j]);
-                for (l, h) in &ra {
-                    alo = alo.max(*l);
-                    ahi = ahi.min(*h);
+                let (mut alo, mut ahi) = (l.q_min[j], l.q_max[j]);
+                for (lo_k, hi_k) in &ra {
+                    alo = alo.max(*lo_k);
+                    ahi = ahi.min(*hi_k);
                 }
-                let mid = 0.5 * (ra[0].0 + ra[0].1 + rb[0].0 + rb[0].1) * 0.5;
+                // within `a`'s, as near to `b`'s as that allows
+                let (mut blo, mut bhi) = (l.q_min[j], l.q_max[j]);
+                for (lo_k, hi_k) in &rb {
+                    blo = blo.max(*lo_k);
+                    bhi = bhi.min(*hi_k);
+                }
+                let toward = if blo <= bhi {
+                    q[j].clamp(blo, bhi)
+                } else {
+                    q[j]
+                };
                 if alo <= ahi {
-                    mid.clamp(alo, ahi)
+                    toward.clamp(alo, ahi)
                 } else {
                     q[j]
                 }

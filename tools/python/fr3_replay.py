@@ -9,8 +9,12 @@ checks enforced).
 The stream must start where the robot is (a fresh franka-sim starts where the recording's did).
 It holds a line per cycle of the recorded robot, the cycles that robot continued on its own
 without an answer included (the driver writes its continuation), so a line a cycle keeps time.
-When the robot reports more than one cycle since the last (it went on without an answer) the
-replay skips as many lines, so the positions stay on the robot's time. Prints
+When the robot reports more than one cycle since the last (this client stalled and the robot went
+on without an answer, at constant acceleration) the replay skips as many lines, so the positions
+stay on the robot's time, and from then on holds each line within the robot's acceleration and
+jerk from the reference the robot reports (q_d, dq_d, ddq_d: libfranka's limitRate rule, 0.9 of
+the limits, which leaves room for the f32 report): a stall of this Python client is not the stream's fault, and the robot's extrapolation parts from
+the recorded line by micro-radians. Prints
 "fr3-replay summary: cycles=N sent=N skipped=N reflexes=R success_rate_mean=X error=..." and
 exits 1 on a reflex or an error.
 """
@@ -19,6 +23,26 @@ import statistics
 import sys
 
 import pylibfranka as pf
+
+
+ACCELERATION, JERK, DT = 0.9 * 10.0, 0.9 * 5000.0, 1e-3
+
+
+def within(state, line):
+    """The line held within ACCELERATION and JERK from the robot's reported reference (per joint:
+    the positions whose second and third differences from q_d, dq_d, ddq_d keep within them);
+    and whether that changed it."""
+    out, changed = list(line), False
+    for j in range(7):
+        q, v, a = state.q_d[j], state.dq_d[j], state.ddq_d[j]
+        glide = q + v * DT
+        p = glide + a * DT * DT
+        lo = max(p - JERK * DT ** 3, glide - ACCELERATION * DT * DT)
+        hi = min(p + JERK * DT ** 3, glide + ACCELERATION * DT * DT)
+        x = min(max(line[j], lo), hi) if lo <= hi else p
+        if x != line[j]:
+            out[j], changed = x, True
+    return out, changed
 
 
 def main():
@@ -42,7 +66,8 @@ def main():
     if gap > 1e-3:
         sys.exit(f"fr3_replay.py: the robot is {gap:.4f} rad from the stream's start: restart the simulator")
     ctrl = robot.start_joint_position_control(pf.ControllerMode.JointImpedance)
-    i = sent = skipped = 0
+    i = sent = skipped = limited = 0
+    catching_up = False
     rates, error, reflexes = [], "none", 0
     try:
         while i < len(rows):
@@ -54,7 +79,13 @@ def main():
             i = min(i, len(rows) - 1)
             if sent > 100:
                 rates.append(state.control_command_success_rate)
-            cmd = pf.JointPositions(rows[i])
+            line = rows[i]
+            if steps > 1:
+                catching_up = True
+            if catching_up:
+                line, changed = within(state, line)
+                limited += changed
+            cmd = pf.JointPositions(line)
             if i == len(rows) - 1:
                 cmd.motion_finished = True
             ctrl.writeOnce(cmd)
@@ -65,7 +96,8 @@ def main():
     except (pf.ControlException, pf.CommandException) as e:
         reflexes, error = 1, str(e).replace("\n", " ")[:300]
     mean = statistics.mean(rates) if rates else 0.0
-    print(f"fr3-replay summary: cycles={len(rows)} sent={sent} skipped={skipped} reflexes={reflexes} "
+    print(f"fr3-replay summary: cycles={len(rows)} sent={sent} skipped={skipped} limited={limited} "
+          f"reflexes={reflexes} "
           f"success_rate_mean={mean:.5f} error={error}", flush=True)
     sys.exit(1 if reflexes else 0)
 
