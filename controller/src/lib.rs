@@ -22,7 +22,8 @@
 //! - [`worker`]: the inference protocol once (request → chunk source → hand-off → recycling).
 //! - [`inference`]: the policy as a chunk source (`PolicySource`); [`remote`]: a policy behind
 //!   an openpi-protocol server (`RemoteSource`).
-//! - [`rt`]: real-time set-up (pinning, SCHED_FIFO, memory locking, the periodic loop).
+//! - [`rt`]: real-time set-up (pinning, SCHED_FIFO, memory locking, the periodic loop: those
+//!   from `chunkrt-rt`, which the drivers share) and the process's logging.
 //!
 //! Must not depend on: the reach task, training, evaluation, benches, plotting, the fake
 //! devices (the binary's composition root in the `chunkrt` crate wires those up).

@@ -1016,7 +1016,7 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         .trace
         .as_ref()
         .map(|_| (Vec::with_capacity(TRACE_CYCLES), 0));
-    let outcome = chunkrt_controller::rt::make_current_thread_realtime(
+    let outcome = chunkrt_rt::thread::make_current_thread_realtime(
         args.cpu,
         args.priority,
         args.realtime == Realtime::Enforce,

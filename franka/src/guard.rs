@@ -20,8 +20,7 @@
 //! envelope). [`Motion`] holds what the robot computes: differences of the commanded positions.
 //! No allocation after [`Guard::new`].
 
-use chunkrt_controller::control::otg::{CONTROL_POSITION, CONTROL_VELOCITY};
-use chunkrt_controller::control::{Otg, OtgInput, OtgOutput, OtgResult};
+use chunkrt_rt::otg::{Otg, OtgInput, OtgOutput, OtgResult, CONTROL_POSITION, CONTROL_VELOCITY};
 
 use crate::limits::{
     DDDQ_MAX, DDQ_MAX, DQ_MAX, ENVELOPE_DECEL, ENVELOPE_EPS, ENVELOPE_OFFSET, ENVELOPE_Q_MAX,

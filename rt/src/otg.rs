@@ -1,11 +1,14 @@
 //! Jerk-limited online trajectory generation: a safe Rust face of the allocation-free C shim
-//! over the official ruckig C++ library (`controller/ffi/chunkrt_ruckig.{h,cpp}`, built by `controller/build.rs`).
+//! over the official ruckig C++ library (`rt/ffi/chunkrt_ruckig.{h,cpp}`, built by `rt/build.rs`).
 //!
 //! [`Otg::new`] allocates the generator once; [`Otg::update`], [`Otg::calculate`] and
 //! [`Otg::at_time`] never allocate (the generator is a fixed-size `Ruckig<16>`; joints beyond
 //! `dofs` are disabled).
 
-use chunkrt_ipc::MAX_DOF;
+/// Joints one generator holds: the shim's fixed capacity (`CHUNKRT_RK_MAX_DOF` in
+/// `ffi/chunkrt_ruckig.h`). Equal to `chunkrt_ipc::MAX_DOF`, which the controller checks at
+/// compile time; kept here so that this crate needs no IPC.
+pub const MAX_DOF: usize = 16;
 
 /// Flat input of one update (SI units). Mirrors `chunkrt_rk_input`.
 #[repr(C)]

@@ -1,26 +1,11 @@
-//! Process and thread set-up for real time: logging, pinning, SCHED_FIFO, mlockall.
+//! Thread set-up for real time: pinning, SCHED_FIFO, mlockall, the CPUs' wake-up latency, and
+//! the periodic loop.
 //!
 //! Each step is attempted and its outcome reported; none is fatal, because a development
 //! machine or a container often forbids SCHED_FIFO and mlockall. The control thread then runs
 //! as an ordinary pinned thread, and the log says so in one line.
 
 use std::fmt;
-
-/// Logs to stderr (colours only on a terminal); `RUST_LOG` filters (default `info`).
-/// iceoryx2's own log is limited to errors unless `IOX2_LOG_LEVEL` says otherwise (its
-/// "no config file, using defaults" warning is expected: chunkrt sets QoS per service).
-pub fn init_logging() {
-    use std::io::IsTerminal;
-    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_ansi(std::io::stderr().is_terminal())
-        .with_writer(std::io::stderr)
-        .try_init();
-}
 
 /// What [`make_current_thread_realtime`] achieved.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -184,6 +169,42 @@ pub fn make_current_thread_realtime(core: Option<usize>, priority: i32, lock: bo
     }
 }
 
+/// CLOCK_MONOTONIC now, in nanoseconds: the time base of every chunkrt message
+/// (`chunkrt_ipc::monotonic_ns`, the same clock; repeated here so that this crate needs no IPC).
+fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC always exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+/// Sleeps until the absolute CLOCK_MONOTONIC time `deadline_ns` (`chunkrt_ipc::sleep_until_ns`,
+/// repeated here for the same reason).
+fn sleep_until_ns(deadline_ns: u64) {
+    let ts = libc::timespec {
+        tv_sec: (deadline_ns / 1_000_000_000) as libc::time_t,
+        tv_nsec: (deadline_ns % 1_000_000_000) as libc::c_long,
+    };
+    loop {
+        // SAFETY: `ts` is a valid timespec; the remaining-time pointer may be null with
+        // TIMER_ABSTIME.
+        let rc = unsafe {
+            libc::clock_nanosleep(
+                libc::CLOCK_MONOTONIC,
+                libc::TIMER_ABSTIME,
+                &ts,
+                core::ptr::null_mut(),
+            )
+        };
+        if rc != libc::EINTR {
+            break;
+        }
+    }
+}
+
 /// What [`run_periodic`] counted.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct PeriodicCounts {
@@ -212,8 +233,8 @@ pub fn run_periodic(
     let mut c = PeriodicCounts::default();
     let mut deadline = first_deadline_ns;
     while deadline < end_ns && running() {
-        chunkrt_ipc::sleep_until_ns(deadline);
-        let wake = chunkrt_ipc::monotonic_ns();
+        sleep_until_ns(deadline);
+        let wake = monotonic_ns();
         let done = step(deadline, wake);
         c.ticks += 1;
         deadline += period;
@@ -237,7 +258,7 @@ mod tests {
     #[test]
     fn periodic_runs_on_deadlines_and_counts_overruns() {
         let period = 2_000_000;
-        let first = chunkrt_ipc::monotonic_ns() + period;
+        let first = monotonic_ns() + period;
         let end = first + 100 * period;
         let mut deadlines = Vec::with_capacity(200);
         let c = run_periodic(
@@ -248,7 +269,7 @@ mod tests {
             |d, wake| {
                 deadlines.push(d);
                 assert!(wake >= d, "woke before its deadline");
-                chunkrt_ipc::monotonic_ns()
+                monotonic_ns()
             },
         );
         // every one of the 100 deadlines is run or skipped (a loaded 2-core machine may miss
@@ -258,7 +279,7 @@ mod tests {
             .windows(2)
             .all(|w| w[1] > w[0] && (w[1] - w[0]) % period == 0));
         // a body slower than the period overruns every tick and skips deadlines
-        let first = chunkrt_ipc::monotonic_ns() + period;
+        let first = monotonic_ns() + period;
         let c = run_periodic(
             period,
             first,
@@ -266,7 +287,7 @@ mod tests {
             || true,
             |_, _| {
                 std::thread::sleep(std::time::Duration::from_millis(5));
-                chunkrt_ipc::monotonic_ns()
+                monotonic_ns()
             },
         );
         assert_eq!(c.overruns, c.ticks);

@@ -44,7 +44,6 @@ pub(crate) fn ms_to_ns(ms: f64) -> u64 {
 pub mod executor;
 pub mod handoff;
 pub mod interp;
-pub mod otg;
 mod request;
 pub mod rtc;
 pub mod safety;
@@ -52,6 +51,10 @@ mod shaping;
 mod strategy;
 mod timeline;
 pub mod timing;
+
+/// ruckig through the allocation-free C shim: `chunkrt-rt`'s, which the robot drivers use without
+/// the controller.
+pub use chunkrt_rt::otg;
 
 pub use executor::{Executor, ExecutorError, InferenceLink, Rearm, Strategy, TickReport, Trigger};
 pub use handoff::{channel, request_channel, ChunkReceiver, ChunkSender, RequestReceiver};
@@ -62,3 +65,6 @@ pub use rtc::{
 };
 pub use safety::{Event, EventReader, Reason, State};
 pub use timing::{Quantiles, TickTiming};
+
+// The generator's joint arrays and the messages' have the same length.
+const _: () = assert!(otg::MAX_DOF == chunkrt_ipc::MAX_DOF);
