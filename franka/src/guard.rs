@@ -1171,4 +1171,153 @@ mod tests {
             "a stream without the lost cycles passed the FR3's checks"
         );
     }
+    /// A controller's motion that keeps to chunkrt's own shaping (up to 7.4 rad/s² on the
+    /// last joint): every joint swings at its own two frequencies.
+    fn swinging(k: usize) -> [f64; JOINTS] {
+        let mut q = home();
+        let t = k as f64 * CYCLE_S;
+        for (j, q) in q.iter_mut().enumerate() {
+            let w = 2.0 + 0.7 * j as f64;
+            *q += 0.12 * (w * t).sin() + 0.01 * (2.7 * w * t).sin();
+        }
+        q
+    }
+
+    #[test]
+    fn a_lost_answer_leaves_the_controller_leading_within_a_few_cycles() {
+        // 1 % of the cycles lost at random (the robot continues its reference at constant
+        // acceleration), 20 s of a controller within chunkrt's shaping: the controller's motion
+        // leads every cycle it answers (before this guard's closed-loop offset, one withheld
+        // answer in franka-sim handed the arm to the generator for the rest of a run: BENCHMARKS
+        // §9)
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut g = Guard::new(GuardLimits::fr3(0.83, 0.02), CYCLE_S).unwrap();
+        let mut m = Motion::rest(swinging(0));
+        let mut seq = vec![m];
+        let (mut lost, mut led, mut not_led_run, mut longest) = (0, 0, 0, 0);
+        for k in 1..20_000 {
+            if rng.gen_bool(0.01) {
+                m = m.continued(CYCLE_S);
+                lost += 1;
+            } else {
+                m = g.follow(&m, &swinging(k), &[0.0; JOINTS], &[0.0; JOINTS]).0;
+                if g.path <= 2 {
+                    led += 1;
+                    not_led_run = 0;
+                } else {
+                    not_led_run += 1;
+                    longest = longest.max(not_led_run);
+                }
+            }
+            seq.push(m);
+        }
+        check(&seq);
+        assert!(lost > 150, "{lost}");
+        assert!(
+            led as f64 >= 0.999 * (19_999 - lost) as f64 && longest == 0,
+            "led {led} of {}, the generator {longest} cycles in a row",
+            19_999 - lost
+        );
+        // and the stream ends on the controller's motion
+        let end = swinging(19_999);
+        assert!(
+            (0..JOINTS).all(|j| (m.q[j] - end[j]).abs() < 1e-3),
+            "{:?}",
+            m.q
+        );
+    }
+
+    #[test]
+    fn the_robots_report_is_taken_exactly_where_it_rounds_to_a_candidate() {
+        let mut a = Motion::rest(home());
+        a.dq[3] = 0.5;
+        a.ddq[3] = 4.0;
+        let applied = Motion::after(
+            &a,
+            &{
+                let mut q = a.q;
+                q[3] += 0.000_502_3;
+                q
+            },
+            CYCLE_S,
+        );
+        let skipped = a.continued(CYCLE_S);
+        let f32ed = |m: &Motion| {
+            let r = |x: &[f64; JOINTS]| x.map(|v| v as f32 as f64);
+            Motion {
+                q: r(&m.q),
+                dq: r(&m.dq),
+                ddq: r(&m.ddq),
+            }
+        };
+        // the robot applied the answer: the exact answer, not its f32 rounding
+        let (r, how) = reconcile(&f32ed(&applied), &[applied, skipped]);
+        assert_eq!((r, how), (applied, Reference::Candidate(0)));
+        // the answer was lost: the exact continuation
+        let (r, how) = reconcile(&f32ed(&skipped), &[applied, skipped]);
+        assert_eq!((r, how), (skipped, Reference::Candidate(1)));
+        // derivatives the driver did not expect: the candidate's position, the report's rates
+        let mut other = f32ed(&applied);
+        other.ddq[3] += 1.0;
+        let (r, how) = reconcile(&other, &[applied, skipped]);
+        assert_eq!(how, Reference::Corrected(0));
+        assert_eq!((r.q, r.ddq[3]), (applied.q, other.ddq[3]));
+        // a report far from every candidate, or not a number, is set aside
+        let mut far = f32ed(&applied);
+        far.q[0] += 0.01;
+        assert_eq!(reconcile(&far, &[applied, skipped]).1, Reference::Kept);
+        let mut nan = f32ed(&applied);
+        nan.dq[2] = f64::NAN;
+        assert_eq!(
+            reconcile(&nan, &[applied, skipped]),
+            (applied, Reference::Kept)
+        );
+        // near, but no candidate's position rounds to it: the report as it is
+        let mut near = f32ed(&applied);
+        near.q[1] += 1e-5;
+        assert_eq!(
+            reconcile(&near, &[applied, skipped]),
+            (near, Reference::Adopted)
+        );
+    }
+
+    #[test]
+    fn a_hedged_command_passes_from_both_references_where_it_can() {
+        let g = Guard::new(GuardLimits::fr3(0.83, 0.02), CYCLE_S).unwrap();
+        let l = *g.limits();
+        let mut prev = Motion::rest(home());
+        prev.dq[3] = 0.5;
+        prev.ddq[3] = 2.0;
+        // the late answer moved with a jerk of 1000 rad/s³; the robot continued instead
+        let late = Motion::after(
+            &prev,
+            &{
+                let mut q = prev.continued(CYCLE_S).q;
+                q[3] += 1e-6;
+                q
+            },
+            CYCLE_S,
+        );
+        let cont = prev.continued(CYCLE_S);
+        // the next command, computed against the continuation, jerks at -3000 rad/s³ from it:
+        // from the late answer that is -6000, past the limit
+        let mut q = cont.continued(CYCLE_S).q;
+        q[3] -= 3e-6;
+        let (h, changed) = g.hedge(&cont, &late, 1, &q);
+        assert!(changed);
+        for r in [&cont, &late] {
+            let m = Motion::after(r, &h, CYCLE_S);
+            assert!(
+                m.ddq[3].abs() <= l.ddq
+                    && ((m.ddq[3] - r.ddq[3]) / CYCLE_S).abs() <= l.dddq * (1.0 + 1e-6),
+                "{} rad/s², {} rad/s³",
+                m.ddq[3],
+                (m.ddq[3] - r.ddq[3]) / CYCLE_S
+            );
+        }
+        // a command that passes from both is left alone
+        let (same, changed) = g.hedge(&cont, &cont, 1, &q);
+        assert!(!changed && same == q);
+    }
 }
