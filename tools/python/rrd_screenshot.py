@@ -101,6 +101,11 @@ def main():
         print(f"rrd_screenshot: the viewer holds {len(paths)} entities, {held} chunk series, "
               f"joints/0/measured {'yes' if 'joints/0/measured' in paths else 'NO'}")
     except ConnectionError as e:
+        # a viewer that cannot render panics and exits, but not always before the failed
+        # request returns: give it a few seconds to be gone
+        deadline = time.monotonic() + 5.0
+        while viewer_alive(viewer) and time.monotonic() < deadline:
+            time.sleep(0.1)
         if viewer_alive(viewer):
             raise  # the viewer refused what this script asked: a fault here, not the machine's
         print(f"rrd_screenshot: the viewer exited ({e}); {why}", file=sys.stderr)
