@@ -533,6 +533,23 @@ impl Core {
                 }
             }
         }
+        // where the reference came from the robot's report (its derivatives, not a candidate's),
+        // the last lines end the way the robot moved: its position and the two before it that
+        // its reported velocity and acceleration imply, so that a replay takes the next answer
+        // against the same motion
+        if matches!(how, Reference::Corrected(_) | Reference::Adopted) {
+            if let Some(rec) = &mut self.record {
+                let n = rec.len();
+                let q1: [f64; JOINTS] = std::array::from_fn(|j| r.q[j] - r.dq[j] * CYCLE_S);
+                let q2: [f64; JOINTS] =
+                    std::array::from_fn(|j| q1[j] - (r.dq[j] - r.ddq[j] * CYCLE_S) * CYCLE_S);
+                for (back, q) in [r.q, q1, q2].iter().enumerate() {
+                    if let Some(line) = n.checked_sub(back + 1).and_then(|i| rec.get_mut(i)) {
+                        *line = *q;
+                    }
+                }
+            }
+        }
         let alt = if unapplied && self.sent_last {
             self.s.unapplied += 1;
             Some((self.last, e))
