@@ -600,39 +600,57 @@ fn lost_answers_on_a_stricter_robot_trip_no_reflex_and_the_controller_leads() {
         return;
     };
     let _one = serial();
-    let host = "127.0.0.34";
-    let ns = unique_namespace("fr3-drops");
-    let cfg = scripted_config("drops", "rtc", "");
-    let sim_g = strict_sim(&py, &model, host, "0.85");
-    let trace = std::env::temp_dir().join(format!("fr3_drops_{}.csv", std::process::id()));
-    let tr = trace.display().to_string();
-    let d = driver(
-        &ns,
-        host,
-        33.0,
-        &["--drop-answers", "0.01", "--drop-seed", "7", "--trace", &tr],
-    );
-    let c = controller(&ns, &cfg, "30");
-    let c_out = c.finish(Duration::from_secs(60));
-    let d_out = d.finish(Duration::from_secs(20));
-    let s_out = sim_g.terminate(Duration::from_secs(5));
-    let _ = std::fs::remove_file(&cfg);
-    println!("lost answers: the driver's trace: {tr}");
-    println!("{}", s_out.stdout.trim());
-    assert_eq!(c_out.code, Some(0), "{}", c_out.stderr);
-    assert_no_reflex("lost answers", &d_out, &s_out);
-    assert!(
-        drv(&d_out, "dropped") >= 150.0,
-        "too few answers withheld: {}",
-        d_out.stdout
-    );
-    assert_led("lost answers", &d_out);
-    let err = drv(&d_out, "controller_tracking_max");
-    assert!(
-        err < 0.05,
-        "the arm {err} rad from the controller's command"
-    );
-    let _ = std::fs::remove_file(trace);
+    // the answers withheld on purpose are the test; a run in which this machine also stalled
+    // the driver or the simulator (missed cycles, early states: the open point, BENCHMARKS §9)
+    // and that then failed runs once more, said loudly, by the rule of the other FR3 tests
+    for attempt in 0..2 {
+        let host = format!("127.0.{attempt}.34");
+        let ns = unique_namespace("fr3-drops");
+        let cfg = scripted_config("drops", "rtc", "");
+        let sim_g = strict_sim(&py, &model, &host, "0.85");
+        let trace = std::env::temp_dir().join(format!("fr3_drops_{}.csv", std::process::id()));
+        let tr = trace.display().to_string();
+        let d = driver(
+            &ns,
+            &host,
+            33.0,
+            &["--drop-answers", "0.01", "--drop-seed", "7", "--trace", &tr],
+        );
+        let c = controller(&ns, &cfg, "30");
+        let c_out = c.finish(Duration::from_secs(60));
+        let d_out = d.finish(Duration::from_secs(20));
+        let s_out = sim_g.terminate(Duration::from_secs(5));
+        let _ = std::fs::remove_file(&cfg);
+        println!("lost answers: the driver's trace: {tr}");
+        println!("{}", s_out.stdout.trim());
+        assert_eq!(c_out.code, Some(0), "{}", c_out.stderr);
+        let tripped = sim_reflexes(&s_out) + drv(&d_out, "reflexes") > 0.0;
+        let led = drv(&d_out, "led_share") >= 0.995 && drv(&d_out, "not_led_longest_ms") <= 50.0;
+        let why = if tripped {
+            Some("the robot tripped a reflex".to_string())
+        } else if !led {
+            Some("the controller did not lead".to_string())
+        } else {
+            None
+        };
+        if stalled_then_failed("lost answers", attempt, &d_out, why) {
+            continue;
+        }
+        assert_no_reflex("lost answers", &d_out, &s_out);
+        assert!(
+            drv(&d_out, "dropped") >= 150.0,
+            "too few answers withheld: {}",
+            d_out.stdout
+        );
+        assert_led("lost answers", &d_out);
+        let err = drv(&d_out, "controller_tracking_max");
+        assert!(
+            err < 0.05,
+            "the arm {err} rad from the controller's command"
+        );
+        let _ = std::fs::remove_file(trace);
+        break;
+    }
 }
 
 #[test]
