@@ -80,6 +80,10 @@ fn rust_constants() -> BTreeMap<String, u64> {
         ),
         ("JOINT_STATUS_ROBOT_ERROR", JOINT_STATUS_ROBOT_ERROR as u64),
         ("JOINT_STATUS_AT_REST", JOINT_STATUS_AT_REST as u64),
+        (
+            "JOINT_STATUS_NOT_FOLLOWING",
+            JOINT_STATUS_NOT_FOLLOWING as u64,
+        ),
         ("JOINT_STATUS_COMMAND_FAR", JOINT_STATUS_COMMAND_FAR as u64),
         ("COMMAND_MODE_POSITION", COMMAND_MODE_POSITION as u64),
         ("COMMAND_MODE_HOLD", COMMAND_MODE_HOLD as u64),
@@ -91,6 +95,10 @@ fn rust_constants() -> BTreeMap<String, u64> {
         ("CONTROLLER_STATE_RUNNING", CONTROLLER_STATE_RUNNING as u64),
         ("CONTROLLER_STATE_FAULT", CONTROLLER_STATE_FAULT as u64),
         ("CONTROLLER_STATE_STOPPED", CONTROLLER_STATE_STOPPED as u64),
+        (
+            "CONTROLLER_STATE_NOT_FOLLOWED",
+            CONTROLLER_STATE_NOT_FOLLOWED as u64,
+        ),
         ("REJECT_REASON_COUNT", REJECT_REASON_COUNT as u64),
         ("STATE_REASON_NONE", STATE_REASON_NONE as u64),
         ("STATE_REASON_INPUTS_GOOD", STATE_REASON_INPUTS_GOOD as u64),
@@ -131,6 +139,10 @@ fn rust_constants() -> BTreeMap<String, u64> {
             STATE_REASON_INFERENCE_ERROR as u64,
         ),
         ("STATE_REASON_NOT_OBEYED", STATE_REASON_NOT_OBEYED as u64),
+        (
+            "STATE_REASON_ROBOT_NOT_FOLLOWING",
+            STATE_REASON_ROBOT_NOT_FOLLOWING as u64,
+        ),
         ("REARM_NONE", REARM_NONE as u64),
         ("REARM_ACCEPTED", REARM_ACCEPTED as u64),
         (

@@ -16,7 +16,8 @@ use chunkrt_ipc::config::ControlClock;
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
     monotonic_ns, ControllerStatus, JointCommand, JointState, CONTROLLER_STATE_HOLD,
-    CONTROLLER_STATE_STARTING, CONTROLLER_STATE_STOPPED,
+    CONTROLLER_STATE_NOT_FOLLOWED, CONTROLLER_STATE_RUNNING, CONTROLLER_STATE_STARTING,
+    CONTROLLER_STATE_STOPPED,
 };
 
 use crate::control::Executor;
@@ -246,7 +247,17 @@ impl ControlLoop {
             });
             answered = true;
         }
-        let out = tick.tick(wake_ns, self.js.trusted(wake_ns), &mut self.cmd);
+        let js = self.js.trusted(wake_ns);
+        let not_following =
+            js.is_some_and(|s| s.status_flags & chunkrt_ipc::JOINT_STATUS_NOT_FOLLOWING != 0);
+        let mut out = tick.tick(wake_ns, js, &mut self.cmd);
+        if out.state == CONTROLLER_STATE_RUNNING && not_following {
+            // the robot receives the commands, but its driver's own fallback leads the arm:
+            // said as a state of its own (the executor goes on as RUNNING; the driver hands back
+            // when this controller's motion passes its limits again)
+            out.state = CONTROLLER_STATE_NOT_FOLLOWED;
+            out.reason = chunkrt_ipc::STATE_REASON_ROBOT_NOT_FOLLOWING;
+        }
         self.status.state_reason = out.reason;
         if out.publish {
             self.cmd.state_seq = newest_seq;
@@ -270,6 +281,15 @@ impl ControlLoop {
             }
         }
         if out.state != self.state {
+            if (out.state == CONTROLLER_STATE_NOT_FOLLOWED)
+                != (self.state == CONTROLLER_STATE_NOT_FOLLOWED)
+                && (out.state == CONTROLLER_STATE_RUNNING
+                    || out.state == CONTROLLER_STATE_NOT_FOLLOWED)
+            {
+                let _ = shared.events.push(crate::edge::EdgeEvent::Following {
+                    following: out.state == CONTROLLER_STATE_RUNNING,
+                });
+            }
             if out.state == CONTROLLER_STATE_HOLD {
                 shared.hold_entries.fetch_add(1, Ordering::Relaxed);
             }

@@ -191,6 +191,24 @@ impl Controller {
                         }
                     }
                 }
+                EdgeEvent::Following { following } => {
+                    let line = || {
+                        if following {
+                            "the robot follows this controller's commands again".to_string()
+                        } else {
+                            "NOT FOLLOWED: the robot's driver leads the arm, not this \
+                             controller's commands (state: not followed)"
+                                .to_string()
+                        }
+                    };
+                    if self.log_limit.admit("robot following", line, now) {
+                        if following {
+                            tracing::info!("{}", line());
+                        } else {
+                            tracing::warn!("{}", line());
+                        }
+                    }
+                }
                 EdgeEvent::PortError { source: s, publish } => {
                     let line = || {
                         format!(

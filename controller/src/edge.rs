@@ -91,6 +91,9 @@ pub enum EdgeEvent {
     PortError { source: Source, publish: bool },
     /// A re-arm request was answered (`REARM_*` result, `STATE_REASON_*` of a bad input).
     RearmAnswered { seq: u64, result: u32, reason: u32 },
+    /// The robot stopped (`following: false`) or resumed following this controller's commands
+    /// (`JOINT_STATUS_NOT_FOLLOWING` in its joint state) while the controller runs.
+    Following { following: bool },
 }
 
 /// Lock-free, fixed-capacity ring of events (a full ring drops the newest; the counters still

@@ -30,6 +30,11 @@ const HALF_CYCLE_NS: u64 = (CYCLE_S * 0.5e9) as u64;
 /// An answer ready this long after its state came (ns) misses the robot's cycle: withheld.
 const LATE_NS: u64 = 900_000;
 
+/// Fresh cycles in a row the guard's own generator led the arm before the joint state says the
+/// robot does not follow the controller (`JOINT_STATUS_NOT_FOLLOWING`; 10 ms: a lost cycle's
+/// recovery, 1-3 cycles, is not an episode).
+const NOT_FOLLOWING_CYCLES: u64 = 10;
+
 /// Command-line arguments.
 #[derive(Debug, Clone, clap::Args)]
 pub struct Args {
@@ -437,6 +442,7 @@ const TRACE_PATHS: [&str; 8] = [
 impl Core {
     /// A new motion starts from rest at the robot's position.
     fn begin_motion(&mut self, q: [f64; JOINTS]) {
+        self.not_led_run = 0;
         self.last = Motion::rest(q);
         self.reference = self.last;
         self.sent_last = true;
@@ -618,6 +624,10 @@ impl Core {
         if self.at_rest {
             // held still at its own command: a controller starts from here at rest
             flags |= JOINT_STATUS_AT_REST;
+        }
+        if self.not_led_run >= NOT_FOLLOWING_CYCLES {
+            // the guard's own generator has led the arm for a while: the controller says so
+            flags |= JOINT_STATUS_NOT_FOLLOWING;
         }
         let mut msg = JointState {
             seq,

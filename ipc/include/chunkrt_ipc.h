@@ -112,6 +112,8 @@ typedef struct CameraFrameHeader {
  *  acceleration are zero): a controller that starts from this state starts at rest, whatever the
  *  measured velocity's noise says. */
 #define CHUNKRT_JOINT_STATUS_AT_REST (1u << 8)
+/* the driver's own fallback leads the arm, not the controller's commands */
+#define CHUNKRT_JOINT_STATUS_NOT_FOLLOWING (1u << 9)
 
 /** Measured joint state published by the robot driver. */
 typedef struct JointState {
@@ -154,6 +156,7 @@ typedef struct JointCommand {
 #define CHUNKRT_CONTROLLER_STATE_RUNNING 2u
 #define CHUNKRT_CONTROLLER_STATE_FAULT 3u
 #define CHUNKRT_CONTROLLER_STATE_STOPPED 4u /* last status of a clean stop: session released */
+#define CHUNKRT_CONTROLLER_STATE_NOT_FOLLOWED 5u /* running; the robot's driver leads the arm */
 
 /* Rejection reasons: indices into ControllerStatus.rejected. */
 #define CHUNKRT_REJECT_REASON_COUNT 9
@@ -183,6 +186,7 @@ typedef struct JointCommand {
 #define CHUNKRT_STATE_REASON_REARM 12u
 #define CHUNKRT_STATE_REASON_INFERENCE_ERROR 13u
 #define CHUNKRT_STATE_REASON_NOT_OBEYED 14u
+#define CHUNKRT_STATE_REASON_ROBOT_NOT_FOLLOWING 15u
 
 /* The answer to re-arm request ControllerStatus.rearm_seq. */
 #define CHUNKRT_REARM_NONE 0u

@@ -66,6 +66,7 @@ JOINT_STATUS_SESSION_REPORTED = 1 << 5
 JOINT_STATUS_COMMAND_FAR = 1 << 6
 JOINT_STATUS_ROBOT_ERROR = 1 << 7
 JOINT_STATUS_AT_REST = 1 << 8
+JOINT_STATUS_NOT_FOLLOWING = 1 << 9  # the driver's own fallback leads the arm
 
 # ---- command modes --------------------------------------------------------------------------
 
@@ -79,7 +80,10 @@ CONTROLLER_STATE_HOLD = 1
 CONTROLLER_STATE_RUNNING = 2
 CONTROLLER_STATE_FAULT = 3
 CONTROLLER_STATE_STOPPED = 4  # last status of a clean stop: the session is released
-CONTROLLER_STATE_NAMES = {0: "starting", 1: "hold", 2: "running", 3: "fault", 4: "stopped"}
+CONTROLLER_STATE_NOT_FOLLOWED = 5  # running, but the robot's driver leads the arm
+CONTROLLER_STATE_NAMES = {
+    0: "starting", 1: "hold", 2: "running", 3: "fault", 4: "stopped", 5: "not followed"
+}
 
 # ---- why the controller is in its state (ControllerStatus.state_reason, .rearm_reason) --------
 
@@ -98,6 +102,7 @@ STATE_REASON_GENERATOR_ERROR = 11
 STATE_REASON_REARM = 12
 STATE_REASON_INFERENCE_ERROR = 13
 STATE_REASON_NOT_OBEYED = 14
+STATE_REASON_ROBOT_NOT_FOLLOWING = 15
 
 # ---- re-arm answers (ControllerStatus.rearm_result for request rearm_seq) ---------------------
 

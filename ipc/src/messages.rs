@@ -109,6 +109,11 @@ pub const JOINT_STATUS_ROBOT_ERROR: u32 = 1 << 7;
 /// measured velocity's noise says (franka-sim's joint 7: ±0.08 rad/s at rest). Unlike
 /// `JOINT_STATUS_HOLDING`, which a robot may report while its arm still settles.
 pub const JOINT_STATUS_AT_REST: u32 = 1 << 8;
+/// The robot does not follow the controller's commands although it receives them: the driver's
+/// own fallback leads the arm (the FR3 driver's guard after commands it could not pass within the
+/// robot's limits, for 10 or more cycles in a row). The controller then reports
+/// `CONTROLLER_STATE_NOT_FOLLOWED`, not RUNNING.
+pub const JOINT_STATUS_NOT_FOLLOWING: u32 = 1 << 9;
 
 /// Measured joint state published by the robot driver.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
@@ -243,6 +248,9 @@ pub const CONTROLLER_STATE_FAULT: u32 = 3;
 /// The controller's last status when it stops cleanly: the robot's session with it ends at
 /// once (a robot holds until the next controller's status binds it).
 pub const CONTROLLER_STATE_STOPPED: u32 = 4;
+/// Executing chunks, but the robot says its driver's own fallback leads the arm
+/// (`JOINT_STATUS_NOT_FOLLOWING`): the arm is not where this controller's commands put it.
+pub const CONTROLLER_STATE_NOT_FOLLOWED: u32 = 5;
 
 /// Name of a `CONTROLLER_STATE_*` code.
 pub const fn controller_state_name(state: u32) -> &'static str {
@@ -252,6 +260,7 @@ pub const fn controller_state_name(state: u32) -> &'static str {
         CONTROLLER_STATE_RUNNING => "running",
         CONTROLLER_STATE_FAULT => "fault",
         CONTROLLER_STATE_STOPPED => "stopped",
+        CONTROLLER_STATE_NOT_FOLLOWED => "not followed",
         _ => "unknown",
     }
 }
@@ -288,6 +297,9 @@ pub const STATE_REASON_INFERENCE_ERROR: u32 = 13;
 /// The robot obeys another command publisher (its joint state names the session it is bound
 /// to), or none yet: this controller's commands are not applied.
 pub const STATE_REASON_NOT_OBEYED: u32 = 14;
+/// The robot receives this controller's commands but its driver's own fallback leads the arm
+/// (`JOINT_STATUS_NOT_FOLLOWING`).
+pub const STATE_REASON_ROBOT_NOT_FOLLOWING: u32 = 15;
 
 /// Text of a `STATE_REASON_*` code.
 pub const fn state_reason_name(code: u32) -> &'static str {
@@ -307,6 +319,7 @@ pub const fn state_reason_name(code: u32) -> &'static str {
         STATE_REASON_REARM => "re-armed",
         STATE_REASON_INFERENCE_ERROR => "the chunk source failed",
         STATE_REASON_NOT_OBEYED => "the robot does not obey this controller",
+        STATE_REASON_ROBOT_NOT_FOLLOWING => "the robot's driver leads the arm, not this controller",
         _ => "unknown",
     }
 }
