@@ -359,6 +359,17 @@ fn droid_once(
     model: &str,
     host: &str,
 ) -> (Finished, Finished, Finished, Finished, Finished) {
+    droid_run(py, model, host, &["--mode", "random"], &[])
+}
+
+/// One run of openpi's server (the scripted DROID test double, `mode`) driving the FR3.
+fn droid_run(
+    py: &str,
+    model: &str,
+    host: &str,
+    mode: &[&str],
+    driver_extra: &[&str],
+) -> (Finished, Finished, Finished, Finished, Finished) {
     let ns = unique_namespace("fr3-droid");
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
@@ -366,21 +377,12 @@ fn droid_once(
         .unwrap()
         .port();
     let port_s = port.to_string();
-    let server = ChildGuard::spawn(
-        "python3",
-        &[
-            &format!("{ROOT}/tools/python/droid_scripted.py"),
-            "--port",
-            &port_s,
-            "--mode",
-            "random",
-            "--latency-ms",
-            "80",
-        ],
-    )
-    .unwrap();
+    let script = format!("{ROOT}/tools/python/droid_scripted.py");
+    let mut server_args = vec![script.as_str(), "--port", &port_s, "--latency-ms", "80"];
+    server_args.extend_from_slice(mode);
+    let server = ChildGuard::spawn("python3", &server_args).unwrap();
     let sim_g = sim(py, model, host, true);
-    let d = driver(&ns, host, 18.0, &[]);
+    let d = driver(&ns, host, 18.0, driver_extra);
     let cfg = format!("{ROOT}/config/franka_fr3.toml");
     let camera = ChildGuard::spawn(
         py,
@@ -418,6 +420,62 @@ fn droid_once(
     let srv_out = server.terminate(Duration::from_secs(5));
     let s_out = sim_g.terminate(Duration::from_secs(5));
     (c_out, d_out, cam_out, srv_out, s_out)
+}
+
+#[test]
+fn droid_chunks_that_drive_every_joint_to_minus_1_and_plus_1_stop_before_the_robots_reflex() {
+    // The arm's geometry (issue: nothing in chunkrt knew it; every DROID velocity at -1 folded
+    // the arm into itself until franka-sim's `self_collision_avoidance_violation`): openpi's
+    // server answering every joint velocity at -1, then at +1, for 13 s each. The driver
+    // refuses each command whose stop would fold links closer than its clearance or take the
+    // flange or the hand out of the workspace box, and brakes: no reflex of any kind.
+    let Some((py, model)) = franka_env("franka_sim: droid -1 / +1") else {
+        return;
+    };
+    if !python::python_can_import(
+        "import openpi_server, numpy",
+        "franka_sim: droid -1 / +1",
+        ".ci/run installs openpi-server",
+    ) {
+        return;
+    }
+    let _one = serial();
+    let mut refused = 0.0;
+    for (i, value) in ["-1", "1"].into_iter().enumerate() {
+        let host = format!("127.0.0.{}", 37 + i);
+        let what = format!("droid all {value}");
+        let trace =
+            std::env::temp_dir().join(format!("fr3_droid{value}_{}.csv", std::process::id()));
+        let tr = trace.display().to_string();
+        let (c_out, d_out, _cam, _srv, s_out) = droid_run(
+            &py,
+            &model,
+            &host,
+            &["--mode", "constant", "--value", value],
+            &["--trace", &tr],
+        );
+        println!("{what}: the driver's trace: {tr}");
+        assert_eq!(c_out.code, Some(0), "{what}: {}", c_out.stderr);
+        assert_no_reflex(&what, &d_out, &s_out);
+        let line = d_out
+            .stdout
+            .lines()
+            .find(|l| l.starts_with("franka summary"))
+            .unwrap_or("");
+        let limit = line
+            .split_whitespace()
+            .find(|w| w.starts_with("workspace_limit="))
+            .unwrap_or("");
+        println!(
+            "{what}: refused {} ({limit})",
+            drv(&d_out, "workspace_refused")
+        );
+        refused += drv(&d_out, "workspace_refused");
+    }
+    assert!(
+        refused > 0.0,
+        "no command was refused for the arm's geometry: the test did not reach it"
+    );
 }
 
 #[test]

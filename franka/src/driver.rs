@@ -72,6 +72,22 @@ pub struct Args {
     /// an unguarded command stream. For tests; never on a real arm.
     #[arg(long)]
     pub no_guard: bool,
+    /// The box (base frame, m: "xmin,ymin,zmin,xmax,ymax,zmax") the flange and the hand's tip
+    /// are held within: a command whose stop would leave it is refused and the arm braked
+    /// before the robot's own reflex. The default keeps them above the base's plane.
+    #[arg(
+        long,
+        value_name = "M,M,M,M,M,M",
+        default_value = "-0.9,-0.9,0.05,0.9,0.9,1.3"
+    )]
+    pub workspace_box: String,
+    /// The hand past the flange along its axis (m; 0.1034: the Franka Hand's fingertips).
+    #[arg(long, value_name = "M", default_value_t = 0.1034)]
+    pub hand_length: f64,
+    /// Clearance kept between links that can meet (m), past the driver's own capsules around
+    /// them (`franka/src/geometry.rs`): a command that would fold the arm closer is refused.
+    #[arg(long, value_name = "M", default_value_t = 0.05)]
+    pub link_clearance: f64,
     /// Real-time scheduling of the FCI thread: `enforce` (a real arm: a PREEMPT_RT kernel and
     /// SCHED_FIFO are required) or `ignore` (a simulator on an ordinary kernel).
     #[arg(long, value_enum, default_value_t = Realtime::Enforce)]
@@ -225,6 +241,11 @@ pub struct Summary {
     pub not_led_longest_ms: u64,
     /// |measured - the controller's command| over fresh cycles (rad): p99 and max.
     pub controller_tracking: [f64; 2],
+    /// Fresh cycles whose command was refused for the arm's geometry (its stop would leave the
+    /// workspace box or bring links closer than the clearance): the arm braked instead.
+    pub workspace_refused: u64,
+    /// The last limit a refused command ran into.
+    pub workspace_limit: Option<crate::geometry::Limit>,
 }
 
 impl std::fmt::Display for Summary {
@@ -240,7 +261,8 @@ impl std::fmt::Display for Summary {
              dropped={} withheld_late={} short_continued={} unapplied={} late_applied={} \
              hedged={} reference_exact={} reference_corrected={} \
              reference_adopted={} reference_kept={} reference_stale={} led_share={:.5} not_led_longest_ms={} \
-             controller_tracking_p99={:.5} controller_tracking_max={:.5} reflex_errors={}",
+             controller_tracking_p99={:.5} controller_tracking_max={:.5} workspace_refused={} \
+             workspace_limit={} reflex_errors={}",
             self.cycles,
             self.states_published,
             self.fresh,
@@ -298,6 +320,9 @@ impl std::fmt::Display for Summary {
             self.not_led_longest_ms,
             self.controller_tracking[0],
             self.controller_tracking[1],
+            self.workspace_refused,
+            self.workspace_limit
+                .map_or("none".to_string(), |l| l.to_string().replace(' ', "_")),
             if self.reflex_errors.is_empty() {
                 "none"
             } else {
@@ -308,6 +333,40 @@ impl std::fmt::Display for Summary {
 }
 
 /// Connects to the FR3 at `addr` and checks that it is one (FCI version 10).
+/// The workspace of `--workspace-box`, `--hand-length` and `--link-clearance`, checked.
+fn workspace(args: &Args) -> anyhow::Result<crate::geometry::Workspace> {
+    let v: Vec<f64> = args
+        .workspace_box
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| anyhow::anyhow!("--workspace-box {:?}: {e}", args.workspace_box))?;
+    anyhow::ensure!(
+        v.len() == 6
+            && v.iter().all(|x| x.is_finite() && x.abs() <= 3.0)
+            && (0..3).all(|i| v[i] + 0.1 <= v[i + 3]),
+        "--workspace-box {:?}: six numbers xmin,ymin,zmin,xmax,ymax,zmax (m, within 3 m of the \
+         base, each max at least 0.1 above its min)",
+        args.workspace_box
+    );
+    anyhow::ensure!(
+        args.hand_length.is_finite() && (0.0..=0.5).contains(&args.hand_length),
+        "--hand-length {}: must be within 0..=0.5 m",
+        args.hand_length
+    );
+    anyhow::ensure!(
+        args.link_clearance.is_finite() && (0.0..=0.2).contains(&args.link_clearance),
+        "--link-clearance {}: must be within 0..=0.2 m",
+        args.link_clearance
+    );
+    Ok(crate::geometry::Workspace {
+        min: [v[0], v[1], v[2]],
+        max: [v[3], v[4], v[5]],
+        hand_length: args.hand_length,
+        clearance: args.link_clearance,
+    })
+}
+
 fn connect(addr: &str, realtime: RealtimeConfig) -> anyhow::Result<Robot> {
     let robot = Robot::new(addr, realtime).map_err(|e| {
         anyhow::anyhow!(
@@ -381,7 +440,9 @@ struct Core {
     last_state_ns: u64,
     extrapolate_cycles: u32,
     no_guard: bool,
+    workspace: crate::geometry::Workspace,
     clamped_last: bool,
+    refused_last: bool,
     /// The last cycle was the driver's own stop or hold (brake, rest): the state says HOLDING.
     holding: bool,
     /// The last cycle held the arm at rest at the driver's own command: AT_REST.
@@ -428,7 +489,7 @@ struct TraceRow {
 const TRACE_NOTES: [&str; 5] = ["withheld", "unapplied", "hedged", "reported", "reflex"];
 
 /// `TraceRow::path` names (0..=3: the guard's own paths).
-const TRACE_PATHS: [&str; 8] = [
+const TRACE_PATHS: [&str; 9] = [
     "pass",
     "offset",
     "restart",
@@ -437,9 +498,39 @@ const TRACE_PATHS: [&str; 8] = [
     "brake",
     "rest",
     "unguarded",
+    "workspace",
 ];
 
+/// The joints' deceleration the stop is predicted with (rad/s²): the guard's own brake plans at
+/// 0.7 of its limits (0.83 of the FR3's 10 rad/s²: 5.8).
+const STOP_DECEL: f64 = 5.0;
+/// Time the stop takes to start (s): the brake's jerk-limited ramp, and a cycle.
+const STOP_DELAY_S: f64 = 0.004;
+
 impl Core {
+    /// Whether the stop of `next` (each joint braked at `STOP_DECEL` from its velocity) lies
+    /// inside a limit of the workspace, further in than the arm's reference is now (a pose
+    /// already inside may move out, never deeper, limit by limit).
+    fn beyond_workspace(&mut self, next: &Motion) -> bool {
+        let mut stop = next.q;
+        for (j, q) in stop.iter_mut().enumerate() {
+            let v = next.dq[j];
+            *q += v * v.abs() / (2.0 * STOP_DECEL) + v * STOP_DELAY_S;
+        }
+        let at_stop = self.workspace.margins(&stop);
+        if at_stop.iter().all(|&m| m >= 0.0) {
+            return false;
+        }
+        let now = self.workspace.margins(&self.reference.q);
+        for k in 0..at_stop.len() {
+            if at_stop[k] < 0.0 && at_stop[k] < now[k] - 1e-9 {
+                self.s.workspace_limit = Some(crate::geometry::Workspace::limit(k));
+                return true;
+            }
+        }
+        false
+    }
+
     /// A new motion starts from rest at the robot's position.
     fn begin_motion(&mut self, q: [f64; JOINTS]) {
         self.not_led_run = 0;
@@ -617,6 +708,10 @@ impl Core {
         if self.clamped_last {
             flags |= JOINT_STATUS_LIMIT_CLAMPED;
         }
+        if self.refused_last {
+            // the last command was refused for the arm's geometry (the arm braked)
+            flags |= JOINT_STATUS_COMMAND_REJECTED;
+        }
         if self.holding {
             // the driver's own stop or hold, no controller's motion
             flags |= JOINT_STATUS_HOLDING;
@@ -756,6 +851,16 @@ impl Core {
             }
             _ => next,
         };
+        // the arm's geometry: a command whose stop (braking from its velocity) would leave the
+        // workspace box or fold links closer than the clearance, further than the arm is now,
+        // is refused and the arm braked (a pose already inside may move out)
+        let (next, path) = if path <= 3 && !self.no_guard && self.beyond_workspace(&next) {
+            self.s.workspace_refused += 1;
+            (self.guard.brake(&self.reference).0, 8)
+        } else {
+            (next, path)
+        };
+        self.refused_last = path == 8;
         if desired.0[0].is_finite() {
             // a fresh command: who led, and how far the arm is from the controller's command
             let led = path <= 2;
@@ -891,6 +996,7 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         "--limit-margin {}: must be within 0.1..=1",
         args.limit_margin
     );
+    let workspace = workspace(args)?;
     anyhow::ensure!(
         args.max_reflexes >= 1
             && args.reflex_window_s.is_finite()
@@ -1081,7 +1187,9 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         last_state_ns: 0,
         extrapolate_cycles: args.extrapolate_cycles,
         no_guard: args.no_guard,
+        workspace,
         clamped_last: false,
+        refused_last: false,
         holding: true,
         at_rest: true,
         motion_cycles: 0,

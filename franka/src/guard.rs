@@ -185,6 +185,11 @@ pub struct GuardLimits {
 
 /// Positions the generator keeps inside the envelope's limits (rad).
 const GENERATOR_POSITION_MARGIN: f64 = 0.15;
+/// Room kept below the robot's velocity envelope near a position limit (rad/s): the robot judges
+/// the arm's *measured* velocity against it, and the arm runs up to 0.15 rad/s past the
+/// commanded one when a joint brakes along the envelope at speed under gravity (franka-sim:
+/// `joint_velocity_violation`, joint 2 at 1.35 rad/s against 1.20, DROID's all -1).
+const ENVELOPE_TRACKING: f64 = 0.25;
 /// Fraction of the robot's acceleration and jerk the generator plans with.
 const GENERATOR_MARGIN: f64 = 0.7;
 
@@ -214,7 +219,7 @@ impl GuardLimits {
         let room = (2.0 * ENVELOPE_DECEL[j].min(0.6 * self.ddq) * (self.q_max[j] - q))
             .max(0.0)
             .sqrt();
-        self.dq[j].min((room - ENVELOPE_OFFSET[j]).max(0.0)) - ENVELOPE_EPS
+        self.dq[j].min((room - ENVELOPE_OFFSET[j] - ENVELOPE_TRACKING).max(0.0)) - ENVELOPE_EPS
     }
 
     /// The envelope's lowest velocity at `q` against this range (rad/s).
@@ -222,7 +227,7 @@ impl GuardLimits {
         let room = (2.0 * ENVELOPE_DECEL[j].min(0.6 * self.ddq) * (q - self.q_min[j]))
             .max(0.0)
             .sqrt();
-        (-self.dq[j]).max((ENVELOPE_OFFSET[j] - room).min(0.0)) + ENVELOPE_EPS
+        (-self.dq[j]).max((ENVELOPE_OFFSET[j] + ENVELOPE_TRACKING - room).min(0.0)) + ENVELOPE_EPS
     }
 
     /// How fast the envelope's upper bound closes (rad/s²) for joint `j` at `q` moving at `v`
@@ -230,7 +235,7 @@ impl GuardLimits {
     fn closing(&self, j: usize, q: f64, v: f64) -> (f64, f64) {
         let d = ENVELOPE_DECEL[j].min(0.6 * self.ddq);
         let rate = |room: f64, speed: f64| {
-            if speed <= 0.0 || room - ENVELOPE_OFFSET[j] >= self.dq[j] {
+            if speed <= 0.0 || room - ENVELOPE_OFFSET[j] - ENVELOPE_TRACKING >= self.dq[j] {
                 0.0
             } else {
                 d * speed / room.max(1e-3)

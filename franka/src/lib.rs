@@ -20,6 +20,7 @@
 //! is driven from the gripper channel on its own connection and thread, at its own pace.
 
 pub mod driver;
+pub mod geometry;
 pub mod guard;
 pub mod limits;
 

@@ -12,6 +12,9 @@ pi05_droid server would shape them: it checks the observation a DROID client sen
                      (what DROID's robot environment integrates: target = q + 0.2 v per step),
                      the gripper closing and opening every few chunks (the demo's source)
   --mode random      random velocities in [-1, 1] and a random gripper (the hostile test)
+  --mode constant    every joint velocity at --value (-1 or +1: the arm driven into its own
+                     joint limits, its links or the floor; the driver's geometry test), the
+                     opposite after --flip-after requests (a policy that turns back)
 
 Every answer waits --latency-ms first (a GPU server's inference time). Prints one line per 50
 requests and, on SIGTERM / SIGINT, "droid-scripted summary: requests=N bad=N".
@@ -37,8 +40,9 @@ MAX_JOINT_DELTA = 0.2
 
 
 class ScriptedDroidPolicy:
-    def __init__(self, mode, horizon, latency_s, seed):
-        self.mode, self.horizon, self.latency_s = mode, horizon, latency_s
+    def __init__(self, mode, horizon, latency_s, seed, value=0.0, flip_after=0):
+        self.mode, self.horizon, self.latency_s, self.value = mode, horizon, latency_s, value
+        self.flip_after = flip_after
         self.rng = np.random.default_rng(seed)
         self.home = None
         self.requests = self.bad = 0
@@ -73,7 +77,11 @@ class ScriptedDroidPolicy:
                 self.home = q.copy()
             h = self.horizon
             actions = np.zeros((h, 8), dtype=np.float32)
-            if self.mode == "random":
+            if self.mode == "constant":
+                flipped = self.flip_after and n > self.flip_after
+                actions[:, :7] = -self.value if flipped else self.value
+                actions[:, 7] = 0.0
+            elif self.mode == "random":
                 actions[:, :7] = self.rng.uniform(-1.0, 1.0, size=(h, 7))
                 actions[:, 7] = self.rng.uniform(0.0, 1.0)
             else:
@@ -95,14 +103,19 @@ class ScriptedDroidPolicy:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--port", type=int, required=True)
-    ap.add_argument("--mode", choices=["waypoints", "random"], default="waypoints")
+    ap.add_argument("--mode", choices=["waypoints", "random", "constant"], default="waypoints")
     ap.add_argument("--horizon", type=int, default=15, help="actions per chunk (pi05_droid: 15)")
     ap.add_argument("--latency-ms", type=float, default=60.0)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--value", type=float, default=-1.0,
+                    help="--mode constant: every joint velocity (DROID's normalised, in [-1, 1])")
+    ap.add_argument("--flip-after", type=int, default=0,
+                    help="--mode constant: after this many requests, the opposite velocity (0: never)")
     args = ap.parse_args()
     from openpi_server import WebsocketPolicyServer
 
-    policy = ScriptedDroidPolicy(args.mode, args.horizon, args.latency_ms / 1e3, args.seed)
+    policy = ScriptedDroidPolicy(args.mode, args.horizon, args.latency_ms / 1e3, args.seed, args.value,
+                                 args.flip_after)
 
     def stop(*_):
         print(f"droid-scripted summary: requests={policy.requests} bad={policy.bad}", flush=True)
