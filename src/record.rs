@@ -28,7 +28,8 @@ pub struct RecordArgs {
     /// Seconds to record (0: until Ctrl-C / SIGTERM).
     #[arg(long, default_value_t = 0.0)]
     pub duration: f64,
-    /// Megabytes of data to record at most (then the recorder says so and records no more).
+    /// Megabytes to write at most, everything written counted (then the recorder says so and
+    /// records no more).
     #[arg(long, value_name = "MB", default_value_t = 500.0)]
     pub max_mb: f64,
 }

@@ -91,12 +91,42 @@ fn a_run_is_recorded_and_rerun_reads_it_back() {
             "reach the red target",
         ],
     );
+    // a forger on the chunk service, from a process of its own, during the run: a chunk at
+    // 2^63 ns and past, then 3 s of tiny chunks whose ids go down (500 a second); the recorder
+    // records none of them and keeps recording the controller's (issue 54 §4)
+    std::thread::sleep(Duration::from_secs(1));
+    let forger = ChildGuard::spawn(
+        &py,
+        &[
+            &format!("{ROOT}/tests/python/record_forger.py"),
+            &ns,
+            "3",
+            "500",
+        ],
+    )
+    .expect("start the forger");
     let c_out = ctl.finish(Duration::from_secs(60));
     assert_eq!(c_out.code, Some(0), "{}", c_out.stderr);
+    let f_out = forger.finish(Duration::from_secs(30));
+    println!("forger: {}", f_out.stdout.trim());
+    assert_eq!(f_out.code, Some(0), "{}\n{}", f_out.stdout, f_out.stderr);
     std::thread::sleep(Duration::from_millis(500));
     let r_out = recorder.terminate(Duration::from_secs(30));
     println!("recorder: {}", r_out.stdout.trim());
     assert_eq!(r_out.code, Some(0), "{}\n{}", r_out.stdout, r_out.stderr);
+    let forged = summary_value(&f_out.stdout, "sent").expect(&f_out.stdout);
+    let foreign = summary_value(&r_out.stdout, "foreign").unwrap_or(0.0);
+    assert!(
+        forged >= 100.0 && foreign >= 100.0,
+        "the forger sent {forged} chunks, the recorder counted {foreign} foreign messages\n{}",
+        r_out.stderr
+    );
+    assert_eq!(
+        summary_value(&r_out.stdout, "errors"),
+        Some(0.0),
+        "{}",
+        r_out.stderr
+    );
     let chunks = summary_value(&c_out.stdout, "chunks")
         .or_else(|| summary_value(&c_out.stderr, "chunks"))
         .unwrap_or_else(|| panic!("no chunks= in the controller's summary:\n{}", c_out.stdout));
@@ -219,4 +249,86 @@ fn a_run_is_recorded_and_rerun_reads_it_back() {
         assert!(held.ends_with("joints/0/measured yes"), "{held}");
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The recorder fed hostile messages in-process (tests/python/record_validates.py): chunks
+/// that break the contract (times at 2^63 and past, a period of 2^63, no rows, 4e9 joints,
+/// NaN, from the future) are counted and dropped, not a crash; a chunk from another process
+/// is not recorded; a flood of tiny chunks with ids going down and 40 000 statuses stays under
+/// `--max-mb` (everything written counts) and under the bound on chunk series, and the file
+/// reads back. On the recorder of acdf275 (before): four crashes (`OverflowError`), 13.2 MB
+/// under `--max-mb 1`, 6 010 entity paths.
+#[test]
+fn the_recorder_validates_what_it_reads() {
+    let Some(py) = rerun_python("record_rerun (validation)") else {
+        return;
+    };
+    let dir = std::env::temp_dir().join(format!("chunkrt-record-valid-{}", std::process::id()));
+    let out = std::process::Command::new(&py)
+        .arg(format!("{ROOT}/tests/python/record_validates.py"))
+        .arg(&dir)
+        .output()
+        .expect("run record_validates.py");
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    println!("{text}");
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(
+        out.status.success() && text.trim_end().ends_with("ok"),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// On a machine with no Vulkan driver (made so here: `VK_DRIVER_FILES` names no file) the
+/// screenshot tool says so and exits with its own status 3, with no backtrace (before: the
+/// viewer's panic and its stack on stderr).
+#[test]
+fn the_screenshot_without_vulkan_exits_3_without_a_backtrace() {
+    let Some(py) = rerun_python("record_rerun (screenshot without Vulkan)") else {
+        return;
+    };
+    let dir = std::env::temp_dir().join(format!("chunkrt-shot-novk-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let rrd = dir.join("two.rrd");
+    // two chunks of joint 0: something to screenshot
+    let make = std::process::Command::new(&py)
+        .args([
+            "-c",
+            "import sys, numpy as np, rerun as rr\n\
+             rr.init('chunkrt', spawn=False); rr.save(sys.argv[1])\n\
+             for k in range(2):\n\
+             \x20   t = (np.arange(5) * 20_000_000 + k * 50_000_000) * 1e-9\n\
+             \x20   rr.send_columns(f'joints/0/chunks/{k + 1}', indexes=[rr.TimeColumn('robot_time', duration=t)], columns=rr.Scalars.columns(scalars=np.arange(5.0)))\n\
+             rr.disconnect()",
+        ])
+        .arg(&rrd)
+        .output()
+        .expect("make a recording");
+    assert!(
+        make.status.success(),
+        "{}",
+        String::from_utf8_lossy(&make.stderr)
+    );
+    let none = dir.join("no-such-icd.json");
+    let view = std::process::Command::new(&py)
+        .arg(format!("{ROOT}/tools/python/rrd_screenshot.py"))
+        .arg(&rrd)
+        .arg(dir.join("shot.png"))
+        .args(["--settle", "1"])
+        .env("VK_DRIVER_FILES", &none)
+        .env("VK_ICD_FILENAMES", &none)
+        .output()
+        .expect("run rrd_screenshot.py");
+    let said = format!(
+        "{}{}",
+        String::from_utf8_lossy(&view.stdout),
+        String::from_utf8_lossy(&view.stderr)
+    );
+    println!("{said}");
+    let _ = std::fs::remove_dir_all(&dir);
+    assert_eq!(view.status.code(), Some(3), "{said}");
+    for bad in ["Traceback", "panicked", "stack backtrace"] {
+        assert!(!said.contains(bad), "'{bad}' in what it said:\n{said}");
+    }
+    assert!(said.contains("rrd_screenshot: no Vulkan driver"), "{said}");
 }

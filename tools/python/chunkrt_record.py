@@ -22,9 +22,23 @@ The file carries a default layout (a Rerun blueprint): joints 0 and 1 with their
 measured and target positions and the predicted chunks overlaid, the cameras, the controller's
 state and the logs.
 
-Bounded: it stops writing data (and says so) past ``--max-mb`` megabytes of payload, and ends
-cleanly on SIGINT / SIGTERM or after ``--duration`` seconds. Open the file with the viewer of the
-same rerun-sdk: ``rerun run.rrd``.
+It validates what it reads as the controller validates its inputs: every time below 2^63 and
+at most a second ahead of this machine's CLOCK_MONOTONIC, joint counts and horizons within the
+contract, finite values, sequence numbers that rise per publisher; a message that fails is counted
+(``rejected=`` in the summary, a line on stderr at most every 10 s) and not written, and an error
+in handling one message loses that message only (``errors=``). It takes the controller's messages
+from the controller only, bound as a robot binds a session (``chunkrt_ipc::SessionGate``): the
+first status publisher (another may bind after 1 s of its silence or its STOPPED status), the
+command publisher that status announces, and chunks only from publishers in that controller's
+process; the joint states from the first robot publisher (rebound after 1 s of silence). What
+others publish is counted (``foreign=``) and not written.
+
+Bounded: every byte it writes counts against ``--max-mb`` (samples, log lines, images, and
+Rerun's own overhead per call, about 1.2 kB, held against the file's size on disk); past it, it
+stops writing (and says so). At most ``--max-chunk-series`` predicted-chunk series (one per
+chunk and joint) are written, after which a chunk gets its log line only. It ends cleanly on
+SIGINT / SIGTERM or after ``--duration`` seconds. Open the file with the viewer of the same
+rerun-sdk: ``rerun run.rrd``.
 
     python3 tools/python/chunkrt_record.py --namespace NS --out run.rrd [--cameras a,b]
 """
@@ -63,9 +77,146 @@ def secs(ns):
     return np.asarray(ns, dtype=np.float64) * 1e-9
 
 
+#: a message time at or past 2^63 ns is invalid (as the controller holds it: i64 nanoseconds)
+TIME_LIMIT_NS = 1 << 63
+#: how far ahead of this machine's clock a message time may be (the controller's 1 s allowance)
+MAX_FUTURE_NS = 1_000_000_000
+#: time between a chunk's actions, at most (ns)
+MAX_PERIOD_NS = 1_000_000_000
+#: how far after its observation a chunk's first action may be (ns)
+MAX_START_SHIFT_NS = 10_000_000_000
+#: status (or joint state) silence after which another publisher may bind (ns)
+REBIND_NS = 1_000_000_000
+#: what Rerun writes per call besides the data (measured on rerun-sdk 0.41: 1.1–1.6 kB per
+#: ``send_columns`` call into a file), charged against ``--max-mb``
+CALL_BYTES = 1600
+#: chunks held while no controller is bound yet (the first chunk can precede the first status)
+PENDING_CHUNKS = 16
+#: image sizes accepted (pixels per side)
+MAX_IMAGE_SIDE = 8192
+
+
+class Invalid(Exception):
+    """A message that fails validation: counted under ``reason`` and not written."""
+
+    def __init__(self, reason, text):
+        super().__init__(text)
+        self.reason = reason
+
+
+def now_ns():
+    """CLOCK_MONOTONIC, the clock every chunkrt message is stamped with."""
+    return time.monotonic_ns()
+
+
+def check_time(field, t, now):
+    if t >= TIME_LIMIT_NS:
+        raise Invalid("time", f"{field} {t} is not below 2^63")
+    if t > now + MAX_FUTURE_NS:
+        raise Invalid("from_future", f"{field} {t} is {(t - now) / 1e9:.3f} s ahead of this clock")
+
+
+def check_n(field, n, most):
+    if n < 1 or n > most:
+        raise Invalid("n_dof", f"{field} {n} is not in 1..{most}")
+    return n
+
+
+def check_finite(field, values):
+    v = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(v)):
+        raise Invalid("non_finite", f"{field} is not finite")
+
+
+def validate_joint_state(js, now):
+    n = check_n("n_dof", js.n_dof, c.MAX_DOF)
+    check_time("measurement_time_ns", js.measurement_time_ns, now)
+    for f in ("position", "velocity", "effort"):
+        check_finite(f, list(getattr(js, f))[:n])
+    return n
+
+
+def validate_command(cmd, now):
+    n = check_n("n_dof", cmd.n_dof, c.MAX_DOF)
+    if cmd.mode not in (c.COMMAND_MODE_POSITION, c.COMMAND_MODE_HOLD):
+        raise Invalid("mode", f"mode {cmd.mode} is unknown")
+    check_time("publish_time_ns", cmd.publish_time_ns, now)
+    for f in ("position", "velocity", "acceleration"):
+        check_finite(f, list(getattr(cmd, f))[:n])
+    return n
+
+
+def validate_status(st, now):
+    check_time("publish_time_ns", st.publish_time_ns, now)
+    if st.n_dof > c.MAX_DOF:
+        raise Invalid("n_dof", f"n_dof {st.n_dof} is not in 0..{c.MAX_DOF}")
+
+
+def validate_chunk(m, now):
+    """The chunk's rows and columns used, its first action's time and its period, or Invalid."""
+    h = check_n("horizon", m.horizon, c.MAX_CHUNK_HORIZON)
+    n = check_n("n_dof", m.n_dof, c.MAX_DOF)
+    if m.chunk_id == 0:
+        raise Invalid("other", "chunk id 0")
+    if m.reserved != 0:
+        raise Invalid("other", f"reserved {m.reserved} is not zero")
+    for f in ("publish_time_ns", "observation_time_ns", "ready_time_ns"):
+        check_time(f, getattr(m, f), now)
+    if m.ready_time_ns < m.observation_time_ns:
+        raise Invalid("time", "ready before its observation")
+    if not 1 <= m.period_ns <= MAX_PERIOD_NS:
+        raise Invalid("time", f"period_ns {m.period_ns} is not in 1..{MAX_PERIOD_NS}")
+    if m.start_shift_ns > MAX_START_SHIFT_NS:
+        raise Invalid("time", f"start_shift_ns {m.start_shift_ns} is over {MAX_START_SHIFT_NS}")
+    a = np.ctypeslib.as_array(m.actions)[:h, :n]
+    if not np.all(np.isfinite(a)):
+        raise Invalid("non_finite", "actions are not finite")
+    return h, n, m.observation_time_ns + m.start_shift_ns, m.period_ns
+
+
+def validate_frame(header, size, now):
+    check_time("capture_time_ns", header.capture_time_ns, now)
+    channels = c.BYTES_PER_PIXEL.get(header.encoding)
+    if channels is None:
+        raise Invalid("frame", f"encoding {header.encoding} is unknown")
+    h, w = header.height, header.width
+    if not (1 <= h <= MAX_IMAGE_SIDE and 1 <= w <= MAX_IMAGE_SIDE):
+        raise Invalid("frame", f"{w} x {h} pixels")
+    if header.stride < w * channels or size < header.stride * h:
+        raise Invalid("frame", f"stride {header.stride} / {size} bytes for {w} x {h}")
+    return h, w, channels
+
+
+class Stream:
+    """One publisher's stream, as the controller's ``StreamGuard``: the first publisher binds,
+    another may bind after ``REBIND_NS`` of its silence; seq rises, times do not go back."""
+
+    def __init__(self):
+        self.origin = None
+        self.last_seen = 0
+        self.seq = None
+        self.time = 0
+
+    def check(self, origin, seq, t, now):
+        if self.origin is not None and origin != self.origin and now - self.last_seen < REBIND_NS:
+            raise Invalid("foreign", f"publisher {origin:#x} is not the bound one")
+        if origin != self.origin:
+            self.origin, self.seq, self.time = origin, None, 0
+        if self.seq is not None and seq <= self.seq:
+            raise Invalid("out_of_order", f"seq {seq} after {self.seq}")
+        if t < self.time:
+            raise Invalid("out_of_order", f"time {t} before {self.time}")
+        self.last_seen = now
+        self.seq = seq
+        self.time = t
+
+    def release(self):
+        self.origin = None
+
+
 class Columns:
     """Scalars gathered per entity and sent in batches (``rr.send_columns``): one call per
-    entity every flush, not one per sample."""
+    entity every flush, not one per sample. ``bytes`` is everything the recorder has written."""
 
     def __init__(self):
         self.data = {}
@@ -85,6 +236,7 @@ class Columns:
                     indexes=[rr.TimeColumn("robot_time", duration=secs(ts))],
                     columns=rr.Scalars.columns(scalars=np.asarray(vs, dtype=np.float64)),
                 )
+                self.bytes += CALL_BYTES
         self.data = {}
 
 
@@ -96,51 +248,131 @@ class Recorder:
         self.session = 0  # a controller's chunk ids start again at 1: a new session
         self.last_chunk_id = 0
         self.counts = dict(joint_states=0, commands=0, statuses=0, chunks=0, frames=0, frames_kept=0,
-                           dropped_over_limit=0, joint_states_missed=0, commands_missed=0)
+                           dropped_over_limit=0, joint_states_missed=0, commands_missed=0,
+                           rejected=0, foreign=0, errors=0, chunk_series=0, chunks_not_plotted=0)
+        self.rejected = {}
         self.last_seq = {}
         self.last_state = None
         self.last_status = None
         self.full = False
+        self.file_bytes = 0
         self.n = None
+        # the controller, bound from its status (SessionGate's rules)
+        self.status_stream = Stream()
+        self.controller_pid = None  # the bound status publisher's process
+        self.command_publisher = 0  # announced in its status
+        self.chunk_stream = Stream()
+        self.state_stream = Stream()
+        self.pending = []  # (origin, pid, msg) of chunks that came before any controller bound
+        self.said = {}  # what -> when last said on stderr (rate limit)
 
-    def budget(self):
-        if self.cols.bytes > self.args.max_mb * 1e6:
-            if not self.full:
-                print(f"chunkrt_record: {self.args.max_mb} MB written: no more data is recorded",
-                      file=sys.stderr, flush=True)
+    def say(self, what, text):
+        """A line on stderr, at most one per ``what`` every 10 s."""
+        now = time.monotonic()
+        if now - self.said.get(what, -1e9) >= 10.0:
+            self.said[what] = now
+            print(f"chunkrt_record: {text}", file=sys.stderr, flush=True)
+
+    def reject(self, kind, e):
+        if e.reason == "foreign":
+            self.counts["foreign"] += 1
+            self.say("foreign-" + kind, f"{kind} from another publisher ignored ({e}); "
+                     f"{self.counts['foreign']} so far")
+            return
+        self.counts["rejected"] += 1
+        key = f"{kind}:{e.reason}"
+        self.rejected[key] = self.rejected.get(key, 0) + 1
+        self.say("rejected-" + key, f"a {kind} rejected ({e.reason}: {e}); {self.rejected[key]} so far")
+
+    def error(self, kind, e):
+        self.counts["errors"] += 1
+        self.say("error-" + kind, f"a {kind} could not be recorded ({type(e).__name__}: {e}); "
+                 f"{self.counts['errors']} errors so far")
+
+    def take(self, kind, handler, msg, origin=0, pid=0):
+        """One message through its handler: rejected, foreign or failed, it is counted and
+        dropped; nothing a message holds stops the recorder."""
+        try:
+            handler(msg, origin, pid)
+        except Invalid as e:
+            self.reject(kind, e)
+        except Exception as e:  # noqa: BLE001 (a fault in one message loses that message only)
+            self.error(kind, e)
+
+    def charge(self, nbytes):
+        self.cols.bytes += nbytes
+
+    def budget(self, cost=0):
+        """Whether ``cost`` more bytes fit under ``--max-mb`` (all written bytes, and the file's
+        own size as last seen)."""
+        if not self.full and max(self.cols.bytes, self.file_bytes) + cost > self.args.max_mb * 1e6:
+            print(f"chunkrt_record: {self.args.max_mb} MB written: no more data is recorded",
+                  file=sys.stderr, flush=True)
             self.full = True
         return not self.full
+
+    def flush(self):
+        """Sends the gathered columns (if they fit) and reads the file's size."""
+        pending = sum(len(ts) for ts, _ in self.cols.data.values())
+        if pending and not self.budget(len(self.cols.data) * CALL_BYTES):
+            self.cols.data = {}
+        self.cols.flush()
+        try:
+            self.file_bytes = os.path.getsize(self.args.out)
+        except OSError:
+            pass
+
+    def add(self, path, t, value):
+        """A sample into the columns if it fits (with its share of the next flush's calls)."""
+        # a new path this flush: the call flush() makes for it (charged there) must fit too
+        if self.budget(16 + (0 if path in self.cols.data else CALL_BYTES)):
+            self.cols.add(path, t, value)
+
+    def log(self, path, t_ns, text, level="INFO"):
+        cost = len(text) + 64
+        if not self.budget(cost):
+            self.counts["dropped_over_limit"] += 1
+            return
+        rr.set_time("robot_time", duration=t_ns * 1e-9)
+        rr.log(path, rr.TextLog(text, level=level))
+        self.charge(cost)
 
     def missed(self, key, seq):
         """Counts the messages a full subscriber buffer dropped (a gap in the publisher's seq)."""
         last = self.last_seq.get(key)
         if last is not None and seq > last + 1:
-            self.counts[key + "_missed"] += seq - last - 1
+            self.counts[key + "_missed"] += min(seq - last - 1, 1 << 32)
         self.last_seq[key] = seq
 
-    def joint_state(self, js):
+    def joint_state(self, js, origin=0, pid=0):
+        now = now_ns()
+        n = validate_joint_state(js, now)
+        self.state_stream.check(origin, js.seq, js.measurement_time_ns, now)
         self.counts["joint_states"] += 1
         self.missed("joint_states", js.seq)
-        if not self.budget():
+        if not self.budget(32 * n):
             self.counts["dropped_over_limit"] += 1
             return
-        n = min(js.n_dof, c.MAX_DOF)
         self.n = n
         t = js.measurement_time_ns
         for j in range(n):
-            self.cols.add(f"joints/{j}/measured", t, js.position[j])
-            self.cols.add(f"joints/{j}/velocity", t, js.velocity[j])
+            self.add(f"joints/{j}/measured", t, js.position[j])
+            self.add(f"joints/{j}/velocity", t, js.velocity[j])
 
-    def command(self, cmd):
+    def command(self, cmd, origin=0, pid=0):
+        now = now_ns()
+        n = validate_command(cmd, now)
+        if self.command_publisher == 0 or origin != self.command_publisher:
+            raise Invalid("foreign", f"publisher {origin:#x} is not the command publisher the "
+                          f"controller announces ({self.command_publisher:#x})")
         self.counts["commands"] += 1
         self.missed("commands", cmd.seq)
-        if not self.budget():
+        if not self.budget(32 * n):
             self.counts["dropped_over_limit"] += 1
             return
-        n = min(cmd.n_dof, c.MAX_DOF)
         t = cmd.publish_time_ns
         for j in range(n):
-            self.cols.add(f"joints/{j}/command", t, cmd.position[j])
+            self.add(f"joints/{j}/command", t, cmd.position[j])
         ch = self.chunks.get(cmd.chunk_id)
         if ch is not None:
             t0, period, actions = ch
@@ -151,69 +383,98 @@ class Recorder:
                 nxt = actions[min(i + 1, len(actions) - 1)]
                 row = actions[i] * (1 - f) + nxt * f
                 for j in range(min(n, row.shape[0])):
-                    self.cols.add(f"joints/{j}/target", t, float(row[j]))
+                    self.add(f"joints/{j}/target", t, float(row[j]))
 
-    def chunk(self, m):
+    def status(self, st, origin=0, pid=0):
+        now = now_ns()
+        validate_status(st, now)
+        previous = self.status_stream.origin
+        self.status_stream.check(origin, st.seq, st.publish_time_ns, now)
+        if previous != origin:
+            # a controller bound (the first, or another after the last one's silence or stop)
+            self.controller_pid = pid
+            self.command_publisher = 0
+            self.chunk_stream.release()
+        if st.state == c.CONTROLLER_STATE_STOPPED:
+            self.status_stream.release()  # a clean stop ends the session
+            self.controller_pid = None  # the next controller's first chunks wait for its status
+        if st.command_publisher():
+            self.command_publisher = st.command_publisher()
+        self.counts["statuses"] += 1
+        if self.pending:
+            pending, self.pending = self.pending, []
+            for o, p, m in pending:
+                self.take("chunk", self.chunk, m, o, p)
+        t = st.publish_time_ns
+        self.add("controller/state", t, st.state)
+        self.add("controller/reason", t, st.state_reason)
+        self.add("controller/overruns", t, st.overruns)
+        self.add("controller/holds", t, st.hold_entries)
+        self.add("controller/lateness_p99_us", t, st.lateness_p99_ns / 1e3)
+        self.add("controller/rejected", t, sum(st.rejected))
+        key = (st.state, st.state_reason, st.rearm_seq)
+        if key != self.last_state:
+            name = STATE_NAMES.get(st.state, str(st.state))
+            extra = f", re-arm {st.rearm_seq}: result {st.rearm_result}" if st.rearm_seq else ""
+            level = "INFO" if st.state == c.CONTROLLER_STATE_RUNNING else "WARN"
+            self.log("controller/log", t, f"{name} (reason {st.state_reason}){extra}", level)
+            self.last_state = key
+        self.last_status = st
+
+    def chunk(self, m, origin=0, pid=0):
+        now = now_ns()
+        h, n, t0, period = validate_chunk(m, now)
+        if self.controller_pid is None:
+            if len(self.pending) < PENDING_CHUNKS:
+                self.pending.append((origin, pid, m))
+            else:
+                raise Invalid("foreign", "no controller bound yet")
+            return
+        if pid != self.controller_pid:
+            raise Invalid("foreign", f"publisher {origin:#x} is not in the controller's process")
+        self.chunk_stream.check(origin, m.seq, m.publish_time_ns, now)
         self.counts["chunks"] += 1
         if m.chunk_id <= self.last_chunk_id:
             self.session += 1
             self.chunks.clear()
         self.last_chunk_id = m.chunk_id
-        h, n = min(m.horizon, c.MAX_CHUNK_HORIZON), min(m.n_dof, c.MAX_DOF)
         a = np.ctypeslib.as_array(m.actions)[:h, :n].copy()
-        t0 = m.observation_time_ns + m.start_shift_ns
-        period = max(m.period_ns, 1)
         self.chunks[m.chunk_id] = (t0, period, a)
         if len(self.chunks) > 64:
             self.chunks.pop(next(iter(self.chunks)))
-        if not self.budget():
-            self.counts["dropped_over_limit"] += 1
-            return
         latency_ms = (m.ready_time_ns - m.observation_time_ns) / 1e6
-        times = t0 + period * np.arange(h, dtype=np.int64)
-        for j in range(n):
-            rr.send_columns(
-                f"joints/{j}/chunks/{self.chunk_path(m.chunk_id)}",
-                indexes=[rr.TimeColumn("robot_time", duration=secs(times))],
-                columns=rr.Scalars.columns(scalars=a[:, j]),
-            )
-        self.cols.bytes += a.nbytes
-        rr.set_time("robot_time", duration=m.ready_time_ns * 1e-9)
-        rr.log("chunks/log", rr.TextLog(
-            f"chunk {self.chunk_path(m.chunk_id)}: {h} x {n}, delay {m.delay_steps}, latency {latency_ms:.1f} ms, "
-            f"observation seq {m.observation_seq}"))
-        self.cols.add("controller/inference_latency_ms", m.ready_time_ns, latency_ms)
+        cost = n * (CALL_BYTES + 16 * h)
+        plotted = self.counts["chunk_series"] + n <= self.args.max_chunk_series
+        if plotted and self.budget(cost):
+            times = t0 + period * np.arange(h, dtype=np.int64)
+            for j in range(n):
+                rr.send_columns(
+                    f"joints/{j}/chunks/{self.chunk_path(m.chunk_id)}",
+                    indexes=[rr.TimeColumn("robot_time", duration=secs(times))],
+                    columns=rr.Scalars.columns(scalars=a[:, j]),
+                )
+            self.charge(cost)
+            self.counts["chunk_series"] += n
+        elif not self.full:
+            self.counts["chunks_not_plotted"] += 1
+            self.say("series", f"{self.args.max_chunk_series} chunk series written: "
+                     "further chunks get their log line only")
+        self.log("chunks/log", m.ready_time_ns,
+                 f"chunk {self.chunk_path(m.chunk_id)}: {h} x {n}, delay {m.delay_steps}, "
+                 f"latency {latency_ms:.1f} ms, observation seq {m.observation_seq}")
+        self.add("controller/inference_latency_ms", m.ready_time_ns, latency_ms)
 
     def chunk_path(self, chunk_id):
         """``<id>``, or ``<session>-<id>`` once a second controller has run."""
         return f"{self.session}-{chunk_id}" if self.session else str(chunk_id)
 
-    def status(self, st):
-        self.counts["statuses"] += 1
-        t = st.publish_time_ns
-        self.cols.add("controller/state", t, st.state)
-        self.cols.add("controller/reason", t, st.state_reason)
-        self.cols.add("controller/overruns", t, st.overruns)
-        self.cols.add("controller/holds", t, st.hold_entries)
-        self.cols.add("controller/lateness_p99_us", t, st.lateness_p99_ns / 1e3)
-        self.cols.add("controller/rejected", t, sum(st.rejected))
-        key = (st.state, st.state_reason, st.rearm_seq)
-        if key != self.last_state:
-            rr.set_time("robot_time", duration=t * 1e-9)
-            name = STATE_NAMES.get(st.state, str(st.state))
-            extra = f", re-arm {st.rearm_seq}: result {st.rearm_result}" if st.rearm_seq else ""
-            level = "INFO" if st.state == c.CONTROLLER_STATE_RUNNING else "WARN"
-            rr.log("controller/log", rr.TextLog(f"{name} (reason {st.state_reason}){extra}", level=level))
-            self.last_state = key
-        self.last_status = st
-
     def frame(self, name, header, pixels):
         self.counts["frames"] += 1
-        if (self.counts["frames"] - 1) % max(self.args.frame_every, 1) != 0 or not self.budget():
+        h, w, channels = validate_frame(header, len(pixels), now_ns())
+        if (self.counts["frames"] - 1) % max(self.args.frame_every, 1) != 0:
             return
-        h, w = header.height, header.width
-        channels = 1 if header.encoding == c.ENCODING_MONO8 else 3
-        if header.stride < w * channels or len(pixels) < header.stride * h:
+        if not self.budget(h * w * channels + CALL_BYTES):
+            self.counts["dropped_over_limit"] += 1
             return
         img = np.frombuffer(pixels, dtype=np.uint8, count=header.stride * h).reshape(h, header.stride)
         img = img[:, : w * channels].reshape(h, w, channels)
@@ -222,7 +483,15 @@ class Recorder:
         rr.set_time("robot_time", duration=header.capture_time_ns * 1e-9)
         rr.log(f"cameras/{name}", rr.Image(img if channels == 3 else img[:, :, 0]))
         self.counts["frames_kept"] += 1
-        self.cols.bytes += img.nbytes
+        self.charge(img.nbytes + CALL_BYTES)
+
+
+def origin_of(sample):
+    """(publisher id, process id) of a sample, from iceoryx2's header (not from its payload)."""
+    import iceoryx2 as iox2
+
+    header = sample.header
+    return header.publisher_id.value, header.node_id.pid(iox2.ServiceType.Ipc)
 
 
 def main():
@@ -232,7 +501,10 @@ def main():
     ap.add_argument("--cameras", default="", help="camera names to record, comma separated")
     ap.add_argument("--frame-every", type=int, default=1, help="keep one frame in N")
     ap.add_argument("--duration", type=float, default=0.0, help="seconds (0: until SIGINT / SIGTERM)")
-    ap.add_argument("--max-mb", type=float, default=500.0, help="payload megabytes to record at most")
+    ap.add_argument("--max-mb", type=float, default=500.0,
+                    help="megabytes to write at most (everything written counts)")
+    ap.add_argument("--max-chunk-series", type=int, default=30000,
+                    help="predicted-chunk series (one per chunk and joint) to write at most")
     ap.add_argument("--prompt", default="", help="the run's prompt (a property)")
     ap.add_argument("--config", default="", help="the run's configuration file (a property)")
     ap.add_argument("--property", action="append", default=[], metavar="KEY=VALUE",
@@ -243,8 +515,9 @@ def main():
     signal.signal(signal.SIGINT, lambda *_: stop.append(1))
     signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
 
+    cameras = [n for n in args.cameras.split(",") if n]
     rr.init("chunkrt", recording_id=f"{args.namespace}-{os.getpid()}", spawn=False)
-    rr.save(args.out, default_blueprint=layout([n for n in args.cameras.split(",") if n]))
+    rr.save(args.out, default_blueprint=layout(cameras))
     props = {"namespace": args.namespace, "prompt": args.prompt, "rerun_sdk": rr.__version__,
              "iceoryx2_contract": str(c.CONTRACT_VERSION)}
     for p in args.property:
@@ -256,6 +529,8 @@ def main():
             text += "\n\n```toml\n" + f.read(200_000) + "\n```\n"
     rr.log("properties", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
 
+    rec = Recorder(args)
+    rec.charge(len(text) + 4 * CALL_BYTES)  # the properties and the blueprint
     node = c.node(f"chunkrt-record-{os.getpid()}")
     subs = {
         "js": c.subscriber(c.typed_service(node, c.joint_state_name(args.namespace), c.JointState)),
@@ -264,44 +539,57 @@ def main():
         "chunks": c.subscriber(c.typed_service(node, c.chunks_name(args.namespace), c.ActionChunkMsg)),
     }
     cams = []
-    for name in [n for n in args.cameras.split(",") if n]:
+    for name in cameras:
         svc = c.camera_service(node, c.camera_name(args.namespace, name))
         cams.append((name, c.subscriber(svc, c.CAMERA_BUFFER_SIZE)))
 
-    rec = Recorder(args)
-    kinds = [("js", c.JointState, rec.joint_state), ("cmd", c.JointCommand, rec.command),
-             ("status", c.ControllerStatus, rec.status), ("chunks", c.ActionChunkMsg, rec.chunk)]
+    # statuses first (they bind the controller), then chunks (a command names the chunk it executes)
+    kinds = [("status", c.ControllerStatus, rec.status), ("chunks", c.ActionChunkMsg, rec.chunk),
+             ("js", c.JointState, rec.joint_state), ("cmd", c.JointCommand, rec.command)]
     start = time.monotonic()
     last_flush = start
     print(f"chunkrt_record: recording '{args.namespace}' into {args.out}", flush=True)
     while not stop and (args.duration <= 0 or time.monotonic() - start < args.duration):
-        # chunks first: a command names the chunk it executes
-        for key, ty, handle in sorted(kinds, key=lambda k: k[0] != "chunks"):
-            while True:
+        for key, ty, handle in kinds:
+            for _ in range(4096):  # a flood cannot keep the loop from the other services
                 sample = subs[key].receive()
                 if sample is None:
                     break
-                msg = ty.from_buffer_copy(sample.payload().contents)
-                sample.delete()
-                handle(msg)
+                try:
+                    origin, pid = origin_of(sample)
+                    msg = ty.from_buffer_copy(sample.payload().contents)
+                except Exception as e:  # noqa: BLE001
+                    rec.error(key, e)
+                    continue
+                finally:
+                    sample.delete()
+                rec.take(key, handle, msg, origin, pid)
         for name, sub in cams:
-            while True:
+            for _ in range(64):
                 sample = sub.receive()
                 if sample is None:
                     break
-                header = c.CameraFrameHeader.from_buffer_copy(sample.user_header().contents)
-                pixels = bytes(sample.payload())
-                sample.delete()
-                rec.frame(name, header, pixels)
+                try:
+                    header = c.CameraFrameHeader.from_buffer_copy(sample.user_header().contents)
+                    pixels = bytes(sample.payload())
+                except Exception as e:  # noqa: BLE001
+                    rec.error("frame", e)
+                    continue
+                finally:
+                    sample.delete()
+                rec.take("frame", lambda m, o, p, name=name: rec.frame(name, *m), (header, pixels))
         now = time.monotonic()
         if now - last_flush > 0.2:
-            rec.cols.flush()
+            rec.flush()
             last_flush = now
         time.sleep(0.0005)
-    rec.cols.flush()
+    rec.flush()
     rr.disconnect()
     counts = " ".join(f"{k}={v}" for k, v in rec.counts.items())
     print(f"chunkrt_record summary: {counts} out={args.out}", flush=True)
+    if rec.rejected:
+        print("chunkrt_record rejected: " + " ".join(f"{k}={v}" for k, v in sorted(rec.rejected.items())),
+              flush=True)
     return 0 if rec.counts["commands"] > 0 else 1
 
 

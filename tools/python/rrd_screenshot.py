@@ -4,7 +4,9 @@ own layout (chunkrt_record's: joints 0 and 1 commanded, measured and target with
 chunks overlaid, the cameras, the controller's state, the log), the time cursor on a chunk switch.
 
 The viewer runs headless (rerun-sdk's ``ViewerClient.spawn(headless=True)``); it needs a graphics
-adapter, a GPU or Mesa's software Vulkan (lavapipe, Debian's ``mesa-vulkan-drivers``).
+adapter, a GPU or Mesa's software Vulkan (lavapipe, Debian's ``mesa-vulkan-drivers``). Without a
+Vulkan driver (no ICD manifest where the Vulkan loader looks) it says so and exits 3 at once,
+without starting the viewer; a viewer that exits for want of an adapter also gives exit 3.
 
     python3 tools/python/rrd_screenshot.py run.rrd out.png [--joint 0] [--switch 0.5]
 """
@@ -56,6 +58,25 @@ def viewer_alive(viewer):
             return False
 
 
+def vulkan_drivers():
+    """The Vulkan drivers (ICD manifests) the Vulkan loader would find: ``VK_DRIVER_FILES`` /
+    ``VK_ICD_FILENAMES`` when set (they replace the search), else the manifests in the loader's
+    directories. The viewer needs one; without, it panics after drawing nothing."""
+    listed = os.environ.get("VK_DRIVER_FILES") or os.environ.get("VK_ICD_FILENAMES")
+    if listed:
+        return [p for p in listed.split(os.pathsep) if os.path.isfile(p)]
+    dirs = [os.environ.get("XDG_CONFIG_HOME", os.path.expanduser("~/.config"))]
+    dirs += (os.environ.get("XDG_CONFIG_DIRS") or "/etc/xdg").split(os.pathsep)
+    dirs += ["/etc", os.environ.get("XDG_DATA_HOME", os.path.expanduser("~/.local/share"))]
+    dirs += (os.environ.get("XDG_DATA_DIRS") or "/usr/local/share:/usr/share").split(os.pathsep)
+    found = []
+    for d in dirs:
+        icd = os.path.join(d, "vulkan", "icd.d")
+        if os.path.isdir(icd):
+            found += [os.path.join(icd, f) for f in sorted(os.listdir(icd)) if f.endswith(".json")]
+    return found
+
+
 def free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -82,6 +103,12 @@ def main():
     exe = os.path.join(os.path.dirname(sys.executable), "rerun")
     why = ("it needs a graphics adapter: a GPU, or Mesa's software Vulkan "
            "(apt install mesa-vulkan-drivers)")
+    if not vulkan_drivers():
+        # without a Vulkan driver the viewer panics (a backtrace on stderr) before it draws
+        print(f"rrd_screenshot: no Vulkan driver on this machine (no ICD manifest in the Vulkan "
+              f"loader's directories, VK_DRIVER_FILES / VK_ICD_FILENAMES unset or empty); {why}",
+              file=sys.stderr)
+        return NO_ADAPTER
     try:
         viewer = ViewerClient.spawn(headless=True, port=free_port(), hide_welcome_screen=True,
                                     executable_path=exe if os.path.exists(exe) else None)
@@ -103,7 +130,7 @@ def main():
     except ConnectionError as e:
         # a viewer that cannot render panics and exits, but not always before the failed
         # request returns: give it a few seconds to be gone
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + 15.0  # slow to die on a loaded machine
         while viewer_alive(viewer) and time.monotonic() < deadline:
             time.sleep(0.1)
         if viewer_alive(viewer):
