@@ -46,6 +46,21 @@ pub trait ChunkSource: Send {
     fn reseed(&mut self, _seed: u64) {}
 }
 
+/// A source's answer when it made no request this time: a remote source waiting out the
+/// backoff after a failed request ([`crate::remote::RemoteSource`]). Not a failure of its own
+/// (the worker counts failed requests, not the polls made while a source backs off); the
+/// control side asks again. The text names the cause of the failure being waited out.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct NotAsked(pub String);
+
+impl std::fmt::Display for NotAsked {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for NotAsked {}
+
 /// The source used when no policy is configured: it never produces a chunk, so the
 /// controller holds the robot where it is.
 pub struct HoldSource;

@@ -69,6 +69,9 @@ pub struct RemoteSource {
     /// Consecutive failed requests, and all of them.
     failures: u64,
     failures_total: u64,
+    /// What the last failure was (a request's error, or the failed connect), for the answer
+    /// given while its backoff is waited out.
+    last_cause: String,
     reseed: Option<u64>,
     warned_fresh: bool,
     writer: Writer,
@@ -127,6 +130,20 @@ impl Droid {
                 self.open
             };
         }
+    }
+}
+
+/// `text` cut to 300 bytes (at a character boundary): a cause quoted in every answer given while
+/// a backoff is waited out stays short whatever a server said.
+fn cut(text: &str) -> String {
+    let mut end = text.len().min(300);
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    if end < text.len() {
+        format!("{}…", &text[..end])
+    } else {
+        text.to_string()
     }
 }
 
@@ -195,6 +212,7 @@ impl RemoteSource {
             fail_backoff: BACKOFF_START,
             failures: 0,
             failures_total: 0,
+            last_cause: String::new(),
             reseed: None,
             warned_fresh: false,
             writer: Writer::new(),
@@ -501,22 +519,23 @@ impl ChunkSource for RemoteSource {
         // every failure waits out a backoff, whatever its kind: a server that answers every
         // request with NaN or the wrong shapes is asked at most a few times a second, not
         // hundreds (its connection dropped and made again each time)
+        // (a poll while waiting is no request: answered NotAsked, which the worker does not
+        // count as a failure, naming what is waited out)
         let now = Instant::now();
         if now < self.next_attempt {
-            anyhow::bail!(
-                "{} {}; next attempt in {} ms",
+            return Err(crate::contract::NotAsked(format!(
+                "{}: {}; next attempt in {} ms",
                 self.client_cfg.url,
-                if self.client.is_none() {
-                    "is unreachable".to_string()
-                } else {
-                    format!("failed {} requests in a row", self.failures)
-                },
+                self.last_cause,
                 (self.next_attempt - now).as_millis()
-            );
+            ))
+            .into());
         }
         if self.client.is_none() {
-            self.reconnect()
-                .with_context(|| format!("cannot reconnect to {}", self.client_cfg.url))?;
+            if let Err(e) = self.reconnect() {
+                self.last_cause = cut(&format!("cannot connect: {e:#}"));
+                return Err(e.context(format!("cannot reconnect to {}", self.client_cfg.url)));
+            }
         }
         let result = self.request(obs, request);
         match &result {
@@ -524,9 +543,13 @@ impl ChunkSource for RemoteSource {
                 self.failures = 0;
                 self.fail_backoff = BACKOFF_START;
             }
-            Err(_) => {
+            Err(e) => {
                 self.failures += 1;
                 self.failures_total += 1;
+                self.last_cause = cut(&format!(
+                    "{} requests failed in a row, the last: {e:#}",
+                    self.failures
+                ));
                 self.next_attempt = Instant::now() + self.fail_backoff;
                 self.fail_backoff = (self.fail_backoff * 2).min(BACKOFF_MAX);
             }

@@ -36,7 +36,9 @@ pub enum Turn {
         /// Observation → chunk ready (ns).
         latency_ns: u64,
     },
-    /// The source had nothing to execute.
+    /// The source had nothing to execute, or made no request at all
+    /// ([`crate::contract::NotAsked`]: a remote source waiting out its backoff; counted in
+    /// [`WorkerStats::not_asked`], and the control side asks again).
     Nothing,
     /// The source failed; the request is answered (the control side asks again).
     Failed(anyhow::Error),
@@ -47,8 +49,11 @@ pub enum Turn {
 pub struct WorkerStats {
     /// Chunks computed.
     pub chunks: u64,
-    /// Failed computations.
+    /// Failed computations (requests a source made and that failed).
     pub failures: u64,
+    /// Requests answered without asking the source's policy ([`crate::contract::NotAsked`]:
+    /// a remote source backing off after a failure); not failures.
+    pub not_asked: u64,
     /// Observation → ready of the newest chunk (ns).
     pub last_latency_ns: u64,
 }
@@ -129,10 +134,15 @@ impl InferenceWorker {
             }
             Ok(None) => Turn::Nothing,
             Err(e) => {
-                self.stats.failures += 1;
+                // the control side asks again either way
                 self.link
                     .failed_requests
                     .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if e.downcast_ref::<crate::contract::NotAsked>().is_some() {
+                    self.stats.not_asked += 1;
+                    return Turn::Nothing;
+                }
+                self.stats.failures += 1;
                 Turn::Failed(e)
             }
         }
