@@ -763,3 +763,37 @@ fn a_fifo_or_a_huge_side_file_is_a_clear_error() {
     assert!(e.contains("at most"), "{e}");
     std::fs::remove_dir_all(&tmp).ok();
 }
+
+/// π0.5's prompt state is binned as openpi bins it: openpi normalises the client's f64 state in
+/// f64 (numpy), so a state on a bin edge gets openpi's token. pi05_droid with q01 −1 and q99 1:
+/// states −0.96875 and −0.9375 (edges 4 and 8 before the 1e-6 in the denominator) are bins 3
+/// and 7 in openpi; binned from f32-normalised values they were 4 and 8 (issue 54 §5).
+#[test]
+fn pi05_prompt_state_is_binned_as_openpi_bins_it_at_the_edges() {
+    use chunkrt::policy::openpi_config::{by_name, model_state};
+    use chunkrt::policy::preprocess::NormStats;
+    let cfg = by_name("pi05_droid").expect("pi05_droid");
+    let n = cfg.robot.state_dim();
+    let stats = Stats {
+        mean: vec![0.0; n],
+        std: vec![1.0; n],
+        q01: Some(vec![-1.0; n]),
+        q99: Some(vec![1.0; n]),
+    };
+    let ns = NormStats {
+        state: stats.clone(),
+        actions: stats,
+    };
+    let mut raw = vec![0.0; n];
+    raw[0] = -0.96875;
+    raw[1] = -0.9375;
+    let m = model_state(Some(cfg), &[], Some(&ns), NormMode::Quantile, &raw, 32).unwrap();
+    let bins = discretize_state(&m.prompt_state);
+    println!(
+        "pi05_droid, q01 -1, q99 1: states {:?} -> normalised {:?} -> bins {:?} (openpi: 3, 7)",
+        &raw[..2],
+        &m.prompt_state[..2],
+        &bins[..2]
+    );
+    assert_eq!(&bins[..2], &[3, 7]);
+}

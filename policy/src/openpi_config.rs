@@ -21,7 +21,7 @@ use std::path::Path;
 
 use crate::config::ModelKind;
 use crate::error::PolicyError;
-use crate::preprocess::{normalize, unnormalize, NormMode, NormStats};
+use crate::preprocess::{normalize, normalize_f64, unnormalize, NormMode, NormStats};
 
 /// The robot a config's transforms are for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -417,8 +417,9 @@ pub fn gripper_from_angular(v: f64) -> f64 {
 pub struct ModelState {
     /// The model's state input: normalised, padded to the action dim (f32).
     pub state: Vec<f32>,
-    /// The state as it goes into a π0.5 prompt: normalised, unpadded.
-    pub prompt_state: Vec<f32>,
+    /// The state as it goes into a π0.5 prompt: normalised in f64 as openpi does (numpy on the
+    /// client's f64 state), unpadded. (LeRobot's pi05 normalises in f32: `state`'s values.)
+    pub prompt_state: Vec<f64>,
     /// What `AbsoluteActions` adds to each action row: the model-space state on the delta
     /// dims, 0 elsewhere (one per state value).
     pub offsets: Vec<f64>,
@@ -457,10 +458,11 @@ pub fn model_state(
         })
         .collect();
     let mut state: Vec<f32> = s.iter().map(|&x| x as f32).collect();
+    let mut prompt_state = s;
     if let Some(ns) = norm {
         normalize(&mut state, &ns.state, mode)?;
+        normalize_f64(&mut prompt_state, &ns.state, mode)?;
     }
-    let prompt_state = state.clone();
     state.resize(action_dim, 0.0);
     Ok(ModelState {
         state,

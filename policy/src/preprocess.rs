@@ -331,6 +331,26 @@ pub fn normalize(x: &mut [f32], s: &Stats, mode: NormMode) -> Result<(), PolicyE
     Ok(())
 }
 
+/// [`normalize`] in f64, as openpi's numpy does it (the statistics widened from f32, the 1e-6 in
+/// f64): what π0.5's prompt state is binned from.
+pub fn normalize_f64(x: &mut [f64], s: &Stats, mode: NormMode) -> Result<(), PolicyError> {
+    match mode {
+        NormMode::ZScore => {
+            for (i, v) in x.iter_mut().enumerate().take(s.mean.len()) {
+                *v = (*v - s.mean[i] as f64) / (s.std[i] as f64 + 1e-6);
+            }
+        }
+        NormMode::Quantile => {
+            let (q01, q99) = quantiles(s)?;
+            for (i, v) in x.iter_mut().enumerate().take(q01.len()) {
+                let (lo, hi) = (q01[i] as f64, q99[i] as f64);
+                *v = (*v - lo) / (hi - lo + 1e-6) * 2.0 - 1.0;
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Inverse of [`normalize`].
 pub fn unnormalize(x: &mut [f32], s: &Stats, mode: NormMode) -> Result<(), PolicyError> {
     match mode {
@@ -350,12 +370,14 @@ pub fn unnormalize(x: &mut [f32], s: &Stats, mode: NormMode) -> Result<(), Polic
 }
 
 /// π0.5 state bins: `digitize(state, linspace(-1, 1, 257)[:-1]) - 1` on the unpadded normalised
-/// state (below -1 -> -1, >= 0.9921875 -> 255).
-pub fn discretize_state(state: &[f32]) -> Vec<i64> {
+/// state (below -1 -> -1, >= 0.9921875 -> 255). f32 (LeRobot normalises in torch's f32) or f64
+/// (openpi normalises the client's state in numpy's f64: [`normalize_f64`]); a value within an
+/// f32 rounding of an edge lands on either side depending on which.
+pub fn discretize_state<T: Copy + Into<f64>>(state: &[T]) -> Vec<i64> {
     state
         .iter()
         .map(|&s| {
-            let s = s as f64;
+            let s: f64 = s.into();
             // number of edges e_k = -1 + 2k/256 (k = 0..255) with e_k <= s
             let mut n = 0i64;
             for k in 0..256 {

@@ -108,6 +108,9 @@ pub struct Policy {
     state_prompt_dim: Option<usize>,
     /// How π0 prompts are built.
     prompt_style: PromptStyle,
+    /// A LeRobot checkpoint: π0.5's prompt state is binned from its f32 normalisation (openpi's
+    /// from the f64 one).
+    lerobot: bool,
     /// openpi's training config whose transforms wrap the model ([`crate::openpi_config`]).
     openpi: Option<&'static OpenpiConfig>,
 }
@@ -258,6 +261,7 @@ impl Policy {
             truncated_prompt: None,
             state_prompt_dim: layout.state_prompt_dim,
             prompt_style: layout.prompt_style,
+            lerobot: layout.kind == crate::layout::LayoutKind::LeRobot,
             openpi: layout.openpi.map(|(c, _)| c),
         })
     }
@@ -492,16 +496,20 @@ impl Policy {
         )?;
         self.offsets = offsets;
         let in_prompt = self.openpi.is_none_or(|c| c.discrete_state_input);
-        let bins =
-            (cfg.kind == ModelKind::Pi05 && in_prompt).then(|| match self.state_prompt_dim {
-                // LeRobot's pi05 processor pads the normalised state before discretising it
-                Some(n) if n > prompt_state.len() => {
-                    let mut padded = prompt_state.clone();
-                    padded.resize(n, 0.0);
-                    discretize_state(&padded)
+        let bins = (cfg.kind == ModelKind::Pi05 && in_prompt).then(|| {
+            if self.lerobot {
+                // LeRobot's pi05 processor normalises in f32 (torch) and pads the normalised
+                // state before discretising it
+                let mut padded = state[..prompt_state.len().min(state.len())].to_vec();
+                if let Some(n) = self.state_prompt_dim {
+                    padded.resize(n.max(padded.len()), 0.0);
                 }
-                _ => discretize_state(&prompt_state),
-            });
+                discretize_state(&padded)
+            } else {
+                // openpi normalises the client's f64 state in f64 (numpy)
+                discretize_state(&prompt_state)
+            }
+        });
         // images in camera order; absent cameras black and masked
         let s = cfg.vision.image_size;
         let dev = self.model.device().clone();
