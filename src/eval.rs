@@ -125,6 +125,34 @@ pub struct EvalArgs {
     /// controller, under the configured limits, carries out a plan that succeeds.
     #[arg(long, conflicts_with_all = ["remote", "checkpoint"])]
     pub expert_plan: bool,
+    /// `--task so101`: the episodes' seeds, `A..B` (B excluded), instead of `--episodes` from
+    /// seed 10 000: e.g. `--seeds 8200..8250`.
+    #[arg(long, value_name = "A..B", value_parser = parse_seeds)]
+    pub seeds: Option<std::ops::Range<u64>>,
+}
+
+/// `A..B` (B excluded, B > A, at most 100 000 seeds) as a range.
+pub fn parse_seeds(text: &str) -> Result<std::ops::Range<u64>, String> {
+    let (a, b) = text
+        .split_once("..")
+        .ok_or_else(|| format!("{text:?}: seeds are A..B (B excluded), e.g. 8200..8250"))?;
+    let a: u64 = a
+        .trim()
+        .parse()
+        .map_err(|e| format!("{text:?}: the first seed: {e}"))?;
+    let b: u64 = b
+        .trim()
+        .parse()
+        .map_err(|e| format!("{text:?}: the end seed: {e}"))?;
+    if b <= a {
+        return Err(format!(
+            "{text:?}: no seeds (the end, excluded, is not after the start)"
+        ));
+    }
+    if b - a > 100_000 {
+        return Err(format!("{text:?}: {} seeds; at most 100 000", b - a));
+    }
+    Ok(a..b)
 }
 
 /// First scene seed of the open-loop probe's episodes.
@@ -224,6 +252,9 @@ pub struct World {
     pub so101: bool,
     /// The SO-101 expert's plans replayed instead of the policy (`EvalArgs::expert_plan`).
     pub expert_plan: bool,
+    /// The SO-101's first episode seed (`EvalArgs::seeds`; default
+    /// [`crate::task::so101::EVAL_SEED_BASE`]).
+    pub first_seed: Option<u64>,
 }
 
 /// The configuration of a cell: strategy `s` (a sweep name, `sync` keeping the configured one
@@ -281,7 +312,10 @@ pub fn sweep(
         // (the episode's seed is the scene seed; color and start are the reach task's)
         (0..episodes as u64)
             .map(|i| crate::task::sim::EpisodeSpec {
-                scene_seed: crate::task::so101::EVAL_SEED_BASE + i,
+                scene_seed: world
+                    .first_seed
+                    .unwrap_or(crate::task::so101::EVAL_SEED_BASE)
+                    + i,
                 color: crate::task::TargetColor::Red,
                 start: [0.0; crate::task::TASK_DOF],
             })
@@ -399,6 +433,11 @@ pub fn sweep(
 /// Runs `chunkrt eval`.
 pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
     let so101 = args.task == crate::task::TaskKind::So101;
+    anyhow::ensure!(
+        so101 || args.seeds.is_none(),
+        "--seeds chooses the SO-101's episodes: pass --task so101 (the reach task's episodes \
+         are its held-out scenes)"
+    );
     let mut cfg = match &args.config {
         Some(p) => Config::load(p)?,
         None if so101 => Config::load(std::path::Path::new("config/so101.toml")).context(
@@ -473,6 +512,12 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
             max_seconds_arg,
         )
     };
+    // --seeds A..B: B − A episodes from A (a quick run plays the first two)
+    let episodes = match &args.seeds {
+        Some(r) if args.quick => episodes.min((r.end - r.start) as usize),
+        Some(r) => (r.end - r.start) as usize,
+        None => episodes,
+    };
     anyhow::ensure!(episodes > 0, "--episodes must be > 0");
     let drift = match args.drift_hz {
         Some(f) => {
@@ -519,6 +564,7 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
             drift,
             so101,
             expert_plan: args.expert_plan,
+            first_seed: args.seeds.as_ref().map(|r| r.start),
         },
         |done, total, s, d| {
             let now = t0.elapsed().as_secs_f64();

@@ -321,3 +321,53 @@ fn eval_drives_the_so101_physics_in_simulated_time() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `chunkrt eval --task so101 --seeds A..B` plays the episodes of seeds A..B (B excluded)
+/// instead of `--episodes` from seed 10 000 (issue 54 §5: there was no way to choose them):
+/// the expert's plans of seeds 8200 and 8201 at a delay of one step, one row per seed. A range
+/// with no seeds, or `--seeds` for the reach task, is refused with a line that says why.
+#[test]
+fn eval_plays_the_so101_seeds_asked_for() {
+    for (args, want) in [
+        (
+            ["--task", "reach", "--seeds", "1..3"],
+            "--seeds chooses the SO-101",
+        ),
+        (["--task", "so101", "--seeds", "9..3"], "no seeds"),
+        (["--task", "so101", "--seeds", "9-30"], "seeds are A..B"),
+    ] {
+        let out = std::process::Command::new(EXE)
+            .arg("eval")
+            .args(args)
+            .current_dir(ROOT)
+            .output()
+            .expect("chunkrt eval");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} was not refused");
+        assert!(err.contains(want), "{args:?}: {err}");
+    }
+    if !so101_python() {
+        return;
+    }
+    let _serial = serial();
+    let (dir, text, csv) = so101_eval(
+        "seeds",
+        &[
+            "--expert-plan",
+            "--strategies",
+            "rtc",
+            "--delays",
+            "1",
+            "--seeds",
+            "8200..8202",
+        ],
+    );
+    let seeds: Vec<&str> = csv
+        .lines()
+        .skip(1)
+        .map(|r| r.split(',').nth(2).unwrap_or(""))
+        .collect();
+    println!("{text}\n{csv}");
+    assert_eq!(seeds, ["8200", "8201"], "{csv}");
+    std::fs::remove_dir_all(&dir).ok();
+}
