@@ -15,7 +15,7 @@ import re
 import tomllib
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-SOURCES = ["controller/src/config.rs", "ipc/src/config.rs", "openpi/src/layout.rs", "policy/src/config.rs"]
+SOURCES = ["controller/src/config.rs", "ipc/src/config.rs", "ipc/src/config/ros2.rs", "openpi/src/layout.rs", "policy/src/config.rs"]
 SECTION_TEXT = {
     "robot": "The robot: its namespace and joints (what every process of a robot shares).",
     "robot.joints[]": "One table per joint, in command order.",

@@ -27,6 +27,10 @@ enum Command {
     /// states out at the robot's 1 kHz, the controller's commands in, every command kept within
     /// the FR3's limits, a jerk-limited stop when the controller stops, stalls or dies.
     Franka(chunkrt_franka::Args),
+    /// Any ros2_control robot as a chunkrt robot (`[ros2]` of the configuration): its
+    /// `JointState`s in, matched by name; the controller's commands out to a forward command or
+    /// joint trajectory controller; status and predicted chunks out for RViz / Foxglove.
+    Ros2(chunkrt_ros2::Args),
     /// List chunkrt services with live rate, latency and last values (same as `monitor`).
     Monitor(chunkrt_tools::monitor::Args),
     /// Ask the controller to leave FAULT without a restart; prints its answer (refused, with
@@ -57,6 +61,11 @@ enum Command {
 
 fn main() {
     let cli = Cli::parse();
+    if matches!(cli.command, Command::Ros2(_)) && std::env::var_os("RUST_LOG").is_none() {
+        // RustDDS logs every discovery step at info: its warnings only, unless RUST_LOG says
+        // otherwise (set before any thread starts)
+        std::env::set_var("RUST_LOG", "info,rustdds=warn,ros2_client=warn");
+    }
     chunkrt_policy::keep_freed_memory();
     chunkrt::rt::init_logging();
     let result = match cli.command {
@@ -66,6 +75,7 @@ fn main() {
         Command::FakeCamera(a) => chunkrt_tools::fake_camera::run(a),
         Command::FakeRobot(a) => chunkrt_tools::fake_robot::run(a),
         Command::Franka(a) => chunkrt_franka::run(a),
+        Command::Ros2(a) => chunkrt_ros2::run(a),
         Command::Monitor(a) => chunkrt_tools::monitor::run(a),
         Command::Rearm(a) => chunkrt_tools::rearm::run(a),
         Command::Serve(a) => chunkrt::serve::run(a),

@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+pub use chunkrt_ipc::config::ros2::Ros2Config;
 pub use chunkrt_ipc::config::{
     CameraConfig, Checker, ConfigError, ControlConfig, JointConfig, RobotConfig, SharedConfig,
     DEFAULT_TOML,
@@ -39,6 +40,9 @@ pub struct Config {
     /// `chunkrt serve`'s connection limits.
     #[serde(default)]
     pub serve: ServeSettings,
+    /// `chunkrt ros2`'s topics, joints, command mode and QoS (the bridge reads it; not used here).
+    #[serde(default)]
+    pub ros2: Ros2Config,
     /// Where the configuration came from (not part of the file).
     #[serde(skip)]
     pub source: PathBuf,

@@ -201,6 +201,7 @@ impl CameraConfig {
 }
 
 mod enums;
+pub mod ros2;
 
 /// Collects the checks of one file: each names the file, the key and what is allowed (used by
 /// the crates that own the other sections too).
