@@ -321,6 +321,62 @@ fn resume_after_a_robot_restart_starts_from_the_measured_position() {
     assert_brakes_within_limits_partial(&cfg, &s.commands[resume_at + first_running..]);
 }
 
+/// The robot comes back with the arm outside the controller's position range (a reflex in an
+/// extreme pose, a person who moved it): the first command starts where the arm is (a command
+/// clamped into the range would be a step, refused as far by the robot every tick: the FR3
+/// refused 5 000 in a row after a reflex), and the stream returns inside the range within the
+/// limits, never further out.
+#[test]
+fn resume_outside_the_position_range_starts_from_the_arm_and_returns_inside() {
+    let (cfg, mut s) = sim(10_000.0);
+    s.run(1500);
+    s.robot_reports = false;
+    s.run(300);
+    assert_eq!(s.exec.state(), State::Hold);
+    let mut measured = s.joint_state.position;
+    let (lo, hi) = (
+        cfg.robot.joints[0].position_min,
+        cfg.robot.joints[0].position_max,
+    );
+    measured[0] = hi + 0.1;
+    let resume_at = s.commands.len();
+    for _ in 0..3000 {
+        s.joint_state.seq += 1;
+        s.joint_state.measurement_time_ns = s.now_ns;
+        if s.exec.state() == State::Hold {
+            s.joint_state.position = measured;
+            s.joint_state.velocity = [0.0; chunkrt::ipc::MAX_DOF];
+        } else if let Some(c) = s.commands.last() {
+            s.joint_state.position = c.position;
+            s.joint_state.velocity = c.velocity;
+        }
+        s.step();
+    }
+    let first_running = s.reports[s.reports.len() - 3000..]
+        .iter()
+        .position(|r| r.state == State::Running)
+        .expect("resumes");
+    let cmds = &s.commands[resume_at + first_running..];
+    let d = (cmds[0].position[0] - measured[0]).abs();
+    assert!(d < 0.01, "the first command {d} rad from the arm");
+    assert_brakes_within_limits_partial(&cfg, cmds);
+    let mut furthest = f64::NEG_INFINITY;
+    for c in cmds {
+        assert!(
+            c.position[0] <= measured[0] + 1e-9,
+            "further out: {}",
+            c.position[0]
+        );
+        furthest = furthest.max(c.position[0]);
+    }
+    let last = cmds.last().expect("commands").position[0];
+    assert!(
+        (lo..=hi).contains(&last),
+        "joint 0 at {last}, outside {lo}..{hi} after {} ticks",
+        cmds.len()
+    );
+}
+
 /// A camera the policy uses stops sending (the inference thread sets its bit in the link's
 /// `stale_cameras`): the next tick holds, brakes within the limits, and the status names the
 /// camera; when frames are back the executor runs again.

@@ -479,6 +479,93 @@ fn droid_chunks_that_drive_every_joint_to_minus_1_and_plus_1_stop_before_the_rob
 }
 
 #[test]
+fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
+    // After a reflex recovery the controller re-seeds from the arm wherever it is and rejoins
+    // (issue: once it refused to, 11 190 commands "far", then FAULT): openpi's server drives
+    // every DROID joint velocity at -1 (the arm folds until the driver's geometry holds it at
+    // the base), the driver trips the robot's reflex on purpose there (`--inject-reflex-at`),
+    // and the policy then turns back (+1). The controller must lead the arm out: commands
+    // applied after the recovery, few refused as far, never in FAULT.
+    let Some((py, model)) = franka_env("franka_sim: rejoin after a reflex") else {
+        return;
+    };
+    if !python::python_can_import(
+        "import openpi_server, numpy",
+        "franka_sim: rejoin after a reflex",
+        ".ci/run installs openpi-server",
+    ) {
+        return;
+    }
+    let _one = serial();
+    let host = "127.0.0.39";
+    let trace = std::env::temp_dir().join(format!("fr3_rejoin_{}.csv", std::process::id()));
+    let tr = trace.display().to_string();
+    let (c_out, d_out, _cam, srv_out, s_out) = droid_run(
+        &py,
+        &model,
+        &host,
+        &["--mode", "constant", "--value", "-1", "--flip-after", "45"],
+        &["--inject-reflex-at", "9", "--trace", &tr],
+    );
+    println!("rejoin: the driver's trace: {tr}");
+    println!("rejoin: {}", srv_out.stdout.lines().last().unwrap_or(""));
+    let line = d_out
+        .stdout
+        .lines()
+        .find(|l| l.starts_with("franka summary"))
+        .unwrap_or("");
+    println!("rejoin: {line}");
+    assert_eq!(
+        c_out.code,
+        Some(0),
+        "the controller failed:\n{}",
+        c_out.stderr
+    );
+    assert_eq!(
+        drv(&d_out, "reflexes"),
+        1.0,
+        "one reflex, the injected one:\n{}",
+        s_out.stdout
+    );
+    assert!(drv(&d_out, "motions") >= 2.0, "no recovery: {line}");
+    let far = drv(&d_out, "commands_far");
+    assert!(
+        far < 200.0,
+        "{far} commands refused as far from the arm: {line}\n{}",
+        c_out.stderr
+    );
+    assert!(
+        !c_out.stderr.contains("-> fault"),
+        "the controller went to FAULT:\n{}",
+        c_out.stderr
+    );
+    // the controller led after the recovery: commands applied in the second motion
+    let rows = std::fs::read_to_string(&trace).unwrap_or_default();
+    let after: Vec<&str> = rows
+        .lines()
+        .skip_while(|l| !l.contains("reflex"))
+        .skip(1)
+        .collect();
+    let led_after = after
+        .iter()
+        .filter(|l| {
+            let p = l.split(',').nth(1).unwrap_or("");
+            p == "pass" || p == "offset" || p == "restart"
+        })
+        .count();
+    println!(
+        "rejoin: after the reflex {} cycles, {led_after} led by the controller",
+        after.len()
+    );
+    assert!(
+        led_after >= 1000,
+        "the controller led {led_after} cycles after the recovery (of {})",
+        after.len()
+    );
+    let _ = std::fs::remove_file(trace);
+}
+
+#[test]
 fn stall_kill_takeover_and_a_restarted_robot_trip_no_reflex() {
     let Some((py, model)) = franka_env("franka_sim: takeover") else {
         return;

@@ -115,6 +115,11 @@ pub struct Args {
     /// End at the first reflex instead of recovering and starting a new motion.
     #[arg(long)]
     pub stop_on_reflex: bool,
+    /// A reflex on purpose, once, this many seconds after the start: one answer with a step
+    /// of 0.01 rad on joint 7 past the guard (10 rad/s in one cycle), which the robot aborts.
+    /// For tests of the recovery (wherever the arm is then); never on a real arm.
+    #[arg(long, value_name = "S")]
+    pub inject_reflex_at: Option<f64>,
     /// Give up (exit with an error, the arm at rest in the robot's own stop) after this many
     /// reflexes within `--reflex-window-s`: a robot that keeps tripping needs a person, not
     /// another automatic recovery.
@@ -449,6 +454,8 @@ struct Core {
     at_rest: bool,
     motion_cycles: u64,
     end_ns: u64,
+    /// `--inject-reflex-at`, as a monotonic time (0: none, or done).
+    inject_reflex_ns: u64,
     stop: &'static AtomicBool,
     hand: Arc<Hand>,
     live: Arc<Live>,
@@ -941,7 +948,14 @@ impl Core {
             }
             *next_slot = (*next_slot + 1) % TRACE_CYCLES;
         }
-        let mut out = JointPositions::new(next.q);
+        let mut sent = next.q;
+        if self.inject_reflex_ns != 0 && now >= self.inject_reflex_ns && !stopping {
+            // --inject-reflex-at: a step the robot must abort (a test of the recovery)
+            self.inject_reflex_ns = 0;
+            sent[JOINTS - 1] += 0.01;
+            tracing::warn!("franka: --inject-reflex-at: a 0.01 rad step on joint 7, on purpose");
+        }
+        let mut out = JointPositions::new(sent);
         if stopping && next.at_rest() {
             out.motion_finished = true;
         }
@@ -1194,6 +1208,11 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         at_rest: true,
         motion_cycles: 0,
         end_ns,
+        inject_reflex_ns: match args.inject_reflex_at {
+            Some(s) if s.is_finite() && (0.0..=86_400.0).contains(&s) => start + (s * 1e9) as u64,
+            Some(s) => anyhow::bail!("--inject-reflex-at {s}: must be within 0..=86400 s"),
+            None => 0,
+        },
         stop,
         hand: hand.clone(),
         live: live.clone(),

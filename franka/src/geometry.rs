@@ -168,14 +168,15 @@ pub const CAPSULE_NAMES: [&str; 6] = ["base", "upper arm", "elbow", "forearm", "
 /// are left to joint 4's range: not covered). The distances were measured, not guessed: over 6 000 random poses within the
 /// FR3's joint ranges, the largest of (segment distance - the surface distance of the links'
 /// collision meshes in the FR3 model franka-sim runs, MuJoCo's `mj_geomDistance`) among poses
-/// whose links lay within 0.2 m, plus 1 cm. So a segment distance above this plus the
+/// whose links lay within 0.2 m, plus 1 cm (`tools/python/fr3_geometry.py`; its output in
+/// `benches/data/franka/2026-11-27-geometry/`). So a segment distance above this plus the
 /// clearance keeps the links at least the clearance apart, in every pose sampled.
 const PAIRS: [(usize, usize, f64); 7] = [
     (0, 2, 0.226),
     (0, 3, 0.305),
     (0, 4, 0.238),
     (0, 5, 0.256),
-    (1, 4, 0.210),
+    (1, 4, 0.213),
     (1, 5, 0.229),
     (2, 5, 0.240),
 ];

@@ -150,6 +150,11 @@ pub struct Executor {
     /// stays continuous and, when the robot binds it, starts near the arm.
     rejoin: Sample,
     rejoining: bool,
+    /// The range each command may take: the configured position range, widened to an arm seeded
+    /// outside it (a reflex in an extreme pose, a person who moved the arm) and narrowed back as
+    /// the commands return inside (never further out than the range or the arm was).
+    range_lo: [f64; MAX_DOF],
+    range_hi: [f64; MAX_DOF],
     last_primary: u64,
     tracking_gain: f64,
     control_period_ns: u64,
@@ -210,6 +215,8 @@ impl Executor {
             scratch: Sample::default(),
             rejoin: Sample::default(),
             rejoining: false,
+            range_lo: otg_in.min_position,
+            range_hi: otg_in.max_position,
             last_primary: 0,
             tracking_gain: e.tracking_gain,
             control_period_ns,
@@ -438,7 +445,14 @@ impl Executor {
             let far = js.status_flags & chunkrt_ipc::JOINT_STATUS_COMMAND_FAR != 0;
             check.obeyed = ours && !far;
             let was_rejoining = std::mem::replace(&mut self.rejoining, false);
-            if (far && !was_rejoining) || (!check.obeyed && !self.initialized) {
+            // an arm outside this controller's position range (a reflex in an extreme pose, a
+            // person who moved it): a rejoin that tracks it within the range never reaches it,
+            // and the robot would refuse every command as far (11 190 in a row once, then FAULT)
+            let outside = (0..self.limits.n).any(|j| {
+                let p = js.position[j];
+                p.is_finite() && !(self.limits.pmin[j]..=self.limits.pmax[j]).contains(&p)
+            });
+            if (far && (!was_rejoining || outside)) || (!check.obeyed && !self.initialized) {
                 // our command was refused as too far from the arm (after the robot held): the
                 // next one starts where the robot is (a step, into a refusal: the robot moved
                 // nothing). (A continuous rejoin of such a stream once reached the FR3 moving and
@@ -631,11 +645,17 @@ impl Executor {
         };
         command.position[..n].copy_from_slice(&self.otg_in.current_position[..n]);
         for j in 0..n {
-            let p = command.position[j].clamp(self.limits.pmin[j], self.limits.pmax[j]);
+            let (lo, hi) = (self.range_lo[j], self.range_hi[j]);
+            let p = command.position[j].clamp(lo, hi);
             if p != command.position[j] {
                 command.position[j] = p;
                 self.limit_warnings += 1;
             }
+            // back inside the range: the range narrows to it again (one way only)
+            self.range_lo[j] = self.limits.pmin[j].min(lo.max(p));
+            self.range_hi[j] = self.limits.pmax[j].max(hi.min(p));
+            self.otg_in.min_position[j] = self.range_lo[j];
+            self.otg_in.max_position[j] = self.range_hi[j];
         }
         if mode == COMMAND_MODE_POSITION {
             command.velocity[..n].copy_from_slice(&self.otg_in.current_velocity[..n]);
@@ -690,6 +710,12 @@ impl Executor {
                 0.0
             };
             self.otg_in.current_acceleration[j] = 0.0;
+            // an arm outside the position range is commanded from where it is, back inside
+            let p = self.otg_in.current_position[j];
+            self.range_lo[j] = self.limits.pmin[j].min(p);
+            self.range_hi[j] = self.limits.pmax[j].max(p);
+            self.otg_in.min_position[j] = self.range_lo[j];
+            self.otg_in.max_position[j] = self.range_hi[j];
         }
         self.otg.reset();
         // the seed is the robot's state now: one period from it, not the robot cycles missed
