@@ -46,7 +46,10 @@ fn config(tag: &str, rate_hz: f64, extra: &[(&str, &str)]) -> String {
     let mut text = std::fs::read_to_string(format!("{ROOT}/config/ros2_mock.toml")).unwrap();
     let period_ms = 1e3 / rate_hz;
     let mut set = |from: &str, to: String| {
-        assert!(text.contains(from), "config/ros2_mock.toml has no line {from:?}");
+        assert!(
+            text.contains(from),
+            "config/ros2_mock.toml has no line {from:?}"
+        );
         text = text.replacen(from, &to, 1);
     };
     set(
@@ -65,10 +68,7 @@ fn config(tag: &str, rate_hz: f64, extra: &[(&str, &str)]) -> String {
     for (from, to) in extra {
         set(from, to.to_string());
     }
-    let path = std::env::temp_dir().join(format!(
-        "chunkrt-ros2-{}-{tag}.toml",
-        std::process::id()
-    ));
+    let path = std::env::temp_dir().join(format!("chunkrt-ros2-{}-{tag}.toml", std::process::id()));
     std::fs::write(&path, text).unwrap();
     path.display().to_string()
 }
@@ -137,14 +137,7 @@ fn run_stack(cfg: &str, tag: &str, seconds: f64, rate_hz: f64, peer_args: &[&str
     let bridge = start(
         "ros2",
         &ns,
-        &[
-            "--config",
-            cfg,
-            "--domain-id",
-            &dom,
-            "--duration",
-            &total,
-        ],
+        &["--config", cfg, "--domain-id", &dom, "--duration", &total],
     );
     let script = format!("{ROOT}/tools/python/ros2_mock.py");
     let rate = format!("{rate_hz}");
@@ -283,7 +276,10 @@ fn check_closed_loop(r: &Run, rate_hz: f64, seconds: f64) {
         r.p("first_command_s")
     );
     // the predicted chunks and the status came out on ROS 2 too
-    assert!(r.p("chunks_seen") >= 1.0, "no predicted chunk on ROS 2\n{d}");
+    assert!(
+        r.p("chunks_seen") >= 1.0,
+        "no predicted chunk on ROS 2\n{d}"
+    );
     assert!(r.p("statuses_seen") >= 1.0, "no status on ROS 2\n{d}");
 }
 
@@ -307,4 +303,191 @@ fn forward_command_closed_loop_at_100_hz() {
     let cfg = config("fwd100", 100.0, &[]);
     let r = run_stack(&cfg, "r2f100", 5.0, 100.0, &[]);
     check_closed_loop(&r, 100.0, 5.0);
+}
+
+/// Issue 53 §3: every lie a robot's topics can tell, a flood, a second commander, another
+/// domain's traffic, and the robot vanishing and coming back (a new peer process: a new DDS
+/// participant). Each is counted by kind, logged at a bounded rate; the bridge never crashes,
+/// never grows, never sends a command outside the limits, and the controller holds and resumes.
+#[test]
+fn bad_input_at_the_boundary_is_counted_and_the_arm_held() {
+    if !peer_usable("bad_input_at_the_boundary_is_counted_and_the_arm_held") {
+        return;
+    }
+    let _serial = serial();
+    let cfg = config("bad", 100.0, &[]);
+    let ns = unique_namespace("r2bad");
+    let dom = domain().to_string();
+    let (first_s, second_s) = (7.0, 3.0);
+    let total = format!("{:.1}", first_s + second_s + 2.5);
+    let ctl = start(
+        "run",
+        &ns,
+        &[
+            "--config",
+            &cfg,
+            "--scripted",
+            "50",
+            "--duration",
+            &total,
+            "--log-every",
+            "0",
+        ],
+    );
+    let bridge = start(
+        "ros2",
+        &ns,
+        &["--config", &cfg, "--domain-id", &dom, "--duration", &total],
+    );
+    let script = format!("{ROOT}/tools/python/ros2_mock.py");
+    let peer = |secs: f64, inject: &[&str]| {
+        let secs_s = format!("{secs}");
+        let mut args = vec![
+            script.as_str(),
+            "--config",
+            &cfg,
+            "--domain-id",
+            &dom,
+            "--rate-hz",
+            "100",
+            "--duration",
+            &secs_s,
+            "--loopback",
+        ];
+        for i in inject {
+            args.push("--inject");
+            args.push(i);
+        }
+        ChildGuard::spawn("python3", &args)
+            .expect("spawn python3")
+            .finish(Duration::from_secs_f64(secs + 30.0))
+    };
+    let t0 = Instant::now();
+    let p1 = peer(
+        first_s,
+        &[
+            "otherdomain@0:7",
+            "missing@1.5:0.3",
+            "repeated@2.1:0.3",
+            "length@2.7:0.3",
+            "nan@3.3:0.3",
+            "noname@3.9:0.3",
+            "vanish@4.5:0.6",
+            "flood@5.5:0.1",
+            "foreign@6.0:0.4",
+        ],
+    );
+    // the robot is gone for a moment, then a new one (a new DDS participant) comes
+    std::thread::sleep(Duration::from_millis(500));
+    let p2 = peer(second_s, &[]);
+    let bridge = bridge.finish(Duration::from_secs(15));
+    let ctl = ctl.finish(Duration::from_secs(15));
+    let wall = t0.elapsed().as_secs_f64();
+    let d = format!(
+        "--- peer 1\n{}\n{}\n--- peer 2\n{}\n{}\n--- bridge\n{}\n{}\n--- controller\n{}\n{}",
+        p1.stdout,
+        tail(&p1.stderr),
+        p2.stdout,
+        tail(&p2.stderr),
+        bridge.stdout,
+        tail(&bridge.stderr),
+        ctl.stdout,
+        tail(&ctl.stderr)
+    );
+    for (who, f) in [
+        ("peer 1", &p1),
+        ("peer 2", &p2),
+        ("bridge", &bridge),
+        ("controller", &ctl),
+    ] {
+        assert_eq!(f.code, Some(0), "{who} failed\n{d}");
+    }
+    let b = |k: &str| {
+        summary_value(&bridge.stdout, k)
+            .unwrap_or_else(|| panic!("no {k} in the bridge's summary\n{d}"))
+    };
+    let p = |f: &Finished, k: &str| {
+        summary_value(&f.stdout, k).unwrap_or_else(|| panic!("no {k} in a peer's summary\n{d}"))
+    };
+    eprintln!(
+        "ros2 boundary ({wall:.1} s): injected missing/repeated/length/nan/noname \
+         {}/{}/{}/{}/{} -> counted missing {} names {} length {} non-finite {}; flood {} states; \
+         foreign commands {} -> counted {}; other domain {} states (heard: none, else counted as \
+         missing); robot silences {}; bridge peak RSS {} kB; peer 2's first command after {:.3} s",
+        p(&p1, "injected_missing"),
+        p(&p1, "injected_repeated"),
+        p(&p1, "injected_length"),
+        p(&p1, "injected_nan"),
+        p(&p1, "injected_noname"),
+        b("state_missing_joint"),
+        b("state_bad_names"),
+        b("state_bad_length"),
+        b("state_non_finite"),
+        p(&p1, "flooded"),
+        p(&p1, "foreign_sent"),
+        b("foreign_commanders"),
+        p(&p1, "other_domain_sent"),
+        b("peer_silences"),
+        b("max_rss_kb"),
+        p(&p2, "first_command_s"),
+    );
+    // each kind seen and counted (best effort on loopback: at most what was sent)
+    let injected_names = p(&p1, "injected_repeated") + p(&p1, "injected_noname");
+    for (counted, sent, what) in [
+        (
+            b("state_missing_joint"),
+            p(&p1, "injected_missing"),
+            "missing joint",
+        ),
+        (b("state_bad_names"), injected_names, "repeated / no names"),
+        (
+            b("state_bad_length"),
+            p(&p1, "injected_length"),
+            "wrong length",
+        ),
+        (b("state_non_finite"), p(&p1, "injected_nan"), "NaN"),
+    ] {
+        assert!(sent >= 10.0, "the peer injected only {sent} {what}\n{d}");
+        // another domain's robot (names x, y) would count as missing joints: not heard
+        assert!(
+            counted >= 0.5 * sent && counted <= sent,
+            "{what}: {counted} counted for {sent} sent\n{d}"
+        );
+    }
+    assert!(
+        p(&p1, "other_domain_sent") > 100.0,
+        "no other-domain traffic\n{d}"
+    );
+    assert_eq!(b("decode_errors"), 0.0, "{d}");
+    assert!(
+        b("foreign_commanders") >= 1.0,
+        "the second commander was not seen\n{d}"
+    );
+    assert!(
+        bridge.stderr.contains("another publisher"),
+        "the second commander was not named\n{d}"
+    );
+    // the vanishing robot (0.6 s), the end of peer 1, the end of peer 2
+    assert!(b("peer_silences") >= 2.0, "{d}");
+    // rate-limited: 5 lines per kind, then at most one a second
+    let warn_lines = bridge.stderr.lines().filter(|l| l.contains("WARN")).count();
+    assert!(warn_lines <= 80, "{warn_lines} warning lines\n{d}");
+    // bounded: the flood did not grow the bridge
+    assert!(b("max_rss_kb") < 300_000.0, "{d}");
+    // no command outside the limits, ever; no malformed one
+    for f in [&p1, &p2] {
+        assert_eq!(p(f, "limit_violations"), 0.0, "{d}");
+        assert_eq!(p(f, "bad_commands"), 0.0, "{d}");
+    }
+    // the controller held on the bad states and ran again after them
+    let runs = ctl.stderr.matches("-> running").count();
+    assert!(
+        ctl.stderr.contains("-> hold") && runs >= 2,
+        "the controller did not hold and resume ({runs} starts)\n{d}"
+    );
+    // the robot that came back is driven again, within discovery's time
+    assert!(
+        (0.0..2.0).contains(&p(&p2, "first_command_s")) && p(&p2, "commands") >= 100.0,
+        "the new robot was not driven\n{d}"
+    );
 }

@@ -89,6 +89,8 @@ pub struct Summary {
     pub errors: ErrorCounters,
     /// The bridge's CPU time over its run time (both threads of RustDDS included).
     pub cpu_share: f64,
+    /// The process's peak resident memory (kB).
+    pub max_rss_kb: u64,
 }
 
 impl std::fmt::Display for Summary {
@@ -99,7 +101,7 @@ impl std::fmt::Display for Summary {
              holds_sent={} commands_applied={} commands_rejected={} commands_expired={} \
              commands_unbound={} commands_far={} clamped={} statuses_out={} chunks_out={} \
              latency_p50_us={:.1} latency_p99_us={:.1} latency_max_us={:.1} latency_count={} \
-             cpu_share={:.3} {}",
+             cpu_share={:.3} max_rss_kb={} {}",
             self.states_received,
             self.states_published,
             self.commands_sent,
@@ -117,6 +119,7 @@ impl std::fmt::Display for Summary {
             self.latency_max_us,
             self.latency_count,
             self.cpu_share,
+            self.max_rss_kb,
             self.errors.summary(),
         )
     }
@@ -138,6 +141,18 @@ pub fn realtime_ns() -> u64 {
     // SAFETY: a valid timespec to write into
     unsafe { libc::clock_gettime(libc::CLOCK_REALTIME, &mut ts) };
     (ts.tv_sec.max(0) as u64) * 1_000_000_000 + ts.tv_nsec.max(0) as u64
+}
+
+/// The process's peak resident memory (kB).
+fn max_rss_kb() -> u64 {
+    // SAFETY: getrusage writes into the zeroed struct it is given
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: a valid rusage to write into
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } == 0 {
+        u.ru_maxrss.max(0) as u64
+    } else {
+        0
+    }
 }
 
 /// The process's CPU time (ns).
@@ -894,6 +909,7 @@ impl Bridge {
             errors: self.errors.clone(),
             cpu_share: (cpu_ns().saturating_sub(cpu0)) as f64
                 / (now.saturating_sub(start)).max(1) as f64,
+            max_rss_kb: max_rss_kb(),
             ..self.summary.clone()
         }
     }

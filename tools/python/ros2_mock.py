@@ -271,6 +271,8 @@ def main():
     last_state_t = None
     got_answer = True
     foreign_sent = other_sent = flooded = injected = 0
+    injected_by = {}
+    vanished = 0
     chunks_seen = statuses_seen = 0
     chunk_points = 0
     t0 = time.monotonic()
@@ -352,7 +354,7 @@ def main():
             unanswered += 1
         msg = None
         if "vanish" in active:
-            pass
+            vanished += 1
         elif "missing" in active:
             msg = joint_state(pos, vel, names_override=lambda nm: [x if x != names[0] else "not_" + x for x in nm])
         elif "repeated" in active:
@@ -367,8 +369,10 @@ def main():
             msg = joint_state(pos, vel)
         if msg is not None:
             js_writer.write(msg)
-            if any(k in active for k in ("missing", "repeated", "length", "nan", "noname")):
+            bad = [k for k in ("missing", "repeated", "length", "nan", "noname") if k in active]
+            if bad:
                 injected += 1
+                injected_by[bad[0]] = injected_by.get(bad[0], 0) + 1
             else:
                 states += 1
             last_state_t = time.monotonic()
@@ -400,7 +404,10 @@ def main():
         f"clamped={clamped} limit_violations={limit_violations} max_arm_step={max_step:.6f} "
         f"range_max={max(rng):.4f} range=" + ",".join(f"{x:.4f}" for x in rng) + " "
         f"final=" + ",".join(f"{x:.4f}" for x in pos) + " "
-        f"chunks_seen={chunks_seen} chunk_points={chunk_points} statuses_seen={statuses_seen}",
+        f"chunks_seen={chunks_seen} chunk_points={chunk_points} statuses_seen={statuses_seen} "
+        f"vanished_ticks={vanished} "
+        + " ".join(f"injected_{k}={injected_by.get(k, 0)}"
+                   for k in ("missing", "repeated", "length", "nan", "noname")),
         flush=True,
     )
 
