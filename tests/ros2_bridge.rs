@@ -491,3 +491,28 @@ fn bad_input_at_the_boundary_is_counted_and_the_arm_held() {
         "the new robot was not driven\n{d}"
     );
 }
+
+/// The other command mode: `trajectory_msgs/JointTrajectory` to `joint_trajectory_controller`
+/// (one point `trajectory_lead_ms` ahead per robot state, the joints named in the configured
+/// order); the peer takes the point's positions by name.
+#[test]
+fn joint_trajectory_closed_loop_at_100_hz() {
+    if !peer_usable("joint_trajectory_closed_loop_at_100_hz") {
+        return;
+    }
+    let _serial = serial();
+    let cfg = config(
+        "traj100",
+        100.0,
+        &[
+            ("command = \"forward\"", "command = \"trajectory\""),
+            (
+                "command_topic = \"/forward_position_controller/commands\"",
+                "command_topic = \"/joint_trajectory_controller/joint_trajectory\"",
+            ),
+        ],
+    );
+    let r = run_stack(&cfg, "r2t100", 5.0, 100.0, &[]);
+    assert!(r.peer.stdout.contains("mode=trajectory"), "{}", r.dump());
+    check_closed_loop(&r, 100.0, 5.0);
+}
