@@ -81,6 +81,10 @@ pub struct InspectArgs {
     /// Precision for `--device`.
     #[arg(long, default_value = "bf16")]
     pub precision: Precision,
+    /// Also hold the action statistics against this robot configuration's joint ranges, as
+    /// `run` does at load (the embedded demo robot's with `--config default`).
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
 }
 
 /// `chunkrt bench-inference` (also `cargo bench --bench inference -- --device ...`).
@@ -460,12 +464,35 @@ pub fn inspect(args: InspectArgs) -> anyhow::Result<()> {
         "{}",
         checkpoint::inspect(&args.dir, &args.layout.options())?
     );
-    // the verdict `run` and `serve` would give at load
-    if let Err(e) = checkpoint::verdict(&args.dir, &args.layout.options()) {
+    // the verdict `run` and `serve` would give at load (with a robot: its joint ranges too)
+    let robot = match &args.config {
+        Some(p) if p.as_os_str() == "default" => Some(crate::config::Config::embedded_default()),
+        Some(p) => Some(crate::config::Config::load(p)?),
+        None => None,
+    };
+    let verdict = match &robot {
+        Some(cfg) => checkpoint::verdict_for_robot(
+            &args.dir,
+            &args.layout.options(),
+            &crate::inference::joint_ranges(cfg),
+        ),
+        None => checkpoint::verdict(&args.dir, &args.layout.options()),
+    };
+    if let Err(e) = verdict {
         println!("REFUSED at load: {e}");
         anyhow::bail!("{}: would not load: {e}", args.dir.display());
     }
-    println!("loads: yes (the statistics pass the checks run and serve make)");
+    match &robot {
+        Some(cfg) => println!(
+            "loads: yes (the statistics pass the checks run and serve make, and fit robot \
+             '{}''s joint ranges)",
+            cfg.robot.name
+        ),
+        None => println!(
+            "loads: yes (the statistics pass the checks run and serve make; --config FILE \
+             also holds them against a robot's joint ranges)"
+        ),
+    }
     if let Some(spec) = args.device {
         let device = spec.open()?;
         let need = checkpoint::model_bytes(&args.dir, model_dtype(&device, args.precision))?;

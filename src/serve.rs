@@ -109,6 +109,33 @@ pub fn metadata(policy: &Policy, layout: &Layout) -> ChunkrtMetadata {
     }
 }
 
+/// Whether `policy` can answer a request at all: an openpi config's robot's state and action
+/// widths fit the model's, and its statistics cover that state (else every request would fail
+/// the same way, found per request instead of at load).
+pub fn servable(policy: &Policy) -> anyhow::Result<()> {
+    let Some(c) = policy.openpi_config() else {
+        return Ok(());
+    };
+    let dim = policy.model().cfg.action_dim;
+    let (state, actions) = (c.robot.state_dim(), c.robot.action_dim());
+    anyhow::ensure!(
+        state <= dim && actions <= dim,
+        "openpi config {}: its robot ({}) sends {state} state values and reads {actions} action \
+         columns, and this {} model takes {dim}: serve a checkpoint of that config's model, or \
+         pick the --openpi-config of this one's robot",
+        c.name,
+        c.robot.layout(),
+        policy.model().cfg.kind.name()
+    );
+    policy.check_dof(state).with_context(|| {
+        format!(
+            "openpi config {}: the statistics do not cover its robot's {state} state values",
+            c.name
+        )
+    })?;
+    Ok(())
+}
+
 /// Answers one request with `policy` (on `pool`): the one place a wire request becomes a
 /// policy call.
 pub fn answer(
@@ -222,6 +249,12 @@ pub fn start(args: &ServeArgs) -> anyhow::Result<Serving> {
     let mut policy = pool
         .install(|| Policy::load(&args.checkpoint, &opts))
         .with_context(|| format!("cannot load the policy from {}", args.checkpoint.display()))?;
+    servable(&policy).with_context(|| {
+        format!(
+            "{} cannot answer any request: refused at load",
+            args.checkpoint.display()
+        )
+    })?;
     // an openpi config's robot sends the keys of openpi's example client for it
     let preset = args.layout.as_deref().or(match policy.openpi_config() {
         Some(c) if cfg.openpi.preset == chunkrt_openpi::layout::Preset::default() => {

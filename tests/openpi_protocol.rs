@@ -648,3 +648,35 @@ fn one_peer_cannot_lock_the_server_out() {
     );
     assert!(took < 1.0, "{took} s to exit");
 }
+
+/// `chunkrt serve` refuses at load a configuration that could answer no request (issue 54 §2):
+/// `pi0_aloha_sim` (14 state values, 14 action columns) on the 8-wide π0 fixture listened and
+/// failed every request; now it exits at once, saying why.
+#[test]
+fn serve_refuses_at_load_what_can_answer_no_request() {
+    let port = free_port().to_string();
+    let ckpt = format!("{ROOT}/tests/data/pi0_tiny");
+    let out = Command::new(EXE)
+        .args([
+            "serve",
+            "--checkpoint",
+            &ckpt,
+            "--openpi-config",
+            "pi0_aloha_sim",
+            "--port",
+            &port,
+            "--duration",
+            "3",
+            "--log-every",
+            "0",
+        ])
+        .output()
+        .expect("run chunkrt serve");
+    let err = String::from_utf8_lossy(&out.stderr);
+    println!("{err}");
+    assert!(!out.status.success(), "it served:\n{err}");
+    assert!(
+        err.contains("cannot answer any request") && err.contains("pi0_aloha_sim"),
+        "{err}"
+    );
+}

@@ -797,3 +797,89 @@ fn pi05_prompt_state_is_binned_as_openpi_bins_it_at_the_edges() {
     );
     assert_eq!(&bins[..2], &[3, 7]);
 }
+
+/// Action statistics that would throw the arm are refused at load (issue 54 §2): the shipped
+/// reach policy with its action q01 / q99 at ±999, or with every statistic in degrees (×57.3),
+/// loaded under the demo robot and drove joints into their limits at full speed; now `run`'s
+/// load (`PolicySource::load`) and `inspect --config` refuse both, naming the joints, with a
+/// units hint for the degrees, and the shipped statistics still load.
+#[test]
+fn action_statistics_that_would_throw_the_arm_are_refused_at_load() {
+    use chunkrt::inference::PolicySource;
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let shipped = root.join("models/reach_pi05");
+    let text = std::fs::read_to_string(shipped.join("norm_stats.json")).unwrap();
+    let base: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let scale = |v: &mut serde_json::Value, k: f64| {
+        for part in ["state", "actions"] {
+            for stat in ["mean", "std", "q01", "q99"] {
+                if let Some(a) = v["norm_stats"][part][stat].as_array_mut() {
+                    for x in a {
+                        *x = serde_json::json!(x.as_f64().unwrap() * k);
+                    }
+                }
+            }
+        }
+    };
+    let mut wide = base.clone();
+    let n = wide["norm_stats"]["actions"]["q01"]
+        .as_array()
+        .unwrap()
+        .len();
+    wide["norm_stats"]["actions"]["q01"] = serde_json::json!(vec![-999.0; n]);
+    wide["norm_stats"]["actions"]["q99"] = serde_json::json!(vec![999.0; n]);
+    let mut degrees = base.clone();
+    scale(&mut degrees, 180.0 / std::f64::consts::PI);
+    let cases: [(&str, &serde_json::Value, &[&str]); 3] = [
+        ("shipped", &base, &[]),
+        ("q99_999", &wide, &["shoulder", "elbow", "wrist", "gripper"]),
+        ("degrees", &degrees, &["shoulder", "gripper", "degrees"]),
+    ];
+    for (tag, stats, want) in cases {
+        let dir = std::env::temp_dir().join(format!("chunkrt-stats-{tag}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for f in ["config.json", "model.safetensors", "tokenizer.json"] {
+            std::fs::copy(shipped.join(f), dir.join(f)).unwrap();
+        }
+        std::fs::write(dir.join("norm_stats.json"), stats.to_string()).unwrap();
+        let mut cfg = chunkrt::config::Config::embedded_default();
+        cfg.policy.checkpoint = Some(dir.clone());
+        let loaded = PolicySource::load(&cfg)
+            .map(|_| ())
+            .map_err(|e| format!("{e:#}"));
+        let inspect = std::process::Command::new(env!("CARGO_BIN_EXE_chunkrt"))
+            .arg("inspect")
+            .arg(&dir)
+            .args(["--config", "default"])
+            .output()
+            .expect("chunkrt inspect");
+        let said = String::from_utf8_lossy(&inspect.stdout).to_string();
+        let verdict = said
+            .lines()
+            .find(|l| l.starts_with("REFUSED") || l.starts_with("loads:"))
+            .unwrap_or("")
+            .to_string();
+        println!("{tag}: run's load: {loaded:?}\n{tag}: inspect: {verdict}");
+        let _ = std::fs::remove_dir_all(&dir);
+        if want.is_empty() {
+            assert!(loaded.is_ok(), "{tag}: {loaded:?}");
+            assert!(inspect.status.success(), "{tag}: {said}");
+        } else {
+            let e = loaded.expect_err(tag);
+            assert!(
+                !inspect.status.success(),
+                "{tag}: inspect said it loads:\n{said}"
+            );
+            for w in want {
+                assert!(
+                    e.contains(w),
+                    "{tag}: run's refusal does not name {w:?}: {e}"
+                );
+                assert!(
+                    verdict.contains(w),
+                    "{tag}: inspect's does not name {w:?}: {verdict}"
+                );
+            }
+        }
+    }
+}

@@ -31,6 +31,20 @@ pub fn load_policy(dir: &std::path::Path, cfg: &PolicyConfig) -> anyhow::Result<
         .with_context(|| format!("cannot load the policy from {}", dir.display()))
 }
 
+/// The robot's joints' position ranges, which a policy's action statistics are held against
+/// at load ([`chunkrt_policy::openpi_config::check_action_ranges`]).
+pub fn joint_ranges(cfg: &Config) -> Vec<chunkrt_policy::openpi_config::JointRange> {
+    cfg.robot
+        .joints
+        .iter()
+        .map(|j| chunkrt_policy::openpi_config::JointRange {
+            name: j.name.clone(),
+            min: j.position_min,
+            max: j.position_max,
+        })
+        .collect()
+}
+
 /// The policy's own thread pool: `policy.threads` workers (0: one per core), named
 /// `chunkrt-policy-N`. Everything the policy computes runs inside its `install` (candle's CPU
 /// ops and chunkrt's kernels split their work over the current rayon pool), so the process's
@@ -78,6 +92,16 @@ impl PolicySource {
         policy
             .check_dof(cfg.n_dof())
             .with_context(|| format!("{}: norm_stats.json", dir.display()))?;
+        policy
+            .check_action_ranges(&joint_ranges(cfg))
+            .with_context(|| {
+                format!(
+                    "{}: norm_stats.json against the joint ranges of robot '{}' ({})",
+                    dir.display(),
+                    cfg.robot.name,
+                    cfg.source.display()
+                )
+            })?;
         if let Some(c) = policy.openpi_config() {
             anyhow::ensure!(
                 policy.action_width(cfg.n_dof()) == cfg.n_dof(),

@@ -421,6 +421,33 @@ pub fn verdict(dir: &Path, opts: &LayoutOptions) -> Result<(), PolicyError> {
     Ok(())
 }
 
+/// [`verdict`], and the action statistics held against a robot's joint ranges
+/// ([`crate::openpi_config::check_action_ranges`]) as `run` holds them at load.
+pub fn verdict_for_robot(
+    dir: &Path,
+    opts: &LayoutOptions,
+    joints: &[crate::openpi_config::JointRange],
+) -> Result<(), PolicyError> {
+    verdict(dir, opts)?;
+    let file = WeightFile::open(&dir.join("model.safetensors"))?;
+    let (cfg, layout) = resolve(dir, file.shapes(), &ConfigOverrides::default(), opts)?;
+    if let Some(ns) = &layout.norm {
+        let mode = match cfg.kind {
+            ModelKind::Pi0 => crate::preprocess::NormMode::ZScore,
+            ModelKind::Pi05 => crate::preprocess::NormMode::Quantile,
+        };
+        crate::openpi_config::check_action_ranges(
+            layout.openpi.as_ref().map(|(c, _)| *c),
+            &cfg.delta_action_mask,
+            ns,
+            mode,
+            cfg.action_dim,
+            joints,
+        )?;
+    }
+    Ok(())
+}
+
 /// Human-readable description of a checkpoint directory: architecture, parameter counts, dtypes,
 /// and what is missing or mismatched.
 pub fn inspect(dir: &Path, opts: &LayoutOptions) -> Result<String, PolicyError> {

@@ -21,7 +21,7 @@ use std::path::Path;
 
 use crate::config::ModelKind;
 use crate::error::PolicyError;
-use crate::preprocess::{normalize, normalize_f64, unnormalize, NormMode, NormStats};
+use crate::preprocess::{normalize, normalize_f64, unnormalize, NormMode, NormStats, Stats};
 
 /// The robot a config's transforms are for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -506,6 +506,167 @@ pub fn robot_actions(
         ));
     }
     Ok(())
+}
+
+/// A robot joint's position range as the robot's configuration gives it (rad, or m).
+#[derive(Debug, Clone, PartialEq)]
+pub struct JointRange {
+    /// The joint's name (for the refusal).
+    pub name: String,
+    /// Lower limit.
+    pub min: f64,
+    /// Upper limit.
+    pub max: f64,
+}
+
+/// How far beyond a joint's range the action statistics' extremes may reach, as a fraction of
+/// the range's width: q01 / q99 (π0.5) 0.25; mean ± 3 std (π0) 1.0, as a gripper's two modes
+/// give a std of half its range.
+pub const RANGE_MARGIN_QUANTILE: f64 = 0.25;
+/// See [`RANGE_MARGIN_QUANTILE`].
+pub const RANGE_MARGIN_ZSCORE: f64 = 1.0;
+
+/// Degrees per radian: statistics in degrees are this much too large.
+const DEGREES_PER_RAD: f64 = 180.0 / std::f64::consts::PI;
+
+/// What the robot's joints would get from the action statistics' extremes (q01 and q99, or
+/// mean ∓ 3 std): each column's lowest and highest, through the same un-normalisation, delta
+/// offsets (the robot at the middle of its ranges) and output transform as a chunk. None where
+/// that cannot be computed (another check refuses such statistics).
+fn action_extremes(
+    cfg: Option<&OpenpiConfig>,
+    delta_mask: &[bool],
+    ns: &NormStats,
+    mode: NormMode,
+    action_dim: usize,
+    joints: &[JointRange],
+) -> Option<Vec<(f64, f64)>> {
+    let mid: Vec<f64> = joints.iter().map(|j| 0.5 * (j.min + j.max)).collect();
+    let m = model_state(cfg, delta_mask, Some(ns), mode, &mid, action_dim).ok()?;
+    let k = match mode {
+        NormMode::Quantile => 1.0,
+        NormMode::ZScore => 3.0,
+    };
+    let rows = vec![vec![-k; action_dim], vec![k; action_dim]];
+    let mut out = Vec::new();
+    robot_actions(cfg, Some(ns), mode, rows, &m.offsets, &mut out).ok()?;
+    let width = out.len() / 2;
+    (width >= joints.len()).then(|| {
+        (0..joints.len())
+            .map(|j| {
+                let (a, b) = (out[j], out[width + j]);
+                (a.min(b), a.max(b))
+            })
+            .collect()
+    })
+}
+
+/// The joints whose statistics' extremes lie outside their range by more than the margin:
+/// (index, lowest, highest).
+fn out_of_range(
+    extremes: &[(f64, f64)],
+    joints: &[JointRange],
+    mode: NormMode,
+) -> Vec<(usize, f64, f64)> {
+    let frac = match mode {
+        NormMode::Quantile => RANGE_MARGIN_QUANTILE,
+        NormMode::ZScore => RANGE_MARGIN_ZSCORE,
+    };
+    extremes
+        .iter()
+        .zip(joints)
+        .enumerate()
+        .filter(|(_, (&(lo, hi), j))| {
+            let margin = frac * (j.max - j.min).abs();
+            !(lo >= j.min - margin && hi <= j.max + margin)
+        })
+        .map(|(i, (&(lo, hi), _))| (i, lo, hi))
+        .collect()
+}
+
+/// Holds the action statistics against the robot's joint ranges at load: what a chunk's
+/// extremes (q01 / q99 for π0.5, mean ± 3 std for π0) become for each joint, through the same
+/// un-normalisation, offsets and output transform as the chunks, must lie within the joint's
+/// range widened by [`RANGE_MARGIN_QUANTILE`] / [`RANGE_MARGIN_ZSCORE`] of its width.
+/// Statistics of another robot, in other units (degrees: a units hint when ÷57.3 they fit) or
+/// with extremes such as ±999 are refused, naming the joints: un-normalised by them, the chunks
+/// drive those joints into their limits at full speed.
+pub fn check_action_ranges(
+    cfg: Option<&OpenpiConfig>,
+    delta_mask: &[bool],
+    ns: &NormStats,
+    mode: NormMode,
+    action_dim: usize,
+    joints: &[JointRange],
+) -> Result<(), PolicyError> {
+    if joints.is_empty()
+        || joints
+            .iter()
+            .any(|j| !(j.min.is_finite() && j.max.is_finite()))
+    {
+        return Ok(());
+    }
+    let Some(ext) = action_extremes(cfg, delta_mask, ns, mode, action_dim, joints) else {
+        return Ok(());
+    };
+    let bad = out_of_range(&ext, joints, mode);
+    if bad.is_empty() {
+        return Ok(());
+    }
+    let what = match mode {
+        NormMode::Quantile => "q01 / q99",
+        NormMode::ZScore => "mean ± 3 std",
+    };
+    let list: Vec<String> = bad
+        .iter()
+        .map(|&(i, lo, hi)| {
+            let j = &joints[i];
+            format!(
+                "{} (column {i}): {lo:.3} .. {hi:.3} against its range {:.3} .. {:.3}",
+                j.name, j.min, j.max
+            )
+        })
+        .collect();
+    // the same statistics in radians: do they fit?
+    let scaled = |st: &Stats| Stats {
+        mean: st.mean.iter().map(|x| x / DEGREES_PER_RAD as f32).collect(),
+        std: st.std.iter().map(|x| x / DEGREES_PER_RAD as f32).collect(),
+        q01: st
+            .q01
+            .as_ref()
+            .map(|v| v.iter().map(|x| x / DEGREES_PER_RAD as f32).collect()),
+        q99: st
+            .q99
+            .as_ref()
+            .map(|v| v.iter().map(|x| x / DEGREES_PER_RAD as f32).collect()),
+    };
+    let radians = NormStats {
+        state: scaled(&ns.state),
+        actions: scaled(&ns.actions),
+    };
+    let degrees =
+        action_extremes(cfg, delta_mask, &radians, mode, action_dim, joints).is_some_and(|e| {
+            let still = out_of_range(&e, joints, mode);
+            bad.iter().all(|b| !still.iter().any(|s| s.0 == b.0))
+        });
+    let margin = match mode {
+        NormMode::Quantile => RANGE_MARGIN_QUANTILE,
+        NormMode::ZScore => RANGE_MARGIN_ZSCORE,
+    };
+    Err(PolicyError::Config(format!(
+        "norm_stats actions: the statistics' extremes ({what}) reach beyond the robot's joint \
+         ranges (by more than {:.0} % of a range's width): {}; un-normalised by them, the \
+         chunks would drive these joints into their limits at full speed. {}",
+        margin * 100.0,
+        list.join("; "),
+        if degrees {
+            "They look like degrees (divided by 57.3 they fit): convert the statistics to \
+             radians"
+        } else {
+            "Fix the statistics (recompute them on this robot's data), or the robot's \
+             configuration if its ranges are wrong"
+        }
+    )))
 }
 
 #[cfg(test)]

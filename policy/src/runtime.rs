@@ -361,6 +361,25 @@ impl Policy {
         }
     }
 
+    /// Holds the action statistics (if any) against the robot's joint ranges
+    /// ([`crate::openpi_config::check_action_ranges`]).
+    pub fn check_action_ranges(
+        &self,
+        joints: &[crate::openpi_config::JointRange],
+    ) -> Result<(), PolicyError> {
+        match &self.norm {
+            Some(ns) => crate::openpi_config::check_action_ranges(
+                self.openpi,
+                &self.model.cfg.delta_action_mask,
+                ns,
+                self.mode(),
+                self.model.cfg.action_dim,
+                joints,
+            ),
+            None => Ok(()),
+        }
+    }
+
     /// openpi's training config whose transforms wrap the model, if any.
     pub fn openpi_config(&self) -> Option<&'static OpenpiConfig> {
         self.openpi
