@@ -27,6 +27,7 @@ use crate::report::{fmt_us, latency_histogram};
 use crate::task::{ReachScene, TargetColor, REACH_TOLERANCE};
 
 mod franka;
+mod ros2;
 pub mod so101;
 
 /// `chunkrt demo`.
@@ -582,10 +583,18 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
             sc.targets[1][1]
         );
     }
-    let mut procs = vec![
-        spawn(exe, "fake-robot", &stack.args("fake-robot"), log_dir)?,
-        spawn(exe, "fake-camera", &stack.camera_args(), log_dir)?,
-    ];
+    // a configuration with [ros2]: a ros2_control robot over ROS 2 (peer and bridge)
+    let mut procs = if ros2::is_ros2(&stack) {
+        ros2::spawn_robot(&stack)?
+    } else {
+        vec![spawn(
+            exe,
+            "fake-robot",
+            &stack.args("fake-robot"),
+            log_dir,
+        )?]
+    };
+    procs.push(spawn(exe, "fake-camera", &stack.camera_args(), log_dir)?);
     // stopped last (the list is stopped from its end): it records the controller's end too
     let prompt_all = args.prompts.join(" | ");
     if let Some(r) = stack.spawn_recorder(&prompt_all)? {

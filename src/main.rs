@@ -64,7 +64,10 @@ fn main() {
     if matches!(cli.command, Command::Ros2(_)) && std::env::var_os("RUST_LOG").is_none() {
         // RustDDS logs every discovery step at info: its warnings only, unless RUST_LOG says
         // otherwise (set before any thread starts)
-        std::env::set_var("RUST_LOG", "info,rustdds=warn,ros2_client=warn");
+        std::env::set_var(
+            "RUST_LOG",
+            "info,rustdds=warn,ros2_client=warn,ros2_client::distributions=error",
+        );
     }
     chunkrt_policy::keep_freed_memory();
     chunkrt::rt::init_logging();

@@ -516,3 +516,60 @@ fn joint_trajectory_closed_loop_at_100_hz() {
     assert!(r.peer.stdout.contains("mode=trajectory"), "{}", r.dump());
     check_closed_loop(&r, 100.0, 5.0);
 }
+
+/// `chunkrt demo --config config/ros2_mock.toml` (issue 53 §4): the embedded reach policy drives
+/// the ROS 2 robot through the bridge, closed loop (the camera renders the scene from the joint
+/// states the bridge publishes); both prompted targets are reached.
+#[test]
+fn reach_policy_drives_the_ros2_robot_in_the_demo() {
+    if !peer_usable("reach_policy_drives_the_ros2_robot_in_the_demo") {
+        return;
+    }
+    let _serial = serial();
+    let out = std::env::temp_dir().join(format!("chunkrt-ros2-demo-{}", std::process::id()));
+    let out_s = out.display().to_string();
+    let cfg = format!("{ROOT}/config/ros2_mock.toml");
+    let d = ChildGuard::spawn(
+        EXE,
+        &[
+            "demo",
+            "--config",
+            &cfg,
+            "--out",
+            &out_s,
+            "--log-dir",
+            &out_s,
+            "--namespace",
+            &unique_namespace("r2demo"),
+        ],
+    )
+    .expect("spawn chunkrt demo")
+    .finish(Duration::from_secs(120));
+    let text = format!("{}\n{}", d.stdout, tail(&d.stderr));
+    eprintln!(
+        "{}",
+        d.stdout
+            .lines()
+            .filter(|l| l.contains("ros2 summary")
+                || l.contains("ros2_mock summary")
+                || l.starts_with("| ")
+                || l.starts_with("success"))
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+    assert_eq!(d.code, Some(0), "{text}");
+    assert!(
+        d.stdout.contains("ros2: the robot is"),
+        "no ROS 2 robot\n{text}"
+    );
+    assert!(
+        d.stdout.contains("success: 2/2 episodes"),
+        "the reach policy did not reach both targets over ROS 2\n{text}"
+    );
+    assert_eq!(
+        summary_value(&d.stdout, "limit_violations"),
+        Some(0.0),
+        "{text}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -175,7 +175,14 @@ def pct(xs, q):
     return s[min(len(s) - 1, int(q * len(s)))]
 
 
+STOP = []
+
+
 def main():
+    import signal
+    # SIGINT / SIGTERM end the loop and still print the summary
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: STOP.append(1))
     a = parse_args()
     if a.loopback:
         os.environ["CYCLONEDDS_URI"] = LOOPBACK_XML
@@ -281,7 +288,7 @@ def main():
     target = None
     while True:
         now = time.monotonic()
-        if now >= end:
+        if now >= end or STOP:
             break
         # wait for commands until the next tick, timing each on arrival
         while True:
