@@ -573,3 +573,77 @@ fn reach_policy_drives_the_ros2_robot_in_the_demo() {
     );
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// Cameras over ROS 2 (issue 53 §1, §3): a 640x480 `rgb8` Image (rows padded: any `step`) and a
+/// 320x240 JPEG CompressedImage at 30 Hz become the controller's frames, newest only, stamped
+/// with their header; images that lie (an encoding they are not, short rows, a byte missing, a
+/// size of 300 MB claimed, a cut JPEG) are refused and counted, and the loop goes on.
+#[test]
+fn camera_images_become_policy_frames() {
+    if !peer_usable("camera_images_become_policy_frames") {
+        return;
+    }
+    let _serial = serial();
+    let cameras = "\n[[cameras]]\nname = \"left_wrist_0_rgb\"\nwidth = 320\nheight = 240\n\
+                   fps = 30.0\nencoding = \"rgb8\"\n\n[[ros2.cameras]]\nname = \"base_0_rgb\"\n\
+                   topic = \"/camera/color/image_raw\"\n\n[[ros2.cameras]]\n\
+                   name = \"left_wrist_0_rgb\"\ntopic = \"/wrist/image_raw/compressed\"\n\
+                   compressed = true\n";
+    let cfg = config(
+        "cam",
+        100.0,
+        &[("width = 64\nheight = 64", "width = 640\nheight = 480")],
+    );
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    text.push_str(cameras);
+    std::fs::write(&cfg, text).unwrap();
+    let seconds = 5.0;
+    let r = run_stack(
+        &cfg,
+        "r2cam",
+        seconds,
+        100.0,
+        &["--inject", "badimage@3.0:0.5"],
+    );
+    let d = r.dump();
+    check_closed_loop(&r, 100.0, seconds);
+    let sent = r.p("frames_sent");
+    let bad = r.p("bad_images_sent");
+    let out = r.b("frames_out");
+    let rejected = r.b("images_rejected");
+    let per_camera = |name: &str| {
+        r.ctl
+            .stdout
+            .split(&format!("{name}="))
+            .nth(1)
+            .and_then(|s| s.split_whitespace().next())
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or_else(|| panic!("no frame count of {name} in the controller's summary\n{d}"))
+    };
+    let (base, wrist) = (per_camera("base_0_rgb"), per_camera("left_wrist_0_rgb"));
+    eprintln!(
+        "ros2 cameras: peer sent {sent} good images (640x480 rgb8 + 320x240 JPEG) and {bad} bad \
+         ones; bridge published {out} frames ({} superseded), refused {rejected}; the \
+         controller accepted base {base}, wrist {wrist}; image stamp -> frame p50/p99 {:.0}/{:.0} \
+         us",
+        r.b("frames_superseded"),
+        r.b("frame_age_p50_us"),
+        r.b("frame_age_p99_us"),
+    );
+    assert!(
+        sent >= 0.5 * 2.0 * 30.0 * seconds,
+        "the peer sent {sent} images\n{d}"
+    );
+    assert!(
+        out >= 0.8 * sent && out <= sent,
+        "{out} frames for {sent} images\n{d}"
+    );
+    assert!(
+        rejected >= 0.5 * bad && rejected <= bad && bad >= 10.0,
+        "{rejected} refused of {bad} bad images\n{d}"
+    );
+    assert!(
+        base >= 0.7 * sent / 2.0 && wrist >= 0.7 * sent / 2.0,
+        "the controller took base {base}, wrist {wrist} of {sent}\n{d}"
+    );
+}

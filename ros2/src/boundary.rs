@@ -43,10 +43,11 @@ pub enum ErrorKind {
     PeerSilent = 7,
     CommandRefused = 8,
     PublishFailed = 9,
+    ImageRejected = 10,
 }
 
 /// Number of [`ErrorKind`]s.
-pub const ERROR_KINDS: usize = 10;
+pub const ERROR_KINDS: usize = 11;
 
 impl ErrorKind {
     /// Every kind, in counter order.
@@ -61,6 +62,7 @@ impl ErrorKind {
         ErrorKind::PeerSilent,
         ErrorKind::CommandRefused,
         ErrorKind::PublishFailed,
+        ErrorKind::ImageRejected,
     ];
 
     /// The key in the summary line.
@@ -76,6 +78,7 @@ impl ErrorKind {
             ErrorKind::PeerSilent => "peer_silences",
             ErrorKind::CommandRefused => "commands_refused",
             ErrorKind::PublishFailed => "publish_errors",
+            ErrorKind::ImageRejected => "images_rejected",
         }
     }
 }

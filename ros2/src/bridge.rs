@@ -28,7 +28,7 @@ use ros2_client::{
 
 use crate::boundary::{ErrorCounters, ErrorKind, JointMap};
 use crate::config::{BridgeConfig, CommandMode, QosKind, SendOn, StampSource};
-use crate::msg;
+use crate::{camera, msg};
 
 /// Status silence after which another controller may bind the robot's session (as fake-robot).
 const SESSION_TIMEOUT_NS: u64 = 500_000_000;
@@ -91,6 +91,13 @@ pub struct Summary {
     pub cpu_share: f64,
     /// The process's peak resident memory (kB).
     pub max_rss_kb: u64,
+    /// Camera frames published to chunkrt (all cameras), and images taken but superseded by a
+    /// newer one in the same wake-up (newest only).
+    pub frames_out: u64,
+    pub frames_superseded: u64,
+    /// An image's age when its frame was published (its stamp to the frame, µs): p50, p99.
+    pub frame_age_p50_us: f64,
+    pub frame_age_p99_us: f64,
 }
 
 impl std::fmt::Display for Summary {
@@ -101,7 +108,8 @@ impl std::fmt::Display for Summary {
              holds_sent={} commands_applied={} commands_rejected={} commands_expired={} \
              commands_unbound={} commands_far={} clamped={} statuses_out={} chunks_out={} \
              latency_p50_us={:.1} latency_p99_us={:.1} latency_max_us={:.1} latency_count={} \
-             cpu_share={:.3} max_rss_kb={} {}",
+             cpu_share={:.3} max_rss_kb={} frames_out={} frames_superseded={} \
+             frame_age_p50_us={:.1} frame_age_p99_us={:.1} {}",
             self.states_received,
             self.states_published,
             self.commands_sent,
@@ -120,6 +128,10 @@ impl std::fmt::Display for Summary {
             self.latency_count,
             self.cpu_share,
             self.max_rss_kb,
+            self.frames_out,
+            self.frames_superseded,
+            self.frame_age_p50_us,
+            self.frame_age_p99_us,
             self.errors.summary(),
         )
     }
@@ -197,6 +209,26 @@ enum CommandEcho {
     Trajectory(Subscription<msg::JointTrajectory>),
 }
 
+/// One camera's ROS 2 reader.
+enum CamSub {
+    Raw(Subscription<msg::Image>),
+    Compressed(Subscription<msg::CompressedImage>),
+}
+
+/// One camera: its ROS 2 reader and its chunkrt publisher.
+struct Camera {
+    name: String,
+    id: u32,
+    max_w: u32,
+    max_h: u32,
+    sub: CamSub,
+    publisher: IoxPublisher<Ipc, [u8], CameraFrameHeader>,
+    seq: u64,
+}
+
+/// Compressed images larger than this many times the camera's raw size are refused unread.
+const COMPRESSED_CAP_FACTOR: usize = 2;
+
 /// The iceoryx2 side.
 struct Iox {
     state_pub: IoxPublisher<Ipc, JointState, ()>,
@@ -216,6 +248,7 @@ struct Bridge {
     errors: ErrorCounters,
     summary: Summary,
     hist: Histogram<u64>,
+    frame_hist: Histogram<u64>,
     /// Last joint state published to chunkrt.
     seq: u64,
     measured: [f64; MAX_DOF],
@@ -258,24 +291,7 @@ impl Bridge {
                 return;
             }
         };
-        let mut t = now;
-        if self.cfg.ros2.stamp == StampSource::Header {
-            if let Some(stamp) = m.header.stamp.as_ns().filter(|s| *s > 0) {
-                let real = realtime_ns();
-                if stamp > real.saturating_add(self.skew_ns) {
-                    self.errors.count(ErrorKind::StampSkew, now, || {
-                        format!(
-                            "JointState stamped {:.3} ms ahead of this machine's clock: the \
-                             receive time is used",
-                            (stamp - real) as f64 / 1e6
-                        )
-                    });
-                } else {
-                    // the stamp's age on the system clock, taken off the monotonic receive time
-                    t = now.saturating_sub(real.saturating_sub(stamp));
-                }
-            }
-        }
+        let t = self.stamp_time(&m.header.stamp, now, "JointState");
         if self.peer_silent {
             tracing::info!("ros2: the robot's joint states are back");
             self.peer_silent = false;
@@ -324,6 +340,120 @@ impl Bridge {
             self.errors.count(ErrorKind::PublishFailed, now, || {
                 "publishing a joint state to chunkrt failed".into()
             });
+        }
+    }
+
+    /// The monotonic time of a message stamped `stamp` and received at `now` (the receive time
+    /// for a zero stamp, with `stamp = "receive"`, or a stamp too far ahead: counted).
+    fn stamp_time(&mut self, stamp: &msg::Time, now: u64, what: &str) -> u64 {
+        if self.cfg.ros2.stamp != StampSource::Header {
+            return now;
+        }
+        let Some(stamp) = stamp.as_ns().filter(|s| *s > 0) else {
+            return now;
+        };
+        let real = realtime_ns();
+        if stamp > real.saturating_add(self.skew_ns) {
+            self.errors.count(ErrorKind::StampSkew, now, || {
+                format!(
+                    "{what} stamped {:.3} ms ahead of this machine's clock: the receive time is \
+                     used",
+                    (stamp - real) as f64 / 1e6
+                )
+            });
+            return now;
+        }
+        // the stamp's age on the system clock, taken off the monotonic receive time
+        now.saturating_sub(real.saturating_sub(stamp))
+    }
+
+    /// Takes each camera's images: the newest valid one of this wake-up becomes a frame.
+    fn take_images(&mut self, cams: &mut [Camera]) {
+        for cam in cams.iter_mut() {
+            let mut newest: Option<(msg::Header, camera::Packed, Option<Vec<u8>>, msg::Image)> =
+                None;
+            for _ in 0..MAX_TAKE_PER_WAKE {
+                let now = monotonic_ns();
+                let got = match &cam.sub {
+                    CamSub::Raw(s) => match s.take() {
+                        Ok(Some((m, _))) => Some(
+                            camera::check_image(&m, cam.max_w, cam.max_h)
+                                .map(|p| (m.header.clone(), p, None, m)),
+                        ),
+                        Ok(None) => None,
+                        Err(e) => Some(Err(camera::ImageError::Decode(format!("{e:?}")))),
+                    },
+                    CamSub::Compressed(s) => match s.take() {
+                        Ok(Some((m, _))) => {
+                            let cap =
+                                cam.max_w as usize * cam.max_h as usize * 3 * COMPRESSED_CAP_FACTOR;
+                            Some(
+                                camera::decode(&m, cam.max_w, cam.max_h, cap).map(|(p, px)| {
+                                    (m.header.clone(), p, Some(px), msg::Image::default())
+                                }),
+                            )
+                        }
+                        Ok(None) => None,
+                        Err(e) => Some(Err(camera::ImageError::Decode(format!("{e:?}")))),
+                    },
+                };
+                match got {
+                    None => break,
+                    Some(Ok(v)) => {
+                        if newest.is_some() {
+                            self.summary.frames_superseded += 1;
+                        }
+                        newest = Some(v);
+                    }
+                    Some(Err(e)) => {
+                        let name = cam.name.clone();
+                        self.errors.count(ErrorKind::ImageRejected, now, || {
+                            format!("camera {name}: an image refused: {e}")
+                        });
+                    }
+                }
+            }
+            let Some((header, p, decoded, raw)) = newest else {
+                continue;
+            };
+            let now = monotonic_ns();
+            let capture = self.stamp_time(&header.stamp, now, "Image");
+            match cam.publisher.loan_slice(p.len()) {
+                Ok(mut sample) => {
+                    match &decoded {
+                        Some(px) => sample.payload_mut().copy_from_slice(&px[..p.len()]),
+                        None => camera::pack(&raw, &p, sample.payload_mut()),
+                    }
+                    cam.seq += 1;
+                    *sample.user_header_mut() = CameraFrameHeader {
+                        seq: cam.seq,
+                        capture_time_ns: capture,
+                        publish_time_ns: monotonic_ns(),
+                        camera_id: cam.id,
+                        encoding: p.encoding,
+                        width: p.width,
+                        height: p.height,
+                        stride: p.width * p.bpp,
+                        reserved: 0,
+                    };
+                    if sample.send().is_ok() {
+                        self.summary.frames_out += 1;
+                        if let Some(stamp) = header.stamp.as_ns().filter(|s| *s > 0) {
+                            let age = realtime_ns().saturating_sub(stamp);
+                            self.frame_hist.saturating_record(age.max(1));
+                        }
+                    } else {
+                        self.errors.count(ErrorKind::PublishFailed, now, || {
+                            format!("publishing a frame of camera {} failed", cam.name)
+                        });
+                    }
+                }
+                Err(e) => {
+                    self.errors.count(ErrorKind::PublishFailed, now, || {
+                        format!("loaning a frame of camera {}: {e:?}", cam.name)
+                    });
+                }
+            }
         }
     }
 
@@ -716,7 +846,80 @@ pub fn bridge(args: &Args) -> anyhow::Result<Summary> {
         )
     };
 
+    let mut cams = Vec::new();
+    for rc in &r.cameras {
+        let Some((id, sc)) = cfg
+            .shared
+            .cameras
+            .iter()
+            .enumerate()
+            .find(|(_, c)| c.name == rc.name)
+        else {
+            anyhow::bail!("ros2.cameras: no [[cameras]] entry {:?}", rc.name);
+        };
+        let (pkg, ty) = if rc.compressed {
+            msg::types::COMPRESSED_IMAGE
+        } else {
+            msg::types::IMAGE
+        };
+        let err = |e| anyhow::anyhow!("{}: {e:?}", rc.topic);
+        let t = ros
+            .create_topic(
+                &topic_name(&rc.topic)?,
+                MessageTypeName::new(pkg, ty),
+                &qos(QosKind::SensorData),
+            )
+            .map_err(err)?;
+        let sub = if rc.compressed {
+            CamSub::Compressed(
+                ros.create_subscription(&t, Some(qos(QosKind::SensorData)))
+                    .map_err(err)?,
+            )
+        } else {
+            CamSub::Raw(
+                ros.create_subscription(&t, Some(qos(QosKind::SensorData)))
+                    .map_err(err)?,
+            )
+        };
+        let iox_name = ns.camera(&sc.name);
+        let factory = services::camera_service(&node, &iox_name)?;
+        let publisher = services::camera_publisher(
+            &factory,
+            &iox_name,
+            sc.width as usize * sc.height as usize * 3,
+        )?;
+        tracing::info!(
+            "ros2: camera {} from {} ({}, up to {}x{}) → '{iox_name}'",
+            sc.name,
+            rc.topic,
+            if rc.compressed {
+                "CompressedImage"
+            } else {
+                "Image"
+            },
+            sc.width,
+            sc.height
+        );
+        cams.push(Camera {
+            name: sc.name.clone(),
+            id: id as u32,
+            max_w: sc.width,
+            max_h: sc.height,
+            sub,
+            publisher,
+            seq: 0,
+        });
+    }
+
     let mut poll = Poll::new().context("epoll")?;
+    for (i, cam) in cams.iter_mut().enumerate() {
+        let token = Token(10 + i);
+        match &mut cam.sub {
+            CamSub::Raw(s) => poll.registry().register(s, token, Interest::READABLE),
+            CamSub::Compressed(s) => poll.registry().register(s, token, Interest::READABLE),
+        }
+        .context("registering a camera reader")?;
+    }
     poll.registry()
         .register(&mut states, TOKEN_STATES, Interest::READABLE)
         .context("registering the joint state reader")?;
@@ -777,6 +980,7 @@ pub fn bridge(args: &Args) -> anyhow::Result<Summary> {
         errors: ErrorCounters::default(),
         summary: Summary::default(),
         hist: Histogram::new_with_bounds(1, 10_000_000_000, 3).context("histogram")?,
+        frame_hist: Histogram::new_with_bounds(1, 100_000_000_000, 3).context("histogram")?,
         seq: 0,
         measured: [0.0; MAX_DOF],
         have_state: false,
@@ -873,6 +1077,7 @@ pub fn bridge(args: &Args) -> anyhow::Result<Summary> {
             }
         }
         b.take_chunks(&iox);
+        b.take_images(&mut cams);
         let now = monotonic_ns();
         b.check_silence(now);
         if now >= next_status {
@@ -910,6 +1115,8 @@ impl Bridge {
             cpu_share: (cpu_ns().saturating_sub(cpu0)) as f64
                 / (now.saturating_sub(start)).max(1) as f64,
             max_rss_kb: max_rss_kb(),
+            frame_age_p50_us: self.frame_hist.value_at_quantile(0.5) as f64 / 1e3,
+            frame_age_p99_us: self.frame_hist.value_at_quantile(0.99) as f64 / 1e3,
             ..self.summary.clone()
         }
     }

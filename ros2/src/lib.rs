@@ -20,6 +20,7 @@
 
 pub mod boundary;
 pub mod bridge;
+pub mod camera;
 pub mod config;
 pub mod msg;
 

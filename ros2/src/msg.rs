@@ -113,12 +113,35 @@ pub struct StringMsg {
     pub data: String,
 }
 
+/// `sensor_msgs/Image`: `height` rows of `step` bytes, top to bottom.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Image {
+    pub header: Header,
+    pub height: u32,
+    pub width: u32,
+    pub encoding: String,
+    pub is_bigendian: u8,
+    pub step: u32,
+    pub data: Vec<u8>,
+}
+
+/// `sensor_msgs/CompressedImage`: `format` says the codec (`jpeg`, `png`, or image_transport's
+/// `"rgb8; jpeg compressed bgr8"`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CompressedImage {
+    pub header: Header,
+    pub format: String,
+    pub data: Vec<u8>,
+}
+
 /// ROS 2 package and type names of the messages above.
 pub mod types {
     pub const JOINT_STATE: (&str, &str) = ("sensor_msgs", "JointState");
     pub const FLOAT64_MULTI_ARRAY: (&str, &str) = ("std_msgs", "Float64MultiArray");
     pub const JOINT_TRAJECTORY: (&str, &str) = ("trajectory_msgs", "JointTrajectory");
     pub const STRING: (&str, &str) = ("std_msgs", "String");
+    pub const IMAGE: (&str, &str) = ("sensor_msgs", "Image");
+    pub const COMPRESSED_IMAGE: (&str, &str) = ("sensor_msgs", "CompressedImage");
 }
 
 #[cfg(test)]

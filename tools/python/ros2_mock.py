@@ -56,12 +56,15 @@ def parse_args():
     p.add_argument("--inject", action="append", default=[],
                    help="KIND@SECONDS[:DURATION], see the module's documentation")
     p.add_argument("--initial", default=None, help="initial positions, comma separated")
+    p.add_argument("--camera-hz", type=float, default=30.0,
+                   help="rate of each [[ros2.cameras]] topic: rgb8 Images (rows padded by 16 "
+                        "bytes) or JPEG CompressedImages of the [[cameras]] size")
     return p.parse_args()
 
 
 def idl_types():
     from cyclonedds.idl import IdlStruct
-    from cyclonedds.idl.types import float64, int32, sequence, uint32
+    from cyclonedds.idl.types import float64, int32, sequence, uint8, uint32
 
     @dataclass
     class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
@@ -120,10 +123,54 @@ def idl_types():
     class String(IdlStruct, typename="std_msgs::msg::dds_::String_"):
         data: str
 
+    # Images: `bytes` serialises a sequence<uint8> in one copy (the element-wise sequence[uint8]
+    # takes 26 ms for 640x480x3), but Cyclone cannot build the topic's type object from it; the
+    # topic is made with sequence[uint8] and the sample serialised by the `bytes` twin (the same
+    # bytes: checked against rosbags below).
+    @dataclass
+    class ImageWire(IdlStruct, typename="sensor_msgs::msg::dds_::Image_"):
+        header: Header
+        height: uint32
+        width: uint32
+        encoding: str
+        is_bigendian: uint8
+        step: uint32
+        data: bytes
+
+    @dataclass
+    class Image(IdlStruct, typename="sensor_msgs::msg::dds_::Image_"):
+        header: Header
+        height: uint32
+        width: uint32
+        encoding: str
+        is_bigendian: uint8
+        step: uint32
+        data: sequence[uint8]
+
+        def serialize(self, *args, **kw):
+            return ImageWire(self.header, self.height, self.width, self.encoding,
+                             self.is_bigendian, self.step, bytes(self.data)).serialize(*args, **kw)
+
+    @dataclass
+    class CompressedImageWire(IdlStruct, typename="sensor_msgs::msg::dds_::CompressedImage_"):
+        header: Header
+        format: str
+        data: bytes
+
+    @dataclass
+    class CompressedImage(IdlStruct, typename="sensor_msgs::msg::dds_::CompressedImage_"):
+        header: Header
+        format: str
+        data: sequence[uint8]
+
+        def serialize(self, *args, **kw):
+            return CompressedImageWire(self.header, self.format, bytes(self.data)).serialize(*args, **kw)
+
     return dict(Time=Time, Duration=Duration, Header=Header, JointState=JointState,
                 MultiArrayDimension=MultiArrayDimension, MultiArrayLayout=MultiArrayLayout,
                 Float64MultiArray=Float64MultiArray, JointTrajectoryPoint=JointTrajectoryPoint,
-                JointTrajectory=JointTrajectory, String=String)
+                JointTrajectory=JointTrajectory, String=String, Image=Image,
+                CompressedImage=CompressedImage)
 
 
 def check_layouts(T):
@@ -157,7 +204,20 @@ def check_layouts(T):
                 positions=f64([1.0, 2.0]), velocities=f64([0.1, 0.2]), accelerations=f64([]),
                 effort=f64([]),
                 time_from_start=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=20_000_000))])
-        for ours, theirs, name in ((js, r_js, "sensor_msgs/msg/JointState"),
+        im = T["Image"](T["Header"](T["Time"](3, 4), "cam"), 2, 3, "rgb8", 0, 10, bytes(range(20)))
+        r_im = t["sensor_msgs/msg/Image"](
+            header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=3, nanosec=4),
+                                            frame_id="cam"),
+            height=2, width=3, encoding="rgb8", is_bigendian=0, step=10,
+            data=np.frombuffer(bytes(range(20)), dtype=np.uint8))
+        ci = T["CompressedImage"](T["Header"](T["Time"](3, 4), ""), "jpeg", b"\xff\xd8\xff")
+        r_ci = t["sensor_msgs/msg/CompressedImage"](
+            header=t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=3, nanosec=4),
+                                            frame_id=""),
+            format="jpeg", data=np.frombuffer(b"\xff\xd8\xff", dtype=np.uint8))
+        for ours, theirs, name in ((im, r_im, "sensor_msgs/msg/Image"),
+                                   (ci, r_ci, "sensor_msgs/msg/CompressedImage"),
+                                   (js, r_js, "sensor_msgs/msg/JointState"),
                                    (fa, r_fa, "std_msgs/msg/Float64MultiArray"),
                                    (jt, r_jt, "trajectory_msgs/msg/JointTrajectory")):
             a = bytes(ours.serialize())
@@ -246,6 +306,62 @@ def main():
     if r2.get("status_topic", "/chunkrt/status"):
         status_reader = DataReader(dp, Topic(dp, dds(r2.get("status_topic", "/chunkrt/status")),
                                              T["String"]), qos=reliable)
+
+    # cameras: a few frames made up front (a moving gradient), sent in turn
+    cams = []
+    for rc in r2.get("cameras", []):
+        import io
+        import numpy as np
+        sc = next(c for c in cfg.get("cameras", []) if c["name"] == rc["name"])
+        w, h = sc["width"], sc["height"]
+        frames = []
+        for k in range(8):
+            img = np.zeros((h, w, 3), dtype=np.uint8)
+            img[:, :, 0] = (np.arange(w)[None, :] * 255 // max(1, w - 1) + 32 * k) % 256
+            img[:, :, 1] = (np.arange(h)[:, None] * 255 // max(1, h - 1))
+            img[:, :, 2] = 40 * k
+            if rc.get("compressed", False):
+                from PIL import Image as PILImage
+                buf = io.BytesIO()
+                PILImage.fromarray(img).save(buf, format="JPEG", quality=85)
+                frames.append(buf.getvalue())
+            else:
+                step = w * 3 + 16
+                padded = np.zeros((h, step), dtype=np.uint8)
+                padded[:, : w * 3] = img.reshape(h, w * 3)
+                frames.append((step, padded.tobytes()))
+        ty = T["CompressedImage"] if rc.get("compressed", False) else T["Image"]
+        writer = DataWriter(dp, Topic(dp, dds(rc["topic"]), ty), qos=sensor)
+        cams.append(dict(name=rc["name"], w=w, h=h, compressed=rc.get("compressed", False),
+                         frames=frames, writer=writer, sent=0, bad=0))
+    next_frame = time.monotonic()
+
+    def send_frames(bad):
+        for c in cams:
+            ns_ = time.time_ns()
+            hdr = T["Header"](T["Time"](ns_ // 1_000_000_000, ns_ % 1_000_000_000), c["name"])
+            f = c["frames"][c["sent"] % len(c["frames"])]
+            if c["compressed"]:
+                data = f if not bad else f[: len(f) // 3]  # a cut JPEG
+                c["writer"].write(T["CompressedImage"](hdr, "jpeg", data))
+            else:
+                step, data = f
+                w, h, enc = c["w"], c["h"], "rgb8"
+                if bad:
+                    kind = c["bad"] % 4
+                    if kind == 0:
+                        enc = "rgba8"                      # an encoding it is not
+                    elif kind == 1:
+                        step = c["w"] * 3 - 1              # rows shorter than the pixels
+                    elif kind == 2:
+                        data = data[:-1]                   # a byte missing
+                    else:
+                        w, h = 100_000, 1_000              # claims 300 MB
+                c["writer"].write(T["Image"](hdr, h, w, enc, 0, step, data))
+            if bad:
+                c["bad"] += 1
+            else:
+                c["sent"] += 1
 
     # the broadcaster's order: reversed, with a joint the bridge is not told about in the middle
     order = list(range(n))[::-1]
@@ -384,6 +500,11 @@ def main():
                 states += 1
             last_state_t = time.monotonic()
             got_answer = first_cmd_t is None
+        if cams and time.monotonic() >= next_frame:
+            send_frames("badimage" in active)
+            next_frame += 1.0 / a.camera_hz
+            if time.monotonic() - next_frame > 0.2:
+                next_frame = time.monotonic() + 1.0 / a.camera_hz
         if "flood" in active and not flooded:
             for _ in range(10_000):
                 js_writer.write(joint_state(pos, vel))
@@ -413,6 +534,7 @@ def main():
         f"final=" + ",".join(f"{x:.4f}" for x in pos) + " "
         f"chunks_seen={chunks_seen} chunk_points={chunk_points} statuses_seen={statuses_seen} "
         f"vanished_ticks={vanished} "
+        f"frames_sent={sum(c['sent'] for c in cams)} bad_images_sent={sum(c['bad'] for c in cams)} "
         + " ".join(f"injected_{k}={injected_by.get(k, 0)}"
                    for k in ("missing", "repeated", "length", "nan", "noname")),
         flush=True,

@@ -153,6 +153,23 @@ pub struct Ros2Config {
     /// No joint state from the robot for this long: the robot is gone (said once, counted) (ms).
     #[serde(default = "default_peer_silence_ms")]
     pub peer_silence_ms: f64,
+    /// Cameras from ROS 2 image topics, each to the `[[cameras]]` entry of the same name.
+    #[serde(default)]
+    pub cameras: Vec<Ros2Camera>,
+}
+
+/// `[[ros2.cameras]]`: one camera's ROS 2 topic.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Ros2Camera {
+    /// The `[[cameras]]` entry it feeds (the policy's image key).
+    pub name: String,
+    /// A `sensor_msgs/Image` topic (`rgb8`, `bgr8` or `mono8`, any `step`), or with `compressed`
+    /// a `sensor_msgs/CompressedImage` one.
+    pub topic: String,
+    /// The topic carries `sensor_msgs/CompressedImage` (JPEG or PNG).
+    #[serde(default)]
+    pub compressed: bool,
 }
 
 impl Default for Ros2Config {
@@ -175,6 +192,7 @@ impl Default for Ros2Config {
             bind_tolerance: default_bind_tolerance(),
             command_timeout_ms: default_command_timeout_ms(),
             peer_silence_ms: default_peer_silence_ms(),
+            cameras: Vec::new(),
         }
     }
 }
@@ -286,6 +304,21 @@ impl Ros2Config {
             60_000.0,
         )?;
         c.range("ros2.peer_silence_ms", self.peer_silence_ms, 1.0, 60_000.0)?;
+        let mut fed = std::collections::HashSet::new();
+        for (i, cam) in self.cameras.iter().enumerate() {
+            let k = |f: &str| format!("ros2.cameras[{i}].{f}");
+            if !shared.cameras.iter().any(|sc| sc.name == cam.name) {
+                return Err(c.fail(
+                    &k("name"),
+                    format!("{:?}", cam.name),
+                    "must name one of the [[cameras]]",
+                ));
+            }
+            if !fed.insert(cam.name.as_str()) {
+                return Err(c.fail(&k("name"), &cam.name, "one topic per camera"));
+            }
+            check_topic(c, &k("topic"), &cam.topic)?;
+        }
         Ok(())
     }
 
