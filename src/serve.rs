@@ -70,7 +70,7 @@ pub struct ServeArgs {
     #[arg(long, value_name = "SECONDS")]
     pub handshake_timeout: Option<f64>,
     /// Seconds a websocket may go without a request before it is closed (default `[serve]
-    /// idle_timeout_s`, 600).
+    /// idle_timeout_s`, 30).
     #[arg(long, value_name = "SECONDS")]
     pub idle_timeout: Option<f64>,
     /// Seconds between status lines (0: none).
@@ -288,6 +288,10 @@ pub fn start(args: &ServeArgs) -> anyhow::Result<Serving> {
         );
         Ok(Duration::from_secs_f64(v))
     };
+    let per_address = args
+        .max_per_address
+        .unwrap_or(limits.max_per_address)
+        .max(1);
     let server = Server::start(
         ServerConfig {
             addr,
@@ -298,10 +302,9 @@ pub fn start(args: &ServeArgs) -> anyhow::Result<Serving> {
                 .unwrap_or(limits.max_connections)
                 .max(1),
             limits: Limits::default(),
-            max_per_address: args
-                .max_per_address
-                .unwrap_or(limits.max_per_address)
-                .max(1),
+            max_per_address: per_address,
+            // a network (/24, /64) holds twice an address's share
+            max_per_network: 2 * per_address,
             handshake_timeout: secs(
                 "handshake timeout",
                 args.handshake_timeout.unwrap_or(limits.handshake_timeout_s),
@@ -310,6 +313,7 @@ pub fn start(args: &ServeArgs) -> anyhow::Result<Serving> {
                 "idle timeout",
                 args.idle_timeout.unwrap_or(limits.idle_timeout_s),
             )?,
+            ..ServerConfig::new(addr, max_message_bytes)
         },
         w.buf,
         Box::new(move |v: &Value<'_>| Request::parse(v, &layout, &inputs)),

@@ -76,7 +76,7 @@ fn default_handshake_timeout_s() -> f64 {
     2.0
 }
 fn default_idle_timeout_s() -> f64 {
-    600.0
+    30.0
 }
 
 impl Default for ServeSettings {

@@ -6,8 +6,16 @@
 //! (a bad message is answered on its own connection and never reaches the policy); one runs the
 //! policy. Requests of every connection queue in arrival order for the policy thread, which
 //! serves one at a time (first come, first served; a connection has at most one request in
-//! flight, as openpi's client waits for each reply). Beyond `max_connections` a connection is
-//! refused with HTTP 503; a wrong or missing api key with 401, before any model work.
+//! flight, as openpi's client waits for each reply). A wrong or missing api key is refused with
+//! 401, before any model work.
+//!
+//! Slots: `max_connections` websockets, of which an address holds `max_per_address` and a
+//! network (IPv4 /24, IPv6 /64) `max_per_network`. A connection in its handshake holds none of
+//! them (`max_handshakes` may be pending, half per network; the oldest whose request head is
+//! still incomplete makes way for a new one). When a handshake is done and a share is full,
+//! the websocket of that share idle the longest (none with a request in flight or within the
+//! last second) is closed for it; only when there is none is it refused with 503. A message
+//! that has begun must be complete within `message_timeout`.
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
@@ -44,11 +52,23 @@ pub struct ServerConfig {
     /// A websocket that sends no request for this long is closed (openpi-client's keep-alive
     /// pings do not count; a client that pauses longer reconnects).
     pub idle_timeout: Duration,
+    /// Connections one network may hold at once: an IPv4 /24, an IPv6 /64 (a peer with many
+    /// addresses in one network, as a host's IPv6 privacy addresses, is one peer here too).
+    pub max_per_network: usize,
+    /// Connections still in their HTTP request and websocket handshake at once (they hold none
+    /// of the `max_connections` slots; when this many are pending, the oldest is dropped for a
+    /// new one, so a flood of unfinished requests cannot keep a client's handshake out).
+    pub max_handshakes: usize,
+    /// A message that has begun to arrive must be complete within this (a frame announced
+    /// large and sent a byte at a time holds its slot no longer).
+    pub message_timeout: Duration,
 }
 
 impl ServerConfig {
-    /// `addr` with the defaults: no api key, 16 connections of which 4 per address, 2 s for
-    /// the handshake, 10 minutes idle, messages up to `max_message_bytes`.
+    /// `addr` with the defaults: no api key, 16 connections of which 4 per address and 8 per
+    /// network (/24, /64), 64 handshakes pending, 2 s for the handshake, 30 s idle (openpi's
+    /// clients ask every few hundred milliseconds), 10 s for a message once it has begun,
+    /// messages up to `max_message_bytes`.
     pub fn new(addr: SocketAddr, max_message_bytes: usize) -> Self {
         Self {
             addr,
@@ -58,8 +78,101 @@ impl ServerConfig {
             limits: Limits::default(),
             max_per_address: 4,
             handshake_timeout: Duration::from_secs(2),
-            idle_timeout: Duration::from_secs(600),
+            idle_timeout: Duration::from_secs(DEFAULT_IDLE_TIMEOUT_S),
+            max_per_network: 8,
+            max_handshakes: 64,
+            message_timeout: Duration::from_secs(10),
         }
+    }
+}
+
+/// The default idle timeout (s): openpi's clients send a request every few hundred ms while
+/// they run; one that pauses longer reconnects.
+pub const DEFAULT_IDLE_TIMEOUT_S: u64 = 30;
+
+/// A websocket that has had a request within this is never dropped for a new connection.
+const RECENT: Duration = Duration::from_secs(1);
+
+/// The network an address is accounted in: an IPv4 address's /24, an IPv6 address's /64 (an
+/// IPv4-mapped IPv6 address as its IPv4 address).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Network {
+    /// The first three octets.
+    V4([u8; 3]),
+    /// The first four 16-bit groups.
+    V6([u16; 4]),
+}
+
+impl Network {
+    /// The network of `ip`.
+    pub fn of(ip: std::net::IpAddr) -> Self {
+        match ip {
+            std::net::IpAddr::V4(a) => {
+                let o = a.octets();
+                Network::V4([o[0], o[1], o[2]])
+            }
+            std::net::IpAddr::V6(a) => match a.to_ipv4_mapped() {
+                Some(v4) => Network::of(std::net::IpAddr::V4(v4)),
+                None => {
+                    let g = a.segments();
+                    Network::V6([g[0], g[1], g[2], g[3]])
+                }
+            },
+        }
+    }
+}
+
+/// Selects connections of the table (an address's, a network's, all).
+type SlotFilter<'a> = dyn Fn(&Slot) -> bool + 'a;
+
+/// One connection in the server's table: in its handshake, or a websocket holding a slot.
+struct Slot {
+    id: u64,
+    ip: std::net::IpAddr,
+    net: Network,
+    /// A websocket (holds one of `max_connections`); else still in its handshake.
+    open: bool,
+    /// Handshake: when it began; websocket: its last request's end (or its connect).
+    since: Instant,
+    /// A request of it is being answered.
+    busy: bool,
+    /// It has sent a request since it connected.
+    asked: bool,
+    /// Its HTTP request head is complete (a handshake about to finish: not dropped for a newer
+    /// one).
+    head: bool,
+    /// Set to make its thread close it.
+    drop_it: Arc<AtomicBool>,
+}
+
+/// The connections, and who makes way for whom.
+#[derive(Default)]
+struct Table {
+    slots: Vec<Slot>,
+    next: u64,
+}
+
+impl Table {
+    /// The longest-idle websocket among those `pick` selects that has no request in flight and
+    /// none within [`RECENT`] (never-asking ones first, by age).
+    fn idlest(&self, pick: impl Fn(&Slot) -> bool) -> Option<usize> {
+        self.slots
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| {
+                c.open && pick(c) && !c.busy && !(c.asked && c.since.elapsed() < RECENT)
+            })
+            .min_by_key(|(_, c)| (c.asked, c.since))
+            .map(|(i, _)| i)
+    }
+
+    fn evict(&mut self, i: usize) {
+        let c = self.slots.swap_remove(i);
+        c.drop_it.store(true, Ordering::Relaxed);
+    }
+
+    fn open_count(&self) -> usize {
+        self.slots.iter().filter(|c| c.open).count()
     }
 }
 
@@ -123,13 +236,20 @@ pub struct ServerStats {
     pub failures: [AtomicU64; 5],
     /// Connections refused for a wrong or missing api key.
     pub unauthorized: AtomicU64,
-    /// Connections refused because `max_connections` were open, or their address held
-    /// `max_per_address`.
+    /// Connections refused with 503: every websocket of their share (address, network, all)
+    /// was answering or had just asked, or too many connection threads were alive.
     pub busy: AtomicU64,
     /// Connections closed before they completed their handshake in time.
     pub handshake_timeouts: AtomicU64,
     /// Websockets closed after `idle_timeout` without a request.
     pub idle_closed: AtomicU64,
+    /// Connections dropped to make way for a new one: websockets idle the longest (the server
+    /// was full, or their address or network held its share), and the oldest pending
+    /// handshakes (`max_handshakes` were pending).
+    pub made_way: AtomicU64,
+    /// Websockets closed because a message that had begun did not complete in
+    /// `message_timeout`.
+    pub message_timeouts: AtomicU64,
     /// `GET /healthz` answered.
     pub health_checks: AtomicU64,
     /// Receive → reply sent of each answered request (µs), and the policy's part of it.
@@ -186,8 +306,10 @@ struct Shared {
     stats: Arc<ServerStats>,
     stop: Arc<AtomicBool>,
     report: Box<Report>,
-    /// Connections open per peer address.
-    per_address: Mutex<std::collections::HashMap<std::net::IpAddr, usize>>,
+    /// Every connection, in its handshake or open.
+    table: Mutex<Table>,
+    /// Connection threads alive (including those told to go and not yet gone).
+    threads: AtomicUsize,
 }
 
 impl Server {
@@ -224,7 +346,8 @@ impl Server {
             stats: stats.clone(),
             stop: stop.clone(),
             report,
-            per_address: Mutex::new(std::collections::HashMap::new()),
+            table: Mutex::new(Table::default()),
+            threads: AtomicUsize::new(0),
         });
         let accept = std::thread::Builder::new()
             .name("chunkrt-serve-accept".into())
@@ -278,60 +401,33 @@ fn accept_loop(listener: TcpListener, shared: Arc<Shared>) {
             Ok((stream, peer)) => {
                 let _ = stream.set_nonblocking(false);
                 let _ = stream.set_nodelay(true);
-                if shared.stats.open.load(Ordering::Relaxed) >= shared.cfg.max_connections {
+                // threads alive, those told to go included: a flood of new connections is
+                // refused rather than met with ever more threads
+                let cap = shared.cfg.max_connections.max(1) + shared.cfg.max_handshakes.max(1);
+                if shared.threads.load(Ordering::Relaxed) >= 2 * cap {
                     shared.stats.busy.fetch_add(1, Ordering::Relaxed);
                     refuse(stream, "503 Service Unavailable", "too many connections\n");
                     continue;
                 }
-                // one address holds at most max_per_address of the slots
-                let ip = peer.ip();
-                let admitted = shared.per_address.lock().is_ok_and(|mut m| {
-                    let n = m.entry(ip).or_insert(0);
-                    if *n >= shared.cfg.max_per_address.max(1) {
-                        false
-                    } else {
-                        *n += 1;
-                        true
-                    }
-                });
-                if !admitted {
-                    shared.stats.busy.fetch_add(1, Ordering::Relaxed);
-                    shared.warn("busy", || {
-                        format!(
-                            "serve: {peer}: refused: {ip} already holds {} connections",
-                            shared.cfg.max_per_address
-                        )
-                    });
-                    refuse(
-                        stream,
-                        "503 Service Unavailable",
-                        "too many connections from this address\n",
-                    );
+                // a handshake holds no websocket slot; the oldest pending one makes way
+                let Some((id, drop_it)) = shared.begin_handshake(peer.ip()) else {
+                    refuse(stream, "503 Service Unavailable", "too many connections\n");
                     continue;
-                }
-                let release = move |s: &Shared| {
-                    s.stats.open.fetch_sub(1, Ordering::Relaxed);
-                    if let Ok(mut m) = s.per_address.lock() {
-                        if let Some(n) = m.get_mut(&ip) {
-                            *n = n.saturating_sub(1);
-                            if *n == 0 {
-                                m.remove(&ip);
-                            }
-                        }
-                    }
                 };
-                shared.stats.open.fetch_add(1, Ordering::Relaxed);
+                shared.threads.fetch_add(1, Ordering::Relaxed);
                 let s = shared.clone();
                 let spawned = std::thread::Builder::new()
                     .name("chunkrt-serve-conn".into())
                     .spawn(move || {
-                        serve_connection(stream, peer, &s);
-                        release(&s);
+                        serve_connection(stream, peer, &s, id, &drop_it);
+                        s.release(id);
+                        s.threads.fetch_sub(1, Ordering::Relaxed);
                     });
                 match spawned {
                     Ok(h) => conns.push(h),
                     Err(e) => {
-                        release(&shared);
+                        shared.release(id);
+                        shared.threads.fetch_sub(1, Ordering::Relaxed);
                         tracing::warn!("serve: cannot start a connection thread: {e}");
                     }
                 }
@@ -371,15 +467,20 @@ struct Head {
     authorization: Option<String>,
 }
 
-fn peek_head(stream: &TcpStream, deadline: Instant, stop: &AtomicBool) -> Option<Head> {
+fn peek_head(
+    stream: &TcpStream,
+    deadline: Instant,
+    stop: &AtomicBool,
+    drop_it: &AtomicBool,
+) -> Option<Head> {
     let mut buf = vec![0u8; 16 * 1024];
     // short waits, so a stop or the deadline is seen while the peer sends nothing
     let _ = stream.set_read_timeout(Some(Duration::from_millis(100)));
     loop {
-        if stop.load(Ordering::Relaxed) || Instant::now() >= deadline {
-            return None;
-        }
+        // a head already here is taken even when this connection was told to make way (a
+        // client whose request arrived with its connect is not dropped for a flood after it)
         let n = match stream.peek(&mut buf) {
+            Ok(0) => return None,
             Ok(n) => n,
             Err(e)
                 if matches!(
@@ -387,33 +488,39 @@ fn peek_head(stream: &TcpStream, deadline: Instant, stop: &AtomicBool) -> Option
                     std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
                 ) =>
             {
-                continue
+                0
             }
             Err(_) => return None,
         };
-        if n == 0 {
+        if n > 0 {
+            let mut headers = [httparse::EMPTY_HEADER; 64];
+            let mut req = httparse::Request::new(&mut headers);
+            match req.parse(&buf[..n]) {
+                Ok(httparse::Status::Complete(len)) => {
+                    let authorization = req
+                        .headers
+                        .iter()
+                        .find(|h| h.name.eq_ignore_ascii_case("authorization"))
+                        .and_then(|h| std::str::from_utf8(h.value).ok())
+                        .map(str::to_string);
+                    return Some(Head {
+                        len,
+                        path: req.path.unwrap_or("").to_string(),
+                        authorization,
+                    });
+                }
+                Ok(httparse::Status::Partial) if n < buf.len() => {}
+                _ => return None,
+            }
+        }
+        if stop.load(Ordering::Relaxed)
+            || drop_it.load(Ordering::Relaxed)
+            || Instant::now() >= deadline
+        {
             return None;
         }
-        let mut headers = [httparse::EMPTY_HEADER; 64];
-        let mut req = httparse::Request::new(&mut headers);
-        match req.parse(&buf[..n]) {
-            Ok(httparse::Status::Complete(len)) => {
-                let authorization = req
-                    .headers
-                    .iter()
-                    .find(|h| h.name.eq_ignore_ascii_case("authorization"))
-                    .and_then(|h| std::str::from_utf8(h.value).ok())
-                    .map(str::to_string);
-                return Some(Head {
-                    len,
-                    path: req.path.unwrap_or("").to_string(),
-                    authorization,
-                });
-            }
-            Ok(httparse::Status::Partial) if n < buf.len() && Instant::now() < deadline => {
-                std::thread::sleep(Duration::from_millis(2));
-            }
-            _ => return None,
+        if n > 0 {
+            std::thread::sleep(Duration::from_millis(2));
         }
     }
 }
@@ -428,13 +535,22 @@ fn same_key(given: &str, key: &str) -> bool {
     diff == 0 && a.len() == b.len()
 }
 
-fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
+fn serve_connection(
+    mut stream: TcpStream,
+    peer: SocketAddr,
+    s: &Shared,
+    id: u64,
+    drop_it: &AtomicBool,
+) {
     let deadline = Instant::now() + s.cfg.handshake_timeout;
     let _ = stream.set_write_timeout(Some(Duration::from_secs(2)));
-    let Some(head) = peek_head(&stream, deadline, &s.stop) else {
-        s.stats.handshake_timeouts.fetch_add(1, Ordering::Relaxed);
+    let Some(head) = peek_head(&stream, deadline, &s.stop, drop_it) else {
+        if !drop_it.load(Ordering::Relaxed) {
+            s.stats.handshake_timeouts.fetch_add(1, Ordering::Relaxed);
+        }
         return;
     };
+    s.head_done(id);
     // the rest of the handshake within what is left of the deadline
     let left = deadline
         .saturating_duration_since(Instant::now())
@@ -466,9 +582,22 @@ fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
             return;
         }
     }
+    // a websocket slot: the longest-idle websocket of this address, network or all makes way
+    if let Err(why) = s.open(id) {
+        s.stats.busy.fetch_add(1, Ordering::Relaxed);
+        s.warn("busy", || format!("serve: {peer}: refused: {why}"));
+        consume(&mut stream, head.len);
+        refuse(
+            stream,
+            "503 Service Unavailable",
+            &format!("too many connections: {why}\n"),
+        );
+        return;
+    }
     let ws_cfg = WebSocketConfig::default()
         .max_message_size(Some(s.cfg.max_message_bytes))
         .max_frame_size(Some(s.cfg.max_message_bytes));
+    let stream = Counted { stream, bytes: 0 };
     let mut ws = match tungstenite::accept_with_config(stream, Some(ws_cfg)) {
         Ok(ws) => ws,
         Err(e) => {
@@ -481,13 +610,44 @@ fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
     // short reads, so the thread sees a stop; tungstenite keeps a partial frame across them
     let _ = ws
         .get_ref()
+        .stream
         .set_read_timeout(Some(Duration::from_millis(200)));
     if ws.send(Message::Binary(s.metadata.clone().into())).is_err() {
         return;
     }
     let mut prev_total: Option<Duration> = None;
     let mut waiting_since = Instant::now();
+    // bytes read when the last message completed, and since when a message has been arriving
+    let mut mark = ws.get_ref().bytes;
+    let mut begun: Option<Instant> = None;
     loop {
+        if drop_it.load(Ordering::Relaxed) {
+            tracing::info!("serve: {peer}: idle the longest: closed for a new connection");
+            let _ = ws.close(Some(CloseFrame {
+                code: CloseCode::Again,
+                reason: "made way for a new connection".into(),
+            }));
+            let _ = ws.flush();
+            return;
+        }
+        if ws.get_ref().bytes > mark && begun.is_none() {
+            begun = Some(Instant::now());
+        }
+        if begun.is_some_and(|t| t.elapsed() >= s.cfg.message_timeout) {
+            s.stats.message_timeouts.fetch_add(1, Ordering::Relaxed);
+            s.warn("message_timeout", || {
+                format!(
+                    "serve: {peer}: a message begun {:.0} s ago is still incomplete: closed",
+                    s.cfg.message_timeout.as_secs_f64()
+                )
+            });
+            let _ = ws.close(Some(CloseFrame {
+                code: CloseCode::Policy,
+                reason: "message too slow".into(),
+            }));
+            let _ = ws.flush();
+            return;
+        }
         if waiting_since.elapsed() >= s.cfg.idle_timeout {
             s.stats.idle_closed.fetch_add(1, Ordering::Relaxed);
             tracing::info!(
@@ -510,7 +670,11 @@ fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
             return;
         }
         let msg = match ws.read() {
-            Ok(m) => m,
+            Ok(m) => {
+                mark = ws.get_ref().bytes;
+                begun = None;
+                m
+            }
             Err(tungstenite::Error::Io(e))
                 if matches!(
                     e.kind(),
@@ -556,6 +720,7 @@ fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
             _ => continue,
         };
         let start = waiting_since;
+        s.asking(id, true);
         let value = match decode(&bytes, s.cfg.limits) {
             Ok(v) => v,
             Err(e) => {
@@ -632,6 +797,7 @@ fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
         let total = start.elapsed();
         prev_total = Some(total);
         waiting_since = Instant::now();
+        s.asking(id, false);
         if let Ok(mut l) = s.stats.latency_us.lock() {
             if l.len() < 1 << 20 {
                 l.push((total.as_micros() as u64, infer.as_micros() as u64));
@@ -642,7 +808,7 @@ fn serve_connection(mut stream: TcpStream, peer: SocketAddr, s: &Shared) {
 
 /// Answers a failed request as openpi's server does (the error as a text frame, then a close
 /// with 1011), counts it and logs it (rate-limited). Other connections go on.
-fn fail(ws: &mut WebSocket<TcpStream>, peer: SocketAddr, s: &Shared, kind: Failure, text: &str) {
+fn fail(ws: &mut WebSocket<Counted>, peer: SocketAddr, s: &Shared, kind: Failure, text: &str) {
     s.stats.fail(kind);
     // the text may quote what the peer sent: bounded in the log and in the reply
     s.warn(kind.name(), || {
@@ -678,5 +844,159 @@ fn fail(ws: &mut WebSocket<TcpStream>, peer: SocketAddr, s: &Shared, kind: Failu
 impl Shared {
     fn warn(&self, kind: &str, line: impl FnOnce() -> String) {
         (self.report)(kind, line());
+    }
+
+    /// A new connection from `ip` in its handshake: its id and its drop flag. When
+    /// `max_handshakes` are pending (or its network holds half of them) the oldest such makes
+    /// way; None when the table cannot be had.
+    fn begin_handshake(&self, ip: std::net::IpAddr) -> Option<(u64, Arc<AtomicBool>)> {
+        let mut t = self.table.lock().ok()?;
+        let net = Network::of(ip);
+        let most = self.cfg.max_handshakes.max(1);
+        let pending = |t: &Table, f: &dyn Fn(&Slot) -> bool| {
+            t.slots
+                .iter()
+                .filter(|c| !c.open && !c.head && f(c))
+                .count()
+        };
+        let oldest = |t: &Table, f: &dyn Fn(&Slot) -> bool| {
+            t.slots
+                .iter()
+                .enumerate()
+                .filter(|(_, c)| !c.open && !c.head && f(c))
+                .min_by_key(|(_, c)| c.since)
+                .map(|(i, _)| i)
+        };
+        let mine = |c: &Slot| c.net == net;
+        let any = |_: &Slot| true;
+        let victim = if pending(&t, &mine) >= (most / 2).max(1) {
+            oldest(&t, &mine)
+        } else if pending(&t, &any) >= most {
+            oldest(&t, &any)
+        } else {
+            None
+        };
+        if let Some(i) = victim {
+            t.evict(i);
+            self.stats.made_way.fetch_add(1, Ordering::Relaxed);
+        }
+        t.next += 1;
+        let id = t.next;
+        let drop_it = Arc::new(AtomicBool::new(false));
+        t.slots.push(Slot {
+            id,
+            ip,
+            net,
+            open: false,
+            since: Instant::now(),
+            busy: false,
+            asked: false,
+            head: false,
+            drop_it: drop_it.clone(),
+        });
+        Some((id, drop_it))
+    }
+
+    /// Connection `id`'s handshake is done: it takes a websocket slot, the longest-idle
+    /// websocket of its address, of its network or of all making way where that share is full.
+    /// Err: the line to refuse it with (every holder of that share is answering or asked
+    /// within the last second).
+    fn open(&self, id: u64) -> Result<(), String> {
+        let mut t = self
+            .table
+            .lock()
+            .map_err(|_| "the server is stopping".to_string())?;
+        let Some(me) = t.slots.iter().position(|c| c.id == id) else {
+            return Err("made way for a newer connection".into());
+        };
+        let (ip, net) = (t.slots[me].ip, t.slots[me].net);
+        let count = |t: &Table, f: &dyn Fn(&Slot) -> bool| {
+            t.slots.iter().filter(|c| c.open && f(c)).count()
+        };
+        let shares: [(&str, usize, &SlotFilter); 3] = [
+            (
+                "this address",
+                self.cfg.max_per_address.max(1),
+                &|c: &Slot| c.ip == ip,
+            ),
+            (
+                "this network",
+                self.cfg.max_per_network.max(1),
+                &|c: &Slot| c.net == net,
+            ),
+            ("all", self.cfg.max_connections.max(1), &|_: &Slot| true),
+        ];
+        for (what, most, f) in shares {
+            while count(&t, f) >= most {
+                match t.idlest(f) {
+                    Some(i) => {
+                        t.evict(i);
+                        self.stats.made_way.fetch_add(1, Ordering::Relaxed);
+                    }
+                    None => {
+                        return Err(format!("the connections of {what} ({most}) are all in use"))
+                    }
+                }
+            }
+        }
+        if let Some(c) = t.slots.iter_mut().find(|c| c.id == id) {
+            c.open = true;
+            c.since = Instant::now();
+        }
+        self.stats.open.store(t.open_count(), Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Connection `id` has sent its whole request head.
+    fn head_done(&self, id: u64) {
+        if let Ok(mut t) = self.table.lock() {
+            if let Some(c) = t.slots.iter_mut().find(|c| c.id == id) {
+                c.head = true;
+            }
+        }
+    }
+
+    /// Connection `id` is answering a request (`busy`), or has answered one.
+    fn asking(&self, id: u64, busy: bool) {
+        if let Ok(mut t) = self.table.lock() {
+            if let Some(c) = t.slots.iter_mut().find(|c| c.id == id) {
+                c.busy = busy;
+                c.asked = true;
+                c.since = Instant::now();
+            }
+        }
+    }
+
+    /// Connection `id` has gone.
+    fn release(&self, id: u64) {
+        if let Ok(mut t) = self.table.lock() {
+            if let Some(i) = t.slots.iter().position(|c| c.id == id) {
+                t.slots.swap_remove(i);
+            }
+            self.stats.open.store(t.open_count(), Ordering::Relaxed);
+        }
+    }
+}
+
+/// A TCP stream that notes when bytes last arrived and how many (a message in progress).
+struct Counted {
+    stream: TcpStream,
+    bytes: u64,
+}
+
+impl Read for Counted {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.stream.read(buf)?;
+        self.bytes += n as u64;
+        Ok(n)
+    }
+}
+
+impl Write for Counted {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.stream.write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.stream.flush()
     }
 }
