@@ -52,7 +52,8 @@ pub struct Config {
 #[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ServeSettings {
-    /// Connections served at once (more are refused with HTTP 503).
+    /// Websockets open at once (a new one takes the slot of the longest-idle; HTTP 503 when all
+    /// are in use).
     #[serde(default = "default_max_connections")]
     pub max_connections: usize,
     /// Connections one peer address may hold at once.
