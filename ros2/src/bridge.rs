@@ -98,6 +98,10 @@ pub struct Summary {
     /// An image's age when its frame was published (its stamp to the frame, µs): p50, p99.
     pub frame_age_p50_us: f64,
     pub frame_age_p99_us: f64,
+    /// chunkrt's own hop in the same run: joint state published on iceoryx2 -> the command
+    /// answering it received on iceoryx2 (µs), p50 and p99.
+    pub iox_p50_us: f64,
+    pub iox_p99_us: f64,
 }
 
 impl std::fmt::Display for Summary {
@@ -109,7 +113,7 @@ impl std::fmt::Display for Summary {
              commands_unbound={} commands_far={} clamped={} statuses_out={} chunks_out={} \
              latency_p50_us={:.1} latency_p99_us={:.1} latency_max_us={:.1} latency_count={} \
              cpu_share={:.3} max_rss_kb={} frames_out={} frames_superseded={} \
-             frame_age_p50_us={:.1} frame_age_p99_us={:.1} {}",
+             frame_age_p50_us={:.1} frame_age_p99_us={:.1} iox_p50_us={:.1} iox_p99_us={:.1} {}",
             self.states_received,
             self.states_published,
             self.commands_sent,
@@ -132,6 +136,8 @@ impl std::fmt::Display for Summary {
             self.frames_superseded,
             self.frame_age_p50_us,
             self.frame_age_p99_us,
+            self.iox_p50_us,
+            self.iox_p99_us,
             self.errors.summary(),
         )
     }
@@ -255,8 +261,13 @@ struct Bridge {
     have_state: bool,
     last_state_ns: u64,
     peer_silent: bool,
-    /// (seq, receive time) of the last few states, to time the answers.
-    recent: [(u64, u64); 16],
+    /// (seq, receive time, time published to chunkrt) of the last few states, to time the
+    /// answers.
+    recent: [(u64, u64, u64); 16],
+    /// chunkrt's own hop: joint state published on iceoryx2 -> its command received (ns).
+    iox_hist: Histogram<u64>,
+    /// The newest robot state whose command's arrival was timed.
+    last_iox_timed: u64,
     /// The last position sent on ROS 2 (what a hold repeats).
     last_sent: Option<[f64; MAX_DOF]>,
     /// Seq of the last controller command sent.
@@ -300,7 +311,7 @@ impl Bridge {
         self.measured = matched.position;
         self.have_state = true;
         self.seq += 1;
-        self.recent[(self.seq % 16) as usize] = (self.seq, now);
+        self.recent[(self.seq % 16) as usize] = (self.seq, now, 0);
         let mut flags = self.intake.flags(now);
         if self.holding || self.intake.live(now).is_none() {
             flags |= JOINT_STATUS_HOLDING;
@@ -329,6 +340,7 @@ impl Bridge {
         };
         if sent {
             self.summary.states_published += 1;
+            self.recent[(self.seq % 16) as usize].2 = monotonic_ns();
             if let Some(ev) = &iox.state_event {
                 if ev.notify().is_err() {
                     self.errors.count(ErrorKind::PublishFailed, now, || {
@@ -486,6 +498,15 @@ impl Bridge {
             match iox.cmd_sub.receive() {
                 Ok(Some(s)) => {
                     let now = monotonic_ns();
+                    let st = s.payload().state_seq;
+                    if st > self.last_iox_timed {
+                        let (seq, _, published) = self.recent[(st % 16) as usize];
+                        if seq == st && published > 0 {
+                            self.iox_hist
+                                .saturating_record(now.saturating_sub(published).max(1));
+                        }
+                        self.last_iox_timed = st;
+                    }
                     let before = self.intake.counters.commands_applied;
                     let n = self.n;
                     self.intake.on_command(
@@ -627,7 +648,7 @@ impl Bridge {
                 // timed once per robot state: its first answer (a timer tick's command for an
                 // older state answers nothing new)
                 if cmd.state_seq > self.last_timed_state {
-                    let (seq, at) = self.recent[(cmd.state_seq % 16) as usize];
+                    let (seq, at, _) = self.recent[(cmd.state_seq % 16) as usize];
                     if seq == cmd.state_seq {
                         self.hist.saturating_record(now.saturating_sub(at).max(1));
                     }
@@ -986,7 +1007,9 @@ pub fn bridge(args: &Args) -> anyhow::Result<Summary> {
         have_state: false,
         last_state_ns: start,
         peer_silent: false,
-        recent: [(0, 0); 16],
+        recent: [(0, 0, 0); 16],
+        iox_hist: Histogram::new_with_bounds(1, 10_000_000_000, 3).context("histogram")?,
+        last_iox_timed: 0,
         last_sent: None,
         last_cmd_seq: 0,
         last_timed_state: 0,
@@ -1117,6 +1140,8 @@ impl Bridge {
             max_rss_kb: max_rss_kb(),
             frame_age_p50_us: self.frame_hist.value_at_quantile(0.5) as f64 / 1e3,
             frame_age_p99_us: self.frame_hist.value_at_quantile(0.99) as f64 / 1e3,
+            iox_p50_us: self.iox_hist.value_at_quantile(0.5) as f64 / 1e3,
+            iox_p99_us: self.iox_hist.value_at_quantile(0.99) as f64 / 1e3,
             ..self.summary.clone()
         }
     }
