@@ -211,6 +211,41 @@ fn stalled_then_failed(what: &str, attempt: usize, d: &Finished, why: Option<Str
     }
 }
 
+/// The FR3 tests' rerun rule narrowed to what it covers (the open stall point): the machine
+/// stalled the driver or the simulator (missed cycles, early states) and every reflex was a
+/// motion generator's discontinuity or the robot's communication stop, which is what a stall
+/// trips. A geometry or velocity reflex (self-collision, the measured velocity) never reruns.
+/// Said loudly; the caller runs once more.
+fn stalled_into_a_discontinuity(what: &str, d: &Finished) -> bool {
+    let errors = d
+        .stdout
+        .lines()
+        .find(|l| l.starts_with("franka summary"))
+        .and_then(|l| {
+            l.split_whitespace()
+                .find_map(|kv| kv.strip_prefix("reflex_errors="))
+        })
+        .unwrap_or("none")
+        .to_string();
+    // an answer the robot did not apply in its cycle (`unapplied`) reached it late: a stall too
+    let stalled = drv(d, "missed") + drv(d, "short_cycles") + drv(d, "unapplied") > 0.0;
+    let stall_kind = errors != "none"
+        && errors.split([',', '+']).all(|e| {
+            e.starts_with("joint_motion_generator_") || e == "communication_constraints_violation"
+        });
+    if stalled && stall_kind {
+        println!(
+            "\n!!! {what}: the driver missed {} robot cycles, {} states came early and {} answers \
+             reached the robot late (this machine stalled the driver or the simulator), then the \
+             robot tripped {errors}: run once more\n",
+            drv(d, "missed"),
+            drv(d, "short_cycles"),
+            drv(d, "unapplied")
+        );
+    }
+    stalled && stall_kind
+}
+
 #[test]
 fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
     let Some((py, model)) = franka_env("franka_sim: strategies") else {
@@ -440,9 +475,14 @@ fn droid_chunks_that_drive_every_joint_to_minus_1_and_plus_1_stop_before_the_rob
         return;
     }
     let _one = serial();
-    let mut refused = 0.0;
-    for (i, value) in ["-1", "1"].into_iter().enumerate() {
-        let host = format!("127.0.0.{}", 37 + i);
+    let mut refused: f64 = 0.0;
+    for (i, value) in ["-1", "1", "-1", "1"].into_iter().enumerate() {
+        if i >= 2 && refused >= 0.0 {
+            // both directions passed the first time (a rerun sets `refused` below zero)
+            break;
+        }
+        refused = refused.max(0.0);
+        let host = format!("127.0.{}.{}", i / 2, 37 + i % 2);
         let what = format!("droid all {value}");
         let trace =
             std::env::temp_dir().join(format!("fr3_droid{value}_{}.csv", std::process::id()));
@@ -456,6 +496,11 @@ fn droid_chunks_that_drive_every_joint_to_minus_1_and_plus_1_stop_before_the_rob
         );
         println!("{what}: the driver's trace: {tr}");
         assert_eq!(c_out.code, Some(0), "{what}: {}", c_out.stderr);
+        if i < 2 && stalled_into_a_discontinuity(&what, &d_out) {
+            // both directions once more
+            refused = -1.0;
+            continue;
+        }
         assert_no_reflex(&what, &d_out, &s_out);
         let line = d_out
             .stdout
@@ -497,14 +542,23 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         return;
     }
     let _one = serial();
-    let host = "127.0.0.39";
+    for attempt in 0..2 {
+        let host = format!("127.0.{attempt}.39");
+        if !rejoin_once(&py, &model, &host, attempt) {
+            break;
+        }
+    }
+}
+
+/// One run of the rejoin test; true: the machine stalled into a discontinuity (run once more).
+fn rejoin_once(py: &str, model: &str, host: &str, attempt: usize) -> bool {
     let trace = std::env::temp_dir().join(format!("fr3_rejoin_{}.csv", std::process::id()));
     let tr = trace.display().to_string();
     let (c_out, d_out, _cam, srv_out, s_out) = droid_run(
-        &py,
-        &model,
-        &host,
-        &["--mode", "constant", "--value", "-1", "--flip-after", "45"],
+        py,
+        model,
+        host,
+        &["--mode", "constant", "--value", "-1", "--flip-after", "12"],
         &["--inject-reflex-at", "9", "--trace", &tr],
     );
     println!("rejoin: the driver's trace: {tr}");
@@ -521,6 +575,12 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         "the controller failed:\n{}",
         c_out.stderr
     );
+    if attempt == 0
+        && drv(&d_out, "reflexes") > 1.0
+        && stalled_into_a_discontinuity("rejoin", &d_out)
+    {
+        return true;
+    }
     assert_eq!(
         drv(&d_out, "reflexes"),
         1.0,
@@ -563,6 +623,7 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         after.len()
     );
     let _ = std::fs::remove_file(trace);
+    false
 }
 
 #[test]

@@ -14,7 +14,8 @@ pi05_droid server would shape them: it checks the observation a DROID client sen
   --mode random      random velocities in [-1, 1] and a random gripper (the hostile test)
   --mode constant    every joint velocity at --value (-1 or +1: the arm driven into its own
                      joint limits, its links or the floor; the driver's geometry test), the
-                     opposite after --flip-after requests (a policy that turns back)
+                     arm back to its start pose after --flip-after requests (a policy that
+                     turns back)
 
 Every answer waits --latency-ms first (a GPU server's inference time). Prints one line per 50
 requests and, on SIGTERM / SIGINT, "droid-scripted summary: requests=N bad=N".
@@ -77,10 +78,17 @@ class ScriptedDroidPolicy:
                 self.home = q.copy()
             h = self.horizon
             actions = np.zeros((h, 8), dtype=np.float32)
-            if self.mode == "constant":
-                flipped = self.flip_after and n > self.flip_after
-                actions[:, :7] = -self.value if flipped else self.value
+            flipped = self.mode == "constant" and self.flip_after and n > self.flip_after
+            if self.mode == "constant" and not flipped:
+                actions[:, :7] = self.value
                 actions[:, 7] = 0.0
+            elif flipped:
+                # back to where the arm started, at 0.4 of the speed (a policy that turns back)
+                pos = q.copy()
+                for k in range(h):
+                    v = np.clip((self.home - pos) / MAX_JOINT_DELTA, -0.4, 0.4)
+                    actions[k, :7] = v
+                    pos = pos + MAX_JOINT_DELTA * v
             elif self.mode == "random":
                 actions[:, :7] = self.rng.uniform(-1.0, 1.0, size=(h, 7))
                 actions[:, 7] = self.rng.uniform(0.0, 1.0)
@@ -110,7 +118,7 @@ def main():
     ap.add_argument("--value", type=float, default=-1.0,
                     help="--mode constant: every joint velocity (DROID's normalised, in [-1, 1])")
     ap.add_argument("--flip-after", type=int, default=0,
-                    help="--mode constant: after this many requests, the opposite velocity (0: never)")
+                    help="--mode constant: after this many requests, back to the start pose (0: never)")
     args = ap.parse_args()
     from openpi_server import WebsocketPolicyServer
 
