@@ -69,6 +69,8 @@ pub struct Summary {
     pub commands_sent: u64,
     /// Hold commands published (no live controller command: the last position sent, again).
     pub holds_sent: u64,
+    /// Gripper commands published on `gripper_topic` (on change).
+    pub gripper_sent: u64,
     /// Commands the intake accepted / refused (session, order, deadline, bumpless rule).
     pub commands_applied: u64,
     pub commands_rejected: u64,
@@ -109,7 +111,7 @@ impl std::fmt::Display for Summary {
         write!(
             f,
             "ros2 summary: states_received={} states_published={} commands_sent={} \
-             holds_sent={} commands_applied={} commands_rejected={} commands_expired={} \
+             holds_sent={} gripper_sent={} commands_applied={} commands_rejected={} commands_expired={} \
              commands_unbound={} commands_far={} clamped={} statuses_out={} chunks_out={} \
              latency_p50_us={:.1} latency_p99_us={:.1} latency_max_us={:.1} latency_count={} \
              cpu_share={:.3} max_rss_kb={} frames_out={} frames_superseded={} \
@@ -118,6 +120,7 @@ impl std::fmt::Display for Summary {
             self.states_published,
             self.commands_sent,
             self.holds_sent,
+            self.gripper_sent,
             self.commands_applied,
             self.commands_rejected,
             self.commands_expired,
@@ -287,7 +290,14 @@ struct Bridge {
     lead_ns: u64,
     skew_ns: u64,
     silence_ns: u64,
+    state_max_age_ns: u64,
+    frame_max_age_ns: u64,
     limits: [(f64, f64); MAX_DOF],
+    /// Joints commanded on the arm's topic, and (with `gripper_topic`) on the gripper's.
+    arm: Vec<usize>,
+    gripper: Vec<usize>,
+    gripper_out: Option<Publisher<msg::Float64MultiArray>>,
+    gripper_sent: Option<Vec<f64>>,
 }
 
 impl Bridge {
@@ -302,7 +312,7 @@ impl Bridge {
                 return;
             }
         };
-        let t = self.stamp_time(&m.header.stamp, now, "JointState");
+        let t = self.stamp_time(&m.header.stamp, now, "JointState", self.state_max_age_ns);
         if self.peer_silent {
             tracing::info!("ros2: the robot's joint states are back");
             self.peer_silent = false;
@@ -357,7 +367,7 @@ impl Bridge {
 
     /// The monotonic time of a message stamped `stamp` and received at `now` (the receive time
     /// for a zero stamp, with `stamp = "receive"`, or a stamp too far ahead: counted).
-    fn stamp_time(&mut self, stamp: &msg::Time, now: u64, what: &str) -> u64 {
+    fn stamp_time(&mut self, stamp: &msg::Time, now: u64, what: &str, max_age_ns: u64) -> u64 {
         if self.cfg.ros2.stamp != StampSource::Header {
             return now;
         }
@@ -375,8 +385,20 @@ impl Bridge {
             });
             return now;
         }
+        let age = real.saturating_sub(stamp);
+        if age > max_age_ns {
+            // the controller will find it stale and hold: say why here
+            self.errors.count(ErrorKind::StampSkew, now, || {
+                format!(
+                    "{what} stamped {:.1} ms in the past, older than the controller accepts: is \
+                     the robot's clock synchronised with this machine's (else set ros2.stamp = \
+                     \"receive\")?",
+                    age as f64 / 1e6
+                )
+            });
+        }
         // the stamp's age on the system clock, taken off the monotonic receive time
-        now.saturating_sub(real.saturating_sub(stamp))
+        now.saturating_sub(age)
     }
 
     /// Takes each camera's images: the newest valid one of this wake-up becomes a frame.
@@ -429,7 +451,7 @@ impl Bridge {
                 continue;
             };
             let now = monotonic_ns();
-            let capture = self.stamp_time(&header.stamp, now, "Image");
+            let capture = self.stamp_time(&header.stamp, now, "Image", self.frame_max_age_ns);
             match cam.publisher.loan_slice(p.len()) {
                 Ok(mut sample) => {
                     match &decoded {
@@ -580,11 +602,12 @@ impl Bridge {
             self.summary.clamped += 1;
         }
         self.clamped_flag = clamped;
+        let arm_pos: Vec<f64> = self.arm.iter().map(|&j| pos[j]).collect();
         let ok = match &self.out {
             CommandOut::Forward(p) => p
                 .publish(msg::Float64MultiArray {
                     layout: msg::MultiArrayLayout::default(),
-                    data: pos[..n].to_vec(),
+                    data: arm_pos,
                 })
                 .is_ok(),
             CommandOut::Trajectory(p) => {
@@ -592,14 +615,18 @@ impl Bridge {
                 p.publish(msg::JointTrajectory {
                     // a zero stamp: start at once
                     header: msg::Header::default(),
-                    joint_names: self.map.names().to_vec(),
+                    joint_names: self
+                        .arm
+                        .iter()
+                        .map(|&j| self.map.names()[j].clone())
+                        .collect(),
                     points: vec![msg::JointTrajectoryPoint {
-                        positions: pos[..n].to_vec(),
-                        velocities: if hold {
-                            vec![0.0; n]
-                        } else {
-                            cmd.velocity[..n].to_vec()
-                        },
+                        positions: arm_pos,
+                        velocities: self
+                            .arm
+                            .iter()
+                            .map(|&j| if hold { 0.0 } else { cmd.velocity[j] })
+                            .collect(),
                         time_from_start: msg::Duration::from_ns(self.lead_ns),
                         ..Default::default()
                     }],
@@ -607,6 +634,24 @@ impl Bridge {
                 .is_ok()
             }
         };
+        if let Some(g) = &self.gripper_out {
+            let grip: Vec<f64> = self.gripper.iter().map(|&j| pos[j]).collect();
+            if self.gripper_sent.as_ref() != Some(&grip) {
+                if g.publish(msg::Float64MultiArray {
+                    layout: msg::MultiArrayLayout::default(),
+                    data: grip.clone(),
+                })
+                .is_ok()
+                {
+                    self.gripper_sent = Some(grip);
+                    self.summary.gripper_sent += 1;
+                } else {
+                    self.errors.count(ErrorKind::PublishFailed, now, || {
+                        "publishing a gripper command on ROS 2 failed".into()
+                    });
+                }
+            }
+        }
         if !ok {
             self.errors.count(ErrorKind::PublishFailed, now, || {
                 "publishing a command on ROS 2 failed".into()
@@ -994,6 +1039,27 @@ pub fn bridge(args: &Args) -> anyhow::Result<Summary> {
             ""
         }
     );
+    let (arm, gripper): (Vec<usize>, Vec<usize>) = if r.gripper_topic.is_empty() {
+        ((0..n).collect(), Vec::new())
+    } else {
+        (0..n).partition(|&j| !cfg.shared.robot.joints[j].step)
+    };
+    let gripper_out = if r.gripper_topic.is_empty() {
+        None
+    } else {
+        let (pkg, ty) = msg::types::FLOAT64_MULTI_ARRAY;
+        let t = ros
+            .create_topic(
+                &topic_name(&r.gripper_topic)?,
+                MessageTypeName::new(pkg, ty),
+                &qos(r.command_qos),
+            )
+            .map_err(|e| anyhow::anyhow!("{}: {e:?}", r.gripper_topic))?;
+        Some(
+            ros.create_publisher(&t, Some(qos(r.command_qos)))
+                .map_err(|e| anyhow::anyhow!("{}: {e:?}", r.gripper_topic))?,
+        )
+    };
     let mut b = Bridge {
         n,
         map: JointMap::new(&r.joints),
@@ -1025,7 +1091,13 @@ pub fn bridge(args: &Args) -> anyhow::Result<Summary> {
         lead_ns: (r.trajectory_lead_ms * 1e6) as u64,
         skew_ns: (r.max_stamp_skew_ms * 1e6) as u64,
         silence_ns: (r.peer_silence_ms * 1e6) as u64,
+        state_max_age_ns: (cfg.shared.control.joint_state_max_age_ms * 1e6) as u64,
+        frame_max_age_ns: (cfg.shared.control.frame_max_age_ms * 1e6) as u64,
         limits,
+        arm,
+        gripper,
+        gripper_out,
+        gripper_sent: None,
         cfg: cfg.clone(),
     };
     // commands are polled at the control rate when no event announces them

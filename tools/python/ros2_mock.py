@@ -263,6 +263,10 @@ def main():
         "/forward_position_controller/commands" if mode == "forward"
         else "/joint_trajectory_controller/joint_trajectory")
     state_topic = r2.get("joint_states_topic", "/joint_states")
+    # a gripper on a topic of its own: the step joints there, the others on the command topic
+    gripper_topic = r2.get("gripper_topic", "")
+    grip_idx = [i for i, j in enumerate(joints) if j.get("step", False)] if gripper_topic else []
+    cmd_idx = [i for i in range(n) if i not in grip_idx]
     injects = []
     for spec in a.inject:
         kind, _, when = spec.partition("@")
@@ -290,6 +294,10 @@ def main():
     ctype = T["Float64MultiArray"] if mode == "forward" else T["JointTrajectory"]
     c_topic = Topic(dp, dds(cmd_topic), ctype)
     c_reader = DataReader(dp, c_topic, qos=reliable)
+    g_reader = None
+    if gripper_topic:
+        g_reader = DataReader(dp, Topic(dp, dds(gripper_topic), T["Float64MultiArray"]), qos=reliable)
+    gripper_commands = 0
     foreign_writer = None
     if any(k == "foreign" for k, _, _ in injects):
         dp2 = DomainParticipant(a.domain_id)
@@ -419,28 +427,48 @@ def main():
                     data = list(s.data)
                 else:
                     data = list(s.points[0].positions) if s.points else []
-                    if list(s.joint_names) != list(names):
-                        # JTC matches by name; the bridge sends the configured order
+                    want = [names[i] for i in cmd_idx]
+                    if list(s.joint_names) != want:
+                        # JTC matches by name
                         idx = {nm: i for i, nm in enumerate(s.joint_names)}
-                        if all(nm in idx for nm in names):
-                            data = [data[idx[nm]] for nm in names]
+                        if all(nm in idx for nm in want):
+                            data = [data[idx[nm]] for nm in want]
                         else:
                             data = []
-                if len(data) != n or not all(math.isfinite(x) for x in data):
+                if len(data) != len(cmd_idx) or not all(math.isfinite(x) for x in data):
                     bad_commands += 1
                     continue
                 commands += 1
                 if first_cmd_t is None:
                     first_cmd_t = tnow
-                for i in range(n):
-                    if data[i] < lo[i] - 1e-12 or data[i] > hi[i] + 1e-12:
+                full = list(target if target is not None else pos)
+                for k, i in enumerate(cmd_idx):
+                    full[i] = data[k]
+                for i in cmd_idx:
+                    if full[i] < lo[i] - 1e-12 or full[i] > hi[i] + 1e-12:
                         limit_violations += 1
                 if target is not None:
-                    max_step = max(max_step, max(abs(data[i] - target[i]) for i in arm))
+                    max_step = max(max_step, max(abs(full[i] - target[i]) for i in arm))
+                data = full
                 target = data
                 if last_state_t is not None and not got_answer:
                     latencies.append(tnow - last_state_t)
                     got_answer = True
+            if g_reader is not None:
+                for g in g_reader.take(N=16):
+                    if not isinstance(g, T["Float64MultiArray"]):
+                        continue
+                    gd = list(g.data)
+                    if len(gd) != len(grip_idx) or not all(math.isfinite(x) for x in gd):
+                        bad_commands += 1
+                        continue
+                    gripper_commands += 1
+                    full = list(target if target is not None else pos)
+                    for k, i in enumerate(grip_idx):
+                        if gd[k] < lo[i] - 1e-12 or gd[k] > hi[i] + 1e-12:
+                            limit_violations += 1
+                        full[i] = gd[k]
+                    target = full
             if time.monotonic() >= next_t:
                 break
             time.sleep(min(0.0005, max(0.0, next_t - time.monotonic())))
@@ -533,7 +561,7 @@ def main():
         f"range_max={max(rng):.4f} range=" + ",".join(f"{x:.4f}" for x in rng) + " "
         f"final=" + ",".join(f"{x:.4f}" for x in pos) + " "
         f"chunks_seen={chunks_seen} chunk_points={chunk_points} statuses_seen={statuses_seen} "
-        f"vanished_ticks={vanished} "
+        f"vanished_ticks={vanished} gripper_commands={gripper_commands} "
         f"frames_sent={sum(c['sent'] for c in cams)} bad_images_sent={sum(c['bad'] for c in cams)} "
         + " ".join(f"injected_{k}={injected_by.get(k, 0)}"
                    for k in ("missing", "repeated", "length", "nan", "noname")),

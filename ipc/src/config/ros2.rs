@@ -156,6 +156,11 @@ pub struct Ros2Config {
     /// Cameras from ROS 2 image topics, each to the `[[cameras]]` entry of the same name.
     #[serde(default)]
     pub cameras: Vec<Ros2Camera>,
+    /// The gripper on a topic of its own ("": none): the `step = true` joints (in
+    /// `[[robot.joints]]` order) go out as a `std_msgs/Float64MultiArray` on it when their value
+    /// changes, and are left out of the arm's command.
+    #[serde(default)]
+    pub gripper_topic: String,
 }
 
 /// `[[ros2.cameras]]`: one camera's ROS 2 topic.
@@ -193,6 +198,7 @@ impl Default for Ros2Config {
             command_timeout_ms: default_command_timeout_ms(),
             peer_silence_ms: default_peer_silence_ms(),
             cameras: Vec::new(),
+            gripper_topic: String::new(),
         }
     }
 }
@@ -304,6 +310,18 @@ impl Ros2Config {
             60_000.0,
         )?;
         c.range("ros2.peer_silence_ms", self.peer_silence_ms, 1.0, 60_000.0)?;
+        if !self.gripper_topic.is_empty() {
+            check_topic(c, "ros2.gripper_topic", &self.gripper_topic)?;
+            let steps = shared.robot.joints.iter().filter(|j| j.step).count();
+            if steps == 0 || steps == shared.robot.joints.len() {
+                return Err(c.fail(
+                    "ros2.gripper_topic",
+                    format!("{:?}", self.gripper_topic),
+                    "needs one or more [[robot.joints]] with step = true (the gripper) and one or \
+                     more without",
+                ));
+            }
+        }
         let mut fed = std::collections::HashSet::new();
         for (i, cam) in self.cameras.iter().enumerate() {
             let k = |f: &str| format!("ros2.cameras[{i}].{f}");
