@@ -520,9 +520,10 @@ pub struct JointRange {
 }
 
 /// How far beyond a joint's range the action statistics' extremes may reach, as a fraction of
-/// the range's width: q01 / q99 (π0.5) 0.25; mean ± 3 std (π0) 1.0, as a gripper's two modes
-/// give a std of half its range.
-pub const RANGE_MARGIN_QUANTILE: f64 = 0.25;
+/// the range's width: a full width either side (q01 / q99 of π0.5, and mean ± 3 std of π0, as a
+/// gripper's two modes give a std of half its range). Statistics of ±999 or in degrees lie
+/// tens of widths out; a gripper's extremes a little past its range are not refused.
+pub const RANGE_MARGIN_QUANTILE: f64 = 1.0;
 /// See [`RANGE_MARGIN_QUANTILE`].
 pub const RANGE_MARGIN_ZSCORE: f64 = 1.0;
 
@@ -644,8 +645,15 @@ pub fn check_action_ranges(
         state: scaled(&ns.state),
         actions: scaled(&ns.actions),
     };
-    let degrees =
-        action_extremes(cfg, delta_mask, &radians, mode, action_dim, joints).is_some_and(|e| {
+    // degrees: every refused joint's extremes some 10 to 300 times its range's reach, and
+    // divided by 57.3 they fit
+    let scale_like = bad.iter().all(|&(i, lo, hi)| {
+        let j = &joints[i];
+        let reach = j.min.abs().max(j.max.abs()).max(1e-3);
+        (10.0..=300.0).contains(&(lo.abs().max(hi.abs()) / reach))
+    });
+    let degrees = scale_like
+        && action_extremes(cfg, delta_mask, &radians, mode, action_dim, joints).is_some_and(|e| {
             let still = out_of_range(&e, joints, mode);
             bad.iter().all(|b| !still.iter().any(|s| s.0 == b.0))
         });
