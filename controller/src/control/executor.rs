@@ -380,6 +380,11 @@ impl Executor {
             self.source_failing = true;
             self.requests.landed();
         }
+        if stalled {
+            // this process stood still: the last state it saw is not where the robot is now,
+            // so a joint state still stale here brakes rather than going back to it
+            self.have_measured = false;
+        }
         let js = self.check_joint_state(now_ns, joint_state);
         self.stale_seen = self
             .stale_cameras
