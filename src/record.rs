@@ -124,19 +124,31 @@ pub fn run(args: RecordArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A recording's series as `rrd_export.py` writes them: path → (time ns, value), sorted.
+/// A recording's series as `rrd_export.py` writes them: path → (time ns, value), sorted (the
+/// joint series thinned to at most 20 000 rows each), the rows each joint series holds in the
+/// file before the thinning, and the chunk log's count.
 struct Exported {
     series: std::collections::BTreeMap<String, Vec<(i64, f64)>>,
+    recorded: std::collections::BTreeMap<String, usize>,
     chunks: usize,
 }
 
 /// Reads `rrd_export.py`'s CSV; a line that does not parse is an error naming it.
 fn read_export(text: &str) -> anyhow::Result<Exported> {
     let mut series: std::collections::BTreeMap<String, Vec<(i64, f64)>> = Default::default();
+    let mut recorded: std::collections::BTreeMap<String, usize> = Default::default();
     let mut chunks = 0;
     for (i, line) in text.lines().enumerate().skip(1) {
         if let Some(n) = line.strip_prefix("# chunks ") {
             chunks = n.trim().parse()?;
+            continue;
+        }
+        if let Some(rest) = line.strip_prefix("# rows ") {
+            let (p, n) = rest
+                .rsplit_once(' ')
+                .with_context(|| format!("line {}: {line:?} is not # rows PATH N", i + 1))?;
+            let n = n.parse().with_context(|| format!("line {}", i + 1))?;
+            recorded.insert(p.to_string(), n);
             continue;
         }
         let mut f = line.splitn(3, ',');
@@ -147,7 +159,11 @@ fn read_export(text: &str) -> anyhow::Result<Exported> {
         let v: f64 = v.parse().with_context(|| format!("line {}", i + 1))?;
         series.entry(p.to_string()).or_default().push((t, v));
     }
-    Ok(Exported { series, chunks })
+    Ok(Exported {
+        series,
+        recorded,
+        chunks,
+    })
 }
 
 /// `chunkrt report run.rrd`: the recording's commanded, measured and chunk-target positions
@@ -198,11 +214,21 @@ pub fn report(rrd: &Path, png: Option<&Path>, md: Option<&Path>) -> anyhow::Resu
     let png = png.map_or_else(|| rrd.with_extension("png"), Path::to_path_buf);
     let md = md.map_or_else(|| rrd.with_extension("md"), Path::to_path_buf);
     plot_recording(&png, &data, &joints, t0, rrd)?;
-    // tracking per joint: the command against the measured position at the same time
+    let table = tracking_table(&rrd.display().to_string(), &data, &joints, t0);
+    std::fs::write(&md, &table).with_context(|| format!("write {}", md.display()))?;
+    print!("{table}");
+    println!("\nplot: {}\ntable: {}", png.display(), md.display());
+    Ok(())
+}
+
+/// The report's table: per joint, the rows the file holds and the rows plotted (the export thins
+/// a long run's series), and the tracking, the command against the measured position at the
+/// same time, over the rows plotted.
+fn tracking_table(title: &str, data: &Exported, joints: &[usize], t0: i64) -> String {
     let mut table = format!(
-        "# {}\n\n{} chunks; {:.1} s recorded.\n\n| joint | measured rows | command rows | \
-         \\|command − measured\\| RMS (rad) | max (rad) |\n|---|---|---|---|---|\n",
-        rrd.display(),
+        "# {title}\n\n{} chunks; {:.1} s recorded.\n\n| joint | measured rows: in the file / \
+         plotted | command rows: in the file / plotted | \\|command − measured\\| RMS (rad) | \
+         max (rad) |\n|---|---|---|---|---|\n",
         data.chunks,
         data.series
             .values()
@@ -210,23 +236,65 @@ pub fn report(rrd: &Path, png: Option<&Path>, md: Option<&Path>) -> anyhow::Resu
             .max()
             .map_or(0.0, |t| (t - t0) as f64 * 1e-9)
     );
-    for &j in &joints {
-        let get = |k: &str| data.series.get(&format!("joints/{j}/{k}"));
+    for &j in joints {
+        let path = |k: &str| format!("joints/{j}/{k}");
+        let get = |k: &str| data.series.get(&path(k));
         let (m, c) = (get("measured"), get("command"));
         let (rms, max) = match (m, c) {
             (Some(m), Some(c)) if !m.is_empty() => tracking(m, c),
             _ => (f64::NAN, f64::NAN),
         };
+        let rows = |k: &str, s: Option<&Vec<(i64, f64)>>| {
+            let plotted = s.map_or(0, Vec::len);
+            let held = data.recorded.get(&path(k)).copied().unwrap_or(plotted);
+            format!("{held} / {plotted}")
+        };
         table.push_str(&format!(
             "| {j} | {} | {} | {rms:.4} | {max:.4} |\n",
-            m.map_or(0, Vec::len),
-            c.map_or(0, Vec::len)
+            rows("measured", m),
+            rows("command", c)
         ));
     }
-    std::fs::write(&md, &table).with_context(|| format!("write {}", md.display()))?;
-    print!("{table}");
-    println!("\nplot: {}\ntable: {}", png.display(), md.display());
-    Ok(())
+    let thinned: Vec<String> = data
+        .recorded
+        .iter()
+        .filter(|(p, &n)| data.series.get(*p).map_or(0, Vec::len) < n)
+        .map(|(p, n)| format!("{p} {n}"))
+        .collect();
+    if !thinned.is_empty() {
+        table.push_str(&format!(
+            "\nThe plot and the tracking use at most {EXPORT_ROWS} rows per series, evenly spaced \
+             by row; the file holds more ({}).\n",
+            thinned.join(", ")
+        ));
+    }
+    table
+}
+
+/// The rows per joint series `rrd_export.py` keeps for the report (its `--max-points` default).
+const EXPORT_ROWS: usize = 20_000;
+
+/// A series cut where nothing was recorded: a time step longer than 10 × the series' median
+/// step and than 50 ms (the gap between two episodes, where no chunk gave a target) ends a line,
+/// so the plot draws no line through it. Each part is drawn as its own line.
+fn segments(s: &[(i64, f64)]) -> Vec<&[(i64, f64)]> {
+    if s.len() < 3 {
+        return vec![s];
+    }
+    let mut steps: Vec<i64> = s.windows(2).map(|w| w[1].0 - w[0].0).collect();
+    let mid = steps.len() / 2;
+    let median = *steps.select_nth_unstable(mid).1;
+    let gap = median.saturating_mul(10).max(50_000_000);
+    let mut parts = Vec::new();
+    let mut start = 0;
+    for i in 1..s.len() {
+        if s[i].0 - s[i - 1].0 > gap {
+            parts.push(&s[start..i]);
+            start = i;
+        }
+    }
+    parts.push(&s[start..]);
+    parts
 }
 
 /// RMS and max of |command − measured| with the measured series held at each command's time.
@@ -267,7 +335,11 @@ fn plot_recording(
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let (top, body) = root.split_vertically(40);
     top.draw_text(
-        &format!("{}: {} chunks", rrd.display(), data.chunks),
+        &format!(
+            "{}: {} chunks (lines break where nothing was recorded)",
+            rrd.display(),
+            data.chunks
+        ),
         &("sans-serif", 20).into_font().color(&BLACK),
         (10, 10),
     )
@@ -331,17 +403,21 @@ fn plot_recording(
             ("measured", BLUE.mix(0.9), 3),
             ("command", RED.mix(0.9), 1),
         ] {
-            if let Some(s) = data.series.get(&format!("{prefix}{kind}")) {
-                chart
+            let Some(s) = data.series.get(&format!("{prefix}{kind}")) else {
+                continue;
+            };
+            for (k, part) in segments(s).into_iter().enumerate() {
+                let drawn = chart
                     .draw_series(LineSeries::new(
-                        s.iter().map(|&(t, v)| (secs(t), v)),
+                        part.iter().map(|&(t, v)| (secs(t), v)),
                         color.stroke_width(width),
                     ))
-                    .map_err(|e| err(&e))?
-                    .label(kind)
-                    .legend(move |(x, y)| {
+                    .map_err(|e| err(&e))?;
+                if k == 0 {
+                    drawn.label(kind).legend(move |(x, y)| {
                         PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(width))
                     });
+                }
             }
         }
         chart
@@ -354,4 +430,65 @@ fn plot_recording(
     }
     root.present().map_err(|e| err(&e))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 1 kHz rows from `from` to `to` seconds (a line of value `v`).
+    fn rows(from: f64, to: f64, v: f64) -> Vec<(i64, f64)> {
+        let (a, b) = ((from * 1e3) as i64, (to * 1e3) as i64);
+        (a..b).map(|ms| (ms * 1_000_000, v)).collect()
+    }
+
+    #[test]
+    fn a_line_breaks_where_nothing_was_recorded() {
+        // two episodes' targets, 1.5 s apart: two lines, none across the gap
+        let mut s = rows(0.0, 2.0, 0.1);
+        s.extend(rows(3.5, 5.0, 0.2));
+        let parts = segments(&s);
+        assert_eq!(
+            parts.len(),
+            2,
+            "{:?}",
+            parts.iter().map(|p| p.len()).collect::<Vec<_>>()
+        );
+        assert_eq!(parts[0].last().unwrap().0, 1_999_000_000);
+        assert_eq!(parts[1][0].0, 3_500_000_000);
+        // thinned as the export thins it (every 3rd row), the gap still breaks the line
+        let thinned: Vec<(i64, f64)> = s.iter().copied().step_by(3).collect();
+        assert_eq!(segments(&thinned).len(), 2);
+        // the recorder missing a few commands in a row (a 6 ms hole) is not a gap
+        let mut holes = rows(0.0, 1.0, 0.1);
+        holes.retain(|&(t, _)| !(400_000_000..406_000_000).contains(&t));
+        assert_eq!(segments(&holes).len(), 1);
+        assert_eq!(segments(&[]).len(), 1);
+    }
+
+    #[test]
+    fn the_report_says_the_rows_in_the_file_and_the_rows_plotted() {
+        // what rrd_export.py writes for a run whose file holds 57 506 measured rows, thinned
+        let mut text = String::from("path,t_ns,value\n");
+        for (t, v) in [(0, 0.1), (1_000_000, 0.1), (2_000_000, 0.1)] {
+            text.push_str(&format!(
+                "joints/0/measured,{t},{v}\njoints/0/command,{t},{v}\n"
+            ));
+        }
+        text.push_str(
+            "# rows joints/0/command 57510\n# rows joints/0/measured 57506\n# chunks 4\n",
+        );
+        let data = read_export(&text).unwrap();
+        assert_eq!(data.recorded["joints/0/measured"], 57_506);
+        let table = tracking_table("run.rrd", &data, &[0], 0);
+        let row = table.lines().find(|l| l.starts_with("| 0 | ")).unwrap();
+        assert!(row.contains("| 57506 / 3 | 57510 / 3 |"), "{table}");
+        assert!(table.contains("4 chunks;"), "{table}");
+        assert!(table.contains("joints/0/measured 57506"), "{table}");
+        // an export without the counts (nothing thinned) says the rows it has, once each way
+        let plain = read_export("path,t_ns,value\njoints/0/measured,0,0.1\n").unwrap();
+        let table = tracking_table("run.rrd", &plain, &[0], 0);
+        assert!(table.contains("| 0 | 1 / 1 | 0 / 0 |"), "{table}");
+        assert!(!table.contains("the file holds more"), "{table}");
+    }
 }

@@ -158,8 +158,18 @@ fn a_run_is_recorded_and_rerun_reads_it_back() {
                 Some(true),
                 "joints/{j}/{series}: its times go back\n{text}"
             );
+            assert_eq!(
+                v["series"][format!("joints/{j}/{series}")]["style"]["name"].as_str(),
+                Some(series),
+                "joints/{j}/{series}: no style of its own in the file\n{text}"
+            );
         }
     }
+    assert_eq!(
+        v["chunk_styles"][0]["series"].as_u64(),
+        Some(chunks as u64 * n as u64),
+        "every chunk series in one style\n{text}"
+    );
     // every chunk the controller counted is in the file, as one series per joint
     assert!(chunks >= 5.0, "only {chunks} chunks in 8 s");
     assert_eq!(
@@ -269,6 +279,32 @@ fn the_recorder_validates_what_it_reads() {
         .arg(&dir)
         .output()
         .expect("run record_validates.py");
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    println!("{text}");
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(
+        out.status.success() && text.trim_end().ends_with("ok"),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The series are styled in the recording itself (tests/python/record_styles.py: the recorder
+/// fed a short run in-process, the file read back by `rrd_check.py`): command, measured and
+/// target each a colour and width of their own, every predicted chunk one thin grey style named
+/// `predicted chunk`. On the recorder of 2402189 (before): no series carried a style, and the
+/// viewer gave measured and the chunks the same automatic colour.
+#[test]
+fn the_series_are_styled_in_the_recording() {
+    let Some(py) = rerun_python("record_rerun (styles)") else {
+        return;
+    };
+    let dir = std::env::temp_dir().join(format!("chunkrt-record-styles-{}", std::process::id()));
+    let out = std::process::Command::new(&py)
+        .arg(format!("{ROOT}/tests/python/record_styles.py"))
+        .arg(&dir)
+        .output()
+        .expect("run record_styles.py");
     let text = String::from_utf8_lossy(&out.stdout).to_string();
     println!("{text}");
     let _ = std::fs::remove_dir_all(&dir);

@@ -18,6 +18,12 @@ it is counted). In the recording:
   ``controller/lateness_p99_us``;
 - ``properties``: the namespace, prompt, configuration text and versions, as given.
 
+Each joint series carries its own style (Rerun's ``SeriesLines``, logged once and static, so any
+view of the file draws it the same): ``command`` red and thin, ``measured`` blue and wide (under
+the command, which it follows closely), ``target`` green; every predicted chunk thin and grey,
+all of them named ``predicted chunk`` (one name for the legend, not an entry each); a chunk's id
+is the last part of its entity path, ``joints/<j>/chunks/<id>``, and its line in ``chunks/log``.
+
 The file carries a default layout (a Rerun blueprint): joints 0 and 1 with their commanded,
 measured and target positions and the predicted chunks overlaid, the cameras, the controller's
 state and the logs.
@@ -90,10 +96,45 @@ REBIND_NS = 1_000_000_000
 #: what Rerun writes per call besides the data (measured on rerun-sdk 0.41: 1.1–1.6 kB per
 #: ``send_columns`` call into a file), charged against ``--max-mb``
 CALL_BYTES = 1600
+#: what one series' style costs in the file (a static ``SeriesLines``: measured on rerun-sdk
+#: 0.41, 2.9 kB per entity), charged against ``--max-mb``
+STYLE_BYTES = 3200
 #: chunks held while no controller is bound yet (the first chunk can precede the first status)
 PENDING_CHUNKS = 16
 #: image sizes accepted (pixels per side)
 MAX_IMAGE_SIDE = 8192
+
+
+#: each joint series' style: (name, colour RGB, line width in UI points); ``STYLES`` and
+#: ``CHUNK_STYLE`` are what ``rrd_check.py`` reports and tests/record_rerun.rs holds them to
+STYLES = {
+    "command": ("command", (220, 40, 40), 1.5),
+    "measured": ("measured", (40, 90, 220), 4.0),
+    "target": ("target", (30, 160, 60), 1.5),
+    "velocity": ("velocity", (120, 60, 170), 1.0),
+}
+#: every predicted chunk: one name for them all, thin and grey
+CHUNK_STYLE = ("predicted chunk", (150, 150, 150), 0.5)
+
+
+def series_style(path):
+    """The style of a joint series or a predicted chunk's path, or None."""
+    parts = path.split("/")
+    if len(parts) == 3 and parts[0] == "joints":
+        return STYLES.get(parts[2])
+    if len(parts) == 4 and parts[0] == "joints" and parts[2] == "chunks":
+        return CHUNK_STYLE
+    return None
+
+
+def log_style(path):
+    """``path``'s style as a static ``SeriesLines`` (one call; nothing for an unstyled path)."""
+    style = series_style(path)
+    if style is None:
+        return False
+    name, rgb, width = style
+    rr.log(path, rr.SeriesLines(colors=[rgb], widths=[width], names=[name]), static=True)
+    return True
 
 
 class Invalid(Exception):
@@ -221,6 +262,7 @@ class Columns:
     def __init__(self):
         self.data = {}
         self.bytes = 0
+        self.styled = set()  # the paths whose SeriesLines style is written
 
     def add(self, path, t_ns, value):
         ts, vs = self.data.setdefault(path, ([], []))
@@ -231,6 +273,10 @@ class Columns:
     def flush(self):
         for path, (ts, vs) in self.data.items():
             if ts:
+                if path not in self.styled:
+                    self.styled.add(path)
+                    if log_style(path):
+                        self.bytes += STYLE_BYTES
                 rr.send_columns(
                     path,
                     indexes=[rr.TimeColumn("robot_time", duration=secs(ts))],
@@ -314,7 +360,9 @@ class Recorder:
     def flush(self):
         """Sends the gathered columns (if they fit) and reads the file's size."""
         pending = sum(len(ts) for ts, _ in self.cols.data.values())
-        if pending and not self.budget(len(self.cols.data) * CALL_BYTES):
+        cost = sum(CALL_BYTES + (p not in self.cols.styled and series_style(p) is not None) * STYLE_BYTES
+                   for p in self.cols.data)
+        if pending and not self.budget(cost):
             self.cols.data = {}
         self.cols.flush()
         try:
@@ -325,7 +373,9 @@ class Recorder:
     def add(self, path, t, value):
         """A sample into the columns if it fits (with its share of the next flush's calls)."""
         # a new path this flush: the call flush() makes for it (charged there) must fit too
-        if self.budget(16 + (0 if path in self.cols.data else CALL_BYTES)):
+        first = 0 if path in self.cols.data else CALL_BYTES
+        style = 0 if path in self.cols.styled or series_style(path) is None else STYLE_BYTES
+        if self.budget(16 + first + style):
             self.cols.add(path, t, value)
 
     def log(self, path, t_ns, text, level="INFO"):
@@ -443,13 +493,15 @@ class Recorder:
         if len(self.chunks) > 64:
             self.chunks.pop(next(iter(self.chunks)))
         latency_ms = (m.ready_time_ns - m.observation_time_ns) / 1e6
-        cost = n * (CALL_BYTES + 16 * h)
+        cost = n * (STYLE_BYTES + CALL_BYTES + 16 * h)  # the style and the values, per joint
         plotted = self.counts["chunk_series"] + n <= self.args.max_chunk_series
         if plotted and self.budget(cost):
             times = t0 + period * np.arange(h, dtype=np.int64)
             for j in range(n):
+                path = f"joints/{j}/chunks/{self.chunk_path(m.chunk_id)}"
+                log_style(path)
                 rr.send_columns(
-                    f"joints/{j}/chunks/{self.chunk_path(m.chunk_id)}",
+                    path,
                     indexes=[rr.TimeColumn("robot_time", duration=secs(times))],
                     columns=rr.Scalars.columns(scalars=a[:, j]),
                 )

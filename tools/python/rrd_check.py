@@ -5,7 +5,10 @@ Rerun's own SDK (``rerun.chunk.RrdReader``).
 Prints a human summary, then one JSON line: ``series`` (entity path -> rows, first and last
 ``robot_time`` in s, whether the times only rise in the order the file holds them),
 ``chunk_series`` (predicted-chunk series, one per chunk and joint), ``frames`` (camera images),
-``text_logs`` (chunk log lines). Exits 1 when the file holds no recording.
+``text_logs`` (chunk log lines), ``styles`` (each series' static ``SeriesLines`` style: colour
+``#rrggbb``, width, name) and ``chunk_styles`` (the distinct styles of the predicted-chunk
+series, each with how many series carry it; ``null`` for a series without one). Exits 1 when the
+file holds no recording.
 
     python3 tools/python/rrd_check.py run.rrd
 """
@@ -18,6 +21,26 @@ import numpy as np
 import rerun as rr
 
 
+def series_lines(rb):
+    """A static row's ``SeriesLines`` (colour ``#rrggbb``, width, name), or None."""
+    names = rb.schema.names
+    if "SeriesLines:colors" not in names:
+        return None
+
+    def first(col):
+        if col not in names:
+            return None
+        vals = [v for row in rb.column(col).to_pylist() if row for v in row]
+        return vals[-1] if vals else None
+
+    rgba = first("SeriesLines:colors")
+    return {
+        "color": None if rgba is None else f"#{(rgba >> 8) & 0xFFFFFF:06x}",
+        "width": first("SeriesLines:widths"),
+        "name": first("SeriesLines:names"),
+    }
+
+
 def main():
     if len(sys.argv) != 2:
         print(__doc__)
@@ -28,9 +51,14 @@ def main():
         return 1
     times = {}
     rows = {}
+    styles = {}
     for chunk in reader.stream():
         path = chunk.entity_path.lstrip("/")
         rows[path] = rows.get(path, 0) + chunk.num_rows
+        if chunk.is_static:
+            style = series_lines(chunk.to_record_batch())
+            if style is not None:
+                styles[path] = style
         if chunk.is_static or "robot_time" not in chunk.timeline_names:
             continue
         col = chunk.to_record_batch().column("robot_time")
@@ -38,11 +66,14 @@ def main():
         times.setdefault(path, []).append(t)
     series = {}
     chunk_series = frames = text_logs = 0
+    chunk_styles = {}
     for path, n in sorted(rows.items()):
         ts = np.concatenate(times[path]) if path in times else np.zeros(0, dtype=np.int64)
         rising = bool(np.all(np.diff(ts) >= 0)) if len(ts) else True
         if re.fullmatch(r"joints/\d+/chunks/(\d+-)?\d+", path):
             chunk_series += 1
+            key = json.dumps(styles.get(path), sort_keys=True)
+            chunk_styles[key] = chunk_styles.get(key, 0) + 1
             continue
         if path.startswith("cameras/"):
             frames += n
@@ -53,12 +84,16 @@ def main():
             "first_s": float(ts[0]) * 1e-9 if len(ts) else None,
             "last_s": float(ts[-1]) * 1e-9 if len(ts) else None,
             "rising": rising,
+            "style": styles.get(path),
         }
     for path, s in series.items():
         print(f"{path:40} {s['rows']:8} rows  rising {s['rising']}")
     print(f"chunk series {chunk_series}, frames {frames}, chunk log lines {text_logs}")
+    chunk_styles = [{"style": json.loads(k), "series": v} for k, v in sorted(chunk_styles.items())]
+    for c in chunk_styles:
+        print(f"chunk style {c['style']}: {c['series']} series")
     print(json.dumps({"series": series, "chunk_series": chunk_series, "frames": frames,
-                      "text_logs": text_logs}))
+                      "text_logs": text_logs, "chunk_styles": chunk_styles}))
     return 0
 
 

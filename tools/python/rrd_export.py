@@ -5,7 +5,8 @@ Rerun's own SDK (``rerun.chunk.RrdReader``), for ``chunkrt report run.rrd``.
 Writes ``path,t_ns,value`` rows: ``joints/J/measured``, ``joints/J/command``, ``joints/J/target``
 (each decimated to at most ``--max-points`` rows, evenly by row) and the predicted chunks
 ``joints/J/chunks/ID`` in full (at most ``--max-chunks`` per joint, evenly spaced: a long run's file
-stays bounded); then a comment line ``# chunks N`` with the chunk log's count.
+stays bounded); then a comment line ``# rows PATH N`` per joint series with the rows the file
+holds (before the thinning: the report says both), and ``# chunks N`` with the chunk log's count.
 
     python3 tools/python/rrd_export.py run.rrd out.csv [--max-points 20000] [--max-chunks 2000]
 """
@@ -65,6 +66,7 @@ def main():
             keep = set(np.linspace(0, len(paths) - 1, a.max_chunks).astype(np.int64).tolist())
             drop.update(p for i, p in enumerate(paths) if i not in keep)
     rows = 0
+    recorded = {}
     with open(a.out, "w") as f:
         f.write("path,t_ns,value\n")
         for path in sorted(set(parts) - drop):
@@ -72,12 +74,16 @@ def main():
             v = np.concatenate([p[1] for p in parts[path]])
             order = np.argsort(t, kind="stable")
             t, v = t[order], v[order]
+            if SERIES.fullmatch(path):
+                recorded[path] = len(t)
             if SERIES.fullmatch(path) and len(t) > a.max_points:
                 keep = np.linspace(0, len(t) - 1, a.max_points).astype(np.int64)
                 t, v = t[keep], v[keep]
             for ti, vi in zip(t.tolist(), v.tolist()):
                 f.write(f"{path},{ti},{vi:.9g}\n")
             rows += len(t)
+        for path, n in sorted(recorded.items()):
+            f.write(f"# rows {path} {n}\n")
         f.write(f"# chunks {chunk_logs}\n")
     print(f"{a.rrd}: {len(parts)} series, {rows} rows, {chunk_logs} chunks -> {a.out}")
     return 0
