@@ -5,7 +5,8 @@ iceoryx2 origins, as its main loop would feed them), writes a real .rrd, and
 tools/python/rrd_check.py reads the styles back with Rerun's own SDK.
 
 Holds: command, measured and target each carry a static ``SeriesLines`` with a colour and width
-of their own (three different colours; measured wider than the command it lies under); every
+of their own (three different colours; measured wider than the command, and translucent: the
+viewer draws it over the command); every
 predicted chunk carries the one grey, thin style named ``predicted chunk`` (one legend name, not
 an entry each), and its id stays in its entity path.
 
@@ -110,6 +111,9 @@ def main():
         expect(len(colours) == 3, f"command, measured and target share a colour: {got}")
         expect(got["measured"]["width"] > got["command"]["width"],
                f"measured is not wider than the command it lies under: {got}")
+        # the viewer draws measured over the command: a translucent band lets the command show
+        m = got["measured"]["color"]
+        expect(len(m) == 9 and int(m[7:9], 16) < 200, f"measured is opaque and hides the command: {m}")
     print(f"chunk styles: {v['chunk_styles']}")
     expect(v["chunk_series"] == CHUNKS * N, f"{v['chunk_series']} chunk series, fed {CHUNKS * N}")
     expect(len(v["chunk_styles"]) == 1, f"the chunks do not share one style: {v['chunk_styles']}")

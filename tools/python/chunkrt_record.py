@@ -19,10 +19,11 @@ it is counted). In the recording:
 - ``properties``: the namespace, prompt, configuration text and versions, as given.
 
 Each joint series carries its own style (Rerun's ``SeriesLines``, logged once and static, so any
-view of the file draws it the same): ``command`` red and thin, ``measured`` blue and wide (under
-the command, which it follows closely), ``target`` green; every predicted chunk thin and grey,
-all of them named ``predicted chunk`` (one name for the legend, not an entry each); a chunk's id
-is the last part of its entity path, ``joints/<j>/chunks/<id>``, and its line in ``chunks/log``.
+view of the file draws it the same): ``command`` red and thin, ``measured`` a wide translucent
+blue band (the viewer draws it over the command, which it follows closely: the command shows
+through), ``target`` green; every predicted chunk thin and grey, all of them named ``predicted
+chunk`` (one name for the legend, not an entry each); a chunk's id is the last part of its
+entity path, ``joints/<j>/chunks/<id>``, and its line in ``chunks/log``.
 
 The file carries a default layout (a Rerun blueprint): joints 0 and 1 with their commanded,
 measured and target positions and the predicted chunks overlaid, the cameras, the controller's
@@ -105,11 +106,13 @@ PENDING_CHUNKS = 16
 MAX_IMAGE_SIDE = 8192
 
 
-#: each joint series' style: (name, colour RGB, line width in UI points); ``STYLES`` and
+#: each joint series' style: (name, colour RGB or RGBA, line width in UI points); the viewer
+#: draws a joint's series in the order of their names (command under measured), so measured is a
+#: wide translucent band and the thin command stays visible through it; ``STYLES`` and
 #: ``CHUNK_STYLE`` are what ``rrd_check.py`` reports and tests/record_rerun.rs holds them to
 STYLES = {
-    "command": ("command", (220, 40, 40), 1.5),
-    "measured": ("measured", (40, 90, 220), 4.0),
+    "command": ("command", (230, 30, 30), 2.0),
+    "measured": ("measured", (40, 90, 220, 90), 6.0),  # translucent: the command shows through
     "target": ("target", (30, 160, 60), 1.5),
     "velocity": ("velocity", (120, 60, 170), 1.0),
 }

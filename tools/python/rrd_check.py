@@ -6,9 +6,9 @@ Prints a human summary, then one JSON line: ``series`` (entity path -> rows, fir
 ``robot_time`` in s, whether the times only rise in the order the file holds them),
 ``chunk_series`` (predicted-chunk series, one per chunk and joint), ``frames`` (camera images),
 ``text_logs`` (chunk log lines), ``styles`` (each series' static ``SeriesLines`` style: colour
-``#rrggbb``, width, name) and ``chunk_styles`` (the distinct styles of the predicted-chunk
-series, each with how many series carry it; ``null`` for a series without one). Exits 1 when the
-file holds no recording.
+``#rrggbb``, or ``#rrggbbaa`` when not opaque, width, name) and ``chunk_styles`` (the distinct
+styles of the predicted-chunk series, each with how many series carry it; ``null`` for a series
+without one). Exits 1 when the file holds no recording.
 
     python3 tools/python/rrd_check.py run.rrd
 """
@@ -22,7 +22,7 @@ import rerun as rr
 
 
 def series_lines(rb):
-    """A static row's ``SeriesLines`` (colour ``#rrggbb``, width, name), or None."""
+    """A static row's ``SeriesLines`` (colour ``#rrggbb[aa]``, width, name), or None."""
     names = rb.schema.names
     if "SeriesLines:colors" not in names:
         return None
@@ -35,7 +35,8 @@ def series_lines(rb):
 
     rgba = first("SeriesLines:colors")
     return {
-        "color": None if rgba is None else f"#{(rgba >> 8) & 0xFFFFFF:06x}",
+        "color": None if rgba is None else (f"#{(rgba >> 8) & 0xFFFFFF:06x}"
+                                            + ("" if rgba & 0xFF == 0xFF else f"{rgba & 0xFF:02x}")),
         "width": first("SeriesLines:widths"),
         "name": first("SeriesLines:names"),
     }
