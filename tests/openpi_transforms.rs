@@ -89,7 +89,7 @@ fn every_config_transforms_as_openpi_does() {
             "{name}: the prompt's state"
         );
         for (a, b) in prompt_state.iter().zip(&want_prompt) {
-            assert!((*a as f64 - b).abs() <= 2e-6 * b.abs().max(1.0), "{name}");
+            assert!((*a - b).abs() <= 2e-6 * b.abs().max(1.0), "{name}");
         }
 
         // the way out
