@@ -20,21 +20,10 @@ use chunkrt_ipc::{
     CONTROLLER_STATE_STOPPED,
 };
 
-use crate::control::Executor;
+use crate::control::{Executor, TickReport};
 use crate::edge::{CommandOutput, JointStateInput, RearmInput, StatusOutput};
 use crate::rt;
 use crate::shared::Shared;
-
-/// What one control tick decided.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct TickOutcome {
-    /// Publish the command written into `cmd`.
-    pub publish: bool,
-    /// `CONTROLLER_STATE_*` after the tick.
-    pub state: u32,
-    /// `STATE_REASON_*`: why the controller is in that state.
-    pub reason: u32,
-}
 
 /// The answer to a re-arm request: (`REARM_*` code, `STATE_REASON_*` of the bad input or 0).
 pub type RearmAnswer = (u32, u32);
@@ -48,7 +37,7 @@ pub trait ControlTick: Send {
         now_ns: u64,
         joint_state: Option<&JointState>,
         cmd: &mut JointCommand,
-    ) -> TickOutcome;
+    ) -> TickReport;
 
     /// An operator asks to leave FAULT (`chunkrt rearm`). The default refuses: nothing to
     /// re-arm. Must not allocate, block or do I/O.
@@ -72,13 +61,8 @@ impl ControlTick for Executor {
         now_ns: u64,
         joint_state: Option<&JointState>,
         cmd: &mut JointCommand,
-    ) -> TickOutcome {
-        let r = Executor::tick(self, now_ns, joint_state, cmd);
-        TickOutcome {
-            publish: r.publish,
-            state: r.state.code(),
-            reason: self.state_reason().map_or(0, |r| r.code()),
-        }
+    ) -> TickReport {
+        Executor::tick(self, now_ns, joint_state, cmd)
     }
 
     fn set_command_publisher(&mut self, id: u128) {
@@ -250,16 +234,18 @@ impl ControlLoop {
         let js = self.js.trusted(wake_ns);
         let not_following =
             js.is_some_and(|s| s.status_flags & chunkrt_ipc::JOINT_STATUS_NOT_FOLLOWING != 0);
-        let mut out = tick.tick(wake_ns, js, &mut self.cmd);
-        if out.state == CONTROLLER_STATE_RUNNING && not_following {
+        let report = tick.tick(wake_ns, js, &mut self.cmd);
+        let mut state = report.state.code();
+        let mut reason = report.reason.map_or(0, |r| r.code());
+        if state == CONTROLLER_STATE_RUNNING && not_following {
             // the robot receives the commands, but its driver's own fallback leads the arm:
             // said as a state of its own (the executor goes on as RUNNING; the driver hands back
             // when this controller's motion passes its limits again)
-            out.state = CONTROLLER_STATE_NOT_FOLLOWED;
-            out.reason = chunkrt_ipc::STATE_REASON_ROBOT_NOT_FOLLOWING;
+            state = CONTROLLER_STATE_NOT_FOLLOWED;
+            reason = chunkrt_ipc::STATE_REASON_ROBOT_NOT_FOLLOWING;
         }
-        self.status.state_reason = out.reason;
-        if out.publish {
+        self.status.state_reason = reason;
+        if report.publish {
             self.cmd.state_seq = newest_seq;
             if self.cmd_out.publish(&self.cmd, wake_ns) {
                 shared.commands.fetch_add(1, Ordering::Relaxed);
@@ -280,20 +266,19 @@ impl ControlLoop {
                     .fetch_add(1, Ordering::Relaxed);
             }
         }
-        if out.state != self.state {
-            if (out.state == CONTROLLER_STATE_NOT_FOLLOWED)
+        if state != self.state {
+            if (state == CONTROLLER_STATE_NOT_FOLLOWED)
                 != (self.state == CONTROLLER_STATE_NOT_FOLLOWED)
-                && (out.state == CONTROLLER_STATE_RUNNING
-                    || out.state == CONTROLLER_STATE_NOT_FOLLOWED)
+                && (state == CONTROLLER_STATE_RUNNING || state == CONTROLLER_STATE_NOT_FOLLOWED)
             {
                 let _ = shared.events.push(crate::edge::EdgeEvent::Following {
-                    following: out.state == CONTROLLER_STATE_RUNNING,
+                    following: state == CONTROLLER_STATE_RUNNING,
                 });
             }
-            if out.state == CONTROLLER_STATE_HOLD {
+            if state == CONTROLLER_STATE_HOLD {
                 shared.hold_entries.fetch_add(1, Ordering::Relaxed);
             }
-            self.state = out.state;
+            self.state = state;
             shared.state.store(self.state, Ordering::Relaxed);
         }
         self.answered_seq = newest_seq;

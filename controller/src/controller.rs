@@ -25,7 +25,7 @@ pub use crate::contract::{ChunkSource, HoldSource};
 use crate::control::{EventReader, Executor, InferenceLink};
 use crate::control_loop::control_thread;
 pub use crate::control_loop::Summary;
-pub use crate::control_loop::{ControlLoop, ControlTick, RearmAnswer, TickHistograms, TickOutcome};
+pub use crate::control_loop::{ControlLoop, ControlTick, RearmAnswer, TickHistograms};
 use crate::edge::history::FrameHistory;
 use crate::edge::{
     event_ring, CameraInput, Counters, EdgeEvent, JointStateInput, Observation, Source, StatusWatch,

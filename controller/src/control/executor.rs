@@ -48,6 +48,8 @@ pub enum ExecutorError {
 pub struct TickReport {
     /// State after this tick.
     pub state: State,
+    /// Why the executor is in that state (the reason of the last transition; None: none yet).
+    pub reason: Option<Reason>,
     /// False only before the first joint state ever arrived (nothing sensible to command).
     pub publish: bool,
     /// Chunk the command was sampled from (0: none).
@@ -529,6 +531,7 @@ impl Executor {
     fn report(&mut self, primary: Option<(u64, u64)>) -> TickReport {
         let mut report = TickReport {
             state: self.safety.state(),
+            reason: self.safety.reason(),
             publish: self.initialized,
             chunk_id: 0,
             switched: false,
@@ -612,6 +615,7 @@ impl Executor {
         if self.safety.state() != State::Fault {
             self.safety.fault(now_ns, Reason::GeneratorError);
             report.state = self.safety.state();
+            report.reason = self.safety.reason();
         }
         self.otg_in.current_velocity[..n].fill(0.0);
         self.otg_in.current_acceleration[..n].fill(0.0);
