@@ -603,18 +603,12 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let node = services::node(&format!("chunkrt-demo-{}", std::process::id()))?;
     let nsp = cfg.namespace();
     let ports = Ports {
-        status: services::subscriber(
-            &services::status_service(&node, &nsp.status())?,
-            &nsp.status(),
-        )?,
-        js: services::subscriber(
-            &services::joint_state_service(&node, &nsp.joint_state())?,
-            &nsp.joint_state(),
-        )?,
-        cmd: services::subscriber(
-            &services::joint_command_service(&node, &nsp.joint_command())?,
+        status: services::subscriber(&services::status_service(&node, &nsp.status())?)?,
+        js: services::subscriber(&services::joint_state_service(&node, &nsp.joint_state())?)?,
+        cmd: services::subscriber(&services::joint_command_service(
+            &node,
             &nsp.joint_command(),
-        )?,
+        )?)?,
     };
     let run_args = stack.run_args();
     let started = Instant::now();

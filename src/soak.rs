@@ -290,14 +290,11 @@ fn follow(
     let node = services::node(&format!("chunkrt-soak-{}", std::process::id()))?;
     let nsp = cfg.namespace();
     let mut w = Watch {
-        status: services::subscriber(
-            &services::status_service(&node, &nsp.status())?,
-            &nsp.status(),
-        )?,
-        cmd: services::subscriber(
-            &services::joint_command_service(&node, &nsp.joint_command())?,
+        status: services::subscriber(&services::status_service(&node, &nsp.status())?)?,
+        cmd: services::subscriber(&services::joint_command_service(
+            &node,
             &nsp.joint_command(),
-        )?,
+        )?)?,
         last: ControllerStatus::default(),
         first_cmd_seq: None,
         last_cmd_seq: 0,

@@ -33,11 +33,9 @@ fn control_tick_with_ipc_allocates_only_the_iceoryx2_loan() {
 
     // the robot side, in this process: a joint-state publisher
     let ns = cfg.namespace();
-    let js_pub = services::publisher(
-        &services::joint_state_service(&node, &ns.joint_state()).unwrap(),
-        "js",
-    )
-    .unwrap();
+    let js_pub =
+        services::publisher(&services::joint_state_service(&node, &ns.joint_state()).unwrap())
+            .unwrap();
     let mut js = JointState {
         n_dof: cfg.n_dof() as u32,
         ..Default::default()
@@ -112,17 +110,14 @@ fn robot_clocked_tick_with_its_events_allocates_only_the_iceoryx2_loan() {
     let ns = cfg.namespace();
     let (js_name, cmd_name) = (ns.joint_state(), ns.joint_command());
     // the robot side: states out with their event, the controller's command event in
-    let js_pub = services::publisher(
-        &services::joint_state_service(&node, &js_name).unwrap(),
-        "js",
-    )
-    .unwrap();
+    let js_pub =
+        services::publisher(&services::joint_state_service(&node, &js_name).unwrap()).unwrap();
     let state_events = services::event_service(&node, &js_name).unwrap();
-    let state_notifier = services::notifier(&state_events, &js_name).unwrap();
+    let state_notifier = services::notifier(&state_events).unwrap();
     let cmd_events = services::event_service(&node, &cmd_name).unwrap();
-    let robot_listener = services::listener(&cmd_events, &cmd_name).unwrap();
+    let robot_listener = services::listener(&cmd_events).unwrap();
     // the control thread's listener, as control_thread makes it
-    let control_listener = services::listener(&state_events, &js_name).unwrap();
+    let control_listener = services::listener(&state_events).unwrap();
     let mut js = JointState {
         n_dof: cfg.n_dof() as u32,
         ..Default::default()

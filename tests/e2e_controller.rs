@@ -209,16 +209,12 @@ fn rogue_publishers_move_nothing_and_are_counted() {
     let start_pos = w.last_js.position;
     let nsp = Namespace::new(&ns).unwrap();
     let node = services::node("test-rogue").unwrap();
-    let cmd_pub = services::publisher(
-        &services::joint_command_service(&node, &nsp.joint_command()).unwrap(),
-        "rogue-cmd",
-    )
-    .unwrap();
-    let js_pub = services::publisher(
-        &services::joint_state_service(&node, &nsp.joint_state()).unwrap(),
-        "rogue-js",
-    )
-    .unwrap();
+    let cmd_pub =
+        services::publisher(&services::joint_command_service(&node, &nsp.joint_command()).unwrap())
+            .unwrap();
+    let js_pub =
+        services::publisher(&services::joint_state_service(&node, &nsp.joint_state()).unwrap())
+            .unwrap();
     let n = cfg.n_dof() as u32;
     let t_end = Instant::now() + Duration::from_secs(2);
     let mut k = 0u64;
@@ -278,11 +274,9 @@ fn a_rogue_that_starts_first_moves_nothing_and_a_new_controller_rebinds() {
     let cfg = Config::embedded_default();
     let nsp = Namespace::new(&ns).unwrap();
     let node = services::node("test-rogue-first").unwrap();
-    let rogue = services::publisher(
-        &services::joint_command_service(&node, &nsp.joint_command()).unwrap(),
-        "rogue-cmd",
-    )
-    .unwrap();
+    let rogue =
+        services::publisher(&services::joint_command_service(&node, &nsp.joint_command()).unwrap())
+            .unwrap();
     let n = cfg.n_dof() as u32;
     let mut k = 0u64;
     let mut send_rogue = |k: &mut u64| {
@@ -357,11 +351,9 @@ fn malformed_messages_are_rejected_and_counted() {
     });
     let nsp = Namespace::new(&ns).unwrap();
     let node = services::node("test-bad-publisher").unwrap();
-    let js_pub = services::publisher(
-        &services::joint_state_service(&node, &nsp.joint_state()).unwrap(),
-        "js",
-    )
-    .unwrap();
+    let js_pub =
+        services::publisher(&services::joint_state_service(&node, &nsp.joint_state()).unwrap())
+            .unwrap();
     let cfg = Config::embedded_default();
     let good = |seq: u64, t: u64| {
         let mut s = JointState {
@@ -411,7 +403,6 @@ fn malformed_messages_are_rejected_and_counted() {
     let cam_name = nsp.camera(&cam.name);
     let cam_pub = services::camera_publisher(
         &services::camera_service(&node, &cam_name).unwrap(),
-        &cam_name,
         (cam.width * cam.height * 3) as usize,
     )
     .unwrap();
@@ -567,11 +558,9 @@ fn controller_runs_the_real_policy_within_limits_and_holds_for_a_dead_camera() {
     // has been quiet for joint_state_max_age_ms.
     let nsp = Namespace::new(&ns).unwrap();
     let node = services::node("test-forger").unwrap();
-    let forger = services::publisher(
-        &services::joint_state_service(&node, &nsp.joint_state()).unwrap(),
-        "forged-js",
-    )
-    .unwrap();
+    let forger =
+        services::publisher(&services::joint_state_service(&node, &nsp.joint_state()).unwrap())
+            .unwrap();
     let n = cfg.n_dof() as u32;
     let (mut k, mut held) = (0u64, false);
     let t_end = Instant::now() + Duration::from_secs(2);
@@ -685,11 +674,8 @@ fn rearm_clears_a_fault_only_when_the_inputs_are_good() {
     let before = w.last_status.rejected;
     let nsp = Namespace::new(&ns).unwrap();
     let node = services::node("test-rearm").unwrap();
-    let rogue = services::publisher(
-        &services::rearm_service(&node, &nsp.rearm()).unwrap(),
-        "rogue-rearm",
-    )
-    .unwrap();
+    let rogue =
+        services::publisher(&services::rearm_service(&node, &nsp.rearm()).unwrap()).unwrap();
     let now = monotonic_ns();
     for req in [
         chunkrt_ipc::RearmRequest {
@@ -841,11 +827,11 @@ fn a_rearm_flood_is_answered_at_the_status_rate() {
     let node = services::node("rearm-flooder").unwrap();
     let nsp = Namespace::new(&ns).unwrap();
     let rearm = services::rearm_service(&node, &nsp.rearm()).unwrap();
-    let publ = services::publisher(&rearm, &nsp.rearm()).unwrap();
+    let publ = services::publisher(&rearm).unwrap();
     // count the statuses over the flood
     let statuses = {
         let status = services::status_service(&node, &nsp.status()).unwrap();
-        services::subscriber(&status, &nsp.status()).unwrap()
+        services::subscriber(&status).unwrap()
     };
     while let Ok(Some(_)) = statuses.receive() {}
     let t0 = std::time::Instant::now();
@@ -898,7 +884,7 @@ fn a_squatted_command_service_is_a_clear_error_at_start() {
     let node = services::node("squatter").unwrap();
     let svc = services::joint_command_service(&node, &nsp.joint_command()).unwrap();
     let _held: Vec<_> = (0..services::MAX_PUBLISHERS)
-        .map(|_| services::publisher(&svc, &nsp.joint_command()).unwrap())
+        .map(|_| services::publisher(&svc).unwrap())
         .collect();
     let out = start("run", &ns, &["--log-every", "0", "--policy", "hold"])
         .finish(Duration::from_secs(20));
@@ -1066,14 +1052,10 @@ impl StatusForger {
     fn new(ns: &str, n_dof: u32) -> Self {
         let nsp = Namespace::new(ns).unwrap();
         let node = services::node("test-status-forger").unwrap();
-        let status = services::publisher(
-            &services::status_service(&node, &nsp.status()).unwrap(),
-            "forged-status",
-        )
-        .unwrap();
+        let status =
+            services::publisher(&services::status_service(&node, &nsp.status()).unwrap()).unwrap();
         let cmd = services::publisher(
             &services::joint_command_service(&node, &nsp.joint_command()).unwrap(),
-            "forged-cmd",
         )
         .unwrap();
         Self {

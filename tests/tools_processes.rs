@@ -90,9 +90,9 @@ fn tools_fake_robot_follows_commands_and_holds() {
     let ns = Namespace::new(&ns_str).unwrap();
     let node = node("robot");
     let st_factory = services::joint_state_service(&node, &ns.joint_state()).unwrap();
-    let st_sub = services::subscriber(&st_factory, &ns.joint_state()).unwrap();
+    let st_sub = services::subscriber(&st_factory).unwrap();
     let cmd_factory = services::joint_command_service(&node, &ns.joint_command()).unwrap();
-    let cmd_pub = services::publisher(&cmd_factory, &ns.joint_command()).unwrap();
+    let cmd_pub = services::publisher(&cmd_factory).unwrap();
 
     let robot = ChildGuard::spawn(
         BIN,
@@ -224,7 +224,7 @@ fn tools_fake_camera_frames_are_valid_and_on_rate() {
     for cam in &cfg.cameras {
         let name = ns.camera(&cam.name);
         let f = services::camera_service(&node, &name).unwrap();
-        subs.push(services::camera_subscriber(&f, &name).unwrap());
+        subs.push(services::camera_subscriber(&f).unwrap());
     }
     let camera = ChildGuard::spawn(
         BIN,
@@ -330,10 +330,10 @@ fn tools_monitor_lists_and_measures_services() {
     let node = node("monitor");
     let nsv = Namespace::new(&ns).unwrap();
     let st = services::joint_state_service(&node, &nsv.joint_state()).unwrap();
-    let sub = services::subscriber(&st, &nsv.joint_state()).unwrap();
+    let sub = services::subscriber(&st).unwrap();
     latest_state(&sub, Duration::from_secs(10)).expect("fake-robot is not publishing");
     let cam = services::camera_service(&node, &nsv.camera(&cfg.cameras[0].name)).unwrap();
-    let cam_sub = services::camera_subscriber(&cam, &nsv.camera(&cfg.cameras[0].name)).unwrap();
+    let cam_sub = services::camera_subscriber(&cam).unwrap();
     let end = Instant::now() + Duration::from_secs(10);
     while !matches!(cam_sub.receive(), Ok(Some(_))) {
         assert!(Instant::now() < end, "fake-camera is not publishing");
@@ -411,7 +411,7 @@ fn tools_fake_camera_configured_encodings() {
         .map(|c| {
             let name = ns.camera(&c.name);
             let f = services::camera_service(&node, &name).unwrap();
-            services::camera_subscriber(&f, &name).unwrap()
+            services::camera_subscriber(&f).unwrap()
         })
         .collect();
     let camera = ChildGuard::spawn(

@@ -36,9 +36,9 @@ fn tools_python_client_round_trip() {
     let node = services::node("tools-test-python").unwrap();
     services::cleanup_dead_nodes(&node);
     let st = services::joint_state_service(&node, &ns.joint_state()).unwrap();
-    let st_sub = services::subscriber(&st, &ns.joint_state()).unwrap();
+    let st_sub = services::subscriber(&st).unwrap();
     let cmd = services::joint_command_service(&node, &ns.joint_command()).unwrap();
-    let cmd_pub = services::publisher(&cmd, &ns.joint_command()).unwrap();
+    let cmd_pub = services::publisher(&cmd).unwrap();
 
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/python/robot_client.py");
     let client = ChildGuard::spawn(

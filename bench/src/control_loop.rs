@@ -140,14 +140,14 @@ impl ControllerTick {
                 }
                 let ns = cfg.namespace();
                 let ports = services::node("chunkrt-bench-robot").and_then(|node| {
-                    let js = services::publisher(
-                        &services::joint_state_service(&node, &ns.joint_state())?,
-                        "js",
-                    )?;
-                    let cmd = services::subscriber(
-                        &services::joint_command_service(&node, &ns.joint_command())?,
-                        "cmd",
-                    )?;
+                    let js = services::publisher(&services::joint_state_service(
+                        &node,
+                        &ns.joint_state(),
+                    )?)?;
+                    let cmd = services::subscriber(&services::joint_command_service(
+                        &node,
+                        &ns.joint_command(),
+                    )?)?;
                     Ok((node, js, cmd))
                 });
                 let (_node, js_pub, cmd_sub) = match ports {

@@ -166,18 +166,12 @@ pub fn run(opts: &Options) -> Result<Summary, BenchError> {
 
     let node = services::node(&format!("chunkrt-bench-e2e-{}", std::process::id()))?;
     let nsp = chunkrt_ipc::Namespace::new(&ns)?;
-    let status = services::subscriber(
-        &services::status_service(&node, &nsp.status())?,
-        &nsp.status(),
-    )?;
-    let js_sub = services::subscriber(
-        &services::joint_state_service(&node, &nsp.joint_state())?,
-        &nsp.joint_state(),
-    )?;
-    let cmd_sub = services::subscriber(
-        &services::joint_command_service(&node, &nsp.joint_command())?,
+    let status = services::subscriber(&services::status_service(&node, &nsp.status())?)?;
+    let js_sub = services::subscriber(&services::joint_state_service(&node, &nsp.joint_state())?)?;
+    let cmd_sub = services::subscriber(&services::joint_command_service(
+        &node,
         &nsp.joint_command(),
-    )?;
+    )?)?;
 
     let mut measured: HashMap<u64, u64> = HashMap::new();
     let mut order: VecDeque<u64> = VecDeque::new();

@@ -184,7 +184,7 @@ fn measure_case(opts: &Options, case: &Case, index: usize) -> Result<Measured, B
     let (notifier, listener) = event_ports(&node, &ns, false)?;
     let ack_name = ack_service_name(&ns);
     let ack_svc = services::joint_state_service(&node, &ack_name)?;
-    let ack_sub = services::subscriber(&ack_svc, &ack_name)?;
+    let ack_sub = services::subscriber(&ack_svc)?;
 
     enum Pubs {
         Joint(iceoryx2::port::publisher::Publisher<services::Ipc, JointState, ()>),
@@ -194,13 +194,13 @@ fn measure_case(opts: &Options, case: &Case, index: usize) -> Result<Measured, B
     let pubs = if case.cameras == 0 {
         let name = ns.joint_state();
         let svc = services::joint_state_service(&node, &name)?;
-        Pubs::Joint(services::publisher(&svc, &name)?)
+        Pubs::Joint(services::publisher(&svc)?)
     } else {
         let mut v = Vec::new();
         for i in 0..case.cameras {
             let name = ns.camera(&format!("cam{i}"));
             let svc = services::camera_service(&node, &name)?;
-            v.push(services::camera_publisher(&svc, &name, frame_bytes)?);
+            v.push(services::camera_publisher(&svc, frame_bytes)?);
         }
         Pubs::Cams(v)
     };

@@ -176,7 +176,7 @@ impl ControlLoop {
                 ControlClock::Robot => {
                     let name = ns.joint_command();
                     let ev = services::event_service(node, &name)?;
-                    Some(services::notifier(&ev, &name)?)
+                    Some(services::notifier(&ev)?)
                 }
                 ControlClock::Timer => None,
             },
@@ -443,8 +443,8 @@ pub(crate) fn control_thread(
         }
         ControlClock::Robot => {
             let name = cfg.namespace().joint_state();
-            let states = services::event_service(&_node, &name)
-                .and_then(|ev| services::listener(&ev, &name));
+            let states =
+                services::event_service(&_node, &name).and_then(|ev| services::listener(&ev));
             match states {
                 Ok(listener) => {
                     let quiet = (cfg.control.robot_clock_timeout_ms * 1e6) as u64;

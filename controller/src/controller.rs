@@ -278,7 +278,7 @@ fn observation_thread(
         .map_err(|e| anyhow::anyhow!("{e}"))
         .and_then(|node| {
             let svc = services::chunk_service(node, &ns.chunks())?;
-            Ok(services::publisher(&svc, &ns.chunks())?)
+            Ok(services::publisher(&svc)?)
         }) {
         Ok(publisher) => worker.set_tap(Box::new(chunk_publisher(publisher))),
         Err(e) => tracing::warn!("chunks are not published on '{}': {e:#}", ns.chunks()),

@@ -160,7 +160,7 @@ impl JointStateInput {
         let name = ns.joint_state();
         let factory = services::joint_state_service(node, &name)?;
         Ok(Self {
-            sub: services::subscriber(&factory, &name)?,
+            sub: services::subscriber(&factory)?,
             guard: StreamGuard::new(),
             freshness: joint_state_freshness(cfg),
             n_dof: cfg.n_dof() as u32,
@@ -318,7 +318,7 @@ impl CameraInput {
         for cam in &cfg.cameras {
             let name = ns.camera(&cam.name);
             let factory = services::camera_service(node, &name)?;
-            subs.push(services::camera_subscriber(&factory, &name)?);
+            subs.push(services::camera_subscriber(&factory)?);
         }
         Ok(Self {
             guards: vec![StreamGuard::new(); subs.len()],
@@ -473,7 +473,7 @@ impl RearmInput {
         let name = ns.rearm();
         let factory = services::rearm_service(node, &name)?;
         Ok(Self {
-            sub: services::subscriber(&factory, &name)?,
+            sub: services::subscriber(&factory)?,
             max_future_ns: (cfg.control.max_future_ms * 1e6) as u64,
             last_seq: 0,
             pending: None,
@@ -536,7 +536,7 @@ impl CommandOutput {
         let name = ns.joint_command();
         let factory = services::joint_command_service(node, &name)?;
         Ok(Self {
-            publisher: services::publisher(&factory, &name)?,
+            publisher: services::publisher(&factory)?,
             deadline_ns,
             seq: 0,
         })
@@ -582,7 +582,7 @@ impl StatusWatch {
         let name = ns.status();
         let factory = services::status_service(node, &name)?;
         Ok(Self {
-            subscriber: services::subscriber(&factory, &name)?,
+            subscriber: services::subscriber(&factory)?,
         })
     }
 
@@ -616,7 +616,7 @@ impl StatusOutput {
         let name = ns.status();
         let factory = services::status_service(node, &name)?;
         Ok(Self {
-            publisher: services::publisher(&factory, &name)?,
+            publisher: services::publisher(&factory)?,
         })
     }
 

@@ -284,26 +284,32 @@ pub fn event_service(node: &Node<Ipc>, name: &str) -> Result<EventService, IpcEr
         })
 }
 
+/// The service a port factory opens, by name (its errors say which; typed once, where the
+/// service was opened).
+fn port_name<F: iceoryx2::service::port_factory::PortFactory>(factory: &F) -> String {
+    factory.name().as_str().to_string()
+}
+
 /// A notifier on `factory`.
-pub fn notifier(factory: &EventService, name: &str) -> Result<Notifier<Ipc>, IpcError> {
+pub fn notifier(factory: &EventService) -> Result<Notifier<Ipc>, IpcError> {
     factory
         .notifier_builder()
         .create()
         .map_err(|e| IpcError::Port {
             what: "notifier",
-            name: name.to_string(),
+            name: port_name(factory),
             reason: explain_port(&format!("{e:?}")),
         })
 }
 
 /// A listener on `factory`.
-pub fn listener(factory: &EventService, name: &str) -> Result<Listener<Ipc>, IpcError> {
+pub fn listener(factory: &EventService) -> Result<Listener<Ipc>, IpcError> {
     factory
         .listener_builder()
         .create()
         .map_err(|e| IpcError::Port {
             what: "listener",
-            name: name.to_string(),
+            name: port_name(factory),
             reason: explain_port(&format!("{e:?}")),
         })
 }
@@ -356,7 +362,6 @@ pub fn wait_event(
 /// A publisher that never blocks: when a subscriber's buffer is full its oldest sample goes.
 pub fn publisher<T: core::fmt::Debug + ZeroCopySend>(
     factory: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, T, ()>,
-    name: &str,
 ) -> Result<Publisher<Ipc, T, ()>, IpcError> {
     factory
         .publisher_builder()
@@ -376,7 +381,7 @@ pub fn publisher<T: core::fmt::Debug + ZeroCopySend>(
             };
             IpcError::Port {
                 what: "publisher",
-                name: name.to_string(),
+                name: port_name(factory),
                 reason,
             }
         })
@@ -385,7 +390,6 @@ pub fn publisher<T: core::fmt::Debug + ZeroCopySend>(
 /// A subscriber keeping the last few samples.
 pub fn subscriber<T: core::fmt::Debug + ZeroCopySend>(
     factory: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, T, ()>,
-    name: &str,
 ) -> Result<Subscriber<Ipc, T, ()>, IpcError> {
     factory
         .subscriber_builder()
@@ -393,7 +397,7 @@ pub fn subscriber<T: core::fmt::Debug + ZeroCopySend>(
         .create()
         .map_err(|e| IpcError::Port {
             what: "subscriber",
-            name: name.to_string(),
+            name: port_name(factory),
             reason: explain_port(&format!("{e:?}")),
         })
 }
@@ -401,7 +405,6 @@ pub fn subscriber<T: core::fmt::Debug + ZeroCopySend>(
 /// A camera publisher sized for frames up to `max_bytes` (allocated once, up front).
 pub fn camera_publisher(
     factory: &CameraService,
-    name: &str,
     max_bytes: usize,
 ) -> Result<Publisher<Ipc, [u8], CameraFrameHeader>, IpcError> {
     factory
@@ -412,7 +415,7 @@ pub fn camera_publisher(
         .create()
         .map_err(|e| IpcError::Port {
             what: "camera publisher",
-            name: name.to_string(),
+            name: port_name(factory),
             reason: explain_port(&format!("{e:?}")),
         })
 }
@@ -420,7 +423,6 @@ pub fn camera_publisher(
 /// A camera subscriber.
 pub fn camera_subscriber(
     factory: &CameraService,
-    name: &str,
 ) -> Result<Subscriber<Ipc, [u8], CameraFrameHeader>, IpcError> {
     factory
         .subscriber_builder()
@@ -428,7 +430,7 @@ pub fn camera_subscriber(
         .create()
         .map_err(|e| IpcError::Port {
             what: "camera subscriber",
-            name: name.to_string(),
+            name: port_name(factory),
             reason: explain_port(&format!("{e:?}")),
         })
 }

@@ -795,25 +795,19 @@ pub fn bridge(args: &Args) -> anyhow::Result<Summary> {
     let state_service = services::joint_state_service(&node, &state_name)?;
     let cmd_service = services::joint_command_service(&node, &cmd_name)?;
     let iox = Iox {
-        state_pub: services::publisher(&state_service, &state_name)?,
-        cmd_sub: services::subscriber(&cmd_service, &cmd_name)?,
-        status_sub: services::subscriber(
-            &services::status_service(&node, &status_name)?,
-            &status_name,
-        )?,
-        chunk_sub: services::subscriber(
-            &services::chunk_service(&node, &chunk_name)?,
-            &chunk_name,
-        )?,
+        state_pub: services::publisher(&state_service)?,
+        cmd_sub: services::subscriber(&cmd_service)?,
+        status_sub: services::subscriber(&services::status_service(&node, &status_name)?)?,
+        chunk_sub: services::subscriber(&services::chunk_service(&node, &chunk_name)?)?,
         state_event: if robot_clock {
             let ev = services::event_service(&node, &state_name)?;
-            Some(services::notifier(&ev, &state_name)?)
+            Some(services::notifier(&ev)?)
         } else {
             None
         },
         cmd_event: if robot_clock {
             let ev = services::event_service(&node, &cmd_name)?;
-            Some(services::listener(&ev, &cmd_name)?)
+            Some(services::listener(&ev)?)
         } else {
             None
         },
@@ -949,11 +943,8 @@ pub fn bridge(args: &Args) -> anyhow::Result<Summary> {
         };
         let iox_name = ns.camera(&sc.name);
         let factory = services::camera_service(&node, &iox_name)?;
-        let publisher = services::camera_publisher(
-            &factory,
-            &iox_name,
-            sc.width as usize * sc.height as usize * 3,
-        )?;
+        let publisher =
+            services::camera_publisher(&factory, sc.width as usize * sc.height as usize * 3)?;
         tracing::info!(
             "ros2: camera {} from {} ({}, up to {}x{}) → '{iox_name}'",
             sc.name,

@@ -148,18 +148,12 @@ pub(crate) fn run(args: &DemoArgs, stack: &Stack) -> anyhow::Result<()> {
 
     let node = services::node(&format!("chunkrt-demo-{}", std::process::id()))?;
     let nsp = stack.cfg.namespace();
-    let status = services::subscriber(
-        &services::status_service(&node, &nsp.status())?,
-        &nsp.status(),
-    )?;
-    let states = services::subscriber(
-        &services::joint_state_service(&node, &nsp.joint_state())?,
-        &nsp.joint_state(),
-    )?;
-    let commands = services::subscriber(
-        &services::joint_command_service(&node, &nsp.joint_command())?,
+    let status = services::subscriber(&services::status_service(&node, &nsp.status())?)?;
+    let states = services::subscriber(&services::joint_state_service(&node, &nsp.joint_state())?)?;
+    let commands = services::subscriber(&services::joint_command_service(
+        &node,
         &nsp.joint_command(),
-    )?;
+    )?)?;
     let tty = std::io::IsTerminal::is_terminal(&std::io::stdout());
     let t0 = Instant::now();
     let mut last_line = -1.0;

@@ -69,10 +69,7 @@ pub(crate) fn run(args: &DemoArgs, stack: &Stack) -> anyhow::Result<()> {
     );
     let node = services::node(&format!("chunkrt-demo-{}", std::process::id()))?;
     let nsp = cfg.namespace();
-    let status = services::subscriber(
-        &services::status_service(&node, &nsp.status())?,
-        &nsp.status(),
-    )?;
+    let status = services::subscriber(&services::status_service(&node, &nsp.status())?)?;
     let py = crate::task::so101::python();
     let mut episodes = Vec::new();
     let tty = std::io::IsTerminal::is_terminal(&std::io::stdout());

@@ -82,19 +82,13 @@ impl Watch {
     pub fn new(ns: &str) -> Self {
         let ns = Namespace::new(ns).unwrap();
         let node = services::node(&format!("test-watch-{}", std::process::id())).unwrap();
-        let status = services::subscriber(
-            &services::status_service(&node, &ns.status()).unwrap(),
-            "status",
-        )
-        .unwrap();
-        let js = services::subscriber(
-            &services::joint_state_service(&node, &ns.joint_state()).unwrap(),
-            "js",
-        )
-        .unwrap();
+        let status =
+            services::subscriber(&services::status_service(&node, &ns.status()).unwrap()).unwrap();
+        let js =
+            services::subscriber(&services::joint_state_service(&node, &ns.joint_state()).unwrap())
+                .unwrap();
         let cmd = services::subscriber(
             &services::joint_command_service(&node, &ns.joint_command()).unwrap(),
-            "cmd",
         )
         .unwrap();
         Self {

@@ -289,7 +289,7 @@ pub fn publish(args: &Args) -> anyhow::Result<Summary> {
                 cfg.n_dof()
             );
             let service = services::joint_state_service(&node, &ns.joint_state())?;
-            let sub = services::subscriber(&service, &ns.joint_state())?;
+            let sub = services::subscriber(&service)?;
             tracing::info!("fake-camera: reach scene, episode seed {}", args.scene_seed);
             Some((ReachScene::from_seed(args.scene_seed), sub))
         }
@@ -315,7 +315,7 @@ pub fn publish(args: &Args) -> anyhow::Result<Summary> {
     for p in plans {
         let name = ns.camera(&p.name);
         let service = services::camera_service(&node, &name)?;
-        let publisher = services::camera_publisher(&service, &name, p.max_bytes)?;
+        let publisher = services::camera_publisher(&service, p.max_bytes)?;
         tracing::info!(
             "fake-camera: '{name}' id {} {}x{} {} at {} fps",
             p.camera_id,

@@ -450,14 +450,11 @@ pub fn simulate(args: &Args) -> anyhow::Result<Summary> {
     let state_name = ns.joint_state();
     let cmd_name = ns.joint_command();
     let state_service = services::joint_state_service(&node, &state_name)?;
-    let state_pub = services::publisher(&state_service, &state_name)?;
+    let state_pub = services::publisher(&state_service)?;
     let cmd_service = services::joint_command_service(&node, &cmd_name)?;
-    let cmd_sub = services::subscriber(&cmd_service, &cmd_name)?;
+    let cmd_sub = services::subscriber(&cmd_service)?;
     let status_name = ns.status();
-    let status_sub = services::subscriber(
-        &services::status_service(&node, &status_name)?,
-        &status_name,
-    )?;
+    let status_sub = services::subscriber(&services::status_service(&node, &status_name)?)?;
     tracing::info!(
         "fake-robot: {n_dof} joints at {rate_hz} Hz, publishing '{state_name}', \
          following '{cmd_name}' (command timeout {timeout_ms} ms; {})",

@@ -288,16 +288,16 @@ impl Watched {
         let name = listed.name.as_str();
         let port = match listed.kind {
             Kind::JointState => services::joint_state_service(node, name)
-                .and_then(|f| services::subscriber(&f, name))
+                .and_then(|f| services::subscriber(&f))
                 .map(Port::JointState),
             Kind::JointCommand => services::joint_command_service(node, name)
-                .and_then(|f| services::subscriber(&f, name))
+                .and_then(|f| services::subscriber(&f))
                 .map(Port::JointCommand),
             Kind::Status => services::status_service(node, name)
-                .and_then(|f| services::subscriber(&f, name))
+                .and_then(|f| services::subscriber(&f))
                 .map(Port::Status),
             Kind::Camera => services::camera_service(node, name)
-                .and_then(|f| services::camera_subscriber(&f, name))
+                .and_then(|f| services::camera_subscriber(&f))
                 .map(Port::Camera),
             Kind::Unknown => Ok(Port::None),
         };

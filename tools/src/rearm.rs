@@ -59,9 +59,9 @@ pub fn request(args: &Args) -> anyhow::Result<Answer> {
     let (_cfg, ns) = args.common.load()?;
     let node = open_node("chunkrt-rearm")?;
     let rearm = services::rearm_service(&node, &ns.rearm())?;
-    let publisher = services::publisher(&rearm, &ns.rearm())?;
+    let publisher = services::publisher(&rearm)?;
     let status = services::status_service(&node, &ns.status())?;
-    let subscriber = services::subscriber(&status, &ns.status())?;
+    let subscriber = services::subscriber(&status)?;
     // an id that another client (or this one, earlier) is unlikely to have used
     let seq = (monotonic_ns() ^ (u64::from(std::process::id()) << 40)) | 1;
     let start = monotonic_ns();

@@ -116,7 +116,7 @@ pub fn peer_main(args: &PeerArgs) -> Result<(), BenchError> {
     let wait = || wait_for_more(args.wake, &listener, Duration::from_millis(100));
     let ack_name = ack_service_name(&ns);
     let ack_service = services::joint_state_service(&node, &ack_name)?;
-    let ack_pub = services::publisher(&ack_service, &ack_name)?;
+    let ack_pub = services::publisher(&ack_service)?;
     let ack = |seq: u64, t: u64| -> Result<(), BenchError> {
         let mut msg = JointState {
             seq,
@@ -141,7 +141,7 @@ pub fn peer_main(args: &PeerArgs) -> Result<(), BenchError> {
     if args.cameras == 0 {
         let name = ns.joint_state();
         let svc = services::joint_state_service(&node, &name)?;
-        let sub = services::subscriber(&svc, &name)?;
+        let sub = services::subscriber(&svc)?;
         loop {
             let mut newest = None;
             while let Some(s) = sub
@@ -177,7 +177,7 @@ pub fn peer_main(args: &PeerArgs) -> Result<(), BenchError> {
     for i in 0..n {
         let name = ns.camera(&format!("cam{i}"));
         let svc = services::camera_service(&node, &name)?;
-        subs.push(services::camera_subscriber(&svc, &name)?);
+        subs.push(services::camera_subscriber(&svc)?);
     }
     let mut last = vec![0u64; n];
     let mut checksum = 0u64;
