@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 
-use crate::config::Config;
+use chunkrt_controller::config::Config;
 
 /// A tool's own virtual environment (the FR3 simulator's, the recorder's): its prefix
 /// (`$prefix_var`, else `~/.cache/<default_dir>`) and its interpreter (`$python_var`, else
@@ -49,7 +49,7 @@ pub struct LayoutArgs {
 impl LayoutArgs {
     /// Sets `policy.tokenizer` (made absolute: a path on the command line is relative to the
     /// current directory, not to the configuration) and `policy.asset_id`.
-    pub fn apply(&self, p: &mut crate::config::PolicyConfig) -> anyhow::Result<()> {
+    pub fn apply(&self, p: &mut chunkrt_controller::config::PolicyConfig) -> anyhow::Result<()> {
         if let Some(t) = &self.tokenizer {
             p.tokenizer = Some(
                 std::path::absolute(t).with_context(|| format!("--tokenizer {}", t.display()))?,
@@ -65,8 +65,8 @@ impl LayoutArgs {
     }
 
     /// The policy crate's layout options.
-    pub fn options(&self) -> crate::policy::layout::LayoutOptions {
-        crate::policy::layout::LayoutOptions {
+    pub fn options(&self) -> chunkrt_policy::layout::LayoutOptions {
+        chunkrt_policy::layout::LayoutOptions {
             tokenizer: self.tokenizer.clone(),
             asset_id: self.asset_id.clone(),
             openpi_config: self.openpi_config.clone(),

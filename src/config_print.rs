@@ -1,8 +1,8 @@
 //! `chunkrt run --print-config`: the effective configuration as TOML, each value with where it
 //! came from: the file (or the embedded default), a serde default, or a command-line flag.
 
-use crate::config::Config;
 use anyhow::Context;
+use chunkrt_controller::config::Config;
 use toml::{Table, Value};
 
 /// The sections in the order config/default.toml writes them.
@@ -156,7 +156,7 @@ fn key(k: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::{PolicySource, DEFAULT_TOML};
+    use chunkrt_controller::config::{PolicySource, DEFAULT_TOML};
 
     #[test]
     fn the_printout_reads_back_as_the_effective_configuration_and_names_each_origin() {

@@ -88,7 +88,7 @@ pub struct StackArgs {
 /// A prepared stack: its configuration (in its own namespace), the executable, where the logs
 /// go, and the arguments every process gets.
 pub(crate) struct Stack {
-    pub(crate) cfg: crate::config::Config,
+    pub(crate) cfg: chunkrt_controller::config::Config,
     pub(crate) ns: String,
     pub(crate) exe: PathBuf,
     pub(crate) log_dir: PathBuf,

@@ -14,14 +14,14 @@ use std::time::Instant;
 
 use anyhow::Context;
 
-use crate::config::{Config, Jacobian};
+use chunkrt_controller::config::{Config, Jacobian};
 
-use crate::config::PolicySource;
-use crate::contract::ChunkSource;
-use crate::inference::PolicySource as LocalPolicy;
-use crate::remote::RemoteSource;
 use crate::task::sim::{run_episode, SimSettings};
 use crate::train::held_out_episodes;
+use chunkrt_controller::config::PolicySource;
+use chunkrt_controller::contract::ChunkSource;
+use chunkrt_controller::inference::PolicySource as LocalPolicy;
+use chunkrt_controller::remote::RemoteSource;
 
 mod report;
 mod switch;
@@ -170,8 +170,9 @@ fn run_probe(cfg: &Config, args: &EvalArgs) -> anyhow::Result<()> {
             .as_ref()
             .context("the configuration names no policy checkpoint")?,
     );
-    let pool = crate::inference::policy_pool(&cfg.policy)?;
-    let mut policy = pool.install(|| crate::inference::load_policy(&dir, &cfg.policy))?;
+    let pool = chunkrt_controller::inference::policy_pool(&cfg.policy)?;
+    let mut policy =
+        pool.install(|| chunkrt_controller::inference::load_policy(&dir, &cfg.policy))?;
     let n = if args.quick { 4 } else { args.episodes };
     let eps = held_out_episodes(cfg, PROBE_SCENE_BASE, n, 9);
     let t0 = Instant::now();
@@ -473,14 +474,14 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
                 .with_context(|| format!("checkpoint {} does not exist", c.display()))?,
         );
         if cfg.policy.kind.is_none() {
-            cfg.policy.kind = Some(crate::config::ModelKind::Pi05);
+            cfg.policy.kind = Some(chunkrt_controller::config::ModelKind::Pi05);
         }
     }
     if let Some(url) = &args.remote {
-        cfg.policy.source = crate::config::PolicySource::Remote;
+        cfg.policy.source = chunkrt_controller::config::PolicySource::Remote;
         cfg.policy.url = Some(url.clone());
         if cfg.policy.kind.is_none() {
-            cfg.policy.kind = Some(crate::config::ModelKind::Pi05);
+            cfg.policy.kind = Some(chunkrt_controller::config::ModelKind::Pi05);
         }
     }
     anyhow::ensure!(

@@ -2,9 +2,9 @@
 //!
 //! A real-time controller that runs a π0 / π0.5 vision-language-action policy next to a robot.
 //! This crate is the `chunkrt` command and the applications around the controller; the
-//! controller itself is `chunkrt-controller` (re-exported here module by module), the policy
-//! `chunkrt-policy`, the message contract `chunkrt-ipc`, the fake devices `chunkrt-tools`, the
-//! benches `chunkrt-bench`.
+//! controller itself is `chunkrt-controller`, the policy `chunkrt-policy`, the message contract
+//! `chunkrt-ipc`, the fake devices `chunkrt-tools`, the benches `chunkrt-bench`: each is used by
+//! its own name (this crate re-exports none of them, so every module has one name).
 //!
 //! Modules of this crate:
 //! - [`run`]: `chunkrt run`, the composition root (config → executor + chunk source →
@@ -29,11 +29,3 @@ pub mod serve;
 pub mod soak;
 pub mod task;
 pub mod train;
-
-pub use chunkrt_controller::config;
-pub use chunkrt_controller::{
-    chunk, conditioning, contract, control, control_loop, controller, edge, inference, log_limit,
-    remote, rt, shared, worker,
-};
-pub use chunkrt_ipc as ipc;
-pub use chunkrt_policy as policy;

@@ -70,7 +70,7 @@ fn main() {
         );
     }
     chunkrt_policy::keep_freed_memory();
-    chunkrt::rt::init_logging();
+    chunkrt_controller::rt::init_logging();
     let result = match cli.command {
         Command::Run(a) => chunkrt::run::run(a),
         Command::Demo(a) => chunkrt::demo::run(a),

@@ -6,11 +6,11 @@ use std::path::PathBuf;
 use anyhow::Context;
 use candle_core::{DType, Device, Tensor};
 
-use crate::policy::checkpoint;
-use crate::policy::config::ConfigOverrides;
-use crate::policy::model::ModelInputs;
-use crate::policy::preprocess::{resize_with_pad, to_model_chw};
-use crate::policy::{model_dtype, DeviceSpec, Precision};
+use chunkrt_policy::checkpoint;
+use chunkrt_policy::config::ConfigOverrides;
+use chunkrt_policy::model::ModelInputs;
+use chunkrt_policy::preprocess::{resize_with_pad, to_model_chw};
+use chunkrt_policy::{model_dtype, DeviceSpec, Precision};
 
 /// `chunkrt sample`: run the policy on a safetensors file of inputs.
 #[derive(Debug, clap::Args)]
@@ -144,7 +144,7 @@ pub fn bench(args: BenchArgs) -> anyhow::Result<()> {
         return Ok(());
     }
     let device = args.device.open()?;
-    crate::policy::kernels::set_enabled(!args.unfused);
+    chunkrt_policy::kernels::set_enabled(!args.unfused);
     if !device.is_cpu() {
         println!(
             "kernels: {}",
@@ -195,11 +195,11 @@ fn sample_request(args: &SampleArgs, path: &std::path::Path) -> anyhow::Result<(
     }
     args.layout.apply(&mut cfg.policy)?;
     let layout = crate::serve::layout_of(&cfg, None)?;
-    let pool = crate::inference::policy_pool(&cfg.policy)?;
+    let pool = chunkrt_controller::inference::policy_pool(&cfg.policy)?;
     let mut opts = cfg.policy.load_options();
     opts.kind = None;
-    let mut policy = pool.install(|| crate::policy::Policy::load(&args.checkpoint, &opts))?;
-    let bytes = crate::policy::checkpoint::read_bounded(path, 256 << 20)
+    let mut policy = pool.install(|| chunkrt_policy::Policy::load(&args.checkpoint, &opts))?;
+    let bytes = chunkrt_policy::checkpoint::read_bounded(path, 256 << 20)
         .with_context(|| format!("reading {}", path.display()))?;
     let msg = chunkrt_openpi::decode(&bytes, chunkrt_openpi::Limits::default())
         .with_context(|| format!("{}: not msgpack-numpy", path.display()))?;
@@ -223,7 +223,7 @@ fn sample_request(args: &SampleArgs, path: &std::path::Path) -> anyhow::Result<(
 
 /// Builds model inputs from a fixture-style safetensors map.
 pub fn inputs_from_map(
-    cfg: &crate::policy::ModelConfig,
+    cfg: &chunkrt_policy::ModelConfig,
     m: &HashMap<String, Tensor>,
 ) -> anyhow::Result<(ModelInputs, Option<Tensor>)> {
     let dev = Device::Cpu;
@@ -325,7 +325,7 @@ pub fn sample(args: SampleArgs) -> anyhow::Result<()> {
         .clone()
         .context("--inputs or --request is required")?;
     let device = args.device.open()?;
-    crate::policy::kernels::set_enabled(!args.unfused);
+    chunkrt_policy::kernels::set_enabled(!args.unfused);
     let dtype = model_dtype(&device, args.precision);
     let loaded = checkpoint::load_with(
         &args.checkpoint,
@@ -466,15 +466,17 @@ pub fn inspect(args: InspectArgs) -> anyhow::Result<()> {
     );
     // the verdict `run` and `serve` would give at load (with a robot: its joint ranges too)
     let robot = match &args.config {
-        Some(p) if p.as_os_str() == "default" => Some(crate::config::Config::embedded_default()),
-        Some(p) => Some(crate::config::Config::load(p)?),
+        Some(p) if p.as_os_str() == "default" => {
+            Some(chunkrt_controller::config::Config::embedded_default())
+        }
+        Some(p) => Some(chunkrt_controller::config::Config::load(p)?),
         None => None,
     };
     let verdict = match &robot {
         Some(cfg) => checkpoint::verdict_for_robot(
             &args.dir,
             &args.layout.options(),
-            &crate::inference::joint_ranges(cfg),
+            &chunkrt_controller::inference::joint_ranges(cfg),
         ),
         None => checkpoint::verdict(&args.dir, &args.layout.options()),
     };
@@ -501,7 +503,7 @@ pub fn inspect(args: InspectArgs) -> anyhow::Result<()> {
             args.precision,
             need as f64 / 1e9
         );
-        match crate::policy::gpu::memory(&device) {
+        match chunkrt_policy::gpu::memory(&device) {
             Some((used, total)) => {
                 let free = total.saturating_sub(used);
                 println!(

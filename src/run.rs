@@ -7,9 +7,9 @@ use std::time::Duration;
 
 use anyhow::Context;
 
-use crate::config::{Config, DeviceSpec, ModelKind, PolicySource};
-use crate::control::Executor;
-use crate::controller::{
+use chunkrt_controller::config::{Config, DeviceSpec, ModelKind, PolicySource};
+use chunkrt_controller::control::Executor;
+use chunkrt_controller::controller::{
     frames_per_camera, print_summary, status_line, ChunkSource, Controller, HoldSource, Shared,
 };
 
@@ -84,15 +84,14 @@ pub fn load_source(
     std::thread::Builder::new()
         .name("chunkrt-load".into())
         .spawn(move || {
-            let source: anyhow::Result<Box<dyn ChunkSource>> = match c.policy.source {
-                PolicySource::Local => {
-                    crate::inference::PolicySource::load(&c).map(|s| Box::new(s) as _)
-                }
-                PolicySource::Remote => {
-                    crate::remote::RemoteSource::connect(&c).map(|s| Box::new(s) as _)
-                }
-                PolicySource::Scripted => Ok(Box::new(scripted_source(&c)) as _),
-            };
+            let source: anyhow::Result<Box<dyn ChunkSource>> =
+                match c.policy.source {
+                    PolicySource::Local => chunkrt_controller::inference::PolicySource::load(&c)
+                        .map(|s| Box::new(s) as _),
+                    PolicySource::Remote => chunkrt_controller::remote::RemoteSource::connect(&c)
+                        .map(|s| Box::new(s) as _),
+                    PolicySource::Scripted => Ok(Box::new(scripted_source(&c)) as _),
+                };
             let _ = tx.send(source);
         })
         .context("cannot start the loading thread")?;
@@ -168,7 +167,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         if args.policy.is_none() {
             let opts = cfg.policy.load_options().layout;
             cfg.policy.kind = Some(
-                crate::policy::checkpoint::kind_of(&dir, &opts)
+                chunkrt_policy::checkpoint::kind_of(&dir, &opts)
                     .with_context(|| format!("--checkpoint {}", dir.display()))?,
             );
         }
@@ -200,7 +199,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                 p.display().to_string(),
             ),
             None => (
-                crate::config::DEFAULT_TOML.to_string(),
+                chunkrt_controller::config::DEFAULT_TOML.to_string(),
                 "config/default.toml (embedded)".to_string(),
             ),
         };

@@ -14,14 +14,14 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 
-use crate::config::{Config, DeviceSpec, Precision};
-use crate::log_limit::LogLimiter;
-use crate::policy::runtime::{Conditioning, Guidance, Policy, RawFrame, RawObservation};
-use crate::policy::{Encoding, Jacobian};
+use chunkrt_controller::config::{Config, DeviceSpec, Precision};
+use chunkrt_controller::log_limit::LogLimiter;
 use chunkrt_openpi::{
     ChunkrtMetadata, Failure, Layout, Limits, Preset, Reply, Request, Server, ServerConfig, Value,
     Writer,
 };
+use chunkrt_policy::runtime::{Conditioning, Guidance, Policy, RawFrame, RawObservation};
+use chunkrt_policy::{Encoding, Jacobian};
 
 /// `chunkrt serve`.
 #[derive(Debug, Clone, clap::Args)]
@@ -243,7 +243,7 @@ pub fn start(args: &ServeArgs) -> anyhow::Result<Serving> {
         cfg.policy.precision = p;
     }
     args.files.apply(&mut cfg.policy)?;
-    let pool = crate::inference::policy_pool(&cfg.policy)?;
+    let pool = chunkrt_controller::inference::policy_pool(&cfg.policy)?;
     let mut opts = cfg.policy.load_options();
     opts.kind = None; // whatever the checkpoint is
     let mut policy = pool

@@ -283,7 +283,7 @@ type Stats = Vec<(&'static str, ProcStats, ProcStats)>;
 
 fn follow(
     args: &SoakArgs,
-    cfg: &crate::config::Config,
+    cfg: &chunkrt_controller::config::Config,
     procs: &mut [Proc],
     stop_flag: &std::sync::atomic::AtomicBool,
 ) -> anyhow::Result<(SoakFigures, Stats)> {
@@ -420,7 +420,7 @@ fn follow(
 /// `cyclictest` on the control thread's core, at its priority and period, for `seconds`, while
 /// the stack runs on: the share of wake-ups a period or more late, the figure a soak's overrun
 /// share is compared with.
-fn platform_floor(cfg: &crate::config::Config, seconds: f64) -> Result<Floor, String> {
+fn platform_floor(cfg: &chunkrt_controller::config::Config, seconds: f64) -> Result<Floor, String> {
     if !chunkrt_bench::cyclictest::available() {
         return Err("cyclictest is not installed (apt-get install rt-tests)".into());
     }
@@ -453,7 +453,7 @@ fn platform_floor(cfg: &crate::config::Config, seconds: f64) -> Result<Floor, St
 }
 
 fn summary_markdown(
-    cfg: &crate::config::Config,
+    cfg: &chunkrt_controller::config::Config,
     f: &SoakFigures,
     stats: &Stats,
     outcomes: &[(&'static str, String, PathBuf)],

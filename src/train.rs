@@ -29,20 +29,20 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use rand::{Rng, SeedableRng};
 
-use crate::config::Config;
+use chunkrt_controller::config::Config;
 
-use crate::inference::PolicySource;
-use crate::policy::config::ModelConfig;
-use crate::policy::model::{ModelInputs, PiModel};
-use crate::policy::preprocess::{
-    discretize_state, normalize, resize_with_pad, to_model_chw, NormMode, NormStats,
-    PromptTokenizer, Stats,
-};
 use crate::task::dataset::{
     gaussian, random_start, Dataset, DatasetSpec, DriftMix, TRAIN_SEED_BASE,
 };
 use crate::task::sim::{run_episode, EpisodeSpec, SimSettings};
 use crate::task::{home_pose, task_camera, vocab, TargetColor, TASK_DOF};
+use chunkrt_controller::inference::PolicySource;
+use chunkrt_policy::config::ModelConfig;
+use chunkrt_policy::model::{ModelInputs, PiModel};
+use chunkrt_policy::preprocess::{
+    discretize_state, normalize, resize_with_pad, to_model_chw, NormMode, NormStats,
+    PromptTokenizer, Stats,
+};
 
 mod args;
 mod data;
@@ -71,8 +71,8 @@ pub fn init_state_bin_embeddings(vm: &VarMap) -> anyhow::Result<()> {
         .lock()
         .map_err(|_| anyhow::anyhow!("the VarMap lock is poisoned"))?;
     let var = [
-        crate::policy::checkpoint::EMBED,
-        crate::policy::checkpoint::LM_HEAD,
+        chunkrt_policy::checkpoint::EMBED,
+        chunkrt_policy::checkpoint::LM_HEAD,
     ]
     .iter()
     .find_map(|n| data.get(*n))
@@ -292,8 +292,8 @@ pub fn validate_so101(
 fn validation_policy(cfg: &Config, dir: &Path) -> anyhow::Result<(Config, PolicySource)> {
     let mut c = cfg.clone();
     c.policy.checkpoint = Some(std::fs::canonicalize(dir)?);
-    c.policy.kind = Some(crate::config::ModelKind::Pi05);
-    c.execution.strategy = crate::config::Strategy::Replace;
+    c.policy.kind = Some(chunkrt_controller::config::ModelKind::Pi05);
+    c.execution.strategy = chunkrt_controller::config::Strategy::Replace;
     let policy = PolicySource::load(&c)?;
     Ok((c, policy))
 }
@@ -319,7 +319,7 @@ pub fn snap_step_channels(ds: &mut Dataset, cfg: &Config) {
 fn check_so101_dataset(
     ds: &Dataset,
     path: &Path,
-    cam: &crate::config::CameraConfig,
+    cam: &chunkrt_controller::config::CameraConfig,
     cfg: &Config,
 ) -> anyhow::Result<()> {
     anyhow::ensure!(

@@ -6,14 +6,14 @@
 
 use std::sync::atomic::Ordering;
 
-use chunkrt::config::Config;
-use chunkrt::contract::Observation;
-use chunkrt::control::{cxx_allocations, Executor, State};
-use chunkrt::controller::{ControlLoop, Shared};
-use chunkrt::ipc::services;
-use chunkrt::ipc::{monotonic_ns, JointState};
-use chunkrt::worker::{Delivery, InferenceWorker};
 use chunkrt_bench::scripted::{ScriptedChunkSource, ScriptedConfig};
+use chunkrt_controller::config::Config;
+use chunkrt_controller::contract::Observation;
+use chunkrt_controller::control::{cxx_allocations, Executor, State};
+use chunkrt_controller::controller::{ControlLoop, Shared};
+use chunkrt_controller::worker::{Delivery, InferenceWorker};
+use chunkrt_ipc::services;
+use chunkrt_ipc::{monotonic_ns, JointState};
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
@@ -98,7 +98,7 @@ fn control_tick_with_ipc_allocates_only_the_iceoryx2_loan() {
 fn robot_clocked_tick_with_its_events_allocates_only_the_iceoryx2_loan() {
     let mut cfg = Config::embedded_default();
     cfg.robot.namespace = format!("chunkrt/test-{}-alloc-robot", std::process::id());
-    cfg.control.clock = chunkrt::ipc::config::ControlClock::Robot;
+    cfg.control.clock = chunkrt_ipc::config::ControlClock::Robot;
     let node = services::node("test-alloc-robot-tick").unwrap();
     let shared = Shared::new();
     let mut lp = ControlLoop::new(&node, &cfg).unwrap();

@@ -4,12 +4,12 @@
 //! recovery, timing records and status fills. Chunks are produced by the scripted source
 //! (a test double) outside the measured window, as the inference thread would.
 
-use chunkrt::config::Config;
-use chunkrt::contract::Observation;
-use chunkrt::control::{cxx_allocations, Executor, State};
-use chunkrt::ipc::{ControllerStatus, JointCommand, JointState};
-use chunkrt::worker::{Delivery, InferenceWorker};
 use chunkrt_bench::scripted::{ScriptedChunkSource, ScriptedConfig};
+use chunkrt_controller::config::Config;
+use chunkrt_controller::contract::Observation;
+use chunkrt_controller::control::{cxx_allocations, Executor, State};
+use chunkrt_controller::worker::{Delivery, InferenceWorker};
+use chunkrt_ipc::{ControllerStatus, JointCommand, JointState};
 
 #[path = "common/counting_alloc.rs"]
 mod counting_alloc;
@@ -76,7 +76,7 @@ fn measure(strategy: &str, ticks: usize, warmup: usize) -> (u64, u64, [bool; 4])
 fn executor_tick_allocates_nothing_in_steady_state() {
     // The counter really counts C++ allocations (the shim replaced operator new).
     let before = cxx_allocations();
-    drop(chunkrt::control::Otg::new(0.001).expect("valid dt"));
+    drop(chunkrt_controller::control::Otg::new(0.001).expect("valid dt"));
     assert!(cxx_allocations() > before, "C++ allocations are counted");
 
     for strategy in ["replace", "crossfade", "temporal_ensemble", "rtc"] {

@@ -5,8 +5,8 @@
 
 use std::path::{Path, PathBuf};
 
-use chunkrt::policy::layout::LayoutOptions;
-use chunkrt::policy::{Conditioning, LoadOptions, Policy, RawObservation};
+use chunkrt_policy::layout::LayoutOptions;
+use chunkrt_policy::{Conditioning, LoadOptions, Policy, RawObservation};
 
 #[path = "common/fixture.rs"]
 mod fixture;
@@ -164,7 +164,7 @@ fn an_openpi_checkpoint_samples_as_the_same_model_in_chunkrts_layout() {
     }
     let c = sample(&mut load(&bare, LayoutOptions::default()).unwrap());
     assert!(max_diff(&a, &c) > 1e-3, "the statistics changed nothing");
-    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    let report = chunkrt_policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
     eprintln!("{report}");
     for want in [
         "layout: openpi",
@@ -191,7 +191,7 @@ fn an_openpi_checkpoint_with_several_robots_needs_an_asset_id() {
     let mut opts = with_tokenizer();
     opts.asset_id = Some("droid".into());
     load(&dir, opts.clone()).expect("loads with an asset id");
-    let report = chunkrt::policy::checkpoint::inspect(&dir, &opts).unwrap();
+    let report = chunkrt_policy::checkpoint::inspect(&dir, &opts).unwrap();
     assert!(report.contains("assets/droid/norm_stats.json"), "{report}");
     opts.asset_id = Some("libero".into());
     let e = load(&dir, opts).err().expect("refused");
@@ -264,11 +264,11 @@ fn a_lerobot_checkpoint_samples_as_the_same_model_in_chunkrts_layout() {
 
 #[test]
 fn a_lerobot_checkpoint_as_written_pads_the_state_in_the_prompt_and_says_where_things_came_from() {
-    use chunkrt::policy::preprocess::{
+    use chunkrt_policy::preprocess::{
         discretize_state, normalize, NormMode, NormStats, PromptTokenizer,
     };
     let dir = lerobot_copy("lerobot", None);
-    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    let report = chunkrt_policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
     eprintln!("{report}");
     for want in [
         "layout: LeRobot",
@@ -311,7 +311,7 @@ fn a_lerobot_checkpoint_as_written_pads_the_state_in_the_prompt_and_says_where_t
     for f in ["policy_preprocessor.json", "policy_postprocessor.json"] {
         std::fs::remove_file(dir.join(f)).unwrap();
     }
-    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    let report = chunkrt_policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
     assert!(
         report.contains("MISSING: policy_preprocessor.json"),
         "{report}"
@@ -333,7 +333,7 @@ fn an_openpi_pi0_checkpoint_samples_as_the_same_model_in_chunkrts_layout() {
     let d = max_diff(&a, &b);
     eprintln!("pi0, openpi layout vs chunkrt layout: max diff {d:.2e}");
     assert!(d <= 1e-6, "max diff {d}");
-    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    let report = chunkrt_policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
     assert!(
         report.contains("kind: pi0 (openpi's config.json does not say"),
         "{report}"
@@ -362,7 +362,7 @@ fn an_openpi_checkpoint_gives_its_config_away_and_answers_its_robots_columns() {
     let a = dir.join("assets/physical-intelligence/libero");
     std::fs::create_dir_all(&a).unwrap();
     std::fs::write(a.join("norm_stats.json"), libero_stats_json()).unwrap();
-    let report = chunkrt::policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
+    let report = chunkrt_policy::checkpoint::inspect(&dir, &with_tokenizer()).unwrap();
     eprintln!("{report}");
     for want in [
         "openpi config pi05_libero (from assets/physical-intelligence/libero)",

@@ -6,7 +6,7 @@
 
 use std::collections::BTreeSet;
 
-use chunkrt::config::{Config, DEFAULT_TOML};
+use chunkrt_controller::config::{Config, DEFAULT_TOML};
 
 const PROBE: &str = "zz_probe_zz";
 

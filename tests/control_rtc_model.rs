@@ -5,13 +5,13 @@
 //! measures the strategies, not this machine's load. `crossfade` and `rtc` must have clearly
 //! smaller switch discontinuities in the target than `replace`.
 
-use chunkrt::config::Config;
-use chunkrt::control::Executor;
-use chunkrt::edge::Observation;
-use chunkrt::inference::PolicySource;
-use chunkrt::ipc::{JointCommand, JointState};
-use chunkrt::worker::{Delivery, InferenceWorker, Turn};
 use chunkrt_bench::metrics::Trace;
+use chunkrt_controller::config::Config;
+use chunkrt_controller::control::Executor;
+use chunkrt_controller::edge::Observation;
+use chunkrt_controller::inference::PolicySource;
+use chunkrt_controller::worker::{Delivery, InferenceWorker, Turn};
+use chunkrt_ipc::{JointCommand, JointState};
 
 const DELAY_STEPS: u64 = 3;
 const START_NS: u64 = 10_000_000_000;
@@ -65,7 +65,7 @@ fn run_with(
         js.measurement_time_ns = now;
         let r = exec.tick(now, Some(&js), &mut cmd);
         js.position = cmd.position;
-        if r.state == chunkrt::control::State::Running {
+        if r.state == chunkrt_controller::control::State::Running {
             trace.push(&r.target, &cmd.position, None, r.switched);
         }
     }

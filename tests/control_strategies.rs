@@ -3,11 +3,11 @@
 //! acceleration and jerk limits and publishes a command every tick; the smoothness metrics
 //! show that `crossfade` and `rtc` switch with much smaller discontinuities than `replace`.
 
-use chunkrt::config::Config;
-use chunkrt::control::State;
-use chunkrt::ipc::{COMMAND_MODE_POSITION, MAX_DOF};
 use chunkrt_bench::metrics::{Smoothness, Trace};
 use chunkrt_bench::scripted::{ScriptedConfig, ScriptedSim};
+use chunkrt_controller::config::Config;
+use chunkrt_controller::control::State;
+use chunkrt_ipc::{COMMAND_MODE_POSITION, MAX_DOF};
 
 const START_NS: u64 = 10_000_000_000;
 
@@ -213,8 +213,8 @@ fn tracking_with_the_preview_follows_the_chunk_closer_than_a_fixed_target_chase(
 #[test]
 fn linear_interpolation_and_continuous_trigger_also_hold_limits() {
     let mut cfg = config("crossfade");
-    cfg.execution.interpolation = chunkrt::config::Interpolation::Linear;
-    cfg.execution.trigger = chunkrt::config::Trigger::Continuous;
+    cfg.execution.interpolation = chunkrt_controller::config::Interpolation::Linear;
+    cfg.execution.trigger = chunkrt_controller::config::Trigger::Continuous;
     let mut sim = ScriptedSim::new(&cfg, ScriptedConfig::demo(60_000_000, 0.02), START_NS)
         .expect("executor builds");
     sim.run(3000);

@@ -3,16 +3,16 @@
 //! limits; good inputs bring it back to RUNNING; HOLD for too long is a FAULT that only a
 //! re-arm clears. Uses the scripted chunk source (a test double).
 
-use chunkrt::config::Config;
-use chunkrt::control::{Event, Rearm, Reason, State};
-use chunkrt::ipc::{JointCommand, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD};
 use chunkrt_bench::scripted::{ScriptedConfig, ScriptedSim};
+use chunkrt_controller::config::Config;
+use chunkrt_controller::control::{Event, Rearm, Reason, State};
+use chunkrt_ipc::{JointCommand, COMMAND_MODE_HOLD, CONTROLLER_STATE_HOLD};
 
 const START_NS: u64 = 10_000_000_000;
 
 fn sim(hold_to_fault_ms: f64) -> (Config, ScriptedSim) {
     let mut c = Config::embedded_default();
-    c.execution.strategy = chunkrt::config::Strategy::Rtc;
+    c.execution.strategy = chunkrt_controller::config::Strategy::Rtc;
     c.execution.hold_to_fault_ms = hold_to_fault_ms;
     c.validate("test").expect("valid test config");
     let s = ScriptedSim::new(&c, ScriptedConfig::demo(80_000_000, 0.02), START_NS)
@@ -93,7 +93,7 @@ fn stale_joint_state_holds_then_recovers() {
     assert_eq!(ev.len(), 1, "{ev:?}");
     assert_eq!(ev[0].reason, Reason::StaleJointState);
     assert_eq!((ev[0].from, ev[0].to), (State::Running, State::Hold));
-    let mut st = chunkrt::ipc::ControllerStatus::default();
+    let mut st = chunkrt_ipc::ControllerStatus::default();
     s.exec.fill_status(&mut st);
     assert_eq!(st.state, CONTROLLER_STATE_HOLD);
     assert_eq!(st.hold_entries, 1);
@@ -247,7 +247,7 @@ fn overrun_streak_holds_and_recovers() {
 #[test]
 fn starting_waits_for_joint_state_and_bad_robot_faults() {
     let c = Config::embedded_default();
-    let mut exec = chunkrt::control::Executor::new(&c).expect("executor builds");
+    let mut exec = chunkrt_controller::control::Executor::new(&c).expect("executor builds");
     let mut cmd = JointCommand::default();
     let r = exec.tick(START_NS, None, &mut cmd);
     assert_eq!(r.state, State::Starting);
@@ -256,7 +256,7 @@ fn starting_waits_for_joint_state_and_bad_robot_faults() {
         "nothing to command before the first joint state"
     );
     // A fresh joint state without chunks: hold the measured pose, still STARTING.
-    let mut js = chunkrt::ipc::JointState {
+    let mut js = chunkrt_ipc::JointState {
         n_dof: 4,
         measurement_time_ns: START_NS,
         ..Default::default()
@@ -299,7 +299,7 @@ fn resume_after_a_robot_restart_starts_from_the_measured_position() {
         if s.exec.state() == State::Hold {
             // standing still where it restarted until the controller resumes
             s.joint_state.position = measured;
-            s.joint_state.velocity = [0.0; chunkrt::ipc::MAX_DOF];
+            s.joint_state.velocity = [0.0; chunkrt_ipc::MAX_DOF];
         } else if let Some(c) = s.commands.last() {
             s.joint_state.position = c.position;
             s.joint_state.velocity = c.velocity;
@@ -345,7 +345,7 @@ fn resume_outside_the_position_range_starts_from_the_arm_and_returns_inside() {
         s.joint_state.measurement_time_ns = s.now_ns;
         if s.exec.state() == State::Hold {
             s.joint_state.position = measured;
-            s.joint_state.velocity = [0.0; chunkrt::ipc::MAX_DOF];
+            s.joint_state.velocity = [0.0; chunkrt_ipc::MAX_DOF];
         } else if let Some(c) = s.commands.last() {
             s.joint_state.position = c.position;
             s.joint_state.velocity = c.velocity;
@@ -401,12 +401,12 @@ fn stale_camera_holds_at_once_and_recovers() {
         "held on the first tick that saw the stale camera"
     );
     assert_brakes_within_limits(&cfg, &s.commands[stop_tick - 2..]);
-    let mut st = chunkrt::ipc::ControllerStatus::default();
+    let mut st = chunkrt_ipc::ControllerStatus::default();
     s.exec.fill_status(&mut st);
     assert_eq!(st.state, CONTROLLER_STATE_HOLD);
     assert_eq!(st.stale_cameras, 0b1, "the status says which camera");
     assert_eq!(
-        chunkrt::controller::camera_names(&cfg, st.stale_cameras),
+        chunkrt_controller::controller::camera_names(&cfg, st.stale_cameras),
         cfg.cameras[0].name
     );
     // frames again: RUNNING (the scripted source kept producing chunks)
@@ -422,7 +422,7 @@ fn stale_camera_holds_at_once_and_recovers() {
 /// frame is older than the maximum age at the time of use.
 #[test]
 fn stale_cameras_mask_from_frame_ages() {
-    use chunkrt::edge::Observation;
+    use chunkrt_controller::edge::Observation;
     let mut c = Config::embedded_default();
     let mut second = c.cameras[0].clone();
     second.name = "wrist".into();
@@ -431,7 +431,7 @@ fn stale_cameras_mask_from_frame_ages() {
     let now = 5_000_000_000u64;
     let max_age = 200_000_000u64;
     assert_eq!(
-        chunkrt::controller::stale_cameras(&obs.frames, now, max_age),
+        chunkrt_controller::controller::stale_cameras(&obs.frames, now, max_age),
         0b11,
         "no frame yet: stale"
     );
@@ -440,14 +440,17 @@ fn stale_cameras_mask_from_frame_ages() {
     obs.frames[1].valid = true;
     obs.frames[1].header.capture_time_ns = now - max_age - 1;
     assert_eq!(
-        chunkrt::controller::stale_cameras(&obs.frames, now, max_age),
+        chunkrt_controller::controller::stale_cameras(&obs.frames, now, max_age),
         0b10
     );
-    assert_eq!(chunkrt::controller::camera_names(&c, 0b10), "wrist");
+    assert_eq!(
+        chunkrt_controller::controller::camera_names(&c, 0b10),
+        "wrist"
+    );
     // a frame stamped slightly in the future (within the validated bound) is fresh
     obs.frames[1].header.capture_time_ns = now + 1_000;
     assert_eq!(
-        chunkrt::controller::stale_cameras(&obs.frames, now, max_age),
+        chunkrt_controller::controller::stale_cameras(&obs.frames, now, max_age),
         0
     );
 }
@@ -461,20 +464,20 @@ enum Broken {
     Nothing,
 }
 
-impl chunkrt::contract::ChunkSource for Broken {
+impl chunkrt_controller::contract::ChunkSource for Broken {
     fn name(&self) -> &str {
         "broken (test double)"
     }
 
     fn compute(
         &mut self,
-        _obs: &chunkrt::contract::Observation,
-        req: &chunkrt::contract::InferenceRequest,
-    ) -> anyhow::Result<Option<chunkrt::chunk::ActionChunk>> {
+        _obs: &chunkrt_controller::contract::Observation,
+        req: &chunkrt_controller::contract::InferenceRequest,
+    ) -> anyhow::Result<Option<chunkrt_controller::chunk::ActionChunk>> {
         match self {
             Broken::Fails => anyhow::bail!("inference failed (test double)"),
             Broken::Nothing => Ok(None),
-            Broken::NonFinite => Ok(Some(chunkrt::chunk::ActionChunk {
+            Broken::NonFinite => Ok(Some(chunkrt_controller::chunk::ActionChunk {
                 id: req.id,
                 observation_seq: req.id,
                 t_obs_ns: req.t_ref_ns,
@@ -496,16 +499,16 @@ fn run_broken(
     ms: u64,
     without_source: bool,
 ) -> Vec<(State, Option<Reason>)> {
-    use chunkrt::worker::{Delivery, InferenceWorker};
+    use chunkrt_controller::worker::{Delivery, InferenceWorker};
     let mut cfg = Config::embedded_default();
     cfg.execution.hold_to_fault_ms = hold_to_fault_ms;
-    let mut exec = chunkrt::control::Executor::new(&cfg).unwrap();
+    let mut exec = chunkrt_controller::control::Executor::new(&cfg).unwrap();
     if without_source {
         exec.without_chunk_source();
     }
     let mut worker = InferenceWorker::new(exec.connect(), Delivery::Immediate);
-    let obs = chunkrt::contract::Observation::new(&cfg);
-    let mut js = chunkrt::ipc::JointState {
+    let obs = chunkrt_controller::contract::Observation::new(&cfg);
+    let mut js = chunkrt_ipc::JointState {
         n_dof: 4,
         ..Default::default()
     };

@@ -3,7 +3,7 @@
 
 use std::time::{Duration, Instant};
 
-use chunkrt::config::Config;
+use chunkrt_controller::config::Config;
 use chunkrt_ipc::services;
 use chunkrt_ipc::{
     monotonic_ns, CameraFrameHeader, JointState, Namespace, RejectReason, ENCODING_RGB8,
@@ -905,7 +905,7 @@ fn sigint_during_a_slow_load_stops_at_once() {
     // a "server" that accepts TCP and never answers the handshake
     let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let port = listener.local_addr().unwrap().port();
-    let mut t: toml::Table = toml::from_str(chunkrt::config::DEFAULT_TOML).unwrap();
+    let mut t: toml::Table = toml::from_str(chunkrt_controller::config::DEFAULT_TOML).unwrap();
     let p = t["policy"].as_table_mut().unwrap();
     p.insert("source".into(), "remote".into());
     p.insert("url".into(), format!("ws://127.0.0.1:{port}").into());

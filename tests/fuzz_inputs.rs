@@ -6,13 +6,13 @@
 
 use std::path::PathBuf;
 
-use chunkrt::config::Config;
-use chunkrt::policy::config::ModelConfig;
-use chunkrt::policy::preprocess::{NormMode, NormStats, PromptTokenizer};
+use chunkrt_controller::config::Config;
 use chunkrt_ipc::{
     validate_frame, validate_joint_command, validate_joint_state, CameraFrameHeader, Freshness,
     JointCommand, JointState, StreamGuard, MAX_DOF,
 };
+use chunkrt_policy::config::ModelConfig;
+use chunkrt_policy::preprocess::{NormMode, NormStats, PromptTokenizer};
 use proptest::prelude::*;
 use proptest::test_runner::{Config as RunConfig, RngAlgorithm, TestRng, TestRunner};
 

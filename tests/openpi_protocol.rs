@@ -16,7 +16,7 @@ use std::net::TcpStream;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use chunkrt::config::Config;
+use chunkrt_controller::config::Config;
 use chunkrt_openpi::{decode, Limits, Reply};
 use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};
 
@@ -472,8 +472,8 @@ fn a_peers_long_prompts_do_not_grow_the_log() {
 /// answers while backing off names the cause, not "unreachable".
 #[test]
 fn a_server_that_answers_badly_is_asked_at_a_bounded_rate() {
-    use chunkrt::contract::{ChunkSource, InferenceRequest, Observation};
-    use chunkrt::worker::{Delivery, InferenceWorker, Turn};
+    use chunkrt_controller::contract::{ChunkSource, InferenceRequest, Observation};
+    use chunkrt_controller::worker::{Delivery, InferenceWorker, Turn};
     use chunkrt_openpi::{Layout, Preset, Request, Server, ServerConfig, Value, Writer};
     use std::sync::atomic::{AtomicU8, Ordering};
     use std::sync::Arc;
@@ -525,11 +525,11 @@ fn a_server_that_answers_badly_is_asked_at_a_bounded_rate() {
     .unwrap();
     let mut cfg = Config::embedded_default();
     cfg.policy.url = Some(format!("ws://{}", server.local_addr()));
-    let mut src = chunkrt::remote::RemoteSource::connect(&cfg).expect("connects");
+    let mut src = chunkrt_controller::remote::RemoteSource::connect(&cfg).expect("connects");
     let mut obs = Observation::new(&cfg);
     obs.joint_state.n_dof = cfg.n_dof() as u32;
     let req = InferenceRequest::default();
-    let exec = chunkrt::control::Executor::new(&cfg).expect("executor builds");
+    let exec = chunkrt_controller::control::Executor::new(&cfg).expect("executor builds");
     let mut worker = InferenceWorker::new(exec.connect(), Delivery::Immediate);
     for (bad, what, cause) in [
         (0u8, "non-finite actions", "finite"),

@@ -7,8 +7,8 @@
 //! dims made absolute with the model-space state, z-score and quantile statistics, LIBERO's 7
 //! columns out of an 8-value state.
 
-use chunkrt::policy::openpi_config::{by_name, model_state, robot_actions};
-use chunkrt::policy::preprocess::{NormMode, NormStats, Stats};
+use chunkrt_policy::openpi_config::{by_name, model_state, robot_actions};
+use chunkrt_policy::preprocess::{NormMode, NormStats, Stats};
 use serde_json::Value;
 
 const FIXTURE: &str = concat!(
@@ -57,7 +57,7 @@ fn every_config_transforms_as_openpi_does() {
         };
         assert_eq!(
             mode == NormMode::Quantile,
-            cfg.kind == chunkrt::policy::ModelKind::Pi05,
+            cfg.kind == chunkrt_policy::ModelKind::Pi05,
             "{name}: openpi normalises π0.5 by quantiles, π0 by z-score"
         );
         let ns = NormStats {

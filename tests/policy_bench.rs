@@ -18,8 +18,8 @@ fn bench_quick_mode_runs_and_reports_every_phase() {
     // π0 and π0.5, each in f32, in bf16 where the CPU has AMX or AVX512-BF16, and on candle's
     // kernels (the in-run baseline) where the packed f32 kernel runs
     let per_model = 1
-        + chunkrt::policy::packed::bf16_backend().is_some() as usize
-        + chunkrt::policy::packed::support().f32_packed() as usize;
+        + chunkrt_policy::packed::bf16_backend().is_some() as usize
+        + chunkrt_policy::packed::support().f32_packed() as usize;
     assert_eq!(r.configs.len(), 2 * per_model);
     for c in &r.configs {
         if c.precision == "bf16" {

@@ -39,14 +39,14 @@ struct GenericPaths {
 impl GenericPaths {
     fn on() -> Self {
         let lock = cpu_paths();
-        chunkrt::policy::set_cpu_fast_paths(false);
+        chunkrt_policy::set_cpu_fast_paths(false);
         GenericPaths { _lock: lock }
     }
 }
 
 impl Drop for GenericPaths {
     fn drop(&mut self) {
-        chunkrt::policy::set_cpu_fast_paths(true);
+        chunkrt_policy::set_cpu_fast_paths(true);
     }
 }
 
@@ -111,7 +111,7 @@ const BF16_BOUND: f64 = 0.03;
 
 /// A CUDA device, or `None` with a loud note (no `cuda` feature, or no GPU).
 fn cuda() -> Option<Device> {
-    match chunkrt::policy::DeviceSpec::Cuda(0).open() {
+    match chunkrt_policy::DeviceSpec::Cuda(0).open() {
         Ok(d) => Some(d),
         Err(e) => {
             eprintln!("!!! policy_device: GPU tests SKIPPED: {e}");
@@ -273,9 +273,9 @@ fn fixed_step_layout_equals_the_compact_one() {
     ignore = "needs a build with --features cuda and an NVIDIA GPU"
 )]
 fn cuda_guided_graph_replays_the_eager_guided_loop() {
-    use chunkrt::policy::graph::SampleGraph;
-    use chunkrt::policy::rtc::{sample_guided, weight_mask, GuidanceTarget, Jacobian};
     use chunkrt_bench::inference::{device_bench_config, random_inputs_on, random_model_on};
+    use chunkrt_policy::graph::SampleGraph;
+    use chunkrt_policy::rtc::{sample_guided, weight_mask, GuidanceTarget, Jacobian};
     let Some(dev) = cuda() else { return };
     let (cfg, valid) = device_bench_config("pi05_bench").unwrap();
     let (steps, h, a) = (cfg.num_denoise_steps, cfg.action_horizon, cfg.action_dim);
@@ -329,8 +329,8 @@ fn cuda_guided_graph_replays_the_eager_guided_loop() {
     ignore = "needs a build with --features cuda and an NVIDIA GPU"
 )]
 fn cuda_graph_replays_the_eager_loop_for_every_observation() {
-    use chunkrt::policy::graph::SampleGraph;
     use chunkrt_bench::inference::{device_bench_config, random_inputs_on, random_model_on};
+    use chunkrt_policy::graph::SampleGraph;
     let Some(dev) = cuda() else { return };
     let (cfg, valid) = device_bench_config("pi05_bench").unwrap();
     let steps = cfg.num_denoise_steps;

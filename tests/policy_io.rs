@@ -4,12 +4,12 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
-use chunkrt::policy::checkpoint;
-use chunkrt::policy::preprocess::{
+use chunkrt_policy::checkpoint;
+use chunkrt_policy::preprocess::{
     discretize_state, normalize, pi05_prompt, resize_with_pad, unnormalize, NormMode,
     PromptTokenizer, Stats,
 };
-use chunkrt::policy::{Conditioning, ConfigOverrides, RawFrame, RawObservation};
+use chunkrt_policy::{Conditioning, ConfigOverrides, RawFrame, RawObservation};
 
 #[path = "common/fixture.rs"]
 mod fixture;
@@ -217,8 +217,8 @@ fn checkpoint_errors_list_every_bad_tensor_and_lerobot_prefix_and_bf16_load() {
 #[test]
 fn runtime_prepares_fixture_inputs_and_infers() {
     let dir = data("pi05_tiny");
-    let pc = chunkrt::config::PolicyConfig::default();
-    let mut policy = chunkrt::inference::load_policy(&dir, &pc).unwrap();
+    let pc = chunkrt_controller::config::PolicyConfig::default();
+    let mut policy = chunkrt_controller::inference::load_policy(&dir, &pc).unwrap();
     let inp = inputs("pi05_tiny");
     let (frames, state) =
         fixture::raw_observation("pi05_tiny", &["base_0_rgb", "left_wrist_0_rgb"]);
@@ -333,7 +333,7 @@ fn cli_sample_and_inspect() {
 
 #[test]
 fn presets_have_openpi_dimensions_and_parameter_counts() {
-    use chunkrt::policy::config::{ModelConfig, ModelKind};
+    use chunkrt_policy::config::{ModelConfig, ModelKind};
     let count = |cfg: &ModelConfig| -> f64 {
         checkpoint::expected_tensors(cfg)
             .iter()
@@ -391,21 +391,21 @@ fn toml_model_overrides_reach_the_loaded_model() {
     std::fs::create_dir_all(dir.join("config")).unwrap();
     let path = dir.join("config/over.toml");
     std::fs::write(&path, &text).unwrap();
-    let mut cfg = chunkrt::config::Config::load(&path).unwrap();
+    let mut cfg = chunkrt_controller::config::Config::load(&path).unwrap();
     cfg.policy.checkpoint = Some(data("pi05_tiny"));
-    let p = chunkrt::inference::load_policy(&data("pi05_tiny"), &cfg.policy).unwrap();
+    let p = chunkrt_controller::inference::load_policy(&data("pi05_tiny"), &cfg.policy).unwrap();
     assert_eq!(p.horizon(), 6);
     assert_eq!(p.model().cfg.cameras.len(), 2);
     // out-of-range values are rejected at the boundary, naming the key
     let bad = text.replace("action_horizon = 6", "action_horizon = 0");
     std::fs::write(&path, &bad).unwrap();
-    let e = chunkrt::config::Config::load(&path)
+    let e = chunkrt_controller::config::Config::load(&path)
         .unwrap_err()
         .to_string();
     assert!(e.contains("policy.model.action_horizon"), "{e}");
     let bad = text.replace("action_horizon = 6", "horizon = 6");
     std::fs::write(&path, &bad).unwrap();
-    assert!(chunkrt::config::Config::load(&path).is_err());
+    assert!(chunkrt_controller::config::Config::load(&path).is_err());
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -435,15 +435,15 @@ fn delta_action_mask_adds_the_observed_state_on_its_dims() {
         joint_positions: &state,
         prompt: "pick up the red block",
     };
-    let absolute = chunkrt::config::PolicyConfig::default();
+    let absolute = chunkrt_controller::config::PolicyConfig::default();
     let mut delta = absolute.clone();
     let mask: Vec<bool> = (0..n).map(|d| d % 2 == 0).collect();
     delta.model.delta_action_mask = Some(mask.clone());
-    let a = chunkrt::inference::load_policy(&dir, &absolute)
+    let a = chunkrt_controller::inference::load_policy(&dir, &absolute)
         .unwrap()
         .infer(&obs, &Conditioning::Fresh)
         .unwrap();
-    let mut p = chunkrt::inference::load_policy(&dir, &delta).unwrap();
+    let mut p = chunkrt_controller::inference::load_policy(&dir, &delta).unwrap();
     assert_eq!(p.model().cfg.delta_action_mask, mask);
     let b = p.infer(&obs, &Conditioning::Fresh).unwrap();
     assert_eq!(a.len(), b.len());
@@ -457,7 +457,7 @@ fn delta_action_mask_adds_the_observed_state_on_its_dims() {
     }
     // a mask longer than the model's action dim is rejected when loading
     delta.model.delta_action_mask = Some(vec![true; 64]);
-    assert!(chunkrt::inference::load_policy(&dir, &delta).is_err());
+    assert!(chunkrt_controller::inference::load_policy(&dir, &delta).is_err());
 }
 
 /// `policy.precision = "bf16"`: the matrix products run in bf16 (Intel AMX or AVX512-BF16); the
@@ -472,14 +472,14 @@ fn bf16_precision_stays_close_to_f32() {
         joint_positions: &state,
         prompt: "pick up the red block",
     };
-    let f32_cfg = chunkrt::config::PolicyConfig::default();
+    let f32_cfg = chunkrt_controller::config::PolicyConfig::default();
     let mut bf16_cfg = f32_cfg.clone();
-    bf16_cfg.precision = chunkrt::config::Precision::Bf16;
-    let a = chunkrt::inference::load_policy(&dir, &f32_cfg)
+    bf16_cfg.precision = chunkrt_controller::config::Precision::Bf16;
+    let a = chunkrt_controller::inference::load_policy(&dir, &f32_cfg)
         .unwrap()
         .infer(&obs, &Conditioning::Fresh)
         .unwrap();
-    let b = chunkrt::inference::load_policy(&dir, &bf16_cfg)
+    let b = chunkrt_controller::inference::load_policy(&dir, &bf16_cfg)
         .unwrap()
         .infer(&obs, &Conditioning::Fresh)
         .unwrap();
@@ -490,7 +490,7 @@ fn bf16_precision_stays_close_to_f32() {
         .map(|(x, y)| (x - y).abs())
         .fold(0.0, f64::max);
     println!("bf16 vs f32: max |diff| {worst:.5}, actions RMS {rms:.4}");
-    if chunkrt::policy::packed::bf16_backend().is_none() {
+    if chunkrt_policy::packed::bf16_backend().is_none() {
         eprintln!("no bf16 kernel here: bf16 fell back to f32");
         assert_eq!(worst, 0.0);
         return;
@@ -574,9 +574,9 @@ fn config_json_sizes_are_bounded_with_the_key_named() {
 #[test]
 fn execute_horizon_beyond_the_chunk_is_refused() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/pi05_tiny.toml");
-    let mut cfg = chunkrt::config::Config::load(std::path::Path::new(path)).unwrap();
+    let mut cfg = chunkrt_controller::config::Config::load(std::path::Path::new(path)).unwrap();
     cfg.execution.execute_horizon = 1000;
-    let e = chunkrt::inference::PolicySource::load(&cfg)
+    let e = chunkrt_controller::inference::PolicySource::load(&cfg)
         .err()
         .expect("refused")
         .to_string();
@@ -597,11 +597,11 @@ fn norm_stats_are_checked_at_load() {
     let base: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(src.join("norm_stats.json")).unwrap())
             .unwrap();
-    let mut cfg = chunkrt::config::Config::embedded_default();
+    let mut cfg = chunkrt_controller::config::Config::embedded_default();
     cfg.policy.checkpoint = Some(tmp.clone());
     let load = |ns: &serde_json::Value| {
         std::fs::write(tmp.join("norm_stats.json"), ns.to_string()).unwrap();
-        chunkrt::inference::PolicySource::load(&cfg)
+        chunkrt_controller::inference::PolicySource::load(&cfg)
             .err()
             .map(|e| format!("{e:#}"))
     };
@@ -636,13 +636,13 @@ fn a_missing_tokenizer_is_an_error_unless_declared() {
     std::fs::copy(dir.join("model.safetensors"), tmp.join("model.safetensors")).unwrap();
     let mut cfg: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("config.json")).unwrap()).unwrap();
-    let opts = chunkrt::policy::LoadOptions::default();
+    let opts = chunkrt_policy::LoadOptions::default();
     // the fixture declares its stand-in ("STAND-IN ..."): loads
     std::fs::write(tmp.join("config.json"), cfg.to_string()).unwrap();
-    chunkrt::policy::Policy::load(&tmp, &opts).expect("declared stand-in loads");
+    chunkrt_policy::Policy::load(&tmp, &opts).expect("declared stand-in loads");
     cfg.as_object_mut().unwrap().remove("tokenizer");
     std::fs::write(tmp.join("config.json"), cfg.to_string()).unwrap();
-    let e = chunkrt::policy::Policy::load(&tmp, &opts)
+    let e = chunkrt_policy::Policy::load(&tmp, &opts)
         .err()
         .expect("refused")
         .to_string();
@@ -652,7 +652,7 @@ fn a_missing_tokenizer_is_an_error_unless_declared() {
     );
     cfg["tokenizer"] = "byte_stand_in".into();
     std::fs::write(tmp.join("config.json"), cfg.to_string()).unwrap();
-    chunkrt::policy::Policy::load(&tmp, &opts).expect("declared stand-in loads");
+    chunkrt_policy::Policy::load(&tmp, &opts).expect("declared stand-in loads");
     std::fs::remove_dir_all(&tmp).ok();
 }
 
@@ -673,9 +673,9 @@ fn reach_copy(tag: &str) -> std::path::PathBuf {
 }
 
 fn load_reach(dir: &std::path::Path) -> Option<String> {
-    let mut cfg = chunkrt::config::Config::embedded_default();
+    let mut cfg = chunkrt_controller::config::Config::embedded_default();
     cfg.policy.checkpoint = Some(dir.to_path_buf());
-    chunkrt::inference::PolicySource::load(&cfg)
+    chunkrt_controller::inference::PolicySource::load(&cfg)
         .err()
         .map(|e| format!("{e:#}"))
 }
@@ -751,7 +751,7 @@ fn a_fifo_or_a_huge_side_file_is_a_clear_error() {
     assert!(t0.elapsed() < std::time::Duration::from_secs(10));
     std::fs::remove_file(&tok).unwrap();
     let f = std::fs::File::create(tmp.join("config.json")).unwrap();
-    f.set_len(chunkrt::policy::files::MAX_SIDE_FILE_BYTES + 1)
+    f.set_len(chunkrt_policy::files::MAX_SIDE_FILE_BYTES + 1)
         .unwrap();
     std::fs::copy(
         std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -770,8 +770,8 @@ fn a_fifo_or_a_huge_side_file_is_a_clear_error() {
 /// and 7 in openpi; binned from f32-normalised values they were 4 and 8 (issue 54 §5).
 #[test]
 fn pi05_prompt_state_is_binned_as_openpi_bins_it_at_the_edges() {
-    use chunkrt::policy::openpi_config::{by_name, model_state};
-    use chunkrt::policy::preprocess::NormStats;
+    use chunkrt_policy::openpi_config::{by_name, model_state};
+    use chunkrt_policy::preprocess::NormStats;
     let cfg = by_name("pi05_droid").expect("pi05_droid");
     let n = cfg.robot.state_dim();
     let stats = Stats {
@@ -805,7 +805,7 @@ fn pi05_prompt_state_is_binned_as_openpi_bins_it_at_the_edges() {
 /// units hint for the degrees, and the shipped statistics still load.
 #[test]
 fn action_statistics_that_would_throw_the_arm_are_refused_at_load() {
-    use chunkrt::inference::PolicySource;
+    use chunkrt_controller::inference::PolicySource;
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let shipped = root.join("models/reach_pi05");
     let text = std::fs::read_to_string(shipped.join("norm_stats.json")).unwrap();
@@ -842,7 +842,7 @@ fn action_statistics_that_would_throw_the_arm_are_refused_at_load() {
             std::fs::copy(shipped.join(f), dir.join(f)).unwrap();
         }
         std::fs::write(dir.join("norm_stats.json"), stats.to_string()).unwrap();
-        let mut cfg = chunkrt::config::Config::embedded_default();
+        let mut cfg = chunkrt_controller::config::Config::embedded_default();
         cfg.policy.checkpoint = Some(dir.clone());
         let loaded = PolicySource::load(&cfg)
             .map(|_| ())

@@ -1,15 +1,15 @@
-//! Real-time chunking guidance (`chunkrt::policy::rtc`) on the real pi05_tiny fixture checkpoint:
+//! Real-time chunking guidance (`chunkrt_policy::rtc`) on the real pi05_tiny fixture checkpoint:
 //! β = 0 / W = 0 equal the unguided sampler, guidance pulls the frozen steps onto the previous
 //! chunk, the VJP matches finite differences, and the guided step's cost relative to a plain one.
 
 use std::time::Instant;
 
 use candle_core::{Device, Tensor};
-use chunkrt::policy::rtc::{
+use chunkrt_policy::rtc::{
     clean_estimate_vjp, guidance_scale, guided_velocity, weight_mask, Guidance, GuidanceTarget,
     Jacobian,
 };
-use chunkrt::policy::{Conditioning, Policy, RawObservation};
+use chunkrt_policy::{Conditioning, Policy, RawObservation};
 
 #[path = "common/fixture.rs"]
 mod fixture;
@@ -21,13 +21,13 @@ fn fixture() -> (Vec<Frame>, Vec<f64>) {
 }
 
 fn policy() -> Policy {
-    let pc = chunkrt::config::PolicyConfig::default();
-    chunkrt::inference::load_policy(&data("pi05_tiny"), &pc).unwrap()
+    let pc = chunkrt_controller::config::PolicyConfig::default();
+    chunkrt_controller::inference::load_policy(&data("pi05_tiny"), &pc).unwrap()
 }
 
 /// The fixture observation with its prompt.
 fn observation<'a>(
-    raw: &'a [chunkrt::policy::RawFrame<'a>],
+    raw: &'a [chunkrt_policy::RawFrame<'a>],
     state: &'a [f64],
 ) -> RawObservation<'a> {
     RawObservation {
@@ -39,7 +39,7 @@ fn observation<'a>(
 
 /// A policy and the fixture observation as model inputs (for tests that drive the model
 /// directly), with the unpadded state.
-fn prepared() -> (Policy, chunkrt::policy::ModelInputs, Vec<f64>) {
+fn prepared() -> (Policy, chunkrt_policy::ModelInputs, Vec<f64>) {
     let (frames, state) = fixture();
     let raw = raw_frames(&frames);
     let obs = observation(&raw, &state);
@@ -189,9 +189,9 @@ fn guidance_with_delta_actions_pulls_onto_the_absolute_previous_chunk() {
 }
 
 fn guidance_pulls(delta_action_mask: Option<Vec<bool>>, jacobian: Jacobian) {
-    let mut pc = chunkrt::config::PolicyConfig::default();
+    let mut pc = chunkrt_controller::config::PolicyConfig::default();
     pc.model.delta_action_mask = delta_action_mask;
-    let policy = || chunkrt::inference::load_policy(&data("pi05_tiny"), &pc).unwrap();
+    let policy = || chunkrt_controller::inference::load_policy(&data("pi05_tiny"), &pc).unwrap();
     let (frames, state) = fixture();
     let raw = raw_frames(&frames);
     let obs = observation(&raw, &state);
@@ -426,8 +426,8 @@ fn bad_guidance_is_an_error_not_a_panic() {
 /// in `tests/policy_device.rs`.
 #[test]
 fn the_guided_loop_a_gpu_captures_is_the_eager_guided_sampler() {
-    use chunkrt::policy::graph::SampleGraph;
-    use chunkrt::policy::rtc::sample_guided;
+    use chunkrt_policy::graph::SampleGraph;
+    use chunkrt_policy::rtc::sample_guided;
     let (p, inputs, state) = prepared();
     let model = p.model();
     let (h, a) = (model.cfg.action_horizon, model.cfg.action_dim);

@@ -6,8 +6,8 @@
 //! leaves the committed actions out, and a checkpoint not trained for it is refused.
 
 use candle_core::{DType, Device, Tensor};
-use chunkrt::policy::model::{FlowTimes, PrefixCache};
-use chunkrt::policy::{Conditioning, RawObservation};
+use chunkrt_policy::model::{FlowTimes, PrefixCache};
+use chunkrt_policy::{Conditioning, RawObservation};
 
 #[path = "common/fixture.rs"]
 mod fixture;
@@ -214,10 +214,10 @@ fn the_runtime_gives_the_committed_actions_in_robot_units() {
         joint_positions: &state,
         prompt: "pick up the red block",
     };
-    let pc = chunkrt::config::PolicyConfig::default();
+    let pc = chunkrt_controller::config::PolicyConfig::default();
     let n = state.len();
     // a checkpoint not trained for it refuses, with the reason
-    let mut plain = chunkrt::inference::load_policy(&data("pi05_tiny"), &pc).unwrap();
+    let mut plain = chunkrt_controller::inference::load_policy(&data("pi05_tiny"), &pc).unwrap();
     assert_eq!(plain.committed_max(), 0);
     let err = plain
         .infer(&obs, &Conditioning::Committed(&state))
@@ -226,8 +226,8 @@ fn the_runtime_gives_the_committed_actions_in_robot_units() {
     assert!(err.contains("rtc_prefix_max"), "{err}");
 
     let dir = trained_copy(3);
-    let mut p = chunkrt::inference::load_policy(&dir, &pc).unwrap();
-    let mut fresh = chunkrt::inference::load_policy(&dir, &pc).unwrap();
+    let mut p = chunkrt_controller::inference::load_policy(&dir, &pc).unwrap();
+    let mut fresh = chunkrt_controller::inference::load_policy(&dir, &pc).unwrap();
     assert_eq!(p.committed_max(), 3);
     let h = p.horizon();
     // the previous chunk: a ramp away from the state, in robot units

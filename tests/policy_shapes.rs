@@ -2,9 +2,9 @@
 //! cached == uncached, batch rows == single runs, differentiable ops == fast ops, gradients flow.
 
 use candle_core::{Device, Tensor, Var};
-use chunkrt::policy::model::{ModelInputs, PiModel};
-use chunkrt::policy::ModelConfig;
 use chunkrt_bench::inference::{random_inference_model, random_model};
+use chunkrt_policy::model::{ModelInputs, PiModel};
+use chunkrt_policy::ModelConfig;
 
 #[path = "common/fixture.rs"]
 mod fixture;
@@ -116,7 +116,7 @@ fn check_kind(pi05: bool) {
     // that kernel runs, and a new observation through the reused cache repacks it (a stale
     // prefix would give the first observation's actions)
     let depth = cfg.action_expert.depth;
-    let packs = chunkrt::policy::packed::support().f32_packed();
+    let packs = chunkrt_policy::packed::support().f32_packed();
     let panels = cache.as_ref().unwrap().packed_prefix();
     assert_eq!(panels.as_ref().map(|p| p.len()), packs.then_some(depth));
     let offset = cache.as_ref().unwrap().action_offset;
@@ -384,7 +384,7 @@ fn a_saved_checkpoint_computes_what_was_trained() {
         std::fs::create_dir_all(&dir).unwrap();
         vm.save(dir.join("model.safetensors")).unwrap();
         std::fs::write(dir.join("config.json"), small_config_json(pi05)).unwrap();
-        let loaded = chunkrt::policy::checkpoint::load(&dir, &Default::default())
+        let loaded = chunkrt_policy::checkpoint::load(&dir, &Default::default())
             .unwrap()
             .model;
         let (fast, slow) = (loss(&loaded, false), loss(&loaded, true));

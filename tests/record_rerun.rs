@@ -146,7 +146,7 @@ fn a_run_is_recorded_and_rerun_reads_it_back() {
     );
     let v: serde_json::Value = serde_json::from_str(text.lines().last().unwrap_or("{}"))
         .unwrap_or_else(|e| panic!("rrd_check.py printed no JSON ({e}): {text}"));
-    let n = chunkrt::config::Config::embedded_default().n_dof();
+    let n = chunkrt_controller::config::Config::embedded_default().n_dof();
     for j in 0..n {
         for series in ["measured", "command", "velocity", "target"] {
             let rows = v["series"][format!("joints/{j}/{series}")]["rows"]

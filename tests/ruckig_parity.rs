@@ -1,8 +1,8 @@
-//! The allocation-free ruckig shim (`chunkrt::control::otg`) agrees with the `ruckig` crate
+//! The allocation-free ruckig shim (`chunkrt_controller::control::otg`) agrees with the `ruckig` crate
 //! (same C++ library, compiled separately) on random problems: same result code, same
 //! duration, same sampled states; and the online `update` loops produce the same commands.
 
-use chunkrt::control::otg::{Otg, OtgInput, OtgOutput, OtgResult, OtgState};
+use chunkrt_controller::control::otg::{Otg, OtgInput, OtgOutput, OtgResult, OtgState};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 

@@ -6,10 +6,10 @@
 use std::path::Path;
 use std::process::Command;
 
-use chunkrt::config::{Config, Jacobian};
-use chunkrt::inference::PolicySource;
 use chunkrt::task::sim::{run_episode, SimSettings};
 use chunkrt::train::held_out_episodes;
+use chunkrt_controller::config::{Config, Jacobian};
+use chunkrt_controller::inference::PolicySource;
 
 const EXE: &str = env!("CARGO_BIN_EXE_chunkrt");
 
@@ -311,7 +311,7 @@ fn committed_rtc_policy_runs_rtc_trained_in_closed_loop() {
     let mut cfg = Config::embedded_default();
     cfg.policy.checkpoint =
         Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("models/reach_pi05_rtc"));
-    cfg.execution.strategy = chunkrt::config::Strategy::RtcTrained;
+    cfg.execution.strategy = chunkrt_controller::config::Strategy::RtcTrained;
     cfg.execution.initial_delay_steps = 2;
     let mut p = PolicySource::load(&cfg).unwrap();
     assert_eq!(p.committed_max(), 8);
@@ -430,12 +430,12 @@ fn run_demo(config: Option<&Path>, prompt: &str, dir: &Path) -> (String, String)
 /// chunk (first action: the current position; last action: where the expert is 0.9 s later).
 #[test]
 fn committed_policy_reproduces_expert_chunks_open_loop() {
-    use chunkrt::policy::runtime::{RawFrame, RawObservation};
     use chunkrt::task::expert::{Profile, Reach};
     use chunkrt::task::ReachScene;
+    use chunkrt_policy::runtime::{RawFrame, RawObservation};
     let cfg = Config::embedded_default();
     let dir = cfg.resolve(cfg.policy.checkpoint.as_ref().unwrap());
-    let mut policy = chunkrt::inference::load_policy(&dir, &cfg.policy).unwrap();
+    let mut policy = chunkrt_controller::inference::load_policy(&dir, &cfg.policy).unwrap();
     let eps = held_out_episodes(&cfg, 4_000, 12, 9);
     let (w, h) = (64usize, 64usize);
     let mut img = vec![0u8; w * h * 3];
@@ -453,7 +453,7 @@ fn committed_policy_reproduces_expert_chunks_open_loop() {
                 width: w as u32,
                 height: h as u32,
                 stride: 3 * w as u32,
-                encoding: chunkrt::policy::Encoding::Rgb8,
+                encoding: chunkrt_policy::Encoding::Rgb8,
                 data: &img,
             }];
             let acts = policy
@@ -463,7 +463,7 @@ fn committed_policy_reproduces_expert_chunks_open_loop() {
                         joint_positions: &q,
                         prompt: e.color.prompt(),
                     },
-                    &chunkrt::policy::Conditioning::Fresh,
+                    &chunkrt_policy::Conditioning::Fresh,
                 )
                 .unwrap();
             let hz = acts.len() / 4;
@@ -494,7 +494,7 @@ fn committed_policy_acts_on_its_image_and_prompt() {
     use chunkrt::task::probe::probe;
     let cfg = Config::embedded_default();
     let dir = cfg.resolve(cfg.policy.checkpoint.as_ref().unwrap());
-    let mut policy = chunkrt::inference::load_policy(&dir, &cfg.policy).unwrap();
+    let mut policy = chunkrt_controller::inference::load_policy(&dir, &cfg.policy).unwrap();
     let eps = held_out_episodes(&cfg, 4_000, 16, 9);
     let r = probe(&mut policy, &cfg, &eps, Profile::DistancePaced).unwrap();
     eprintln!("{r}");
@@ -541,7 +541,7 @@ fn drift_policy_sees_its_earlier_frame() {
     use chunkrt::eval::{MOTION_PROBE_RATE_RAD_S, PROBE_SCENE_BASE};
     let cfg = drift_config();
     let dir = cfg.resolve(cfg.policy.checkpoint.as_ref().unwrap());
-    let mut policy = chunkrt::inference::load_policy(&dir, &cfg.policy).unwrap();
+    let mut policy = chunkrt_controller::inference::load_policy(&dir, &cfg.policy).unwrap();
     assert_eq!(policy.delayed_views().len(), 1);
     let eps = held_out_episodes(&cfg, PROBE_SCENE_BASE, 16, 9);
     let m = chunkrt::task::probe::motion_probe(&mut policy, &cfg, &eps, MOTION_PROBE_RATE_RAD_S)

@@ -4,8 +4,8 @@
 //! `scripts/fixtures/make_tokenizer_fixture.py` with a tiny model trained like PaliGemma's: BPE,
 //! byte fallback, identity normalisation, digits split).
 
-use chunkrt::policy::preprocess::{discretize_state, PromptTokenizer};
-use chunkrt::policy::sentencepiece::SentencePiece;
+use chunkrt_policy::preprocess::{discretize_state, PromptTokenizer};
+use chunkrt_policy::sentencepiece::SentencePiece;
 use serde::Deserialize;
 
 #[derive(Deserialize)]
@@ -117,7 +117,7 @@ fn the_hugging_face_conversion_tokenizes_as_openpi() {
 /// the newline apart. The two agree on a clean prompt and differ on an underscored one.
 #[test]
 fn lerobot_pi0_prompts_keep_the_task_as_given() {
-    use chunkrt::policy::preprocess::PromptStyle;
+    use chunkrt_policy::preprocess::PromptStyle;
     let sp = SentencePiece::from_file(&data().join("paligemma_tiny.model")).unwrap();
     let tok = PromptTokenizer::from_sentencepiece(&data().join("paligemma_tiny.model")).unwrap();
     let styled = |p: &str, s| tok.tokenize_styled(p, None, 48, s).unwrap().0;

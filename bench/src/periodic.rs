@@ -69,7 +69,7 @@ pub struct PeriodicStats {
 /// `period_ns` on absolute deadlines for `duration_ns` and returns the measurements. `stop`
 /// ends it early. The
 /// schedule is the controller's own ([`chunkrt_controller::rt::run_periodic`]), and so are the pinning and
-/// the SCHED_FIFO request ([`chunkrt::rt`]); this harness adds only the histograms.
+/// the SCHED_FIFO request ([`chunkrt_controller::rt`]); this harness adds only the histograms.
 pub fn run_periodic<T: TickBody>(
     cfg: &PeriodicConfig,
     make: impl FnOnce() -> Result<T, BenchError> + Send + 'static,

@@ -22,13 +22,13 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use chunkrt::config::Config;
-use chunkrt::policy::Policy;
 use chunkrt::report::{fmt_us, latency_histogram, LatencyTable, Series};
+use chunkrt_controller::config::Config;
 use chunkrt_openpi::{
     decode, Client, ClientConfig, ImageRef, Layout, Limits, Outgoing, Reply, Request, Server,
     ServerConfig, Value, Writer,
 };
+use chunkrt_policy::Policy;
 use hdrhistogram::Histogram;
 use rand::{Rng, SeedableRng};
 
@@ -82,7 +82,7 @@ fn pi05_bench_checkpoint(dir: &Path) -> Result<(), BenchError> {
         .iter()
         .find(|(n, _)| *n == "pi05_bench")
         .ok_or_else(|| err("pi05_bench", "no such preset"))?;
-    let cfg = chunkrt::policy::config::ModelConfig::from_json_str(json)
+    let cfg = chunkrt_policy::config::ModelConfig::from_json_str(json)
         .map_err(|e| err("pi05_bench config", e))?;
     let (_, vars) =
         chunkrt_bench::inference::random_model(&cfg).map_err(|e| err("pi05_bench weights", e))?;
@@ -191,7 +191,8 @@ fn measure_cases(
 /// The in-process server for `model`.
 fn local_server(model: &Model) -> Result<Server, BenchError> {
     let cfg = Config::embedded_default();
-    let pool = chunkrt::inference::policy_pool(&cfg.policy).map_err(|e| err("pool", e))?;
+    let pool =
+        chunkrt_controller::inference::policy_pool(&cfg.policy).map_err(|e| err("pool", e))?;
     let mut opts = cfg.policy.load_options();
     opts.kind = None;
     let mut policy = pool

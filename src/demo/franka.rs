@@ -19,7 +19,7 @@ use chunkrt_tools::testing::summary_value;
 use super::{live, spawn, stop, DemoArgs, Proc, Stack};
 
 /// A configuration of the FR3: joints `fr3_joint1` … `fr3_joint7` (and the hand).
-pub fn is_franka(cfg: &crate::config::Config) -> bool {
+pub fn is_franka(cfg: &chunkrt_controller::config::Config) -> bool {
     let j = &cfg.robot.joints;
     (j.len() == 7 || j.len() == 8) && (0..7).all(|i| j[i].name == format!("fr3_joint{}", i + 1))
 }

@@ -18,7 +18,7 @@ use super::{live, spawn, stop, DemoArgs, Stack};
 use crate::report::fmt_us;
 
 /// A configuration of the SO-101: its six joints by name.
-pub fn is_so101(cfg: &crate::config::Config) -> bool {
+pub fn is_so101(cfg: &chunkrt_controller::config::Config) -> bool {
     const JOINTS: [&str; 6] = [
         "shoulder_pan",
         "shoulder_lift",

@@ -7,10 +7,10 @@ use std::path::Path;
 use anyhow::Context;
 
 use super::{held_out_episodes, EVAL_SCENE_BASE};
-use crate::config::Config;
-use crate::inference::PolicySource;
 use crate::task::sim::{run_episode, Recording, SimSettings};
 use crate::task::TASK_DOF;
+use chunkrt_controller::config::Config;
+use chunkrt_controller::inference::PolicySource;
 
 /// Window drawn around the switch (s): before, after.
 const WINDOW: (f64, f64) = (0.15, 0.35);

@@ -14,7 +14,7 @@ pub use chunkrt_tools::scene::{
     end_effector, inverse_kinematics, ReachScene, TargetColor, REACH_TOLERANCE, TARGET_RADIUS,
 };
 
-use crate::config::{CameraConfig, Config};
+use chunkrt_controller::config::{CameraConfig, Config};
 
 /// The tasks chunkrt trains and evaluates on.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
@@ -57,13 +57,13 @@ pub fn rgb_frame<'a>(
     width: usize,
     height: usize,
     data: &'a [u8],
-) -> crate::policy::runtime::RawFrame<'a> {
-    crate::policy::runtime::RawFrame {
+) -> chunkrt_policy::runtime::RawFrame<'a> {
+    chunkrt_policy::runtime::RawFrame {
         camera,
         width: width as u32,
         height: height as u32,
         stride: 3 * width as u32,
-        encoding: crate::policy::Encoding::Rgb8,
+        encoding: chunkrt_policy::Encoding::Rgb8,
         data,
     }
 }

@@ -18,12 +18,12 @@
 //! A policy with a delayed view (an earlier frame beside the newest) gets the newest frame as
 //! its earlier one there (nothing moved); [`motion_probe`] asks whether it reads the motion.
 
-use crate::config::Config;
+use chunkrt_controller::config::Config;
 
 use super::expert::{Profile, Reach};
 use super::sim::EpisodeSpec;
 use super::{inverse_kinematics, task_camera, ReachScene, ARM_JOINTS, TASK_DOF};
-use crate::policy::runtime::{Conditioning, Policy, RawFrame, RawObservation};
+use chunkrt_policy::runtime::{Conditioning, Policy, RawFrame, RawObservation};
 
 /// Scene seeds of the swapped images are the episode's plus this (still held out).
 const SWAP_SCENE_OFFSET: u64 = 100_000;

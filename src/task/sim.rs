@@ -7,14 +7,14 @@
 //! `synchronous` reproduces openpi's `ActionChunkBroker`: the robot executes `s` actions of a
 //! chunk, then stands still while the next chunk is computed (no overlap, no blending).
 
-use crate::config::Config;
+use chunkrt_controller::config::Config;
 use chunkrt_ipc::{JointCommand, JointState};
 
 use super::{task_camera, ReachScene, TargetColor, TASK_DOF};
-use crate::contract::{ChunkSource, Observation};
-use crate::control::{Executor, InferenceRequest, State};
-use crate::worker::{Delivery, InferenceWorker, Turn};
 use chunkrt_bench::metrics::{Smoothness, Trace};
+use chunkrt_controller::contract::{ChunkSource, Observation};
+use chunkrt_controller::control::{Executor, InferenceRequest, State};
+use chunkrt_controller::worker::{Delivery, InferenceWorker, Turn};
 
 /// Simulated time starts here (ns), far from 0 so no timestamp saturates.
 const START_NS: u64 = 1_000_000_000;
@@ -198,7 +198,7 @@ pub fn run_episode(
     let mut retargeted: Option<(f64, f64)> = None;
     let mut cfg = cfg.clone();
     if settings.synchronous {
-        cfg.execution.strategy = crate::config::Strategy::Replace;
+        cfg.execution.strategy = chunkrt_controller::config::Strategy::Replace;
     }
     let mut exec = Executor::new(&cfg)?;
     let period_ns = (1e9 / cfg.policy.action_rate_hz).round() as u64;

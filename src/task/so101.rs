@@ -15,11 +15,11 @@ use anyhow::Context;
 use chunkrt_ipc::{JointCommand, JointState, MAX_DOF};
 
 use super::sim::{EpisodeOutcome, SimSettings};
-use crate::config::Config;
-use crate::contract::{ChunkSource, Observation};
-use crate::control::{Executor, State};
-use crate::worker::{Delivery, InferenceWorker};
 use chunkrt_bench::metrics::Trace;
+use chunkrt_controller::config::Config;
+use chunkrt_controller::contract::{ChunkSource, Observation};
+use chunkrt_controller::control::{Executor, State};
+use chunkrt_controller::worker::{Delivery, InferenceWorker};
 
 /// Joints of the SO-101: five arm joints and the jaw.
 pub const SO101_DOF: usize = 6;
@@ -383,7 +383,7 @@ pub fn run_episode(
 }
 
 /// The task camera of the SO-101: the configuration's first camera, rgb8, and six joints.
-pub fn task_camera(cfg: &Config) -> anyhow::Result<&crate::config::CameraConfig> {
+pub fn task_camera(cfg: &Config) -> anyhow::Result<&chunkrt_controller::config::CameraConfig> {
     let cam = cfg.cameras.first().ok_or_else(|| {
         anyhow::anyhow!("the SO-101 needs its front camera; the configuration has none")
     })?;
@@ -583,8 +583,8 @@ impl ChunkSource for PlanReplay {
     fn compute(
         &mut self,
         obs: &Observation,
-        _request: &crate::contract::InferenceRequest,
-    ) -> anyhow::Result<Option<crate::contract::ActionChunk>> {
+        _request: &chunkrt_controller::contract::InferenceRequest,
+    ) -> anyhow::Result<Option<chunkrt_controller::contract::ActionChunk>> {
         let rows = self
             .plans
             .get(&self.seed)
@@ -597,7 +597,7 @@ impl ChunkSource for PlanReplay {
         for (k, a) in actions.chunks_exact_mut(SO101_DOF).enumerate() {
             Self::at(rows, r0 + k as f64 * step, a);
         }
-        let chunk = crate::contract::ActionChunk {
+        let chunk = chunkrt_controller::contract::ActionChunk {
             id: chunkrt_controller::inference::next_chunk_id(),
             observation_seq: obs.joint_state.seq,
             t_obs_ns: t,
@@ -620,7 +620,7 @@ impl ChunkSource for PlanReplay {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::contract::InferenceRequest;
+    use chunkrt_controller::contract::InferenceRequest;
 
     /// The replay's chunk is the plan at the observation's time: the arm interpolated between
     /// the rows around it, the jaw held at the row in force, the last row held past the end, and

@@ -65,7 +65,7 @@ pub fn tokenizer_json() -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::policy::preprocess::PromptTokenizer;
+    use chunkrt_policy::preprocess::PromptTokenizer;
 
     #[test]
     fn the_task_prompt_tokenizes_without_unknowns() {

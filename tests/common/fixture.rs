@@ -6,9 +6,9 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
-use chunkrt::policy::checkpoint;
-use chunkrt::policy::model::{ModelInputs, PiModel};
-use chunkrt::policy::ConfigOverrides;
+use chunkrt_policy::checkpoint;
+use chunkrt_policy::model::{ModelInputs, PiModel};
+use chunkrt_policy::ConfigOverrides;
 
 /// `tests/data/<name>` of this checkout; a test binary carried to another machine (the GPU
 /// machine: scripts/gpu-package.sh) finds it under the working directory instead.
@@ -50,15 +50,15 @@ pub fn raw_observation(name: &str, cameras: &[&str]) -> (Vec<Frame>, Vec<f64>) {
 }
 
 /// [`Frame`]s as the policy's raw RGB8 frames.
-pub fn raw_frames(frames: &[Frame]) -> Vec<chunkrt::policy::RawFrame<'_>> {
+pub fn raw_frames(frames: &[Frame]) -> Vec<chunkrt_policy::RawFrame<'_>> {
     frames
         .iter()
-        .map(|(c, d, h, w)| chunkrt::policy::RawFrame {
+        .map(|(c, d, h, w)| chunkrt_policy::RawFrame {
             camera: c,
             width: *w as u32,
             height: *h as u32,
             stride: (*w * 3) as u32,
-            encoding: chunkrt::policy::Encoding::Rgb8,
+            encoding: chunkrt_policy::Encoding::Rgb8,
             data: d,
         })
         .collect()
