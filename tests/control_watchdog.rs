@@ -280,20 +280,12 @@ fn starting_waits_for_joint_state_and_bad_robot_faults() {
 /// A robot that restarts elsewhere while the controller holds (issue 16 point 5): leaving HOLD
 /// starts from the measured state, not from the controller's last command, and moves to the
 /// chunk within the limits. (It resumed 1.58 rad away from the restarted robot.)
-#[test]
-fn resume_after_a_robot_restart_starts_from_the_measured_position() {
-    let (cfg, mut s) = sim(10_000.0);
-    s.run(1500);
-    assert_eq!(s.exec.state(), State::Running);
-    s.robot_reports = false;
-    s.run(300);
-    assert_eq!(s.exec.state(), State::Hold);
-    // the robot comes back, at rest somewhere else
-    let mut measured = s.joint_state.position;
-    measured[0] += 1.2;
-    measured[1] -= 0.8;
+/// The robot, silent, comes back at rest at `measured` and stands there while the executor
+/// holds, then follows its commands; `ticks` ticks. Returns the index in `s.commands` of the
+/// first command after the executor resumed.
+fn come_back_at(s: &mut ScriptedSim, measured: [f64; chunkrt_ipc::MAX_DOF], ticks: usize) -> usize {
     let resume_at = s.commands.len();
-    for _ in 0..400 {
+    for _ in 0..ticks {
         s.joint_state.seq += 1;
         s.joint_state.measurement_time_ns = s.now_ns;
         if s.exec.state() == State::Hold {
@@ -306,11 +298,27 @@ fn resume_after_a_robot_restart_starts_from_the_measured_position() {
         }
         s.step();
     }
-    let first_running = s.reports[s.reports.len() - 400..]
+    let first_running = s.reports[s.reports.len() - ticks..]
         .iter()
         .position(|r| r.state == State::Running)
         .expect("resumes");
-    let first = &s.commands[resume_at + first_running];
+    resume_at + first_running
+}
+
+#[test]
+fn resume_after_a_robot_restart_starts_from_the_measured_position() {
+    let (cfg, mut s) = sim(10_000.0);
+    s.run(1500);
+    assert_eq!(s.exec.state(), State::Running);
+    s.robot_reports = false;
+    s.run(300);
+    assert_eq!(s.exec.state(), State::Hold);
+    // the robot comes back, at rest somewhere else
+    let mut measured = s.joint_state.position;
+    measured[0] += 1.2;
+    measured[1] -= 0.8;
+    let first_running = come_back_at(&mut s, measured, 400);
+    let first = &s.commands[first_running];
     for (j, m) in measured.iter().enumerate().take(cfg.n_dof()) {
         let d = (first.position[j] - m).abs();
         assert!(
@@ -318,7 +326,7 @@ fn resume_after_a_robot_restart_starts_from_the_measured_position() {
             "joint {j}: first command {d} rad from the measured position"
         );
     }
-    assert_brakes_within_limits_partial(&cfg, &s.commands[resume_at + first_running..]);
+    assert_brakes_within_limits_partial(&cfg, &s.commands[first_running..]);
 }
 
 /// The robot comes back with the arm outside the controller's position range (a reflex in an
@@ -339,35 +347,17 @@ fn resume_outside_the_position_range_starts_from_the_arm_and_returns_inside() {
         cfg.robot.joints[0].position_max,
     );
     measured[0] = hi + 0.1;
-    let resume_at = s.commands.len();
-    for _ in 0..3000 {
-        s.joint_state.seq += 1;
-        s.joint_state.measurement_time_ns = s.now_ns;
-        if s.exec.state() == State::Hold {
-            s.joint_state.position = measured;
-            s.joint_state.velocity = [0.0; chunkrt_ipc::MAX_DOF];
-        } else if let Some(c) = s.commands.last() {
-            s.joint_state.position = c.position;
-            s.joint_state.velocity = c.velocity;
-        }
-        s.step();
-    }
-    let first_running = s.reports[s.reports.len() - 3000..]
-        .iter()
-        .position(|r| r.state == State::Running)
-        .expect("resumes");
-    let cmds = &s.commands[resume_at + first_running..];
+    let first_running = come_back_at(&mut s, measured, 3000);
+    let cmds = &s.commands[first_running..];
     let d = (cmds[0].position[0] - measured[0]).abs();
     assert!(d < 0.01, "the first command {d} rad from the arm");
     assert_brakes_within_limits_partial(&cfg, cmds);
-    let mut furthest = f64::NEG_INFINITY;
     for c in cmds {
         assert!(
             c.position[0] <= measured[0] + 1e-9,
             "further out: {}",
             c.position[0]
         );
-        furthest = furthest.max(c.position[0]);
     }
     let last = cmds.last().expect("commands").position[0];
     assert!(

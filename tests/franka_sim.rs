@@ -154,12 +154,16 @@ fn drv(out: &Finished, key: &str) -> f64 {
     })
 }
 
-fn assert_no_reflex(what: &str, d: &Finished, sim_out: &Finished) {
-    let line = d
-        .stdout
+/// The driver's summary line (empty when it printed none).
+fn summary_line(d: &Finished) -> &str {
+    d.stdout
         .lines()
         .find(|l| l.starts_with("franka summary"))
-        .unwrap_or("");
+        .unwrap_or("")
+}
+
+fn assert_no_reflex(what: &str, d: &Finished, sim_out: &Finished) {
+    let line = summary_line(d);
     println!("{what}: {line}");
     println!(
         "{what}: {}",
@@ -218,10 +222,8 @@ fn stalled_then_failed(what: &str, attempt: usize, d: &Finished, why: Option<Str
 /// (self-collision) never reruns.
 /// Said loudly; the caller runs once more.
 fn stalled_into_a_discontinuity(what: &str, d: &Finished) -> bool {
-    let errors = d
-        .stdout
-        .lines()
-        .find(|l| l.starts_with("franka summary"))
+    let errors = Some(summary_line(d))
+        .filter(|l| !l.is_empty())
         .and_then(|l| {
             l.split_whitespace()
                 .find_map(|kv| kv.strip_prefix("reflex_errors="))
@@ -509,11 +511,7 @@ fn droid_chunks_that_drive_every_joint_to_minus_1_and_plus_1_stop_before_the_rob
             continue;
         }
         assert_no_reflex(&what, &d_out, &s_out);
-        let line = d_out
-            .stdout
-            .lines()
-            .find(|l| l.starts_with("franka summary"))
-            .unwrap_or("");
+        let line = summary_line(&d_out);
         let limit = line
             .split_whitespace()
             .find(|w| w.starts_with("workspace_limit="))
@@ -570,11 +568,7 @@ fn rejoin_once(py: &str, model: &str, host: &str, attempt: usize) -> bool {
     );
     println!("rejoin: the driver's trace: {tr}");
     println!("rejoin: {}", srv_out.stdout.lines().last().unwrap_or(""));
-    let line = d_out
-        .stdout
-        .lines()
-        .find(|l| l.starts_with("franka summary"))
-        .unwrap_or("");
+    let line = summary_line(&d_out);
     println!("rejoin: {line}");
     assert_eq!(
         c_out.code,
@@ -742,14 +736,7 @@ fn the_check_can_fail_an_unguarded_stream_at_twice_the_limits_is_refused() {
     let _ = c.finish(Duration::from_secs(30));
     let d_out = d.finish(Duration::from_secs(20));
     let s_out = sim_g.terminate(Duration::from_secs(5));
-    println!(
-        "{}",
-        d_out
-            .stdout
-            .lines()
-            .find(|l| l.starts_with("franka summary"))
-            .unwrap_or("")
-    );
+    println!("{}", summary_line(&d_out));
     println!("{}", s_out.stdout.trim());
     assert!(
         sim_reflexes(&s_out) >= 1.0,
@@ -968,11 +955,7 @@ fn driver_stalls_of_1_to_5_ms_trip_no_reflex_and_one_past_20_cycles_restarts_cle
     let d_out = d.finish(Duration::from_secs(20));
     let s_out = sim_g.terminate(Duration::from_secs(5));
     let _ = std::fs::remove_file(&cfg);
-    let line = d_out
-        .stdout
-        .lines()
-        .find(|l| l.starts_with("franka summary"))
-        .unwrap_or("");
+    let line = summary_line(&d_out);
     println!("stalls: {made} made; {line}");
     println!("stalls: the driver's trace: {tr}");
     println!("{}", s_out.stdout.trim());
