@@ -5,7 +5,8 @@
 
 Every `import x` / `from x import y` in each file (at any depth: the tools import their heavy
 packages inside functions) names a top-level module; the standard library's, and the files that
-sit beside the importing file or in ipc/python (chunkrt's IPC mirror), are local. Each other one
+sit beside the importing file, in ipc/python (chunkrt's IPC mirror) or in tools/python (the
+tools the test scripts of tests/python import), are local. Each other one
 must be importable here (`importlib.util.find_spec`, nothing is executed). `.ci/run` runs it after
 its installs with the interpreter the tests use, so a tool that imports a package no install step
 provides fails here, by name, instead of deep inside a test.
@@ -17,7 +18,7 @@ import pathlib
 import sys
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-LOCAL_DIRS = [ROOT / "ipc" / "python"]
+LOCAL_DIRS = [ROOT / "ipc" / "python", ROOT / "tools" / "python"]
 
 
 def files(args):
