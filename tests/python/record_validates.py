@@ -133,6 +133,22 @@ def main():
     n, err = readable(path)
     expect(n > 0, f"bad.rrd unreadable: {err}")
 
+    # 1b. the controller's last chunk comes after its STOPPED status (its inference thread publishes
+    # chunks, the main loop reads statuses first): kept; a forger's after the stop is not
+    path = os.path.join(out, "stop.rrd")
+    rec = recorder(path, 100.0)
+    feed(rec, rec.status, status(1, now), STATUS_PUB, CONTROLLER_PID)
+    feed(rec, rec.chunk, chunk(1, 1, now), CHUNK_PUB, CONTROLLER_PID)
+    stopped = status(2, now + 1000)
+    stopped.state = c.CONTROLLER_STATE_STOPPED
+    feed(rec, rec.status, stopped, STATUS_PUB, CONTROLLER_PID)
+    feed(rec, rec.chunk, chunk(2, 2, now + 500), CHUNK_PUB, CONTROLLER_PID)
+    feed(rec, rec.chunk, chunk(3, 3, now + 600), 0xBAD, FORGER_PID)
+    fig["chunks_after_stop_written"] = rec.counts["chunks"]
+    expect(rec.counts["chunks"] == 2,
+           f"{rec.counts['chunks']} chunks written of 2 from the stopped controller + 1 forged")
+    close(rec, path)
+
     # 2. a flood of tiny chunks with ids going down, and statuses, from the controller itself
     max_mb = 1.0
     path = os.path.join(out, "flood.rrd")

@@ -298,7 +298,8 @@ class Recorder:
         self.last_chunk_id = 0
         self.counts = dict(joint_states=0, commands=0, statuses=0, chunks=0, frames=0, frames_kept=0,
                            dropped_over_limit=0, joint_states_missed=0, commands_missed=0,
-                           rejected=0, foreign=0, errors=0, chunk_series=0, chunks_not_plotted=0)
+                           rejected=0, foreign=0, errors=0, chunk_series=0, chunks_not_plotted=0,
+                           chunks_unbound=0)
         self.rejected = {}
         self.last_seq = {}
         self.last_state = None
@@ -309,6 +310,9 @@ class Recorder:
         # the controller, bound from its status (SessionGate's rules)
         self.status_stream = Stream()
         self.controller_pid = None  # the bound status publisher's process
+        # the process of the controller that last stopped cleanly: its last chunks may come after
+        # its STOPPED status (the inference thread publishes them; statuses are read first)
+        self.stopped_pid = None
         self.command_publisher = 0  # announced in its status
         self.chunk_stream = Stream()
         self.state_stream = Stream()
@@ -450,6 +454,7 @@ class Recorder:
             self.chunk_stream.release()
         if st.state == c.CONTROLLER_STATE_STOPPED:
             self.status_stream.release()  # a clean stop ends the session
+            self.stopped_pid = self.controller_pid
             self.controller_pid = None  # the next controller's first chunks wait for its status
         if st.command_publisher():
             self.command_publisher = st.command_publisher()
@@ -477,13 +482,15 @@ class Recorder:
     def chunk(self, m, origin=0, pid=0):
         now = now_ns()
         h, n, t0, period = validate_chunk(m, now)
-        if self.controller_pid is None:
+        if self.controller_pid is None and pid is not None and pid == self.stopped_pid:
+            pass  # the stopped controller's last chunks, from its own process
+        elif self.controller_pid is None:
             if len(self.pending) < PENDING_CHUNKS:
                 self.pending.append((origin, pid, m))
             else:
                 raise Invalid("foreign", "no controller bound yet")
             return
-        if pid != self.controller_pid:
+        elif pid != self.controller_pid:
             raise Invalid("foreign", f"publisher {origin:#x} is not in the controller's process")
         self.chunk_stream.check(origin, m.seq, m.publish_time_ns, now)
         self.counts["chunks"] += 1
@@ -640,6 +647,7 @@ def main():
         time.sleep(0.0005)
     rec.flush()
     rr.disconnect()
+    rec.counts["chunks_unbound"] = len(rec.pending)  # no controller's status ever claimed them
     counts = " ".join(f"{k}={v}" for k, v in rec.counts.items())
     print(f"chunkrt_record summary: {counts} out={args.out}", flush=True)
     if rec.rejected:
