@@ -19,6 +19,7 @@ the recorded line by micro-radians. Prints
 exits 1 on a reflex or an error.
 """
 import argparse
+import os
 import statistics
 import sys
 
@@ -49,7 +50,17 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--host", required=True)
     ap.add_argument("--stream", required=True)
+    ap.add_argument("--realtime", type=int, default=0, metavar="PRIO",
+                    help="SCHED_FIFO priority PRIO for this client (1..99; 0: no), as libfranka's "
+                         "kEnforce asks of a real robot PC; refused, said on stdout")
     args = ap.parse_args()
+    if args.realtime:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime))
+            print(f"fr3-replay: SCHED_FIFO priority {args.realtime}", flush=True)
+        except (OSError, AttributeError, ValueError) as e:
+            print(f"fr3-replay: NOT real-time ({e}): a loaded machine can stall this client",
+                  flush=True)
     rows = []
     with open(args.stream) as f:
         for line in f:

@@ -85,6 +85,10 @@ def main():
     ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     ap.add_argument("--log", default=None, help="franka-sim's own log (default: stderr, warnings only)")
     ap.add_argument("--model", default=None, help="the FR3 MJCF (default: $FR3_MJCF)")
+    ap.add_argument("--realtime", type=int, default=0, metavar="PRIO",
+                    help="run the simulator's threads at SCHED_FIFO priority PRIO (1..99; 0: no), as a "
+                         "real FR3's controller runs on a real-time computer of its own; a machine "
+                         "that refuses it is said on stdout and the simulator runs without")
     ap.add_argument("--strict", type=float, default=1.0, metavar="F",
                     help="a stricter robot: franka-sim's joint acceleration and jerk limits and its "
                          "velocity envelope (maximum velocity and deceleration) times F (0.5..1)")
@@ -95,6 +99,17 @@ def main():
         os.environ["FR3_MJCF"] = args.model
     if not os.environ.get("FR3_MJCF"):
         sys.exit("fr3_sim.py: set FR3_MJCF to the offline FR3 model (bash scripts/franka-env.sh)")
+
+    if args.realtime:
+        # before any thread starts: franka-sim's physics, state and command threads inherit it
+        # (a starved physics thread steps late and its measured velocity jumps when it catches
+        # up, a fault of the simulated robot's computer, not of the stream it is judging)
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime))
+            print(f"franka-sim: SCHED_FIFO priority {args.realtime}", flush=True)
+        except (OSError, AttributeError, ValueError) as e:
+            print(f"franka-sim: NOT real-time ({e}): a loaded machine can starve its physics",
+                  flush=True)
 
     counter = Counter(args.host, args.port)
     root = logging.getLogger()
