@@ -995,17 +995,15 @@ fn stalls_of_the_robot_and_the_controller_resume_without_a_jump() {
     drop(camera);
 }
 
-/// Issue 54 §3, OPEN: across the robot's own stall the command stream steps. While the robot
-/// process is stopped its states stop, the controller holds by braking on from the generator's
-/// motion, past where the robot froze; the robot, waking, refuses those commands as too far
-/// and the controller re-seeds at the arm: 0.12 rad in one tick here, 58 x a joint's velocity
-/// limit (0.27 rad in the issue). Holding where the robot last was instead (tried: the
-/// generator to the last fresh state's position, at rest) made this pass (0.99 x, no command
-/// refused) but tripped franka-sim's reflexes in franka_sim's
-/// stall_kill_takeover_and_a_restarted_robot_trip_no_reflex (2 runs of 3; 0 of 1 without it):
-/// an FR3 whose driver stalls does not freeze, so its last state is not where it is.
+/// Issue 54 §3: across the robot's own stall the command stream stays continuous. While the
+/// robot process is stopped its states stop; the controller used to hold by braking on from the
+/// generator's motion, past where the robot froze, and the robot, waking, refused those commands
+/// as too far and the controller re-seeded at the arm: 0.12 rad in one tick here, 58 x a joint's
+/// velocity limit (0.27 rad in the issue). Now (`execution.stale_hold = "last_state"`, the
+/// default) it goes back to where the robot last was, within the limits. (The FR3's config
+/// keeps `brake`: its FCI goes on without a stalled driver, and holding the last state there
+/// tripped franka-sim's reflexes in the takeover test.)
 #[test]
-#[ignore = "issue 54 §3, open: the command stream steps across the robot's own stall"]
 fn the_command_stream_is_continuous_across_the_robots_stall() {
     let _serial = serial();
     let ns = unique_namespace("robot-stall");
@@ -1033,6 +1031,8 @@ fn the_command_stream_is_continuous_across_the_robots_stall() {
     w.pump(Duration::from_millis(500));
     let out = ctl.terminate(Duration::from_secs(10));
     assert_eq!(out.code, Some(0), "{}", out.stderr);
+    let r = robot.terminate(Duration::from_secs(5));
+    eprintln!("the robot's stall: {}", r.stdout.trim());
     assert_continuous(&w, "the robot's stall", 500);
 }
 

@@ -371,6 +371,20 @@ chunkrt_ipc::config_enum! {
 }
 
 chunkrt_ipc::config_enum! {
+    /// `execution.stale_hold`: where the arm is held while the robot's joint states stop.
+    pub enum StaleHold ("stale hold") {
+        /// Where the robot last was: its last fresh state, reached within the limits. A robot
+        /// whose process stops stops its arm with its states (a simulator, a servo bus that
+        /// holds its last setpoint); its first command back is then where it is.
+        #[default]
+        LastState = "last_state",
+        /// Brake from the generator's own motion: a robot whose arm goes on without its states
+        /// (the FR3's FCI continues and stops a stalled driver's motion itself).
+        Brake = "brake",
+    }
+}
+
+chunkrt_ipc::config_enum! {
     /// `execution.rtc_schedule`: RTC's soft-mask schedule between d and H − s.
     pub enum Schedule ("rtc schedule") {
         /// The paper's exponential decay `c (e^c − 1)/(e − 1)`.
@@ -401,6 +415,10 @@ pub struct ExecutionConfig {
     /// Time in HOLD before FAULT (ms).
     #[serde(default = "default_hold_to_fault_ms")]
     pub hold_to_fault_ms: f64,
+    /// While the robot's joint states stop: `last_state` (hold where the robot last was) or
+    /// `brake` (brake from the generator's motion, for a robot whose arm goes on without them).
+    #[serde(default)]
+    pub stale_hold: StaleHold,
     /// `crossfade`: blend window from the old to the new chunk (ms).
     #[serde(default = "default_crossfade_ms")]
     pub crossfade_ms: f64,
@@ -496,6 +514,7 @@ impl Default for ExecutionConfig {
             offset_ms: 0.0,
             interpolation: Default::default(),
             hold_to_fault_ms: default_hold_to_fault_ms(),
+            stale_hold: Default::default(),
             crossfade_ms: default_crossfade_ms(),
             tracking_gain: default_tracking_gain(),
             correction_speed: default_correction_speed(),

@@ -152,6 +152,12 @@ pub struct Executor {
     /// stays continuous and, when the robot binds it, starts near the arm.
     rejoin: Sample,
     rejoining: bool,
+    /// `execution.stale_hold = "last_state"`: while the joint states stop, the generator goes
+    /// to `last_state` (the last fresh measured position), at rest, instead of braking on past
+    /// it; at the first fresh state after, it takes the robot's velocity.
+    hold_last_state: bool,
+    last_state: Sample,
+    have_last_state: bool,
     /// The range each command may take: the configured position range, widened to an arm seeded
     /// outside it (a reflex in an extreme pose, a person who moved the arm) and narrowed back as
     /// the commands return inside (never further out than the range or the arm was).
@@ -217,6 +223,9 @@ impl Executor {
             scratch: Sample::default(),
             rejoin: Sample::default(),
             rejoining: false,
+            hold_last_state: e.stale_hold == crate::config::StaleHold::LastState,
+            last_state: Sample::default(),
+            have_last_state: false,
             range_lo: otg_in.min_position,
             range_hi: otg_in.max_position,
             last_primary: 0,
@@ -480,6 +489,16 @@ impl Executor {
                 }
             }
         }
+        if let (true, Some(js)) = (check.fresh, joint_state) {
+            // where the robot last was (a robot whose states stop holds there: stale_hold)
+            for j in 0..self.limits.n {
+                let p = js.position[j];
+                if p.is_finite() {
+                    self.last_state.position[j] = p;
+                }
+            }
+            self.have_last_state = true;
+        }
         if !check.fresh {
             self.js_gap = true;
         } else if self.js_gap {
@@ -488,6 +507,13 @@ impl Executor {
                 let running = self.safety.state() == State::Running;
                 if self.initialized && !running && self.away_from(js) {
                     self.init_generator(js);
+                } else if self.initialized && !running && self.hold_last_state {
+                    // after a hold at the robot's last state (stale_hold) the robot comes back
+                    // where it stopped, maybe with the momentum it froze with (a simulator, the
+                    // fake robot): the generator takes its velocity, not its position (a step of
+                    // the arm's few ticks of motion), so that the command moves with the arm
+                    // (held at rest, the fake robot overshot its command by 0.053 rad)
+                    self.join_velocity(js);
                 }
             }
         }
@@ -569,6 +595,12 @@ impl Executor {
                     &self.rejoin,
                     &mut self.otg_in,
                 );
+            } else if self.hold_last_state && self.js_gap && self.have_last_state {
+                // the robot's states stopped: back to where it last was, within the limits, not
+                // braking on past it (a robot that froze with its states refuses those commands
+                // when it returns, and the re-seed at the arm is then a step: 0.12 rad in a tick)
+                // (ruckig's position interface: time-optimal there, arriving at rest)
+                shaping::track(&self.limits, 0.0, &self.last_state, &mut self.otg_in);
             } else {
                 shaping::brake(n, &mut self.otg_in);
             }
@@ -694,6 +726,22 @@ impl Executor {
     fn away_from(&self, js: &JointState) -> bool {
         (0..self.limits.n)
             .any(|j| (js.position[j] - self.otg_in.current_position[j]).abs() > RESUME_TOLERANCE)
+    }
+
+    /// The generator keeps its position and takes the robot's measured velocity (within the
+    /// limits; at rest for a robot its driver holds still), acceleration zero.
+    fn join_velocity(&mut self, js: &JointState) {
+        let at_rest = js.status_flags & chunkrt_ipc::JOINT_STATUS_AT_REST != 0;
+        for j in 0..self.limits.n {
+            let v = js.velocity[j];
+            self.otg_in.current_velocity[j] = if v.is_finite() && !at_rest {
+                v.clamp(-self.limits.vmax[j], self.limits.vmax[j])
+            } else {
+                0.0
+            };
+            self.otg_in.current_acceleration[j] = 0.0;
+        }
+        self.otg.reset();
     }
 
     fn init_generator(&mut self, js: &JointState) {
