@@ -152,6 +152,8 @@ pub struct JointStateInput {
     has_latest: bool,
     /// A second joint-state publisher spoke: the stream is ambiguous until then (ns).
     ambiguous_until_ns: u64,
+    /// When the last poll ran (ns; 0: none yet).
+    last_poll_ns: u64,
 }
 
 impl JointStateInput {
@@ -167,6 +169,7 @@ impl JointStateInput {
             latest: JointState::default(),
             has_latest: false,
             ambiguous_until_ns: 0,
+            last_poll_ns: 0,
         })
     }
 
@@ -177,6 +180,15 @@ impl JointStateInput {
     /// after its wake-up as coming "from the future".
     pub fn poll(&mut self, counters: &Counters, events: &EventRing) -> usize {
         let mut accepted = 0;
+        let now_ns = monotonic_ns();
+        if self.last_poll_ns != 0
+            && now_ns.saturating_sub(self.last_poll_ns) > self.freshness.max_age_ns
+        {
+            // this process stood still longer than a state may age: the robot was not silent,
+            // this side was deaf; no other publisher binds on what piled up meanwhile
+            self.guard.deaf_until(now_ns);
+        }
+        self.last_poll_ns = now_ns;
         while let Some(sample) = next_sample(&self.sub, counters, events, Source::JointState) {
             let now_ns = monotonic_ns();
             let msg: &JointState = sample.payload();

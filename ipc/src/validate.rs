@@ -347,6 +347,9 @@ pub struct StreamGuard {
     /// Silence of the bound publisher after which another may bind (None: the channel's
     /// maximum age).
     rebind_after_ns: Option<u64>,
+    /// Until when this side heard nothing (see [`Self::deaf_until`]): the bound publisher's
+    /// silence counts from here at the earliest.
+    deaf_until_ns: u64,
 }
 
 impl StreamGuard {
@@ -357,6 +360,7 @@ impl StreamGuard {
             last_seq: 0,
             last_time_ns: 0,
             rebind_after_ns: None,
+            deaf_until_ns: 0,
         }
     }
 
@@ -372,6 +376,15 @@ impl StreamGuard {
     /// The publisher this stream is bound to, if any.
     pub const fn bound(&self) -> Option<u128> {
         self.publisher
+    }
+
+    /// This side heard nothing until `now_ns` (its own process stood still: SIGSTOP, swapped
+    /// out): the bound publisher was not silent, the listener was deaf, so another publisher
+    /// may bind only after the bound one's silence counted from here. (A forger speaking while
+    /// a controller stalled bound its joint state the moment the controller woke, before the
+    /// robot's own states were read: 8 x a joint's velocity limit in one command.)
+    pub fn deaf_until(&mut self, now_ns: u64) {
+        self.deaf_until_ns = self.deaf_until_ns.max(now_ns);
     }
 
     /// Checks one message and, if accepted, remembers it. `publisher` identifies the sending
@@ -397,7 +410,7 @@ impl StreamGuard {
             });
         }
         if self.publisher.is_some_and(|p| p != publisher) {
-            let silent_ns = now_ns.saturating_sub(self.last_time_ns);
+            let silent_ns = now_ns.saturating_sub(self.last_time_ns.max(self.deaf_until_ns));
             if silent_ns <= self.rebind_after_ns.unwrap_or(limits.max_age_ns) {
                 return Err(ValidationError::ForeignPublisher { silent_ns });
             }

@@ -400,11 +400,15 @@ impl Executor {
         // generator's state is where the controller left it. Its first command now starts from
         // where the robot is, not a step there after the robot refused the stale ones: the
         // command stream stays continuous across the gap (0.17 rad in one tick before).
-        if let (true, true, true, Some(js)) = (stalled, js.fresh, self.initialized, joint_state) {
-            // the robot ran on meanwhile: one period from here, not the stall's cycles at once;
-            // a robot whose driver holds it at rest was stopped by its driver, whatever our
-            // generator was doing when this process stood still
+        if stalled {
+            // one period from here, not the stall's cycles at once, whether or not a trusted
+            // state came with it (a forger speaking meanwhile leaves none: the generator then
+            // jumped the stall's cycles in one command, 12 x a joint's velocity limit)
             self.cycles = 1;
+        }
+        if let (true, true, true, Some(js)) = (stalled, js.fresh, self.initialized, joint_state) {
+            // the robot ran on meanwhile; a robot whose driver holds it at rest was stopped by
+            // its driver, whatever our generator was doing when this process stood still
             let at_rest = js.status_flags & chunkrt_ipc::JOINT_STATUS_AT_REST != 0;
             if self.away_from(js) || at_rest {
                 self.init_generator(js);
