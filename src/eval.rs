@@ -9,7 +9,7 @@
 //! and a PNG; `episodes.csv` has every episode (closest approach, wrong target, time).
 
 use std::io::{IsTerminal, Write};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
@@ -439,9 +439,45 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
         "--seeds chooses the SO-101's episodes: pass --task so101 (the reach task's episodes \
          are its held-out scenes)"
     );
+    let cfg = eval_config(&mut args, so101)?;
+    anyhow::ensure!(
+        so101 || !args.expert_plan,
+        "--expert-plan replays the SO-101 expert's plans: pass --task so101"
+    );
+    if args.open_loop {
+        anyhow::ensure!(!so101, "--open-loop probes the reach task");
+        anyhow::ensure!(
+            args.remote.is_none(),
+            "--open-loop probes the policy in process; it does not take --remote"
+        );
+        return run_probe(&cfg, &args);
+    }
+    let plan = SweepPlan::resolve(&args, so101)?;
+    let t0 = Instant::now();
+    let (cells, rows) = sweep_with_progress(&cfg, &args.strategies, &plan, t0)?;
+    write_results(&args.out, &cells, &rows, so101)?;
+    if let Some(d) = args.switch_plot {
+        anyhow::ensure!(!so101, "--switch-plot draws the reach task");
+        draw_switch_plot(&cfg, d, &args.strategies, &args.out)?;
+    }
+    let png = args.out.join("eval.png");
+    match plot(&png, &cells) {
+        Ok(()) => println!("plot: {}", png.display()),
+        Err(e) => eprintln!(
+            "[eval] no plot: {}",
+            chunkrt_bench::report::plot_error_text(&e)
+        ),
+    }
+    print_headline(&cells, &plan, t0);
+    Ok(())
+}
+
+/// The configuration the sweep runs: `--config` (for the SO-101 `config/so101.toml`) with
+/// `--checkpoint` or `--remote`. Fills in the task's default checkpoint and strategies.
+fn eval_config(args: &mut EvalArgs, so101: bool) -> anyhow::Result<Config> {
     let mut cfg = match &args.config {
         Some(p) => Config::load(p)?,
-        None if so101 => Config::load(std::path::Path::new("config/so101.toml")).context(
+        None if so101 => Config::load(Path::new("config/so101.toml")).context(
             "--task so101 runs the SO-101's configuration: pass --config config/so101.toml",
         )?,
         None => Config::embedded_default(),
@@ -463,11 +499,6 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
         .map(String::from)
         .collect();
     }
-    let max_seconds_arg = args.max_seconds.unwrap_or(if so101 {
-        crate::task::so101::MAX_SECONDS
-    } else {
-        8.0
-    });
     if let Some(c) = &args.checkpoint {
         cfg.policy.checkpoint = Some(
             std::fs::canonicalize(c)
@@ -484,42 +515,65 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
             cfg.policy.kind = Some(chunkrt_controller::config::ModelKind::Pi05);
         }
     }
-    anyhow::ensure!(
-        so101 || !args.expert_plan,
-        "--expert-plan replays the SO-101 expert's plans: pass --task so101"
-    );
-    if args.open_loop {
-        anyhow::ensure!(!so101, "--open-loop probes the reach task");
-        anyhow::ensure!(
-            args.remote.is_none(),
-            "--open-loop probes the policy in process; it does not take --remote"
-        );
-        return run_probe(&cfg, &args);
+    Ok(cfg)
+}
+
+/// What the sweep runs, resolved from the arguments.
+struct SweepPlan {
+    delays: Vec<u64>,
+    /// Episodes per cell.
+    episodes: usize,
+    /// Episode limit (s).
+    max_seconds: f64,
+    world: World,
+}
+
+impl SweepPlan {
+    /// `--quick`'s delays, episodes and limit, or the arguments' (`--seeds A..B`: B − A
+    /// episodes), and the world the episodes run in.
+    fn resolve(args: &EvalArgs, so101: bool) -> anyhow::Result<SweepPlan> {
+        let max_seconds_arg = args.max_seconds.unwrap_or(if so101 {
+            crate::task::so101::MAX_SECONDS
+        } else {
+            8.0
+        });
+        let (delays, episodes, max_seconds): (Vec<u64>, usize, f64) = if args.quick {
+            (
+                vec![0, 2.min(args.max_delay)],
+                2,
+                if so101 { 1.0 } else { 3.0 },
+            )
+        } else {
+            (
+                if args.delays.is_empty() {
+                    (0..=args.max_delay).collect()
+                } else {
+                    args.delays.clone()
+                },
+                args.episodes,
+                max_seconds_arg,
+            )
+        };
+        // --seeds A..B: B − A episodes from A (a quick run plays the first two)
+        let episodes = match &args.seeds {
+            Some(r) if args.quick => episodes.min((r.end - r.start) as usize),
+            Some(r) => (r.end - r.start) as usize,
+            None => episodes,
+        };
+        anyhow::ensure!(episodes > 0, "--episodes must be > 0");
+        let world = world(args, so101, max_seconds)?;
+        Ok(SweepPlan {
+            delays,
+            episodes,
+            max_seconds,
+            world,
+        })
     }
-    let (delays, episodes, max_seconds): (Vec<u64>, usize, f64) = if args.quick {
-        (
-            vec![0, 2.min(args.max_delay)],
-            2,
-            if so101 { 1.0 } else { 3.0 },
-        )
-    } else {
-        (
-            if args.delays.is_empty() {
-                (0..=args.max_delay).collect()
-            } else {
-                args.delays.clone()
-            },
-            args.episodes,
-            max_seconds_arg,
-        )
-    };
-    // --seeds A..B: B − A episodes from A (a quick run plays the first two)
-    let episodes = match &args.seeds {
-        Some(r) if args.quick => episodes.min((r.end - r.start) as usize),
-        Some(r) => (r.end - r.start) as usize,
-        None => episodes,
-    };
-    anyhow::ensure!(episodes > 0, "--episodes must be > 0");
+}
+
+/// What moves during the episodes: `--drift-hz` and `--retarget-at`, checked against the
+/// episode limit `max_seconds`; and the SO-101's options.
+fn world(args: &EvalArgs, so101: bool, max_seconds: f64) -> anyhow::Result<World> {
     let drift = match args.drift_hz {
         Some(f) => {
             anyhow::ensure!(
@@ -551,22 +605,32 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
             "--retarget-at {t}: must be after the start and before the episode's limit ({max_seconds} s)"
         );
     }
+    Ok(World {
+        retarget_at: args.retarget_at,
+        drift,
+        so101,
+        expert_plan: args.expert_plan,
+        first_seed: args.seeds.as_ref().map(|r| r.start),
+    })
+}
+
+/// [`sweep`] with a progress line on stderr (redrawn on a terminal, else every 20 s); `t0`:
+/// when the run started.
+fn sweep_with_progress(
+    cfg: &Config,
+    strategies: &[String],
+    plan: &SweepPlan,
+    t0: Instant,
+) -> anyhow::Result<(Vec<Cell>, Vec<EpisodeRow>)> {
     let tty = std::io::stderr().is_terminal();
-    let t0 = Instant::now();
     let mut last = 0.0;
     let (cells, rows) = sweep(
-        &cfg,
-        &args.strategies,
-        &delays,
-        episodes,
-        max_seconds,
-        World {
-            retarget_at: args.retarget_at,
-            drift,
-            so101,
-            expert_plan: args.expert_plan,
-            first_seed: args.seeds.as_ref().map(|r| r.start),
-        },
+        cfg,
+        strategies,
+        &plan.delays,
+        plan.episodes,
+        plan.max_seconds,
+        plan.world,
         |done, total, s, d| {
             let now = t0.elapsed().as_secs_f64();
             if done == total || now - last >= if tty { 0.5 } else { 20.0 } {
@@ -586,17 +650,40 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
     if tty {
         eprintln!();
     }
-    let md = markdown(&cells);
+    Ok((cells, rows))
+}
+
+/// The table on stdout and in `eval.md`, the cells in `eval.csv`, the episodes in
+/// `episodes.csv`; for the SO-101 also its physics report and `so101_episodes.csv`.
+fn write_results(
+    out: &Path,
+    cells: &[Cell],
+    rows: &[EpisodeRow],
+    so101: bool,
+) -> anyhow::Result<()> {
+    let md = markdown(cells);
     println!("{md}");
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create {}", args.out.display()))?;
-    std::fs::write(args.out.join("eval.md"), &md)?;
-    let mut csv = std::fs::File::create(args.out.join("eval.csv"))?;
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    std::fs::write(out.join("eval.md"), &md)?;
+    write_cells_csv(&out.join("eval.csv"), cells)?;
+    write_episodes_csv(&out.join("episodes.csv"), rows, so101)?;
+    if so101 {
+        let text = report::so101_physics(cells, rows);
+        println!("{text}");
+        std::fs::write(out.join("so101_physics.md"), &text)?;
+        write_so101_episodes_csv(&out.join("so101_episodes.csv"), rows)?;
+    }
+    Ok(())
+}
+
+/// One row per cell.
+fn write_cells_csv(path: &Path, cells: &[Cell]) -> anyhow::Result<()> {
+    let mut csv = std::fs::File::create(path)?;
     writeln!(
         csv,
         "strategy,delay_steps,episodes,successes,ci_low,ci_high,time_to_target_s,max_switch_jump_rad,p90_switch_jump_rad,rms_jerk,hold_ticks,reaction_time_s,reacted"
     )?;
-    for c in &cells {
+    for c in cells {
         writeln!(
             csv,
             "{},{},{},{},{:.4},{:.4},{:.4},{:.6},{:.6},{:.2},{:.1},{:.4},{}",
@@ -615,12 +702,17 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
             c.reacted
         )?;
     }
-    let mut csv = std::fs::File::create(args.out.join("episodes.csv"))?;
+    Ok(())
+}
+
+/// One row per episode.
+fn write_episodes_csv(path: &Path, rows: &[EpisodeRow], so101: bool) -> anyhow::Result<()> {
+    let mut csv = std::fs::File::create(path)?;
     writeln!(
         csv,
         "strategy,delay_steps,scene_seed,color,success,wrong_target,min_distance_m,time_to_target_s,expert_time_s,chunks,max_switch_jump_rad,reaction_time_s"
     )?;
-    for r in &rows {
+    for r in rows {
         let o = &r.outcome;
         // how long the scripted expert's motion from the same start takes (reach)
         let expert = if so101 {
@@ -652,58 +744,61 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
             o.reaction_time.map_or(String::new(), |t| format!("{t:.3}"))
         )?;
     }
-    if so101 {
-        let text = report::so101_physics(&cells, &rows);
-        println!("{text}");
-        std::fs::write(args.out.join("so101_physics.md"), &text)?;
-        let mut csv = std::fs::File::create(args.out.join("so101_episodes.csv"))?;
+    Ok(())
+}
+
+/// One row per SO-101 episode, with its physics.
+fn write_so101_episodes_csv(path: &Path, rows: &[EpisodeRow]) -> anyhow::Result<()> {
+    let mut csv = std::fs::File::create(path)?;
+    writeln!(
+        csv,
+        "strategy,delay_steps,seed,success,time_to_success_s,carried,min_goal_distance_m,tracking_p50_rad,tracking_p99_rad,tracking_max_rad,jaw_closes,jaw_opens,jaw_flips_at_switch,max_switch_jump_rad,rms_jerk,hold_ticks"
+    )?;
+    for r in rows {
+        let (o, p) = (&r.outcome, r.physics.unwrap_or_default());
         writeln!(
             csv,
-            "strategy,delay_steps,seed,success,time_to_success_s,carried,min_goal_distance_m,tracking_p50_rad,tracking_p99_rad,tracking_max_rad,jaw_closes,jaw_opens,jaw_flips_at_switch,max_switch_jump_rad,rms_jerk,hold_ticks"
+            "{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{:.4},{:.1},{}",
+            r.strategy,
+            r.delay,
+            r.spec.scene_seed,
+            o.success as u8,
+            o.time_to_target
+                .map_or(String::new(), |t| format!("{t:.3}")),
+            p.carried as u8,
+            o.min_distance,
+            p.tracking_p50,
+            p.tracking_p99,
+            p.tracking_max,
+            p.jaw_closes,
+            p.jaw_opens,
+            p.jaw_flips_at_switch,
+            o.smoothness.max_switch_jump_target,
+            o.smoothness.rms_jerk,
+            o.hold_ticks
         )?;
-        for r in &rows {
-            let (o, p) = (&r.outcome, r.physics.unwrap_or_default());
-            writeln!(
-                csv,
-                "{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{:.4},{:.1},{}",
-                r.strategy,
-                r.delay,
-                r.spec.scene_seed,
-                o.success as u8,
-                o.time_to_target
-                    .map_or(String::new(), |t| format!("{t:.3}")),
-                p.carried as u8,
-                o.min_distance,
-                p.tracking_p50,
-                p.tracking_p99,
-                p.tracking_max,
-                p.jaw_closes,
-                p.jaw_opens,
-                p.jaw_flips_at_switch,
-                o.smoothness.max_switch_jump_target,
-                o.smoothness.rms_jerk,
-                o.hold_ticks
-            )?;
-        }
     }
-    if let Some(d) = args.switch_plot {
-        anyhow::ensure!(!so101, "--switch-plot draws the reach task");
-        let png = args.out.join("switch.png");
-        for line in switch::switch_plot(&cfg, d, &args.strategies, &png)? {
-            println!("{line}");
-        }
-        println!("switch plot: {}", png.display());
+    Ok(())
+}
+
+/// `--switch-plot`: `switch.png` in `out`, and its lines on stdout.
+fn draw_switch_plot(
+    cfg: &Config,
+    delay: u64,
+    strategies: &[String],
+    out: &Path,
+) -> anyhow::Result<()> {
+    let png = out.join("switch.png");
+    for line in switch::switch_plot(cfg, delay, strategies, &png)? {
+        println!("{line}");
     }
-    let png = args.out.join("eval.png");
-    match plot(&png, &cells) {
-        Ok(()) => println!("plot: {}", png.display()),
-        Err(e) => eprintln!(
-            "[eval] no plot: {}",
-            chunkrt_bench::report::plot_error_text(&e)
-        ),
-    }
-    // one line: the best strategy at the largest delay vs synchronous execution
-    let dmax = *delays.last().unwrap_or(&0);
+    println!("switch plot: {}", png.display());
+    Ok(())
+}
+
+/// One line: the best strategy at the largest delay vs synchronous execution.
+fn print_headline(cells: &[Cell], plan: &SweepPlan, t0: Instant) {
+    let dmax = *plan.delays.last().unwrap_or(&0);
     let at = |s: &str| cells.iter().find(|c| c.strategy == s && c.delay == dmax);
     if let (Some(rtc), Some(sync)) = (at("rtc"), at("sync")) {
         println!(
@@ -716,10 +811,9 @@ pub fn run(mut args: EvalArgs) -> anyhow::Result<()> {
             sync.time_to_target,
             sync.time_to_target / rtc.time_to_target,
             t0.elapsed().as_secs_f64(),
-            cells.len() * episodes
+            cells.len() * plan.episodes
         );
     }
-    Ok(())
 }
 
 #[cfg(test)]
