@@ -427,7 +427,7 @@ struct Core {
     notes: u8,
     /// The other reference of an ambiguous cycle (the answer before went out late): the next
     /// state tells which the robot judged this cycle's answer against.
-    ambiguous: Option<(Motion, u64)>,
+    ambiguous: Option<Motion>,
     /// This robot has applied an answer that its next report showed as not applied.
     late_applied_seen: bool,
     /// |measured - the controller's command| over fresh cycles (µrad).
@@ -586,18 +586,11 @@ impl Core {
         // too (traced: a driver stalled twice in a row; the report was the robot's own
         // continuation, 3.8e-6 rad from the answer, taken as the reference, while franka-sim
         // applied the answer late and judged the next against it: 7 533 rad/s^3)
-        // After a gap of k cycles, a robot that applied the late answer judged this one over the
-        // k cycles from it (franka-sim differences a command against the last one applied, over
-        // the cycles between them: traced, a gap of 7 cycles, that answer hedged, and the one
-        // after it tripped 7 448 rad/s^3 against the gap's average velocity)
         let (other, other_continued) = match self.ambiguous {
-            Some((o, 1)) if e == 1 => (
+            Some(o) if e == 1 => (
                 Motion::after(&o, &self.last.q, CYCLE_S),
                 o.continued(CYCLE_S),
             ),
-            Some((o, k)) if e == 1 => {
-                (Motion::after(&o, &self.last.q, k as f64 * CYCLE_S), skipped)
-            }
             _ => (applied, skipped),
         };
         self.ambiguous = None;
@@ -697,11 +690,13 @@ impl Core {
             // report's continuation the other
             Some((late, 1)) if self.late_applied_seen => {
                 self.reference = late;
-                self.ambiguous = Some((r, 1));
+                self.ambiguous = Some(r);
                 Some((r, 1))
             }
             Some((late, k)) => {
-                self.ambiguous = Some((late, k));
+                if k == 1 {
+                    self.ambiguous = Some(late);
+                }
                 Some((late, k))
             }
             None => None,
