@@ -940,7 +940,7 @@ fn a_driver_that_cannot_follow_the_controller_says_so_and_the_controller_is_not_
 }
 
 #[test]
-#[ignore = "a known, open failure: a reflex in about one run in six of 100 driver stalls against franka-sim (BENCHMARKS §9); cargo test --test franka_sim -- --ignored driver_stalls"]
+#[ignore = "a known, open failure: about one or two reflexes in 100 driver stalls against franka-sim (BENCHMARKS §9); cargo test --test franka_sim -- --ignored driver_stalls"]
 fn driver_stalls_of_1_to_5_ms_trip_no_reflex_and_one_past_20_cycles_restarts_cleanly() {
     // The driver stopped (SIGSTOP) for 1-5 ms a hundred times under chunk switches, then once
     // for 60 ms (three times what the FCI allows: the robot's own stop,

@@ -582,22 +582,12 @@ impl Core {
         // after a cycle that was ambiguous (the answer before went out late), the history the
         // robot judged the last answer against: the reference the driver believed, or the other
         // one (a robot that applies a late answer: a simulator)
-        // and that other history continued without the last answer: the robot dropped this one
-        // too (traced: a driver stalled twice in a row; the report was the robot's own
-        // continuation, 3.8e-6 rad from the answer, taken as the reference, while franka-sim
-        // applied the answer late and judged the next against it: 7 533 rad/s^3)
-        let (other, other_continued) = match self.ambiguous {
-            Some(o) if e == 1 => (
-                Motion::after(&o, &self.last.q, CYCLE_S),
-                o.continued(CYCLE_S),
-            ),
-            _ => (applied, skipped),
+        let other = match self.ambiguous {
+            Some(o) if e == 1 => Motion::after(&o, &self.last.q, CYCLE_S),
+            _ => applied,
         };
         self.ambiguous = None;
-        let (mut r, mut how) = reconcile(
-            &reported,
-            &[applied, skipped, self.reference, other, other_continued],
-        );
+        let (mut r, mut how) = reconcile(&reported, &[applied, skipped, self.reference, other]);
         if matches!(how, Reference::Candidate(3) | Reference::Corrected(3))
             && !matches!(reconcile(&reported, &[applied]).1, Reference::Candidate(0))
         {
@@ -634,10 +624,7 @@ impl Core {
                 Reference::Kept => 3,
             }] += 1;
         }
-        let unapplied = matches!(
-            how,
-            Reference::Candidate(1 | 4) | Reference::Corrected(1 | 4)
-        );
+        let unapplied = matches!(how, Reference::Candidate(1) | Reference::Corrected(1));
         self.notes = if unapplied { 2 } else { 0 }
             | if matches!(how, Reference::Corrected(_) | Reference::Adopted) {
                 8
