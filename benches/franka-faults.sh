@@ -38,7 +38,7 @@ run() { # name host seconds "driver flags" "sim flags" stalls
   mkdir -p "$dir"
   echo "== $name: $secs s"
   # shellcheck disable=SC2086
-  "$py" tools/python/fr3_sim.py --host "$host" --model "$FR3_MJCF" --no-gripper --realtime 70 $sflags >"$dir/sim.log" 2>&1 &
+  "$py" tools/python/fr3_sim.py --host "$host" --model "$FR3_MJCF" --no-gripper $sflags >"$dir/sim.log" 2>&1 &
   local sim=$!
   # shellcheck disable=SC2086
   "$EXE" franka --namespace "$ns" --config config/franka_fr3.toml --robot "$host" --realtime ignore \

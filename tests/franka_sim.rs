@@ -61,12 +61,6 @@ fn franka_env(test: &str) -> Option<(String, String)> {
     None
 }
 
-/// franka-sim's SCHED_FIFO priority: a real FR3's controller is a real-time computer of its
-/// own, which a busy loop on the robot PC cannot starve; below the driver's 90 and the
-/// controller's 80, so the robot's work never delays theirs on a shared core. A machine that
-/// refuses it runs the simulator without (said in its output).
-const SIM_PRIORITY: &str = "70";
-
 /// franka-sim on `host` with both checks enforced (or neither).
 fn sim(py: &str, model: &str, host: &str, enforce: bool) -> ChildGuard {
     let script = format!("{ROOT}/tools/python/fr3_sim.py");
@@ -77,8 +71,6 @@ fn sim(py: &str, model: &str, host: &str, enforce: bool) -> ChildGuard {
         "--model",
         model,
         "--no-gripper",
-        "--realtime",
-        SIM_PRIORITY,
     ];
     if !enforce {
         args.push("--no-enforce");
@@ -770,8 +762,6 @@ fn strict_sim(py: &str, model: &str, host: &str, strict: &str) -> ChildGuard {
         "--model",
         model,
         "--no-gripper",
-        "--realtime",
-        SIM_PRIORITY,
         "--strict",
         strict,
     ];
@@ -1029,8 +1019,6 @@ fn libfranka_replays_a_recorded_command_stream_without_a_reflex() {
                 host,
                 "--stream",
                 &stream_s,
-                "--realtime",
-                "80",
             ],
         )
         .unwrap()

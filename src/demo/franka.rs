@@ -84,10 +84,6 @@ pub(crate) fn run(args: &DemoArgs, stack: &Stack) -> anyhow::Result<()> {
                 host.into(),
                 "--model".into(),
                 s(&model),
-                // the robot's computer is real-time (below the driver's 90 and the controller's 80);
-                // refused, it runs without and says so in its log
-                "--realtime".into(),
-                "70".into(),
             ],
             &stack.log_dir,
         )?);
