@@ -27,6 +27,9 @@ use crate::limits::{CYCLE_S, JOINTS};
 /// Half the FCI's cycle (ns): a state sooner than this after the last is a short cycle.
 const HALF_CYCLE_NS: u64 = (CYCLE_S * 0.5e9) as u64;
 
+/// A read of the robot's state that returns sooner than this (ns) found it already queued.
+const QUEUED_NS: u64 = 15_000;
+
 /// An answer ready this long after its state came (ns) misses the robot's cycle: withheld.
 const LATE_NS: u64 = 900_000;
 
@@ -231,6 +234,21 @@ pub struct Summary {
     /// Late answers the robot's later report shows it applied after all (a simulator does; the
     /// FCI drops them).
     pub late_applied: u64,
+    /// Answers that went out more than `LATE_NS` after their state came although the cycle had
+    /// found them in time (the machine stalled the driver between the two).
+    pub late_at_send: u64,
+    /// Sends that themselves took over half a cycle (the driver stalled inside one).
+    pub slow_send: u64,
+    /// Answers withheld because the robot's next state had already come when they were ready
+    /// (they would miss their cycle).
+    pub withheld_next_state: u64,
+    /// States read and passed over because a newer one had come (after a stall).
+    pub stale_states: u64,
+    /// Answers withheld because their state was already queued when read (its age unknown).
+    pub withheld_queued: u64,
+    /// Reports that showed the robot's history lagging (it applied a late answer and rewound),
+    /// answered over the cycles it differences them over.
+    pub lagging: u64,
     /// Answers sent that the robot did not apply (its report shows the reference continued: the
     /// answer came too late), and the next commands hedged to pass from either reference.
     pub unapplied: u64,
@@ -263,7 +281,7 @@ impl std::fmt::Display for Summary {
              round_trip_p50_us={:.1} round_trip_p99_us={:.1} round_trip_max_us={:.1} \
              commands_applied={} commands_expired={} commands_rejected={} commands_unbound={} \
              commands_far={} gripper_moves={} max_tracking_error={:.5} guard_acted={} \
-             dropped={} withheld_late={} short_continued={} unapplied={} late_applied={} \
+             dropped={} withheld_late={} short_continued={} unapplied={} late_applied={} late_at_send={} slow_send={} withheld_next_state={} stale_states={} withheld_queued={} lagging={} \
              hedged={} reference_exact={} reference_corrected={} \
              reference_adopted={} reference_kept={} reference_stale={} led_share={:.5} not_led_longest_ms={} \
              controller_tracking_p99={:.5} controller_tracking_max={:.5} workspace_refused={} \
@@ -311,6 +329,12 @@ impl std::fmt::Display for Summary {
             self.short_continued,
             self.unapplied,
             self.late_applied,
+            self.late_at_send,
+            self.slow_send,
+            self.withheld_next_state,
+            self.stale_states,
+            self.withheld_queued,
+            self.lagging,
             self.hedged,
             self.reference[0],
             self.reference[1],
@@ -372,7 +396,64 @@ fn workspace(args: &Args) -> anyhow::Result<crate::geometry::Workspace> {
     })
 }
 
-fn connect(addr: &str, realtime: RealtimeConfig) -> anyhow::Result<Robot> {
+/// The process's IPv4 / IPv6 datagram sockets (descriptor numbers).
+fn inet_datagram_fds() -> Vec<i32> {
+    let Ok(dir) = std::fs::read_dir("/proc/self/fd") else {
+        return Vec::new();
+    };
+    dir.flatten()
+        .filter_map(|e| e.file_name().to_str()?.parse::<i32>().ok())
+        .filter(|&fd| {
+            let mut ty: libc::c_int = 0;
+            let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+            // SAFETY: getsockopt / getsockname write at most `len` bytes into the buffers
+            // given; a descriptor that is no socket (or closed meanwhile) answers an error
+            let ok = unsafe {
+                libc::getsockopt(
+                    fd,
+                    libc::SOL_SOCKET,
+                    libc::SO_TYPE,
+                    (&mut ty as *mut libc::c_int).cast(),
+                    &mut len,
+                )
+            } == 0;
+            if !ok || ty != libc::SOCK_DGRAM {
+                return false;
+            }
+            // SAFETY: as above; sockaddr_storage is plain data, zero is a valid value
+            let mut addr: libc::sockaddr_storage = unsafe { std::mem::zeroed() };
+            let mut alen = std::mem::size_of::<libc::sockaddr_storage>() as libc::socklen_t;
+            let ok = unsafe {
+                libc::getsockname(
+                    fd,
+                    (&mut addr as *mut libc::sockaddr_storage).cast(),
+                    &mut alen,
+                )
+            } == 0;
+            ok && matches!(i32::from(addr.ss_family), libc::AF_INET | libc::AF_INET6)
+        })
+        .collect()
+}
+
+/// Whether a datagram waits on `fd` (on the robot's state socket: the next state has come).
+fn datagram_waiting(fd: i32) -> bool {
+    let mut b = [0u8; 1];
+    // SAFETY: recv writes at most one byte into `b`; MSG_PEEK leaves the datagram queued for
+    // franka-rs, MSG_DONTWAIT never blocks
+    unsafe {
+        libc::recv(
+            fd,
+            b.as_mut_ptr().cast(),
+            1,
+            libc::MSG_PEEK | libc::MSG_DONTWAIT,
+        ) >= 0
+    }
+}
+
+/// Connects to the robot; returns it and its state socket when that can be told apart (the
+/// one datagram socket the connection opened).
+fn connect(addr: &str, realtime: RealtimeConfig) -> anyhow::Result<(Robot, Option<i32>)> {
+    let before = inet_datagram_fds();
     let robot = Robot::new(addr, realtime).map_err(|e| {
         anyhow::anyhow!(
             "franka: cannot connect to the robot at {addr}: {e} (a real arm: FCI enabled in Desk, \
@@ -386,8 +467,23 @@ fn connect(addr: &str, realtime: RealtimeConfig) -> anyhow::Result<Robot> {
         "franka: the robot at {addr} speaks FCI version {version}: this driver keeps the FR3's \
          limits (FCI 10); an FER / Panda (FCI 5) has other limits and is not supported"
     );
+    let opened: Vec<i32> = inet_datagram_fds()
+        .into_iter()
+        .filter(|fd| !before.contains(fd))
+        .collect();
+    let state_fd = match opened[..] {
+        [fd] => Some(fd),
+        _ => {
+            tracing::warn!(
+                "franka: the robot's state socket cannot be told apart ({} new datagram sockets): \
+                 an answer is withheld only by its own lateness, not when the next state has come",
+                opened.len()
+            );
+            None
+        }
+    };
     tracing::info!("franka: connected to the FR3 at {addr} (FCI {version})");
-    Ok(robot)
+    Ok((robot, state_fd))
 }
 
 /// Runs until SIGINT / SIGTERM or `--duration`; prints the [`Summary`] on stdout.
@@ -430,6 +526,32 @@ struct Core {
     ambiguous: Option<Motion>,
     /// This robot has applied an answer that its next report showed as not applied.
     late_applied_seen: bool,
+    /// The histories a robot that applies late answers may still judge the coming answers
+    /// against, each the motion at the robot cycle (`seq`) of an answer sent: franka-sim, when a
+    /// late answer comes, rewinds the cycles it had continued on its own and differences that
+    /// answer and the next one over all the cycles since, so that its history parts from the
+    /// one its earlier report showed (traced: an answer after a 3-cycle stall judged at 5 463
+    /// rad/s³ against that history, within the limits from the reported one). Each answer is
+    /// hedged to pass from all of them; they merge with the reported one two answers later.
+    alts: [Option<(Motion, u64)>; ALTS],
+    /// The history before the first late answer of a run (motion, `seq`): the newest answer
+    /// absorbed straight against it (the simulator takes only the newest datagram waiting) is
+    /// one more such history.
+    alt_base: Option<(Motion, u64)>,
+    /// The robot cycle (`seq`) of the last answer sent (0: none yet in this motion), and the
+    /// motion it made from the reference it was computed against.
+    last_sent_seq: u64,
+    last_sent: Motion,
+    /// The cycles the robot differences this cycle's answer over (1; more after it applied a
+    /// late answer and rewound its own continuation: [`Core::take_reference`]).
+    lag: u64,
+    /// The robot's state socket (found when the connection opened it), to see whether the next
+    /// state has come before an answer goes out; none when it could not be told apart.
+    state_fd: Option<i32>,
+    /// This cycle's state was already queued when read ([`QUEUED_NS`]).
+    state_queued: bool,
+    /// Answers sent since the alternatives last grew (they are dropped after `ALT_CYCLES`).
+    alt_age: u32,
     /// |measured - the controller's command| over fresh cycles (µrad).
     tracking: Histogram<u64>,
     seq: u64,
@@ -467,6 +589,12 @@ struct Core {
     rate_n: u64,
     s: Summary,
 }
+
+/// How many other histories the driver hedges against at most ([`Core::alts`]).
+const ALTS: usize = 4;
+/// Answers after which the other histories are let go: past FCI's 20 lost cycles the robot
+/// has stopped the motion in any history.
+const ALT_CYCLES: u32 = 25;
 
 /// Cycles `--trace` keeps (the last 120 s).
 const TRACE_CYCLES: usize = 120_000;
@@ -538,6 +666,46 @@ impl Core {
         false
     }
 
+    /// One more history a late answer may have made (the oldest is let go when all are taken).
+    fn push_alt(&mut self, alt: (Motion, u64)) {
+        let slot = self
+            .alts
+            .iter()
+            .position(Option::is_none)
+            .unwrap_or_else(|| {
+                self.alts.rotate_left(1);
+                ALTS - 1
+            });
+        self.alts[slot] = Some(alt);
+    }
+
+    /// The answer `sent` (the motion it makes from the reported reference) went out at robot
+    /// cycle `seq`: each other history takes it too, differenced over the cycles since its own
+    /// last answer, and the base of a run gives one more (this answer absorbed straight against
+    /// it). A history that has become the reported one's is let go.
+    fn advance_alts(&mut self, seq: u64, sent: &Motion) {
+        let dt = |p: u64| seq.saturating_sub(p).max(1) as f64 * CYCLE_S;
+        for alt in self.alts.iter_mut().flatten() {
+            *alt = (Motion::after(&alt.0, &sent.q, dt(alt.1)), seq);
+        }
+        if let Some((b, p)) = self.alt_base.take() {
+            self.push_alt((Motion::after(&b, &sent.q, dt(p)), seq));
+        }
+        self.alt_age += 1;
+        let same = |m: &Motion| {
+            (0..JOINTS).all(|j| {
+                (m.q[j] - sent.q[j]).abs() <= 1e-12
+                    && (m.dq[j] - sent.dq[j]).abs() <= 1e-9
+                    && (m.ddq[j] - sent.ddq[j]).abs() <= 1e-6
+            })
+        };
+        for alt in &mut self.alts {
+            if self.alt_age > ALT_CYCLES || alt.is_some_and(|(m, _)| same(&m)) {
+                *alt = None;
+            }
+        }
+    }
+
     /// A new motion starts from rest at the robot's position.
     fn begin_motion(&mut self, q: [f64; JOINTS]) {
         self.not_led_run = 0;
@@ -545,6 +713,12 @@ impl Core {
         self.reference = self.last;
         self.sent_last = true;
         self.ambiguous = None;
+        self.alts = [None; ALTS];
+        self.alt_base = None;
+        self.alt_age = 0;
+        self.last_sent_seq = 0;
+        self.last_sent = self.last;
+        self.lag = 1;
         self.motion_cycles = 0;
         self.late_run = 0;
         self.intake.disarm();
@@ -597,11 +771,31 @@ impl Core {
             self.s.late_applied += 1;
             self.late_applied_seen = true;
         }
+        // a report that is the last answer sent, continued by the robot for fewer cycles than
+        // have passed since: a robot that applied that answer late (franka-sim rewinds the
+        // cycles it had continued on its own, then goes on one cycle a state) and differences the
+        // next answer over all the cycles between (traced: an answer 1 cycle on from such a
+        // report judged over 3, 23.6 rad/s^2)
+        self.lag = 1;
+        if matches!(how, Reference::Corrected(_) | Reference::Adopted) && self.last_sent_seq != 0 {
+            let now_seq = self.seq + e;
+            let (mut m, mut at) = (self.last_sent, self.last_sent_seq);
+            while at + 1 < now_seq && now_seq - at <= 20 {
+                if matches!(reconcile(&reported, &[m]).1, Reference::Candidate(0)) {
+                    self.lag = now_seq - at;
+                    self.s.lagging += 1;
+                    (r, how) = (m, Reference::Candidate(0));
+                    break;
+                }
+                m = m.continued(CYCLE_S);
+                at += 1;
+            }
+        }
         // a report that moved less than a tenth of the way the reference went in the cycle (a
         // state franka-sim's publish thread packed while its reference was half updated: it
         // moved 7e-7 rad where the answer moved 1.9e-4, and judged the next answer against the
         // answer applied: 181 rad/s^2 when taken as the reference)
-        let barely_moved = matches!(how, Reference::Adopted) && {
+        let barely_moved = self.lag == 1 && matches!(how, Reference::Adopted) && {
             let span = |m: &Motion| {
                 (0..JOINTS).fold(0.0f64, |x, j| x.max((m.q[j] - self.reference.q[j]).abs()))
             };
@@ -667,6 +861,15 @@ impl Core {
         }
         let alt = if unapplied && self.sent_last {
             self.s.unapplied += 1;
+            // the answer may still be applied late: its history (against the reference it was
+            // computed against, one cycle back) is one the next answers may be judged against,
+            // and the history before it the base of a run of them
+            let m = self.last_sent_seq;
+            if self.alt_base.is_none() && self.alts.iter().all(Option::is_none) {
+                self.alt_base = Some((self.reference, m.saturating_sub(1)));
+            }
+            self.push_alt((self.last, m));
+            self.alt_age = 0;
             Some((self.last, e))
         } else {
             None
@@ -800,6 +1003,22 @@ impl Core {
         let path: u8;
         let mut guard_broke = None;
         let next = match live {
+            _ if self.lag > 1 && !self.no_guard => {
+                // the robot differences this answer over `lag` cycles from its report: the
+                // reference continued over them at its acceleration (no jerk in the robot's
+                // differences), which puts its history back in step
+                self.s.late += 1;
+                path = 4;
+                self.alts = [None; ALTS];
+                self.alt_base = None;
+                let (r, k) = (self.reference, self.lag as f64 * CYCLE_S);
+                let mut m = r;
+                for j in 0..JOINTS {
+                    m.dq[j] = r.dq[j] + r.ddq[j] * k;
+                    m.q[j] = r.q[j] + m.dq[j] * k;
+                }
+                m
+            }
             // the answer to this cycle's state; an answer to an earlier one comes too late (its
             // cycle was already continued) and would move the arm back
             Some(c) if c.seq != self.last_cmd_seq && c.state_seq == seq => {
@@ -856,9 +1075,33 @@ impl Core {
         };
         // an answer the robot did not apply although it went out (late): the FCI dropped it, a
         // simulator may still apply it; this one passes from either reference where it can
-        let next = match hedge_from {
-            Some((alt, cycles)) if !self.no_guard => {
-                let (q, changed) = self.guard.hedge(&self.reference, &alt, cycles, &next.q);
+        let next = if self.no_guard || self.lag > 1 {
+            next
+        } else {
+            let mut others = [(Motion::rest(next.q), 0u64); ALTS + 2];
+            let mut n = 0;
+            for o in hedge_from
+                .iter()
+                .copied()
+                .chain(
+                    self.alts
+                        .iter()
+                        .flatten()
+                        .map(|&(m, p)| (m, seq.saturating_sub(p))),
+                )
+                .chain(
+                    self.alt_base
+                        .iter()
+                        .map(|&(m, p)| (m, seq.saturating_sub(p))),
+                )
+            {
+                others[n] = o;
+                n += 1;
+            }
+            if n == 0 {
+                next
+            } else {
+                let (q, changed) = self.guard.hedge(&self.reference, &others[..n], &next.q);
                 self.s.hedged += changed as u64;
                 self.notes |= if changed { 4 } else { 0 };
                 if changed {
@@ -867,7 +1110,6 @@ impl Core {
                     next
                 }
             }
-            _ => next,
         };
         // the arm's geometry: a command whose stop (braking from its velocity) would leave the
         // workspace box or fold links closer than the clearance, further than the arm is now,
@@ -923,22 +1165,6 @@ impl Core {
                 r.push(next.q);
             }
         }
-        // an answer this late (the machine stalled the driver after the state came) misses its
-        // cycle: the FCI would drop it, a simulator might apply it a cycle late; withheld, the
-        // robot continues its reference as for any lost packet, and says so in the next state
-        self.withhold = monotonic_ns().saturating_sub(now) > LATE_NS;
-        self.s.withheld_late += self.withhold as u64;
-        // --drop-answers: this answer is lost on purpose (never the one that ends the motion)
-        if self.drop_p > 0.0 && !stopping {
-            self.rng ^= self.rng << 13;
-            self.rng ^= self.rng >> 7;
-            self.rng ^= self.rng << 17;
-            let drop = ((self.rng >> 11) as f64 / (1u64 << 53) as f64) < self.drop_p;
-            self.s.dropped += (drop && !self.withhold) as u64;
-            self.withhold |= drop;
-        }
-        self.notes |= self.withhold as u8;
-        self.sent_last = !self.withhold;
         if let Some((rows, next_slot)) = &mut self.trace {
             let row = TraceRow {
                 seq,
@@ -958,6 +1184,47 @@ impl Core {
                 rows[*next_slot] = row;
             }
             *next_slot = (*next_slot + 1) % TRACE_CYCLES;
+        }
+        // an answer this late (the machine stalled the driver after the state came), or one whose
+        // next state has already come (the robot went on: a simulator catching up, a stall),
+        // misses its cycle: the FCI would drop it, a simulator might apply it late and judge the
+        // next answers against a history its reports never showed; withheld, the robot
+        // continues its reference as for any lost packet, and says so in the next state. Decided
+        // as late as it can be, just before the answer goes out.
+        self.withhold = monotonic_ns().saturating_sub(now) > LATE_NS;
+        self.s.withheld_late += self.withhold as u64;
+        if !self.withhold && self.state_fd.is_some_and(datagram_waiting) {
+            self.withhold = true;
+            self.s.withheld_next_state += 1;
+        }
+        if !self.withhold && self.state_queued && !stopping {
+            // a state of unknown age (it was queued: the driver stalled, or the robot's states
+            // came in a burst): its answer may reach the robot after the next state, which a
+            // simulator applies late; withheld, the next state (waited for) is answered in time
+            self.withhold = true;
+            self.s.withheld_queued += 1;
+        }
+        // --drop-answers: this answer is lost on purpose (never the one that ends the motion)
+        if self.drop_p > 0.0 && !stopping {
+            self.rng ^= self.rng << 13;
+            self.rng ^= self.rng >> 7;
+            self.rng ^= self.rng << 17;
+            let drop = ((self.rng >> 11) as f64 / (1u64 << 53) as f64) < self.drop_p;
+            self.s.dropped += (drop && !self.withhold) as u64;
+            self.withhold |= drop;
+        }
+        self.notes |= self.withhold as u8;
+        if let Some((rows, next_slot)) = &mut self.trace {
+            let i = (*next_slot + TRACE_CYCLES - 1) % TRACE_CYCLES;
+            if let Some(r) = rows.get_mut(i) {
+                r.notes |= self.withhold as u8;
+            }
+        }
+        self.sent_last = !self.withhold;
+        if self.sent_last {
+            self.last_sent_seq = seq;
+            self.last_sent = next;
+            self.advance_alts(seq, &next);
         }
         let mut sent = next.q;
         if self.inject_reflex_ns != 0 && now >= self.inject_reflex_ns && !stopping {
@@ -979,12 +1246,35 @@ impl Core {
 fn one_motion(robot: &Robot, core: &mut Core) -> Result<(), FrankaError> {
     let mut motion = robot.start_joint_position_control(MoveControllerMode::JointImpedance)?;
     loop {
-        let (state, period) = motion.read_once()?;
-        let answer = core.cycle(&state, period.as_millis().max(1));
+        // franka-rs drains the states already queued only before it blocks: after a stall (the
+        // driver's thread stopped while it waited) it returns the first state that came and
+        // leaves the newer ones queued. An answer to it would miss its cycle: read on to the
+        // newest, counting the robot cycles between
+        let t0 = monotonic_ns();
+        let (mut state, period) = motion.read_once()?;
+        // a state that was queued before the read (it returned without waiting) came at a time
+        // this driver did not see: its cycle may be nearly over
+        core.state_queued = monotonic_ns().saturating_sub(t0) < QUEUED_NS;
+        let mut elapsed = period.as_millis().max(1);
+        // (at most a gap's worth: past 20 lost cycles the robot has stopped the motion)
+        for _ in 0..20 {
+            if !core.state_fd.is_some_and(datagram_waiting) {
+                break;
+            }
+            let (newer, period) = motion.read_once()?;
+            state = newer;
+            elapsed += period.as_millis().max(1);
+            core.s.stale_states += 1;
+            core.state_queued = true;
+        }
+        let answer = core.cycle(&state, elapsed);
         if core.withhold && !answer.motion_finished {
             continue;
         }
+        let t0 = monotonic_ns();
+        core.s.late_at_send += (t0.saturating_sub(core.last_state_ns) > LATE_NS) as u64;
         motion.write_once(&answer, None)?;
+        core.s.slow_send += (monotonic_ns().saturating_sub(t0) > HALF_CYCLE_NS) as u64;
         if answer.motion_finished {
             return Ok(());
         }
@@ -1064,9 +1354,9 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         args.wait_for_robot
     );
     let until = std::time::Instant::now() + Duration::from_secs_f64(args.wait_for_robot);
-    let mut robot = loop {
+    let (mut robot, state_fd) = loop {
         match connect(&args.robot, realtime) {
-            Ok(r) => break Some(r),
+            Ok((r, fd)) => break (Some(r), fd),
             Err(e) if e.to_string().contains("FCI version") => return Err(e),
             Err(e) => {
                 if std::time::Instant::now() >= until || stop.load(Ordering::Relaxed) {
@@ -1195,6 +1485,14 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
         notes: 0,
         ambiguous: None,
         late_applied_seen: false,
+        alts: [None; ALTS],
+        alt_base: None,
+        last_sent_seq: 0,
+        last_sent: Motion::rest([0.0; JOINTS]),
+        lag: 1,
+        alt_age: 0,
+        state_fd,
+        state_queued: false,
         tracking: Histogram::new_with_bounds(1, 100_000_000, 3)
             .expect("constant histogram bounds are valid"),
         seq: 0,
@@ -1252,8 +1550,9 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
             // nothing (no state is published, so the controller holds)
             std::thread::sleep(Duration::from_millis(500));
             match connect(&args.robot, realtime) {
-                Ok(r) => {
+                Ok((r, fd)) => {
                     core.s.reconnects += 1;
+                    core.state_fd = fd;
                     robot = Some(r);
                 }
                 Err(e) => tracing::debug!("{e}"),

@@ -701,71 +701,68 @@ impl Guard {
         })
     }
 
-    /// The command nearest `q` that passes this guard's limits from either of two references:
-    /// `a`, the one `q` was computed against (one cycle back), and `b`, `b_cycles` back. After
-    /// an answer that went out late the FCI dropped it (its report shows the reference
-    /// continued: `a`), while a simulator may still apply it and difference the next command
-    /// against it over the cycles since (`b`). Per joint, the positions within the velocity
-    /// envelope, acceleration and jerk from both; where none is within both (the late answer's
-    /// own jerk was past two thirds of the limit), the one within `a`'s nearest to `b`'s: `a`
-    /// is the reference the driver believes. Returns it and whether it changed `q`.
+    /// The command nearest `q` that passes this guard's limits from every reference a robot may
+    /// judge it against: `a`, the one `q` was computed against (one cycle back), and each of
+    /// `others`, a motion and the cycles back it stands. After an answer that went out late the
+    /// FCI dropped it (its report shows the reference continued: `a`), while a simulator may
+    /// still apply it and difference the next commands against it over the cycles since (the
+    /// others). Per joint, the positions within the velocity envelope, acceleration and jerk
+    /// from all; where none is within all, the one within `a`'s nearest to the others' (as
+    /// many of them as leave a common range, in order): `a` is the reference the driver
+    /// believes. Returns it and whether it changed `q`.
     pub fn hedge(
         &self,
         a: &Motion,
-        b: &Motion,
-        b_cycles: u64,
+        others: &[(Motion, u64)],
         q: &[f64; JOINTS],
     ) -> ([f64; JOINTS], bool) {
         let l = &self.limits;
         let shrink = 1.0 - 1e-6;
-        let range = |r: &Motion, j: usize, h: f64| -> [(f64, f64); 3] {
+        let range = |r: &Motion, j: usize, h: f64| -> (f64, f64) {
             let glide = r.q[j] + r.dq[j] * h;
             let p = glide + r.ddq[j] * h * h;
             let (jd, ad) = (l.dddq * shrink * h * h * h, l.ddq * shrink * h * h);
-            [
+            let (mut lo, mut hi) = (l.q_min[j], l.q_max[j]);
+            for (lo_k, hi_k) in [
                 (p - jd, p + jd),
                 (glide - ad, glide + ad),
                 (
                     r.q[j] + l.lower(j, r.q[j]) * h,
                     r.q[j] + l.upper(j, r.q[j]) * h,
                 ),
-            ]
+            ] {
+                lo = lo.max(lo_k);
+                hi = hi.min(hi_k);
+            }
+            (lo, hi)
         };
-        let hb = self.dt * b_cycles.max(1) as f64;
         let mut out = *q;
         let mut changed = false;
         for j in 0..JOINTS {
-            let (ra, rb) = (range(a, j, self.dt), range(b, j, hb));
-            let (mut lo, mut hi) = (l.q_min[j], l.q_max[j]);
-            for (lo_k, hi_k) in ra.iter().chain(&rb) {
-                lo = lo.max(*lo_k);
-                hi = hi.min(*hi_k);
+            let (alo, ahi) = range(a, j, self.dt);
+            if alo > ahi {
+                // nothing passes from `a` itself: the guard's own path stands
+                continue;
             }
-            let x = if lo <= hi {
-                q[j].clamp(lo, hi)
-            } else {
-                let (mut alo, mut ahi) = (l.q_min[j], l.q_max[j]);
-                for (lo_k, hi_k) in &ra {
-                    alo = alo.max(*lo_k);
-                    ahi = ahi.min(*hi_k);
-                }
-                // within `a`'s, as near to `b`'s as that allows
-                let (mut blo, mut bhi) = (l.q_min[j], l.q_max[j]);
-                for (lo_k, hi_k) in &rb {
-                    blo = blo.max(*lo_k);
-                    bhi = bhi.min(*hi_k);
-                }
-                let toward = if blo <= bhi {
-                    q[j].clamp(blo, bhi)
+            // `a`'s range narrowed by each other reference in turn, as long as some remains
+            let (mut lo, mut hi) = (alo, ahi);
+            for (b, cycles) in others {
+                let (blo, bhi) = range(b, j, self.dt * (*cycles).max(1) as f64);
+                let (nlo, nhi) = (lo.max(blo), hi.min(bhi));
+                if nlo <= nhi {
+                    (lo, hi) = (nlo, nhi);
                 } else {
-                    q[j]
-                };
-                if alo <= ahi {
-                    toward.clamp(alo, ahi)
-                } else {
-                    q[j]
+                    // none within both: within what is left, as near to this one's as it allows
+                    let toward = if blo <= bhi {
+                        q[j].clamp(blo, bhi)
+                    } else {
+                        q[j]
+                    };
+                    let x = toward.clamp(lo, hi);
+                    (lo, hi) = (x, x);
                 }
-            };
+            }
+            let x = q[j].clamp(lo, hi);
             if x != q[j] {
                 changed = true;
                 out[j] = x;
@@ -1309,7 +1306,7 @@ mod tests {
         // from the late answer that is -6000, past the limit
         let mut q = cont.continued(CYCLE_S).q;
         q[3] -= 3e-6;
-        let (h, changed) = g.hedge(&cont, &late, 1, &q);
+        let (h, changed) = g.hedge(&cont, &[(late, 1)], &q);
         assert!(changed);
         for r in [&cont, &late] {
             let m = Motion::after(r, &h, CYCLE_S);
@@ -1322,7 +1319,7 @@ mod tests {
             );
         }
         // a command that passes from both is left alone
-        let (same, changed) = g.hedge(&cont, &cont, 1, &q);
+        let (same, changed) = g.hedge(&cont, &[(cont, 1)], &q);
         assert!(!changed && same == q);
     }
 }

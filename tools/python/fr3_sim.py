@@ -75,6 +75,49 @@ def strict(f):
           f"jerk {checker.MAX_JOINT_JERK[0]:.0f}", flush=True)
 
 
+def trace_events(path):
+    """Debugging aid ($FR3_SIM_EVENTS=path): the checker's last 400 events (states published,
+    cycles continued, commands absorbed) are written to `path` when it reports a violation."""
+    import collections
+    from franka_sim.limits import checker
+
+    ring = collections.deque(maxlen=400)
+    cls = checker.MotionLimitChecker
+    orig_pub, orig_ext, orig_abs, orig_rep = (cls.note_published, cls.extrapolate,
+                                              cls.absorb_command, cls.report)
+
+    def hist(self):
+        j = self._joint
+        return [round(x, 9) for x in j.value], [round(x, 6) for x in j.first], [round(x, 3) for x in j.second]
+
+    def note_published(self, published_id):
+        ring.append((time.monotonic(), "published", published_id))
+        return orig_pub(self, published_id)
+
+    def extrapolate(self, message_id):
+        out = orig_ext(self, message_id)
+        ring.append((time.monotonic(), "extrapolated", message_id, self._applied_id, hist(self)))
+        return out
+
+    def absorb_command(self, command, joint_positions=None, *, fresh, enforce=False):
+        cycles = self.cycles_since_applied(command)
+        out = orig_abs(self, command, joint_positions, fresh=fresh, enforce=enforce)
+        ring.append((time.monotonic(), "absorbed", command.get("message_id"), fresh, out.rewound,
+                     out.recorded, cycles, [round(x, 9) for x in command["q_c"]],
+                     out.violation.describe() if out.violation else None, hist(self)))
+        return out
+
+    def report(self, violation, *, enforced):
+        with open(path, "a") as f:
+            f.write(f"--- violation {violation.describe()}\n")
+            for e in ring:
+                f.write(repr(e) + "\n")
+        return orig_rep(self, violation, enforced=enforced)
+
+    cls.note_published, cls.extrapolate, cls.absorb_command, cls.report = (
+        note_published, extrapolate, absorb_command, report)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--host", default="127.0.0.1")
@@ -124,6 +167,8 @@ def main():
 
     if args.strict != 1.0:
         strict(args.strict)
+    if os.environ.get("FR3_SIM_EVENTS"):
+        trace_events(os.environ["FR3_SIM_EVENTS"])
 
     enforce = not args.no_enforce
     server = FrankaSimServer(host=args.host, port=args.port, enable_gripper=not args.no_gripper,
