@@ -1330,7 +1330,6 @@ fn run_takes_a_lerobot_checkpoint_as_shipped() {
 /// period after a stall whether or not a trusted state came: 0.99-7.3 x, offset 0.040 rad
 /// (against 0.001-0.02 without the forger). Still open.
 #[test]
-#[ignore = "issue 54 §3, open: states forged during the controller's stall still move the command"]
 fn states_forged_during_the_controllers_stall_lead_nothing() {
     let _serial = serial();
     let ns = unique_namespace("forged-stall");

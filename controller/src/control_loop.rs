@@ -53,6 +53,10 @@ pub trait ControlTick: Send {
     /// robot clock, the robot cycles since the last tick, so that the command stays on the
     /// robot's time when a tick missed a cycle). Default: ignored.
     fn set_cycles(&mut self, _cycles: u32) {}
+
+    /// The bound robot's newest state while the stream is ambiguous (not trusted to lead):
+    /// where a hold holds. Default: ignored. Must not allocate, block or do I/O.
+    fn hold_at(&mut self, _joint_state: &JointState) {}
 }
 
 impl ControlTick for Executor {
@@ -67,6 +71,10 @@ impl ControlTick for Executor {
 
     fn set_command_publisher(&mut self, id: u128) {
         Executor::set_command_publisher(self, id);
+    }
+
+    fn hold_at(&mut self, joint_state: &JointState) {
+        Executor::hold_at(self, joint_state);
     }
 
     fn set_cycles(&mut self, cycles: u32) {
@@ -232,6 +240,11 @@ impl ControlLoop {
             answered = true;
         }
         let js = self.js.trusted(wake_ns);
+        if js.is_none() {
+            if let Some(bound) = self.js.bound_fresh(wake_ns) {
+                tick.hold_at(bound);
+            }
+        }
         let not_following =
             js.is_some_and(|s| s.status_flags & chunkrt_ipc::JOINT_STATUS_NOT_FOLLOWING != 0);
         let report = tick.tick(wake_ns, js, &mut self.cmd);

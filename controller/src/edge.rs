@@ -245,6 +245,16 @@ impl JointStateInput {
         }
     }
 
+    /// While the stream is ambiguous, the bound publisher's newest state if it is fresh at
+    /// `now_ns` (within the channel's maximum age): not trusted to lead the robot, but where a
+    /// hold holds.
+    pub fn bound_fresh(&self, now_ns: u64) -> Option<&JointState> {
+        self.latest().filter(|s| {
+            self.ambiguous(now_ns)
+                && now_ns.saturating_sub(s.measurement_time_ns) <= self.freshness.max_age_ns
+        })
+    }
+
     /// True while a second joint-state publisher makes the stream ambiguous.
     pub fn ambiguous(&self, now_ns: u64) -> bool {
         now_ns < self.ambiguous_until_ns

@@ -158,6 +158,9 @@ pub struct Executor {
     hold_last_state: bool,
     last_state: Sample,
     have_last_state: bool,
+    /// This tick's [`Executor::hold_at`] state (the bound robot's, while the stream is
+    /// ambiguous): after a stall of this process the generator re-seeds there.
+    bound: Option<JointState>,
     /// The range each command may take: the configured position range, widened to an arm seeded
     /// outside it (a reflex in an extreme pose, a person who moved the arm) and narrowed back as
     /// the commands return inside (never further out than the range or the arm was).
@@ -226,6 +229,7 @@ impl Executor {
             hold_last_state: e.stale_hold == crate::config::StaleHold::LastState,
             last_state: Sample::default(),
             have_last_state: false,
+            bound: None,
             range_lo: otg_in.min_position,
             range_hi: otg_in.max_position,
             last_primary: 0,
@@ -266,6 +270,25 @@ impl Executor {
     /// robot is quiet does not advance at all. No allocation.
     pub fn set_cycles(&mut self, cycles: u32) {
         self.cycles = cycles.min(50);
+    }
+
+    /// The bound robot's newest state while the joint-state stream is ambiguous (another
+    /// publisher spoke: none is trusted to lead): where the robot is, so that a hold at the
+    /// robot's last state (`stale_hold = "last_state"`) holds there, not where the arm was when
+    /// the trusted states stopped (after this controller stalled for 1.5 s while a forger
+    /// spoke, that was 0.04 rad from the arm). Never leads. No allocation.
+    pub fn hold_at(&mut self, js: &JointState) {
+        if !self.hold_last_state {
+            return;
+        }
+        for j in 0..self.limits.n {
+            let p = js.position[j];
+            if p.is_finite() {
+                self.last_state.position[j] = p;
+            }
+        }
+        self.have_last_state = true;
+        self.bound = Some(*js);
     }
 
     /// Runs without a chunk source (`policy.kind = "hold"`): waiting for a chunk in STARTING is
@@ -405,6 +428,17 @@ impl Executor {
             // state came with it (a forger speaking meanwhile leaves none: the generator then
             // jumped the stall's cycles in one command, 12 x a joint's velocity limit)
             self.cycles = 1;
+        }
+        // no trusted state (another publisher spoke meanwhile): the bound robot's newest one
+        // is where the robot is, and the hold starts there (a forger speaking during the stall
+        // kept the generator where the arm had been: 0.04 rad off)
+        let bound = self.bound.take();
+        if let (true, true, None, Some(b)) = (stalled, self.initialized, joint_state, bound) {
+            let at_rest = b.status_flags & chunkrt_ipc::JOINT_STATUS_AT_REST != 0;
+            if self.away_from(&b) || at_rest {
+                self.init_generator(&b);
+                self.stall_reseeds += 1;
+            }
         }
         if let (true, true, true, Some(js)) = (stalled, js.fresh, self.initialized, joint_state) {
             // the robot ran on meanwhile; a robot whose driver holds it at rest was stopped by
