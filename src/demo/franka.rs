@@ -47,7 +47,7 @@ fn franka_env() -> anyhow::Result<(PathBuf, PathBuf)> {
 }
 
 fn script(name: &str) -> PathBuf {
-    crate::task::so101::sim_script().with_file_name(name)
+    chunkrt_learn::task::so101::sim_script().with_file_name(name)
 }
 
 /// The time series the plot draws: (s, commanded, measured) per joint.

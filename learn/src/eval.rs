@@ -428,7 +428,10 @@ fn chunk_source(
             let max = r.server().map_or(0, |m| m.rtc_prefix_max);
             (Box::new(r), max)
         }
-        PolicySource::Scripted => (Box::new(crate::run::scripted_source(cfg)), usize::MAX),
+        PolicySource::Scripted => (
+            Box::new(chunkrt_bench::scripted::ScriptedChunkSource::for_robot(cfg)),
+            usize::MAX,
+        ),
     })
 }
 
