@@ -24,7 +24,7 @@ use chunkrt_ipc::{
 };
 
 use crate::report::{fmt_us, latency_histogram};
-use crate::task::{ReachScene, TargetColor, REACH_TOLERANCE};
+use chunkrt_learn::task::{ReachScene, TargetColor, REACH_TOLERANCE};
 
 mod franka;
 mod ros2;
@@ -119,7 +119,7 @@ impl StackArgs {
         });
         std::fs::create_dir_all(&log_dir)
             .with_context(|| format!("cannot create {}", log_dir.display()))?;
-        let task = crate::task::task_camera(&cfg).is_ok() && cfg.policy.kind.is_some();
+        let task = chunkrt_learn::task::task_camera(&cfg).is_ok() && cfg.policy.kind.is_some();
         let mut common = vec!["--namespace".to_string(), ns.clone()];
         if let Some(c) = &self.config {
             common.extend(["--config".to_string(), c.display().to_string()]);

@@ -13,19 +13,17 @@
 //! - [`report`]: percentile plots and `chunkrt report` (on the controller's histograms).
 //! - [`demo`]: starts the fake devices and the controller as processes; [`soak`]: the same
 //!   stack for a long run, with overruns, lateness, holds, rejections, RSS and fds.
-//! - [`task`], [`train`], [`eval`]: the reach task, training its policy, the closed-loop sweep.
+//!
+//! The reach and SO-101 tasks, `chunkrt train` and `chunkrt eval` are `chunkrt-learn`.
 //!
 //! Must not be depended on by the controller, the policy or the ipc crate.
 
 pub mod args;
 pub mod config_print;
 pub mod demo;
-pub mod eval;
 pub mod policy_cli;
 pub mod record;
 pub mod report;
 pub mod run;
 pub mod serve;
 pub mod soak;
-pub mod task;
-pub mod train;

@@ -53,10 +53,10 @@ enum Command {
     Report(chunkrt::report::ReportArgs),
     /// Train the reach task's π0.5 with the flow-matching loss (expert demonstrations,
     /// AdamW, closed-loop validation); writes an openpi-format checkpoint.
-    Train(chunkrt::train::TrainArgs),
+    Train(chunkrt_learn::train::TrainArgs),
     /// Closed-loop delay sweep of the chunk strategies (and synchronous execution) on the
     /// reach task: success rate, time to target, switch jumps, jerk.
-    Eval(chunkrt::eval::EvalArgs),
+    Eval(chunkrt_learn::eval::EvalArgs),
 }
 
 fn main() {
@@ -91,8 +91,8 @@ fn main() {
         }
         Command::Report(a) => chunkrt::report::run(a),
         Command::Record(a) => chunkrt::record::run(a),
-        Command::Train(a) => chunkrt::train::run(a),
-        Command::Eval(a) => chunkrt::eval::run(a),
+        Command::Train(a) => chunkrt_learn::train::run(a),
+        Command::Eval(a) => chunkrt_learn::eval::run(a),
     };
     if let Err(e) = result {
         eprintln!("chunkrt: error: {e:#}");

@@ -53,7 +53,7 @@ pub fn rerun_python() -> anyhow::Result<PathBuf> {
 
 /// The recorder script beside the other Python tools.
 pub fn recorder_script() -> PathBuf {
-    crate::task::so101::sim_script().with_file_name("chunkrt_record.py")
+    chunkrt_learn::task::so101::sim_script().with_file_name("chunkrt_record.py")
 }
 
 /// The recorder's command line for `ns` into `out`.

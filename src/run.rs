@@ -7,6 +7,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 
+use chunkrt_bench::scripted::ScriptedChunkSource;
 use chunkrt_controller::config::{Config, DeviceSpec, ModelKind, PolicySource};
 use chunkrt_controller::control::Executor;
 use chunkrt_controller::controller::{
@@ -74,7 +75,7 @@ pub fn load_source(
     stop: &std::sync::atomic::AtomicBool,
 ) -> anyhow::Result<Option<Box<dyn ChunkSource>>> {
     if cfg.policy.source == PolicySource::Scripted {
-        return Ok(Some(Box::new(scripted_source(cfg))));
+        return Ok(Some(Box::new(ScriptedChunkSource::for_robot(cfg))));
     }
     if cfg.policy.kind.is_none() {
         return Ok(Some(Box::new(HoldSource)));
@@ -90,7 +91,7 @@ pub fn load_source(
                         .map(|s| Box::new(s) as _),
                     PolicySource::Remote => chunkrt_controller::remote::RemoteSource::connect(&c)
                         .map(|s| Box::new(s) as _),
-                    PolicySource::Scripted => Ok(Box::new(scripted_source(&c)) as _),
+                    PolicySource::Scripted => Ok(Box::new(ScriptedChunkSource::for_robot(&c)) as _),
                 };
             let _ = tx.send(source);
         })
@@ -109,40 +110,6 @@ pub fn load_source(
             }
         }
     }
-}
-
-/// The scripted test double for this robot (`policy.source = "scripted"`): each continuous
-/// joint a sinusoid around its initial position (amplitude at most a quarter of its range and
-/// inside it), step joints toggling between their limits' ends.
-pub fn scripted_source(cfg: &Config) -> chunkrt_bench::scripted::ScriptedChunkSource {
-    use chunkrt_bench::scripted::{ScriptedChunkSource, ScriptedConfig};
-    let s = &cfg.policy.scripted;
-    let n = cfg.n_dof().min(chunkrt_ipc::MAX_DOF);
-    let mut c = ScriptedConfig::demo((s.latency_ms * 1e6) as u64, s.jump);
-    c.n_dof = n;
-    c.horizon = s.horizon;
-    c.period_ns = (1e9 / cfg.policy.action_rate_hz).round() as u64;
-    c.latency_cycle_ns = s.delays.iter().map(|&d| d as u64 * c.period_ns).collect();
-    c.step_period_s = s.step_period_s;
-    c.step = [false; chunkrt_ipc::MAX_DOF];
-    c.centre = [0.0; chunkrt_ipc::MAX_DOF];
-    c.amplitude = [0.0; chunkrt_ipc::MAX_DOF];
-    c.frequency = [0.0; chunkrt_ipc::MAX_DOF];
-    for (j, joint) in cfg.robot.joints.iter().enumerate().take(n) {
-        if joint.step {
-            c.step[j] = true;
-            c.step_low[j] = joint.position_min;
-            c.step_high[j] = joint.position_max;
-            continue;
-        }
-        let (lo, hi) = (joint.position_min, joint.position_max);
-        let centre = joint.initial_position.clamp(lo, hi);
-        let room = (centre - lo).min(hi - centre);
-        c.centre[j] = centre;
-        c.amplitude[j] = s.amplitude.min(0.25 * (hi - lo)).min(0.8 * room).max(0.0);
-        c.frequency[j] = s.frequency_hz * (1.0 + 0.15 * j as f64);
-    }
-    ScriptedChunkSource::new(c)
 }
 
 /// `chunkrt run`: the controller until SIGINT / SIGTERM or `--duration`.

@@ -6,10 +6,10 @@
 use std::path::Path;
 use std::process::Command;
 
-use chunkrt::task::sim::{run_episode, SimSettings};
-use chunkrt::train::held_out_episodes;
 use chunkrt_controller::config::{Config, Jacobian};
 use chunkrt_controller::inference::PolicySource;
+use chunkrt_learn::task::sim::{run_episode, SimSettings};
+use chunkrt_learn::train::held_out_episodes;
 
 const EXE: &str = env!("CARGO_BIN_EXE_chunkrt");
 
@@ -68,7 +68,7 @@ fn train_quick_writes_a_checkpoint_the_runtime_loads() {
         assert!(out.join(f).exists(), "{f} missing");
     }
     // the dataset round-trips and the training log has the validation row
-    let ds = chunkrt::task::dataset::Dataset::load(&dir.join("ds.safetensors")).unwrap();
+    let ds = chunkrt_learn::task::dataset::Dataset::load(&dir.join("ds.safetensors")).unwrap();
     assert_eq!(ds.episodes(), 6);
     let log = std::fs::read_to_string(dir.join("train_log.csv")).unwrap();
     assert!(log.lines().count() >= 2, "{log}");
@@ -334,7 +334,7 @@ fn committed_rtc_policy_runs_rtc_trained_in_closed_loop() {
 /// no more often than touching once, and never earlier.
 #[test]
 fn drifting_targets_must_be_reached_and_followed() {
-    use chunkrt::task::sim::Drift;
+    use chunkrt_learn::task::sim::Drift;
     let d = Drift {
         amplitude_rad: 0.3,
         frequency_hz: 0.25,
@@ -430,8 +430,8 @@ fn run_demo(config: Option<&Path>, prompt: &str, dir: &Path) -> (String, String)
 /// chunk (first action: the current position; last action: where the expert is 0.9 s later).
 #[test]
 fn committed_policy_reproduces_expert_chunks_open_loop() {
-    use chunkrt::task::expert::{Profile, Reach};
-    use chunkrt::task::ReachScene;
+    use chunkrt_learn::task::expert::{Profile, Reach};
+    use chunkrt_learn::task::ReachScene;
     use chunkrt_policy::runtime::{RawFrame, RawObservation};
     let cfg = Config::embedded_default();
     let dir = cfg.resolve(cfg.policy.checkpoint.as_ref().unwrap());
@@ -490,8 +490,8 @@ fn committed_policy_reproduces_expert_chunks_open_loop() {
 /// effects were at the noise floor.
 #[test]
 fn committed_policy_acts_on_its_image_and_prompt() {
-    use chunkrt::task::expert::Profile;
-    use chunkrt::task::probe::probe;
+    use chunkrt_learn::task::expert::Profile;
+    use chunkrt_learn::task::probe::probe;
     let cfg = Config::embedded_default();
     let dir = cfg.resolve(cfg.policy.checkpoint.as_ref().unwrap());
     let mut policy = chunkrt_controller::inference::load_policy(&dir, &cfg.policy).unwrap();
@@ -538,14 +538,15 @@ fn drift_config() -> Config {
 /// (it does not, for these weights).
 #[test]
 fn drift_policy_sees_its_earlier_frame() {
-    use chunkrt::eval::{MOTION_PROBE_RATE_RAD_S, PROBE_SCENE_BASE};
+    use chunkrt_learn::eval::{MOTION_PROBE_RATE_RAD_S, PROBE_SCENE_BASE};
     let cfg = drift_config();
     let dir = cfg.resolve(cfg.policy.checkpoint.as_ref().unwrap());
     let mut policy = chunkrt_controller::inference::load_policy(&dir, &cfg.policy).unwrap();
     assert_eq!(policy.delayed_views().len(), 1);
     let eps = held_out_episodes(&cfg, PROBE_SCENE_BASE, 16, 9);
-    let m = chunkrt::task::probe::motion_probe(&mut policy, &cfg, &eps, MOTION_PROBE_RATE_RAD_S)
-        .unwrap();
+    let m =
+        chunkrt_learn::task::probe::motion_probe(&mut policy, &cfg, &eps, MOTION_PROBE_RATE_RAD_S)
+            .unwrap();
     eprintln!("{m}");
     assert!(m.observations >= 12, "{m}");
     // the tracking expert leads the way the targets move (the probe's own check)
@@ -563,7 +564,7 @@ const MIN_EARLIER_FRAME_EFFECT_RAD: f64 = 0.03;
 /// 100 and this one 88: BENCHMARKS.md section 6).
 #[test]
 fn drift_policy_follows_swinging_targets_in_closed_loop() {
-    use chunkrt::task::sim::Drift;
+    use chunkrt_learn::task::sim::Drift;
     let settings = SimSettings {
         drift: Some(Drift {
             amplitude_rad: 0.3,

@@ -99,6 +99,39 @@ impl ScriptedChunkSource {
         }
     }
 
+    /// The scripted test double for this robot (`policy.source = "scripted"`): each continuous
+    /// joint a sinusoid around its initial position (amplitude at most a quarter of its range
+    /// and inside it), step joints toggling between their limits' ends.
+    pub fn for_robot(cfg: &chunkrt_controller::config::Config) -> Self {
+        let s = &cfg.policy.scripted;
+        let n = cfg.n_dof().min(MAX_DOF);
+        let mut c = ScriptedConfig::demo((s.latency_ms * 1e6) as u64, s.jump);
+        c.n_dof = n;
+        c.horizon = s.horizon;
+        c.period_ns = (1e9 / cfg.policy.action_rate_hz).round() as u64;
+        c.latency_cycle_ns = s.delays.iter().map(|&d| d as u64 * c.period_ns).collect();
+        c.step_period_s = s.step_period_s;
+        c.step = [false; MAX_DOF];
+        c.centre = [0.0; MAX_DOF];
+        c.amplitude = [0.0; MAX_DOF];
+        c.frequency = [0.0; MAX_DOF];
+        for (j, joint) in cfg.robot.joints.iter().enumerate().take(n) {
+            if joint.step {
+                c.step[j] = true;
+                c.step_low[j] = joint.position_min;
+                c.step_high[j] = joint.position_max;
+                continue;
+            }
+            let (lo, hi) = (joint.position_min, joint.position_max);
+            let centre = joint.initial_position.clamp(lo, hi);
+            let room = (centre - lo).min(hi - centre);
+            c.centre[j] = centre;
+            c.amplitude[j] = s.amplitude.min(0.25 * (hi - lo)).min(0.8 * room).max(0.0);
+            c.frequency[j] = s.frequency_hz * (1.0 + 0.15 * j as f64);
+        }
+        Self::new(c)
+    }
+
     /// The intended (reference) position of joint `j` at time `t_ns`.
     pub fn reference(&self, t_ns: u64, j: usize) -> f64 {
         let t = t_ns as f64 * 1e-9;

@@ -536,19 +536,46 @@ fn same_key(given: &str, key: &str) -> bool {
 }
 
 fn serve_connection(
-    mut stream: TcpStream,
+    stream: TcpStream,
     peer: SocketAddr,
     s: &Shared,
     id: u64,
     drop_it: &AtomicBool,
 ) {
+    let Some(ws) = handshake(stream, peer, s, id, drop_it) else {
+        return;
+    };
+    Session {
+        peer,
+        s,
+        id,
+        drop_it,
+        prev_total: None,
+        waiting_since: Instant::now(),
+        mark: ws.get_ref().bytes,
+        begun: None,
+        ws,
+    }
+    .run();
+}
+
+/// The connection's way to a websocket within `handshake_timeout`: its request head, then
+/// [`admit`] and [`upgrade`]. None: it has been answered (health check, refusal), or it failed
+/// or went.
+fn handshake(
+    stream: TcpStream,
+    peer: SocketAddr,
+    s: &Shared,
+    id: u64,
+    drop_it: &AtomicBool,
+) -> Option<WebSocket<Counted>> {
     let deadline = Instant::now() + s.cfg.handshake_timeout;
     let _ = stream.set_write_timeout(Some(Duration::from_secs(2)));
     let Some(head) = peek_head(&stream, deadline, &s.stop, drop_it) else {
         if !drop_it.load(Ordering::Relaxed) {
             s.stats.handshake_timeouts.fetch_add(1, Ordering::Relaxed);
         }
-        return;
+        return None;
     };
     s.head_done(id);
     // the rest of the handshake within what is left of the deadline
@@ -556,15 +583,24 @@ fn serve_connection(
         .saturating_duration_since(Instant::now())
         .max(Duration::from_millis(10));
     let _ = stream.set_read_timeout(Some(left));
-    let consume = |stream: &mut TcpStream, n: usize| {
-        let mut sink = vec![0u8; n];
-        let _ = stream.read_exact(&mut sink);
-    };
+    let stream = admit(stream, &head, peer, s, id)?;
+    upgrade(stream, peer, s)
+}
+
+/// Answers a request that gets no websocket: `GET /healthz` (200), a wrong or missing api key
+/// (401), no slot to be had (503). Some: the connection now holds a websocket slot.
+fn admit(
+    mut stream: TcpStream,
+    head: &Head,
+    peer: SocketAddr,
+    s: &Shared,
+    id: u64,
+) -> Option<TcpStream> {
     if head.path == "/healthz" {
         s.stats.health_checks.fetch_add(1, Ordering::Relaxed);
         consume(&mut stream, head.len);
         refuse(stream, "200 OK", "OK\n");
-        return;
+        return None;
     }
     if let Some(key) = &s.cfg.api_key {
         let ok = head
@@ -579,7 +615,7 @@ fn serve_connection(
             });
             consume(&mut stream, head.len);
             refuse(stream, "401 Unauthorized", "wrong or missing api key\n");
-            return;
+            return None;
         }
     }
     // a websocket slot: the longest-idle websocket of this address, network or all makes way
@@ -592,8 +628,20 @@ fn serve_connection(
             "503 Service Unavailable",
             &format!("too many connections: {why}\n"),
         );
-        return;
+        return None;
     }
+    Some(stream)
+}
+
+/// Reads the `n` bytes of the peeked request head and drops them.
+fn consume(stream: &mut TcpStream, n: usize) {
+    let mut sink = vec![0u8; n];
+    let _ = stream.read_exact(&mut sink);
+}
+
+/// The websocket handshake of an admitted connection, then the metadata sent. None: either
+/// failed.
+fn upgrade(stream: TcpStream, peer: SocketAddr, s: &Shared) -> Option<WebSocket<Counted>> {
     let ws_cfg = WebSocketConfig::default()
         .max_message_size(Some(s.cfg.max_message_bytes))
         .max_frame_size(Some(s.cfg.max_message_bytes));
@@ -602,7 +650,7 @@ fn serve_connection(
         Ok(ws) => ws,
         Err(e) => {
             tracing::debug!("serve: {peer}: handshake failed: {e}");
-            return;
+            return None;
         }
     };
     s.stats.connections.fetch_add(1, Ordering::Relaxed);
@@ -613,27 +661,71 @@ fn serve_connection(
         .stream
         .set_read_timeout(Some(Duration::from_millis(200)));
     if ws.send(Message::Binary(s.metadata.clone().into())).is_err() {
-        return;
+        return None;
     }
-    let mut prev_total: Option<Duration> = None;
-    let mut waiting_since = Instant::now();
-    // bytes read when the last message completed, and since when a message has been arriving
-    let mut mark = ws.get_ref().bytes;
-    let mut begun: Option<Instant> = None;
-    loop {
-        if drop_it.load(Ordering::Relaxed) {
+    Some(ws)
+}
+
+/// An open websocket: its requests answered one at a time until it closes or is closed.
+struct Session<'a> {
+    ws: WebSocket<Counted>,
+    peer: SocketAddr,
+    s: &'a Shared,
+    id: u64,
+    drop_it: &'a AtomicBool,
+    /// Receive → reply sent of the last request answered (sent with the next reply).
+    prev_total: Option<Duration>,
+    /// Since when the connection has been waiting for a request.
+    waiting_since: Instant,
+    /// Bytes read when the last message completed, and since when a message has been arriving.
+    mark: u64,
+    begun: Option<Instant>,
+}
+
+/// What the next read of a [`Session`] gave.
+enum Next {
+    /// A request's bytes.
+    Request(tungstenite::Bytes),
+    /// Nothing yet (a read timeout), or a frame that is no request (ping, pong).
+    Again,
+    /// The connection is done: closed by the peer, gone, or failed and answered so.
+    End,
+}
+
+impl Session<'_> {
+    fn run(mut self) {
+        loop {
+            if self.close_if_due() {
+                return;
+            }
+            let bytes = match self.read_request() {
+                Next::Request(b) => b,
+                Next::Again => continue,
+                Next::End => return,
+            };
+            if !self.answer(&bytes) {
+                return;
+            }
+        }
+    }
+
+    /// Closes the websocket where it must go: it made way for a new connection, a message
+    /// begun `message_timeout` ago is still incomplete, no request came for `idle_timeout`,
+    /// or the server is stopping. True: closed.
+    fn close_if_due(&mut self) -> bool {
+        let (s, peer) = (self.s, self.peer);
+        if self.drop_it.load(Ordering::Relaxed) {
             tracing::info!("serve: {peer}: idle the longest: closed for a new connection");
-            let _ = ws.close(Some(CloseFrame {
-                code: CloseCode::Again,
-                reason: "made way for a new connection".into(),
-            }));
-            let _ = ws.flush();
-            return;
+            self.close(CloseCode::Again, "made way for a new connection");
+            return true;
         }
-        if ws.get_ref().bytes > mark && begun.is_none() {
-            begun = Some(Instant::now());
+        if self.ws.get_ref().bytes > self.mark && self.begun.is_none() {
+            self.begun = Some(Instant::now());
         }
-        if begun.is_some_and(|t| t.elapsed() >= s.cfg.message_timeout) {
+        if self
+            .begun
+            .is_some_and(|t| t.elapsed() >= s.cfg.message_timeout)
+        {
             s.stats.message_timeouts.fetch_add(1, Ordering::Relaxed);
             s.warn("message_timeout", || {
                 format!(
@@ -641,38 +733,41 @@ fn serve_connection(
                     s.cfg.message_timeout.as_secs_f64()
                 )
             });
-            let _ = ws.close(Some(CloseFrame {
-                code: CloseCode::Policy,
-                reason: "message too slow".into(),
-            }));
-            let _ = ws.flush();
-            return;
+            self.close(CloseCode::Policy, "message too slow");
+            return true;
         }
-        if waiting_since.elapsed() >= s.cfg.idle_timeout {
+        if self.waiting_since.elapsed() >= s.cfg.idle_timeout {
             s.stats.idle_closed.fetch_add(1, Ordering::Relaxed);
             tracing::info!(
                 "serve: {peer}: no request for {:.0} s: closed",
                 s.cfg.idle_timeout.as_secs_f64()
             );
-            let _ = ws.close(Some(CloseFrame {
-                code: CloseCode::Away,
-                reason: "idle".into(),
-            }));
-            let _ = ws.flush();
-            return;
+            self.close(CloseCode::Away, "idle");
+            return true;
         }
         if s.stop.load(Ordering::Relaxed) {
-            let _ = ws.close(Some(CloseFrame {
-                code: CloseCode::Away,
-                reason: "server stopping".into(),
-            }));
-            let _ = ws.flush();
-            return;
+            self.close(CloseCode::Away, "server stopping");
+            return true;
         }
-        let msg = match ws.read() {
+        false
+    }
+
+    fn close(&mut self, code: CloseCode, reason: &'static str) {
+        let _ = self.ws.close(Some(CloseFrame {
+            code,
+            reason: reason.into(),
+        }));
+        let _ = self.ws.flush();
+    }
+
+    /// The next message: a request's bytes, or why there is none now. A message larger than
+    /// the limit, or a text frame, is answered as a failure.
+    fn read_request(&mut self) -> Next {
+        let peer = self.peer;
+        let msg = match self.ws.read() {
             Ok(m) => {
-                mark = ws.get_ref().bytes;
-                begun = None;
+                self.mark = self.ws.get_ref().bytes;
+                self.begun = None;
                 m
             }
             Err(tungstenite::Error::Io(e))
@@ -681,75 +776,85 @@ fn serve_connection(
                     std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
                 ) =>
             {
-                continue
+                return Next::Again
             }
             Err(tungstenite::Error::Capacity(e)) => {
-                fail(
-                    &mut ws,
-                    peer,
-                    s,
-                    Failure::TooLarge,
-                    &format!(
-                        "the message is larger than the server's limit of {} bytes ({e})",
-                        s.cfg.max_message_bytes
-                    ),
+                let text = format!(
+                    "the message is larger than the server's limit of {} bytes ({e})",
+                    self.s.cfg.max_message_bytes
                 );
-                return;
+                self.fail(Failure::TooLarge, &text);
+                return Next::End;
             }
             Err(_) => {
                 tracing::info!("serve: {peer} disconnected");
-                return;
+                return Next::End;
             }
         };
-        let bytes = match msg {
-            Message::Binary(b) => b,
+        match msg {
+            Message::Binary(b) => Next::Request(b),
             Message::Text(_) => {
-                fail(
-                    &mut ws,
-                    peer,
-                    s,
-                    Failure::Text,
-                    "expected a binary msgpack frame, got text",
-                );
-                return;
+                self.fail(Failure::Text, "expected a binary msgpack frame, got text");
+                Next::End
             }
             Message::Close(_) => {
                 tracing::info!("serve: {peer} closed the connection");
-                return;
+                Next::End
             }
-            _ => continue,
+            _ => Next::Again,
+        }
+    }
+
+    /// Answers one request: decoded and parsed here, its chunk asked of the policy thread,
+    /// the reply sent, the latency noted. False: the connection is done (the request failed
+    /// and was answered so, or the reply could not be sent).
+    fn answer(&mut self, bytes: &[u8]) -> bool {
+        let start = self.waiting_since;
+        self.s.asking(self.id, true);
+        let Some(request) = self.parse(bytes) else {
+            return false;
         };
-        let start = waiting_since;
-        s.asking(id, true);
-        let value = match decode(&bytes, s.cfg.limits) {
+        let Some((mut reply, infer)) = self.ask_policy(request) else {
+            return false;
+        };
+        reply.server_infer_ms = Some(infer.as_secs_f64() * 1e3);
+        reply.prev_total_ms = self.prev_total.map(|t| t.as_secs_f64() * 1e3);
+        let mut w = crate::msgpack::Writer::new();
+        reply.write(&mut w);
+        // counted before it is sent: a client that has its reply finds it counted
+        self.s.stats.replies.fetch_add(1, Ordering::Relaxed);
+        if self.ws.send(Message::Binary(w.buf.into())).is_err() {
+            return false;
+        }
+        self.answered(start, infer);
+        true
+    }
+
+    /// The request in `bytes`; None: it is malformed or no observation (answered as a
+    /// failure).
+    fn parse(&mut self, bytes: &[u8]) -> Option<Request> {
+        let value = match decode(bytes, self.s.cfg.limits) {
             Ok(v) => v,
             Err(e) => {
-                fail(
-                    &mut ws,
-                    peer,
-                    s,
-                    Failure::Decode,
-                    &format!("malformed msgpack-numpy: {e}"),
-                );
-                return;
+                self.fail(Failure::Decode, &format!("malformed msgpack-numpy: {e}"));
+                return None;
             }
         };
-        let request = match (s.parse)(&value) {
-            Ok(r) => r,
+        match (self.s.parse)(&value) {
+            Ok(r) => Some(r),
             Err(e) => {
-                fail(
-                    &mut ws,
-                    peer,
-                    s,
-                    Failure::Request,
-                    &format!("bad observation: {e}"),
-                );
-                return;
+                self.fail(Failure::Request, &format!("bad observation: {e}"));
+                None
             }
-        };
-        drop(value);
+        }
+    }
+
+    /// The policy thread's reply to `request` and its inference time; None: the policy failed
+    /// or has stopped (answered as a failure).
+    fn ask_policy(&mut self, request: Request) -> Option<(Reply, Duration)> {
         let (answer_tx, answer_rx) = mpsc::sync_channel(1);
-        let queued = s
+        let queued = self
+            .s
             .jobs
             .lock()
             .ok()
@@ -762,47 +867,35 @@ fn serve_connection(
                 .is_ok()
             });
         let answer = if queued { answer_rx.recv().ok() } else { None };
-        let (mut reply, infer) = match answer {
-            Some((Ok(r), t)) => (r, t),
+        match answer {
+            Some((Ok(r), t)) => Some((r, t)),
             Some((Err(e), _)) => {
-                fail(
-                    &mut ws,
-                    peer,
-                    s,
-                    Failure::Policy,
-                    &format!("policy error: {e}"),
-                );
-                return;
+                self.fail(Failure::Policy, &format!("policy error: {e}"));
+                None
             }
             None => {
-                fail(
-                    &mut ws,
-                    peer,
-                    s,
-                    Failure::Policy,
-                    "the policy thread has stopped",
-                );
-                return;
+                self.fail(Failure::Policy, "the policy thread has stopped");
+                None
             }
-        };
-        reply.server_infer_ms = Some(infer.as_secs_f64() * 1e3);
-        reply.prev_total_ms = prev_total.map(|t| t.as_secs_f64() * 1e3);
-        let mut w = crate::msgpack::Writer::new();
-        reply.write(&mut w);
-        // counted before it is sent: a client that has its reply finds it counted
-        s.stats.replies.fetch_add(1, Ordering::Relaxed);
-        if ws.send(Message::Binary(w.buf.into())).is_err() {
-            return;
         }
+    }
+
+    /// A reply sent: its latency noted (for the next reply and the stats), the connection
+    /// waiting again.
+    fn answered(&mut self, start: Instant, infer: Duration) {
         let total = start.elapsed();
-        prev_total = Some(total);
-        waiting_since = Instant::now();
-        s.asking(id, false);
-        if let Ok(mut l) = s.stats.latency_us.lock() {
+        self.prev_total = Some(total);
+        self.waiting_since = Instant::now();
+        self.s.asking(self.id, false);
+        if let Ok(mut l) = self.s.stats.latency_us.lock() {
             if l.len() < 1 << 20 {
                 l.push((total.as_micros() as u64, infer.as_micros() as u64));
             }
         }
+    }
+
+    fn fail(&mut self, kind: Failure, text: &str) {
+        fail(&mut self.ws, self.peer, self.s, kind, text);
     }
 }
 

@@ -16,7 +16,9 @@ use chunkrt_ipc::services;
 use chunkrt_ipc::{controller_state_name, ControllerStatus};
 use chunkrt_tools::testing::summary_value;
 
-use super::{live, spawn, stop, DemoArgs, Proc, Stack};
+use iceoryx2::node::Node;
+
+use super::{live, spawn, stop, DemoArgs, Ports, Proc, Stack};
 
 /// A configuration of the FR3: joints `fr3_joint1` … `fr3_joint7` (and the hand).
 pub fn is_franka(cfg: &chunkrt_controller::config::Config) -> bool {
@@ -45,7 +47,7 @@ fn franka_env() -> anyhow::Result<(PathBuf, PathBuf)> {
 }
 
 fn script(name: &str) -> PathBuf {
-    crate::task::so101::sim_script().with_file_name(name)
+    chunkrt_learn::task::so101::sim_script().with_file_name(name)
 }
 
 /// The time series the plot draws: (s, commanded, measured) per joint.
@@ -72,128 +74,214 @@ pub(crate) fn run(args: &DemoArgs, stack: &Stack) -> anyhow::Result<()> {
         stack.ns,
         stack.log_dir.display()
     );
-    let s = |x: &Path| x.display().to_string();
+    let mut procs = start(stack, &py, &model, config, host)?;
+    let node = services::node(&format!("chunkrt-demo-{}", std::process::id()))?;
+    let mut watch = Watch::new(&node, stack)?;
+    watch.run(seconds, stop_flag, &mut procs)?;
+    let outs = stop_all(&mut procs);
+    report(args, &outs, &watch.st, &watch.trace)
+}
+
+/// Starts franka-sim, the driver, the camera, the scripted DROID policy (unless the run has
+/// `--remote`) and the controller, in this order; on a failure, stops those started.
+fn start(
+    stack: &Stack,
+    py: &Path,
+    model: &Path,
+    config: &Path,
+    host: &str,
+) -> anyhow::Result<Vec<Proc>> {
     let mut procs: Vec<Proc> = Vec::new();
-    let result = (|| -> anyhow::Result<()> {
-        procs.push(spawn(
-            &py,
-            "franka-sim",
-            &[
-                s(&script("fr3_sim.py")),
-                "--host".into(),
-                host.into(),
-                "--model".into(),
-                s(&model),
-            ],
-            &stack.log_dir,
-        )?);
-        let mut drv = stack.args("franka");
-        drv.extend(
-            [
-                "--robot",
-                host,
-                "--realtime",
-                "ignore",
-                "--wait-for-robot",
-                "30",
-                "--status-every",
-                "0.5",
-            ]
-            .map(String::from),
-        );
-        drv.extend(["--trace".into(), s(&stack.log_dir.join("franka-trace.csv"))]);
-        procs.push(spawn(&stack.exe, "franka-driver", &drv, &stack.log_dir)?);
-        procs.push(spawn(
-            &py,
-            "franka-camera",
-            &[
-                s(&script("franka_camera.py")),
-                "--config".into(),
-                s(config),
-                "--namespace".into(),
-                stack.ns.clone(),
-                "--model".into(),
-                s(&model),
-            ],
-            &stack.log_dir,
-        )?);
-        let mut run_args = stack.run_args();
-        if !run_args.iter().any(|a| a == "--remote") {
-            let port = std::net::TcpListener::bind("127.0.0.1:0")?
-                .local_addr()?
-                .port();
-            procs.push(spawn(
-                Path::new("python3"),
-                "droid-policy",
-                &[
-                    s(&script("droid_scripted.py")),
-                    "--port".into(),
-                    port.to_string(),
-                ],
-                &stack.log_dir,
-            )?);
-            run_args.extend(["--remote".into(), format!("ws://127.0.0.1:{port}")]);
-        }
-        // the robot's first states (the simulator loads its model) before the controller
-        std::thread::sleep(Duration::from_secs(3));
-        procs.push(spawn(&stack.exe, "controller", &run_args, &stack.log_dir)?);
-        Ok(())
-    })();
-    if let Err(e) = result {
+    if let Err(e) = spawn_all(&mut procs, stack, py, model, config, host) {
         for p in procs.iter_mut().rev() {
             stop(p, Duration::from_secs(3));
         }
         return Err(e);
     }
+    Ok(procs)
+}
 
-    let node = services::node(&format!("chunkrt-demo-{}", std::process::id()))?;
-    let nsp = stack.cfg.namespace();
-    let status = services::subscriber(&services::status_service(&node, &nsp.status())?)?;
-    let states = services::subscriber(&services::joint_state_service(&node, &nsp.joint_state())?)?;
-    let commands = services::subscriber(&services::joint_command_service(
-        &node,
-        &nsp.joint_command(),
-    )?)?;
-    let tty = std::io::IsTerminal::is_terminal(&std::io::stdout());
-    let t0 = Instant::now();
-    let mut last_line = -1.0;
-    let mut st = ControllerStatus::default();
-    let mut trace = Trace::default();
-    let (mut cmd, mut meas) = ([0.0; 7], [0.0; 7]);
-    let mut chunk = 0u64;
-    let driver_log = procs[1].log.clone();
-    let sim_log = procs[0].log.clone();
-    while t0.elapsed().as_secs_f64() < seconds
-        && !stop_flag.load(std::sync::atomic::Ordering::Relaxed)
-    {
-        std::thread::sleep(Duration::from_millis(10));
-        let now = t0.elapsed().as_secs_f64();
-        while let Ok(Some(x)) = status.receive() {
-            st = *x.payload();
+fn spawn_all(
+    procs: &mut Vec<Proc>,
+    stack: &Stack,
+    py: &Path,
+    model: &Path,
+    config: &Path,
+    host: &str,
+) -> anyhow::Result<()> {
+    let s = |x: &Path| x.display().to_string();
+    procs.push(spawn(
+        py,
+        "franka-sim",
+        &[
+            s(&script("fr3_sim.py")),
+            "--host".into(),
+            host.into(),
+            "--model".into(),
+            s(model),
+        ],
+        &stack.log_dir,
+    )?);
+    let drv = driver_args(stack, host);
+    procs.push(spawn(&stack.exe, "franka-driver", &drv, &stack.log_dir)?);
+    procs.push(spawn(
+        py,
+        "franka-camera",
+        &[
+            s(&script("franka_camera.py")),
+            "--config".into(),
+            s(config),
+            "--namespace".into(),
+            stack.ns.clone(),
+            "--model".into(),
+            s(model),
+        ],
+        &stack.log_dir,
+    )?);
+    let mut run_args = stack.run_args();
+    if !run_args.iter().any(|a| a == "--remote") {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")?
+            .local_addr()?
+            .port();
+        procs.push(spawn(
+            Path::new("python3"),
+            "droid-policy",
+            &[
+                s(&script("droid_scripted.py")),
+                "--port".into(),
+                port.to_string(),
+            ],
+            &stack.log_dir,
+        )?);
+        run_args.extend(["--remote".into(), format!("ws://127.0.0.1:{port}")]);
+    }
+    // the robot's first states (the simulator loads its model) before the controller
+    std::thread::sleep(Duration::from_secs(3));
+    procs.push(spawn(&stack.exe, "controller", &run_args, &stack.log_dir)?);
+    Ok(())
+}
+
+/// `chunkrt franka`'s arguments: the robot at `host`, its status line every 0.5 s, its trace
+/// in the log folder.
+fn driver_args(stack: &Stack, host: &str) -> Vec<String> {
+    let mut drv = stack.args("franka");
+    drv.extend(
+        [
+            "--robot",
+            host,
+            "--realtime",
+            "ignore",
+            "--wait-for-robot",
+            "30",
+            "--status-every",
+            "0.5",
+        ]
+        .map(String::from),
+    );
+    drv.extend([
+        "--trace".into(),
+        stack.log_dir.join("franka-trace.csv").display().to_string(),
+    ]);
+    drv
+}
+
+/// What the demo sees while it runs: the controller's status, the commanded and measured
+/// joints (the plot's trace) and the chunk switches.
+struct Watch {
+    ports: Ports,
+    st: ControllerStatus,
+    trace: Trace,
+    cmd: [f64; 7],
+    meas: [f64; 7],
+    chunk: u64,
+}
+
+impl Watch {
+    fn new(node: &Node<services::Ipc>, stack: &Stack) -> anyhow::Result<Self> {
+        let nsp = stack.cfg.namespace();
+        let ports = Ports {
+            status: services::subscriber(&services::status_service(node, &nsp.status())?)?,
+            js: services::subscriber(&services::joint_state_service(node, &nsp.joint_state())?)?,
+            cmd: services::subscriber(&services::joint_command_service(
+                node,
+                &nsp.joint_command(),
+            )?)?,
+        };
+        Ok(Self {
+            ports,
+            st: ControllerStatus::default(),
+            trace: Trace::default(),
+            cmd: [0.0; 7],
+            meas: [0.0; 7],
+            chunk: 0,
+        })
+    }
+
+    /// For `seconds` or until a stop: the live line; Err when a process exits early (every
+    /// process stopped then).
+    fn run(
+        &mut self,
+        seconds: f64,
+        stop_flag: &std::sync::atomic::AtomicBool,
+        procs: &mut [Proc],
+    ) -> anyhow::Result<()> {
+        let tty = std::io::IsTerminal::is_terminal(&std::io::stdout());
+        let t0 = Instant::now();
+        let mut last_line = -1.0;
+        let driver_log = procs[1].log.clone();
+        let sim_log = procs[0].log.clone();
+        while t0.elapsed().as_secs_f64() < seconds
+            && !stop_flag.load(std::sync::atomic::Ordering::Relaxed)
+        {
+            std::thread::sleep(Duration::from_millis(10));
+            let now = t0.elapsed().as_secs_f64();
+            self.receive(now);
+            let line = self.line(now, &driver_log, &sim_log);
+            live(&line, tty, &mut last_line, now);
+            stop_if_one_exited(procs)?;
         }
-        while let Ok(Some(x)) = states.receive() {
-            meas.copy_from_slice(&x.payload().position[..7]);
+        if tty {
+            println!();
         }
-        while let Ok(Some(x)) = commands.receive() {
+        Ok(())
+    }
+
+    /// Takes what has arrived (a new chunk id is a switch at `now`) and samples the trace
+    /// every 20 ms.
+    fn receive(&mut self, now: f64) {
+        while let Ok(Some(x)) = self.ports.status.receive() {
+            self.st = *x.payload();
+        }
+        while let Ok(Some(x)) = self.ports.js.receive() {
+            self.meas.copy_from_slice(&x.payload().position[..7]);
+        }
+        while let Ok(Some(x)) = self.ports.cmd.receive() {
             let c = x.payload();
-            cmd.copy_from_slice(&c.position[..7]);
-            if c.chunk_id != chunk && c.chunk_id != 0 {
-                if chunk != 0 {
-                    trace.switches.push(now);
+            self.cmd.copy_from_slice(&c.position[..7]);
+            if c.chunk_id != self.chunk && c.chunk_id != 0 {
+                if self.chunk != 0 {
+                    self.trace.switches.push(now);
                 }
-                chunk = c.chunk_id;
+                self.chunk = c.chunk_id;
             }
         }
+        let trace = &mut self.trace;
         if trace.t.last().is_none_or(|t| now - t >= 0.02) {
             trace.t.push(now);
-            trace.cmd.push(cmd);
-            trace.meas.push(meas);
+            trace.cmd.push(self.cmd);
+            trace.meas.push(self.meas);
         }
-        let drv = last_line_with(&driver_log, "franka status:");
-        let sim_reflexes = std::fs::read_to_string(&sim_log)
+    }
+
+    /// The live line: the controller's state and chunks, the driver's success rate, reflexes
+    /// and guarded cycles, the simulator's reflexes.
+    fn line(&self, now: f64, driver_log: &Path, sim_log: &Path) -> String {
+        let st = &self.st;
+        let drv = last_line_with(driver_log, "franka status:");
+        let sim_reflexes = std::fs::read_to_string(sim_log)
             .map(|l| l.lines().filter(|l| l.contains("REFLEX")).count())
             .unwrap_or(0);
-        let line = format!(
+        format!(
             "[{now:>5.1}s] {:<8} chunks {:>3}  chunk latency {:>6.1} ms  success rate {:.3}  reflexes {} (simulator {})  guarded {}",
             controller_state_name(st.state),
             st.chunks,
@@ -202,26 +290,31 @@ pub(crate) fn run(args: &DemoArgs, stack: &Stack) -> anyhow::Result<()> {
             summary_value(&drv, "reflexes").unwrap_or(0.0),
             sim_reflexes,
             summary_value(&drv, "guarded").unwrap_or(0.0),
-        );
-        live(&line, tty, &mut last_line, now);
-        let exited = procs
-            .iter_mut()
-            .position(|p| !matches!(p.child.try_wait(), Ok(None)));
-        if let Some(i) = exited {
-            let (name, log) = (procs[i].name, procs[i].log.clone());
-            for p in procs.iter_mut().rev() {
-                stop(p, Duration::from_secs(3));
-            }
-            anyhow::bail!(
-                "{name} exited early; its log: {}\n{}",
-                log.display(),
-                std::fs::read_to_string(&log).unwrap_or_default()
-            );
+        )
+    }
+}
+
+/// Err when a process has exited: every process stopped, the error quoting its log.
+fn stop_if_one_exited(procs: &mut [Proc]) -> anyhow::Result<()> {
+    let exited = procs
+        .iter_mut()
+        .position(|p| !matches!(p.child.try_wait(), Ok(None)));
+    if let Some(i) = exited {
+        let (name, log) = (procs[i].name, procs[i].log.clone());
+        for p in procs.iter_mut().rev() {
+            stop(p, Duration::from_secs(3));
         }
+        anyhow::bail!(
+            "{name} exited early; its log: {}\n{}",
+            log.display(),
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
     }
-    if tty {
-        println!();
-    }
+    Ok(())
+}
+
+/// Stops every process: each one's name, how it stopped and its log.
+fn stop_all(procs: &mut [Proc]) -> Vec<(&'static str, String, String)> {
     // the controller first (the driver stops the arm to rest), then the driver, then the rest
     let mut outs = Vec::new();
     for i in [4, 1, 2, 3, 0] {
@@ -234,6 +327,17 @@ pub(crate) fn run(args: &DemoArgs, stack: &Stack) -> anyhow::Result<()> {
             ));
         }
     }
+    outs
+}
+
+/// The end: how each process stopped, the summaries of the driver, the simulator and the
+/// camera, the table (printed and `demo.md`) and `demo.png`.
+fn report(
+    args: &DemoArgs,
+    outs: &[(&'static str, String, String)],
+    st: &ControllerStatus,
+    trace: &Trace,
+) -> anyhow::Result<()> {
     let find = |name: &str, prefix: &str| {
         outs.iter()
             .find(|(n, _, _)| *n == name)
@@ -248,34 +352,17 @@ pub(crate) fn run(args: &DemoArgs, stack: &Stack) -> anyhow::Result<()> {
     let drv = find("franka-driver", "franka summary:");
     let sim = find("franka-sim", "franka-sim summary:");
     let cam = find("franka-camera", "franka-camera summary:");
-    for (name, how, _) in &outs {
+    for (name, how, _) in outs {
         println!("-- {name}: {how}");
     }
     println!("   {drv}\n   {sim}\n   {cam}");
-    let v = |k: &str| summary_value(&drv, k).unwrap_or(f64::NAN);
-    let md = format!(
-        "| chunks | robot cycles | command success rate (mean / min) | reflexes (driver / simulator) | late / braking / guarded cycles | round trip p50 / p99 / max (µs) | tracking error max (rad) |\n\
-         |---:|---:|---|---|---|---|---:|\n\
-         | {} | {} | {:.5} / {:.3} | {} / {} | {} / {} / {} | {:.1} / {:.1} / {:.1} | {:.4} |\n",
-        st.chunks,
-        v("cycles"),
-        v("success_rate_mean"),
-        v("success_rate_min"),
-        v("reflexes"),
-        summary_value(&sim, "reflexes").unwrap_or(f64::NAN),
-        v("late"),
-        v("braking"),
-        v("clamped"),
-        v("round_trip_p50_us"),
-        v("round_trip_p99_us"),
-        v("round_trip_max_us"),
-        v("max_tracking_error"),
-    );
+    let md = table(st, &drv, &sim);
     println!("\n{md}");
     std::fs::create_dir_all(&args.out)?;
     std::fs::write(args.out.join("demo.md"), &md)?;
     let png = args.out.join("demo.png");
-    match plot(&png, &trace, v("reflexes")) {
+    let reflexes = summary_value(&drv, "reflexes").unwrap_or(f64::NAN);
+    match plot(&png, trace, reflexes) {
         Ok(()) => println!(
             "report: {}  plot: {}",
             args.out.join("demo.md").display(),
@@ -285,6 +372,29 @@ pub(crate) fn run(args: &DemoArgs, stack: &Stack) -> anyhow::Result<()> {
     }
     anyhow::ensure!(!drv.is_empty(), "the driver printed no summary");
     Ok(())
+}
+
+/// The end's table (markdown) from the driver's and the simulator's summary lines.
+fn table(st: &ControllerStatus, drv: &str, sim: &str) -> String {
+    let v = |k: &str| summary_value(drv, k).unwrap_or(f64::NAN);
+    format!(
+        "| chunks | robot cycles | command success rate (mean / min) | reflexes (driver / simulator) | late / braking / guarded cycles | round trip p50 / p99 / max (µs) | tracking error max (rad) |\n\
+         |---:|---:|---|---|---|---|---:|\n\
+         | {} | {} | {:.5} / {:.3} | {} / {} | {} / {} / {} | {:.1} / {:.1} / {:.1} | {:.4} |\n",
+        st.chunks,
+        v("cycles"),
+        v("success_rate_mean"),
+        v("success_rate_min"),
+        v("reflexes"),
+        summary_value(sim, "reflexes").unwrap_or(f64::NAN),
+        v("late"),
+        v("braking"),
+        v("clamped"),
+        v("round_trip_p50_us"),
+        v("round_trip_p99_us"),
+        v("round_trip_max_us"),
+        v("max_tracking_error"),
+    )
 }
 
 /// The last line of `path` starting with `prefix` (empty if none yet).

@@ -38,7 +38,7 @@ pub fn is_so101(cfg: &chunkrt_controller::config::Config) -> bool {
 
 /// The robot process's script, beside the physics server's (`task::so101::sim_script`).
 fn robot_script() -> std::path::PathBuf {
-    crate::task::so101::sim_script().with_file_name("so101_robot.py")
+    chunkrt_learn::task::so101::sim_script().with_file_name("so101_robot.py")
 }
 
 /// One episode's figures, from the robot's summary line and the controller's last status.
@@ -70,7 +70,7 @@ pub(crate) fn run(args: &DemoArgs, stack: &Stack) -> anyhow::Result<()> {
     let node = services::node(&format!("chunkrt-demo-{}", std::process::id()))?;
     let nsp = cfg.namespace();
     let status = services::subscriber(&services::status_service(&node, &nsp.status())?)?;
-    let py = crate::task::so101::python();
+    let py = chunkrt_learn::task::so101::python();
     let mut episodes = Vec::new();
     let tty = std::io::IsTerminal::is_terminal(&std::io::stdout());
     for i in 0..args.episodes {

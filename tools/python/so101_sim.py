@@ -4,7 +4,7 @@ chunkrt's training data and its simulated-time evaluation.
 
     record  the package's scripted expert (``PickPlaceController``, through the env's own IK)
             over episodes --seeds A..B, written as a chunkrt dataset (safetensors, the schema of
-            ``src/task/dataset.rs``): per policy step (0.1 s) the ``front`` frame as the robot
+            ``learn/src/task/dataset.rs``): per policy step (0.1 s) the ``front`` frame as the robot
             process renders it (``so101_robot.Camera``, the goal drawn on the table), the six
             joint positions, the expert's next --horizon joint targets as the action chunk
             (action 0 the target in force at the observation) and the prompt; plus the block's,

@@ -16,7 +16,8 @@ use anyhow::Context;
 
 use chunkrt_controller::config::{Config, Jacobian};
 
-use crate::task::sim::{run_episode, SimSettings};
+use crate::task::sim::{run_episode, EpisodeOutcome, EpisodeSpec, SimSettings};
+use crate::task::so101::{Physics, So101Plant};
 use crate::train::held_out_episodes;
 use chunkrt_controller::config::PolicySource;
 use chunkrt_controller::contract::ChunkSource;
@@ -289,41 +290,8 @@ pub fn sweep(
     world: World,
     mut progress: impl FnMut(usize, usize, &str, u64),
 ) -> anyhow::Result<(Vec<Cell>, Vec<EpisodeRow>)> {
-    for s in strategies {
-        let v = split_variant(s);
-        anyhow::ensure!(
-            STRATEGIES.contains(&v.base)
-                && !(v.measured && v.base == "sync")
-                && !(v.jacobian.is_some() && v.base != "rtc"),
-            "unknown strategy {s:?}: one of {}, and any but sync with {MEASURED:?} appended (the \
-             policy observes the measured state instead of the future one), rtc with /vjp or \
-             /identity (the guidance's Jacobian)",
-            STRATEGIES.join(", ")
-        );
-    }
-    let specs = if world.so101 {
-        anyhow::ensure!(
-            world.retarget_at.is_none() && world.drift.is_none(),
-            "the SO-101 has no retarget or drift variant"
-        );
-        anyhow::ensure!(
-            !strategies.iter().any(|s| split_variant(s).base == "sync"),
-            "the SO-101 sweep does not model the synchronous broker: leave out sync"
-        );
-        // (the episode's seed is the scene seed; color and start are the reach task's)
-        (0..episodes as u64)
-            .map(|i| crate::task::sim::EpisodeSpec {
-                scene_seed: world
-                    .first_seed
-                    .unwrap_or(crate::task::so101::EVAL_SEED_BASE)
-                    + i,
-                color: crate::task::TargetColor::Red,
-                start: [0.0; crate::task::TASK_DOF],
-            })
-            .collect()
-    } else {
-        held_out_episodes(cfg, EVAL_SCENE_BASE, episodes, 0xe7a1)
-    };
+    check_strategies(strategies)?;
+    let specs = episode_specs(cfg, strategies, episodes, &world)?;
     let mut plant = if world.so101 {
         let cam = crate::task::so101::task_camera(cfg)?;
         Some(crate::task::so101::So101Plant::spawn(
@@ -333,47 +301,8 @@ pub fn sweep(
     } else {
         None
     };
-    let (mut policy, committed_max): (Box<dyn ChunkSource>, usize) = if world.expert_plan {
-        let seeds = specs.iter().map(|e| e.scene_seed);
-        let (a, b) = (
-            seeds.clone().min().unwrap_or(0),
-            seeds.max().map_or(0, |s| s + 1),
-        );
-        eprintln!("eval: recording the expert's plans of seeds {a}..{b}");
-        (
-            Box::new(crate::task::so101::PlanReplay::record(cfg, a..b)?),
-            0,
-        )
-    } else {
-        match cfg.policy.source {
-            PolicySource::Local => {
-                let p = LocalPolicy::load(cfg)?;
-                let max = p.committed_max();
-                (Box::new(p), max)
-            }
-            PolicySource::Remote => {
-                let r = RemoteSource::connect(cfg)?;
-                let max = r.server().map_or(0, |m| m.rtc_prefix_max);
-                (Box::new(r), max)
-            }
-            PolicySource::Scripted => (Box::new(crate::run::scripted_source(cfg)), usize::MAX),
-        }
-    };
-    if strategies
-        .iter()
-        .any(|s| split_variant(s).base == "rtc_trained")
-    {
-        anyhow::ensure!(
-            committed_max > 0,
-            "strategy rtc_trained needs a checkpoint trained with a committed prefix (`chunkrt \
-             train --rtc-prefix N`), and {} is not: pass --checkpoint models/reach_pi05_rtc",
-            cfg.policy
-                .checkpoint
-                .as_ref()
-                .map(|p| p.display().to_string())
-                .unwrap_or_default()
-        );
-    }
+    let (mut policy, committed_max) = chunk_source(cfg, &world, &specs)?;
+    check_rtc_trained(cfg, strategies, committed_max)?;
     let total = strategies.len() * delays.len() * episodes;
     let mut done = 0;
     let mut cells = Vec::new();
@@ -389,29 +318,17 @@ pub fn sweep(
                 retarget_at: world.retarget_at,
                 drift: world.drift,
             };
-            let mut outs = Vec::with_capacity(episodes);
-            let mut physics = Vec::with_capacity(episodes);
-            for e in &specs {
-                match plant.as_mut() {
-                    Some(plant) => {
-                        let (o, p) = crate::task::so101::run_episode(
-                            &c,
-                            policy.as_mut(),
-                            plant,
-                            e.scene_seed,
-                            &settings,
-                        )?;
-                        outs.push(o);
-                        physics.push(Some(p));
-                    }
-                    None => {
-                        outs.push(run_episode(&c, policy.as_mut(), e, &settings)?);
-                        physics.push(None);
-                    }
-                }
-                done += 1;
-                progress(done, total, s, d);
-            }
+            let (outs, physics) = run_cell(
+                &c,
+                policy.as_mut(),
+                plant.as_mut(),
+                &specs,
+                &settings,
+                || {
+                    done += 1;
+                    progress(done, total, s, d);
+                },
+            )?;
             cells.push(summarise(s, d, &outs, world.retarget_at.is_some()));
             rows.extend(
                 specs
@@ -429,6 +346,147 @@ pub fn sweep(
         }
     }
     Ok((cells, rows))
+}
+
+/// Err naming the strategies the sweep knows when one of `strategies` is none of them.
+fn check_strategies(strategies: &[String]) -> anyhow::Result<()> {
+    for s in strategies {
+        let v = split_variant(s);
+        anyhow::ensure!(
+            STRATEGIES.contains(&v.base)
+                && !(v.measured && v.base == "sync")
+                && !(v.jacobian.is_some() && v.base != "rtc"),
+            "unknown strategy {s:?}: one of {}, and any but sync with {MEASURED:?} appended (the \
+             policy observes the measured state instead of the future one), rtc with /vjp or \
+             /identity (the guidance's Jacobian)",
+            STRATEGIES.join(", ")
+        );
+    }
+    Ok(())
+}
+
+/// The episodes every cell runs: the SO-101's seeds from `world.first_seed`, or the reach
+/// task's held-out scenes. Err for a variant the SO-101 has not.
+fn episode_specs(
+    cfg: &Config,
+    strategies: &[String],
+    episodes: usize,
+    world: &World,
+) -> anyhow::Result<Vec<EpisodeSpec>> {
+    if !world.so101 {
+        return Ok(held_out_episodes(cfg, EVAL_SCENE_BASE, episodes, 0xe7a1));
+    }
+    anyhow::ensure!(
+        world.retarget_at.is_none() && world.drift.is_none(),
+        "the SO-101 has no retarget or drift variant"
+    );
+    anyhow::ensure!(
+        !strategies.iter().any(|s| split_variant(s).base == "sync"),
+        "the SO-101 sweep does not model the synchronous broker: leave out sync"
+    );
+    // (the episode's seed is the scene seed; color and start are the reach task's)
+    Ok((0..episodes as u64)
+        .map(|i| EpisodeSpec {
+            scene_seed: world
+                .first_seed
+                .unwrap_or(crate::task::so101::EVAL_SEED_BASE)
+                + i,
+            color: crate::task::TargetColor::Red,
+            start: [0.0; crate::task::TASK_DOF],
+        })
+        .collect())
+}
+
+/// Where the chunks come from (the expert's recorded plans of `specs`' seeds, or the
+/// configured policy: in process, remote or scripted) and the longest committed prefix it
+/// was trained for (0: none).
+fn chunk_source(
+    cfg: &Config,
+    world: &World,
+    specs: &[EpisodeSpec],
+) -> anyhow::Result<(Box<dyn ChunkSource>, usize)> {
+    if world.expert_plan {
+        let seeds = specs.iter().map(|e| e.scene_seed);
+        let (a, b) = (
+            seeds.clone().min().unwrap_or(0),
+            seeds.max().map_or(0, |s| s + 1),
+        );
+        eprintln!("eval: recording the expert's plans of seeds {a}..{b}");
+        return Ok((
+            Box::new(crate::task::so101::PlanReplay::record(cfg, a..b)?),
+            0,
+        ));
+    }
+    Ok(match cfg.policy.source {
+        PolicySource::Local => {
+            let p = LocalPolicy::load(cfg)?;
+            let max = p.committed_max();
+            (Box::new(p), max)
+        }
+        PolicySource::Remote => {
+            let r = RemoteSource::connect(cfg)?;
+            let max = r.server().map_or(0, |m| m.rtc_prefix_max);
+            (Box::new(r), max)
+        }
+        PolicySource::Scripted => (
+            Box::new(chunkrt_bench::scripted::ScriptedChunkSource::for_robot(cfg)),
+            usize::MAX,
+        ),
+    })
+}
+
+/// Err when `rtc_trained` is asked of a policy not trained with a committed prefix.
+fn check_rtc_trained(
+    cfg: &Config,
+    strategies: &[String],
+    committed_max: usize,
+) -> anyhow::Result<()> {
+    if strategies
+        .iter()
+        .any(|s| split_variant(s).base == "rtc_trained")
+    {
+        anyhow::ensure!(
+            committed_max > 0,
+            "strategy rtc_trained needs a checkpoint trained with a committed prefix (`chunkrt \
+             train --rtc-prefix N`), and {} is not: pass --checkpoint models/reach_pi05_rtc",
+            cfg.policy
+                .checkpoint
+                .as_ref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_default()
+        );
+    }
+    Ok(())
+}
+
+/// One cell's episodes under `c` and `settings`, on the SO-101's `plant` or the reach task:
+/// each one's outcome and the SO-101's physics; `each()` after every episode.
+fn run_cell(
+    c: &Config,
+    policy: &mut dyn ChunkSource,
+    mut plant: Option<&mut So101Plant>,
+    specs: &[EpisodeSpec],
+    settings: &SimSettings,
+    mut each: impl FnMut(),
+) -> anyhow::Result<(Vec<EpisodeOutcome>, Vec<Option<Physics>>)> {
+    let mut outs = Vec::with_capacity(specs.len());
+    let mut physics = Vec::with_capacity(specs.len());
+    for e in specs {
+        match plant.as_deref_mut() {
+            Some(plant) => {
+                let (o, p) =
+                    crate::task::so101::run_episode(c, policy, plant, e.scene_seed, settings)?;
+                outs.push(o);
+                physics.push(Some(p));
+            }
+            None => {
+                outs.push(run_episode(c, policy, e, settings)?);
+                physics.push(None);
+            }
+        }
+        each();
+    }
+    Ok((outs, physics))
 }
 
 /// Runs `chunkrt eval`.

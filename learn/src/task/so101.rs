@@ -50,7 +50,7 @@ pub fn sim_script() -> PathBuf {
     }
     PathBuf::from(concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/tools/python/so101_sim.py"
+        "/../tools/python/so101_sim.py"
     ))
 }
 
@@ -629,7 +629,7 @@ mod tests {
     fn the_plan_replay_samples_the_plan_at_the_observations_time() {
         let cfg = Config::load(std::path::Path::new(concat!(
             env!("CARGO_MANIFEST_DIR"),
-            "/config/so101.toml"
+            "/../config/so101.toml"
         )))
         .unwrap();
         let row = |a: f64, jaw: f64| [a, -a, 2.0 * a, 0.0, 0.0, jaw];

@@ -54,9 +54,9 @@ use data::*;
 pub use data::{column_stats, model_space_actions, AUX_OUTPUTS, GOAL_OUTPUTS};
 
 /// The model configuration of the embedded default policy.
-pub const MODEL_CONFIG: &str = include_str!("../config/reach_model.json");
+pub const MODEL_CONFIG: &str = include_str!("../../config/reach_model.json");
 /// The model configuration of the SO-101 policy (`chunkrt train --task so101`).
-pub const SO101_MODEL_CONFIG: &str = include_str!("../config/so101_model.json");
+pub const SO101_MODEL_CONFIG: &str = include_str!("../../config/so101_model.json");
 /// Episode seeds of the SO-101's held-out loss data (training records from 100, validation
 /// runs from [`crate::task::so101::VAL_SEED_BASE`], `chunkrt eval` from
 /// [`crate::task::so101::EVAL_SEED_BASE`]).
