@@ -297,6 +297,7 @@ pub fn run_episode(
     let mut jaw_cmd_closed = jaw_closed;
     let mut last_switch: Option<u64> = None;
     let mut out = EpisodeOutcome::start(false);
+    let mut dbg = trace_log(cfg, seed, settings.delay_steps)?;
     let ticks = (settings.max_seconds * 1e9 / control_ns as f64).ceil() as u64;
     for k in 0..ticks {
         let now = START_NS + k * control_ns;
@@ -345,6 +346,21 @@ pub fn run_episode(
             out.off_tick(&mut trace, r.state);
         }
         if (k + 1).is_multiple_of(ticks_per_step) {
+            if let Some(f) = dbg.as_mut() {
+                // $CHUNKRT_SO101_TRACE (`trace_log`)
+                let row = |v: &[f64]| v.iter().map(|x| format!(",{x:.5}")).collect::<String>();
+                writeln!(
+                    f,
+                    "{:.3},{},{}{}{}{}{}",
+                    (now - START_NS) as f64 * 1e-9,
+                    r.chunk_id,
+                    u8::from(r.state == State::Running),
+                    row(&r.target[..SO101_DOF]),
+                    row(&target),
+                    row(&ps.position),
+                    row(&ps.block),
+                )?;
+            }
             ps = plant.step(&target, 1)?;
             let closed = ps.position[jaw] < jaw_mid;
             if closed != jaw_closed {
@@ -380,6 +396,36 @@ pub fn run_episode(
     phys.tracking_p99 = pct(0.99);
     phys.tracking_max = tracking.last().copied().unwrap_or(0.0);
     Ok((out, phys))
+}
+
+/// `$CHUNKRT_SO101_TRACE` (a folder; a diagnostic, e.g. for `tools/python/so101_margin.py`):
+/// each episode's log, one row per physics step, in `so101_trace_<seed>_<strategy>_d<delay>.csv`
+/// there: the time (s), the chunk in force, RUNNING (1/0), the executor's target (interpolated and
+/// blended, before ruckig), the command this step takes, and the measured joints and the block's
+/// position (m) the physics answered before it.
+fn trace_log(
+    cfg: &Config,
+    seed: u64,
+    delay: u64,
+) -> anyhow::Result<Option<std::io::BufWriter<std::fs::File>>> {
+    let Some(dir) = std::env::var_os("CHUNKRT_SO101_TRACE") else {
+        return Ok(None);
+    };
+    let strategy = cfg.execution.strategy.name();
+    let path = PathBuf::from(dir).join(format!("so101_trace_{seed}_{strategy}_d{delay}.csv"));
+    let mut f = std::io::BufWriter::new(
+        std::fs::File::create(&path).with_context(|| format!("{}", path.display()))?,
+    );
+    let names = |p: &str, n: usize| (0..n).map(|j| format!(",{p}{j}")).collect::<String>();
+    writeln!(
+        f,
+        "t,chunk,running{}{}{}{}",
+        names("target", SO101_DOF),
+        names("cmd", SO101_DOF),
+        names("q", SO101_DOF),
+        names("block", 3)
+    )?;
+    Ok(Some(f))
 }
 
 /// The task camera of the SO-101: the configuration's first camera, rgb8, and six joints.
