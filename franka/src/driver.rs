@@ -30,6 +30,10 @@ const HALF_CYCLE_NS: u64 = (CYCLE_S * 0.5e9) as u64;
 /// A read of the robot's state that returns sooner than this (ns) found it already queued.
 const QUEUED_NS: u64 = 15_000;
 
+/// Answers withheld in a row after which one whose state was queued, or whose next state has
+/// come, goes out all the same (the FCI stops the motion at 20 lost in a row).
+const MAX_WITHHELD_RUN: u32 = 3;
+
 /// An answer ready this long after its state came (ns) misses the robot's cycle: withheld.
 const LATE_NS: u64 = 900_000;
 
@@ -550,6 +554,8 @@ struct Core {
     state_fd: Option<i32>,
     /// This cycle's state was already queued when read ([`QUEUED_NS`]).
     state_queued: bool,
+    /// Answers withheld in a row.
+    withheld_run: u32,
     /// Answers sent since the alternatives last grew (they are dropped after `ALT_CYCLES`).
     alt_age: u32,
     /// |measured - the controller's command| over fresh cycles (µrad).
@@ -616,6 +622,19 @@ struct TraceRow {
     desired: [f64; JOINTS],
     desired_v: [f64; JOINTS],
     sent: [f64; JOINTS],
+}
+
+/// What one cycle makes of the controller's answer: the motion sent, the path that made it
+/// ([`TRACE_PATHS`]), and what the counters and the trace want of it.
+#[derive(Clone, Copy)]
+struct Step {
+    motion: Motion,
+    path: u8,
+    clamped: bool,
+    /// The controller's command (positions, velocities) when it answered this state (NaN: not).
+    desired: ([f64; JOINTS], [f64; JOINTS]),
+    /// The guard's first broken limit: (joint, code).
+    broke: Option<(u8, u8)>,
 }
 
 /// `TraceRow::notes` bits, by name: the answer withheld (`--drop-answers`), the last answer
@@ -706,6 +725,61 @@ impl Core {
         }
     }
 
+    /// `--record`: the recording holds a line per robot cycle, what the robot applied, so that a
+    /// replay at one line a cycle does not take the next answer a cycle early (a velocity step):
+    /// the cycles the robot continued on its own, `e` of them since the last state (and the
+    /// last answer's own, when it was not applied); where the reference `r` came from the robot's
+    /// report, the last lines end the way the robot moved (its position and the two before it
+    /// that its reported velocity and acceleration imply).
+    fn record_what_the_robot_did(&mut self, unapplied: bool, e: u64, how: Reference, r: &Motion) {
+        let Some(rec) = &mut self.record else {
+            return;
+        };
+        let mut m = if unapplied { self.reference } else { self.last };
+        if unapplied {
+            m = m.continued(CYCLE_S);
+            if let Some(line) = rec.last_mut() {
+                *line = m.q;
+            }
+        }
+        for _ in 1..e {
+            m = m.continued(CYCLE_S);
+            if rec.len() < rec.capacity() {
+                rec.push(m.q);
+            }
+        }
+        if matches!(how, Reference::Corrected(_) | Reference::Adopted) {
+            let n = rec.len();
+            let q1: [f64; JOINTS] = std::array::from_fn(|j| r.q[j] - r.dq[j] * CYCLE_S);
+            let q2: [f64; JOINTS] =
+                std::array::from_fn(|j| q1[j] - (r.dq[j] - r.ddq[j] * CYCLE_S) * CYCLE_S);
+            for (back, q) in [r.q, q1, q2].iter().enumerate() {
+                if let Some(line) = n.checked_sub(back + 1).and_then(|i| rec.get_mut(i)) {
+                    *line = *q;
+                }
+            }
+        }
+    }
+
+    /// Whether `reported` is the last answer sent, continued by the robot for fewer cycles than
+    /// have passed since (`e` of them since the last state): that history, and the cycles the
+    /// robot will difference this cycle's answer over (2 or more).
+    fn lagging_report(&self, reported: &Motion, e: u64) -> Option<(Motion, u64)> {
+        if self.last_sent_seq == 0 {
+            return None;
+        }
+        let now_seq = self.seq + e;
+        let (mut m, mut at) = (self.last_sent, self.last_sent_seq);
+        while at + 1 < now_seq && now_seq - at <= 20 {
+            if matches!(reconcile(reported, &[m]).1, Reference::Candidate(0)) {
+                return Some((m, now_seq - at));
+            }
+            m = m.continued(CYCLE_S);
+            at += 1;
+        }
+        None
+    }
+
     /// A new motion starts from rest at the robot's position.
     fn begin_motion(&mut self, q: [f64; JOINTS]) {
         self.not_led_run = 0;
@@ -719,6 +793,7 @@ impl Core {
         self.last_sent_seq = 0;
         self.last_sent = self.last;
         self.lag = 1;
+        self.withheld_run = 0;
         self.motion_cycles = 0;
         self.late_run = 0;
         self.intake.disarm();
@@ -777,18 +852,11 @@ impl Core {
         // next answer over all the cycles between (traced: an answer 1 cycle on from such a
         // report judged over 3, 23.6 rad/s^2)
         self.lag = 1;
-        if matches!(how, Reference::Corrected(_) | Reference::Adopted) && self.last_sent_seq != 0 {
-            let now_seq = self.seq + e;
-            let (mut m, mut at) = (self.last_sent, self.last_sent_seq);
-            while at + 1 < now_seq && now_seq - at <= 20 {
-                if matches!(reconcile(&reported, &[m]).1, Reference::Candidate(0)) {
-                    self.lag = now_seq - at;
-                    self.s.lagging += 1;
-                    (r, how) = (m, Reference::Candidate(0));
-                    break;
-                }
-                m = m.continued(CYCLE_S);
-                at += 1;
+        if matches!(how, Reference::Corrected(_) | Reference::Adopted) {
+            if let Some((m, lag)) = self.lagging_report(&reported, e) {
+                self.lag = lag;
+                self.s.lagging += 1;
+                (r, how) = (m, Reference::Candidate(0));
             }
         }
         // a report that moved less than a tenth of the way the reference went in the cycle (a
@@ -825,40 +893,7 @@ impl Core {
             } else {
                 0
             };
-        // the recording holds a line per robot cycle, what the robot applied: a replay at one
-        // line a cycle must not take the next answer a cycle early (a velocity step)
-        if let Some(rec) = &mut self.record {
-            let mut m = if unapplied { self.reference } else { self.last };
-            if unapplied {
-                m = m.continued(CYCLE_S);
-                if let Some(line) = rec.last_mut() {
-                    *line = m.q;
-                }
-            }
-            for _ in 1..e {
-                m = m.continued(CYCLE_S);
-                if rec.len() < rec.capacity() {
-                    rec.push(m.q);
-                }
-            }
-        }
-        // where the reference came from the robot's report (its derivatives, not a candidate's),
-        // the last lines end the way the robot moved: its position and the two before it that
-        // its reported velocity and acceleration imply, so that a replay takes the next answer
-        // against the same motion
-        if matches!(how, Reference::Corrected(_) | Reference::Adopted) {
-            if let Some(rec) = &mut self.record {
-                let n = rec.len();
-                let q1: [f64; JOINTS] = std::array::from_fn(|j| r.q[j] - r.dq[j] * CYCLE_S);
-                let q2: [f64; JOINTS] =
-                    std::array::from_fn(|j| q1[j] - (r.dq[j] - r.ddq[j] * CYCLE_S) * CYCLE_S);
-                for (back, q) in [r.q, q1, q2].iter().enumerate() {
-                    if let Some(line) = n.checked_sub(back + 1).and_then(|i| rec.get_mut(i)) {
-                        *line = *q;
-                    }
-                }
-            }
-        }
+        self.record_what_the_robot_did(unapplied, e, how, &r);
         let alt = if unapplied && self.sent_last {
             self.s.unapplied += 1;
             // the answer may still be applied late: its history (against the reference it was
@@ -897,31 +932,84 @@ impl Core {
     /// without an answer): the state out, the controller's answer in, the command back.
     fn cycle(&mut self, st: &RobotState, elapsed: u64) -> JointPositions {
         let now = monotonic_ns();
+        let short = self.begin_cycle(now);
+        let hedge_from = self.take_reference(st, elapsed);
+        self.note_success_rate(st);
+        let stopping = self.stop.load(Ordering::Relaxed) || now >= self.end_ns;
+        let (seq, measured) = self.publish_state(st, now, elapsed);
+        self.await_answer(seq, now, &measured);
+        let live = if stopping {
+            None
+        } else {
+            self.intake.live(monotonic_ns()).copied()
+        };
+        let step = self.next_step(live.as_ref(), seq, short);
+        let step = self.hedged(step, hedge_from, seq);
+        let step = self.within_workspace(step);
+        self.account(st, &step, live.is_some());
+        self.trace_row(st, seq, &step);
+        self.decide_withhold(now, stopping);
+        if self.sent_last {
+            self.last_sent_seq = seq;
+            self.last_sent = step.motion;
+            self.advance_alts(seq, &step.motion);
+        }
+        self.answer(&step.motion, now, stopping)
+    }
+
+    /// Counts the cycle; whether its state came less than half a cycle after the last.
+    fn begin_cycle(&mut self, now: u64) -> bool {
         self.s.cycles += 1;
         let short =
             self.last_state_ns != 0 && now.saturating_sub(self.last_state_ns) < HALF_CYCLE_NS;
         self.s.short_cycles += short as u64;
         self.last_state_ns = now;
-        let hedge_from = self.take_reference(st, elapsed);
         self.motion_cycles += 1;
+        short
+    }
+
+    /// The robot's command success rate, from the 100th cycle of a motion.
+    fn note_success_rate(&mut self, st: &RobotState) {
         if self.motion_cycles > 100 {
             let r = st.control_command_success_rate;
             self.s.success_rate_min = self.s.success_rate_min.min(r);
             self.rate_sum += r;
             self.rate_n += 1;
         }
-        let stopping = self.stop.load(Ordering::Relaxed) || now >= self.end_ns;
+    }
+
+    /// The state out, then the event the robot-clocked controller waits on; its seq counts robot
+    /// cycles, so that the controller advances as many. Returns the seq and the positions sent.
+    fn publish_state(&mut self, st: &RobotState, now: u64, elapsed: u64) -> (u64, [f64; MAX_DOF]) {
         let width = f64::from_bits(self.hand.width.load(Ordering::Relaxed));
         let mut measured = [0.0; MAX_DOF];
         measured[..JOINTS].copy_from_slice(&st.q);
         if self.n_dof > JOINTS {
             measured[JOINTS] = if width.is_finite() { width } else { 0.0 };
         }
-
-        // the state out, then the event the robot-clocked controller waits on; its seq counts
-        // robot cycles, so that the controller advances as many
         self.seq += elapsed.clamp(1, 20);
-        let seq = self.seq;
+        let mut msg = JointState {
+            seq: self.seq,
+            measurement_time_ns: now,
+            n_dof: self.n_dof as u32,
+            status_flags: self.state_flags(st, now),
+            position: measured,
+            ..Default::default()
+        };
+        msg.velocity[..JOINTS].copy_from_slice(&st.dq);
+        msg.effort[..JOINTS].copy_from_slice(&st.tau_J);
+        msg.set_obeyed_publisher(self.intake.obeyed_publisher(now));
+        if let Ok(sample) = self.state_pub.loan_uninit() {
+            if sample.write_payload(msg).send().is_ok() {
+                self.s.states_published += 1;
+            }
+        }
+        let _ = self.state_event.notify();
+        (self.seq, measured)
+    }
+
+    /// The joint state's status flags: the intake's, and what the robot and this driver did.
+    fn state_flags(&self, st: &RobotState, now: u64) -> u32 {
         let mut flags = self.intake.flags(now);
         if st.robot_mode == RobotMode::Reflex || st.current_errors.any() {
             flags |= JOINT_STATUS_ROBOT_ERROR;
@@ -945,29 +1033,15 @@ impl Core {
             // the guard's own generator has led the arm for a while: the controller says so
             flags |= JOINT_STATUS_NOT_FOLLOWING;
         }
-        let mut msg = JointState {
-            seq,
-            measurement_time_ns: now,
-            n_dof: self.n_dof as u32,
-            status_flags: flags,
-            position: measured,
-            ..Default::default()
-        };
-        msg.velocity[..JOINTS].copy_from_slice(&st.dq);
-        msg.effort[..JOINTS].copy_from_slice(&st.tau_J);
-        msg.set_obeyed_publisher(self.intake.obeyed_publisher(now));
-        if let Ok(sample) = self.state_pub.loan_uninit() {
-            if sample.write_payload(msg).send().is_ok() {
-                self.s.states_published += 1;
-            }
-        }
-        let _ = self.state_event.notify();
+        flags
+    }
 
+    /// The controller's statuses, then its answer to this state, waited for within the budget.
+    fn await_answer(&mut self, seq: u64, now: u64, measured: &[f64; MAX_DOF]) {
         while let Ok(Some(sample)) = self.status_sub.receive() {
             self.intake
                 .on_status(sample.payload(), sample.origin().value(), monotonic_ns());
         }
-        // the controller's answer to this state, within the budget
         let mut answered = false;
         loop {
             while let Ok(Some(sample)) = self.cmd_sub.receive() {
@@ -991,139 +1065,156 @@ impl Core {
             );
         }
         self.s.answered += answered as u64;
+    }
 
-        let t = monotonic_ns();
-        let live = if stopping {
-            None
-        } else {
-            self.intake.live(t).copied()
+    /// The motion this cycle's answer makes: the controller's command through the guard when it
+    /// answered this state, else the reference continued (a late answer), braked or held.
+    fn next_step(&mut self, live: Option<&JointCommand>, seq: u64, short: bool) -> Step {
+        let mut step = Step {
+            motion: self.reference,
+            path: 4,
+            clamped: false,
+            desired: ([f64::NAN; JOINTS], [f64::NAN; JOINTS]),
+            broke: None,
         };
-        let mut clamped = false;
-        let mut desired = ([f64::NAN; JOINTS], [f64::NAN; JOINTS]);
-        let path: u8;
-        let mut guard_broke = None;
-        let next = match live {
+        step.motion = match live {
             _ if self.lag > 1 && !self.no_guard => {
-                // the robot differences this answer over `lag` cycles from its report: the
-                // reference continued over them at its acceleration (no jerk in the robot's
-                // differences), which puts its history back in step
                 self.s.late += 1;
-                path = 4;
-                self.alts = [None; ALTS];
-                self.alt_base = None;
-                let (r, k) = (self.reference, self.lag as f64 * CYCLE_S);
-                let mut m = r;
-                for j in 0..JOINTS {
-                    m.dq[j] = r.dq[j] + r.ddq[j] * k;
-                    m.q[j] = r.q[j] + m.dq[j] * k;
-                }
-                m
+                self.catch_up()
             }
             // the answer to this cycle's state; an answer to an earlier one comes too late (its
             // cycle was already continued) and would move the arm back
             Some(c) if c.seq != self.last_cmd_seq && c.state_seq == seq => {
-                self.last_cmd_seq = c.seq;
-                self.late_run = 0;
-                self.s.fresh += 1;
-                if self.n_dof > JOINTS {
-                    self.hand
-                        .target
-                        .store(c.position[JOINTS].to_bits(), Ordering::Relaxed);
-                }
-                let (mut q, mut v, mut a) = ([0.0; JOINTS], [0.0; JOINTS], [0.0; JOINTS]);
-                q.copy_from_slice(&c.position[..JOINTS]);
-                v.copy_from_slice(&c.velocity[..JOINTS]);
-                a.copy_from_slice(&c.acceleration[..JOINTS]);
-                desired = (q, v);
-                if self.no_guard {
-                    path = 7;
-                    Motion::after(&self.reference, &q, CYCLE_S)
-                } else if short {
-                    // a state less than half a cycle after the last: the robot (a simulator
-                    // catching up, a delayed packet) left this answer less than a cycle, and it
-                    // may arrive after the next state. The reference's own continuation is the
-                    // one answer that is the same whether the robot takes it or continues
-                    // without it: no guess about which it did can then be wrong
-                    self.s.short_continued += 1;
-                    path = 4;
-                    self.guard.extrapolate(&self.reference)
-                } else {
-                    let (m, c) = self.guard.follow(&self.reference, &q, &v, &a);
-                    clamped = c;
-                    path = self.guard.path;
-                    guard_broke = self.guard.broke;
-                    m
-                }
+                self.follow(c, short, &mut step)
             }
             Some(_) if self.late_run < self.extrapolate_cycles => {
                 self.late_run += 1;
                 self.s.late += 1;
-                path = 4;
                 self.guard.extrapolate(&self.reference)
             }
+            _ if self.reference.at_rest() => {
+                self.s.rest += 1;
+                step.path = 6;
+                Motion::rest(self.reference.q)
+            }
             _ => {
-                if self.reference.at_rest() {
-                    self.s.rest += 1;
-                    path = 6;
-                    Motion::rest(self.reference.q)
-                } else {
-                    self.s.braking += 1;
-                    path = 5;
-                    self.guard.brake(&self.reference).0
-                }
+                self.s.braking += 1;
+                step.path = 5;
+                self.guard.brake(&self.reference).0
             }
         };
-        // an answer the robot did not apply although it went out (late): the FCI dropped it, a
-        // simulator may still apply it; this one passes from either reference where it can
-        let next = if self.no_guard || self.lag > 1 {
-            next
+        step
+    }
+
+    /// The robot differences this answer over `lag` cycles from its report: the reference
+    /// continued over them at its acceleration (no jerk in the robot's differences), which puts
+    /// its history back in step; the other histories end here.
+    fn catch_up(&mut self) -> Motion {
+        self.alts = [None; ALTS];
+        self.alt_base = None;
+        let (r, k) = (self.reference, self.lag as f64 * CYCLE_S);
+        let mut m = r;
+        for j in 0..JOINTS {
+            m.dq[j] = r.dq[j] + r.ddq[j] * k;
+            m.q[j] = r.q[j] + m.dq[j] * k;
+        }
+        m
+    }
+
+    /// The controller's fresh command `c` through the guard (its path and what it did in
+    /// `step`).
+    fn follow(&mut self, c: &JointCommand, short: bool, step: &mut Step) -> Motion {
+        self.last_cmd_seq = c.seq;
+        self.late_run = 0;
+        self.s.fresh += 1;
+        if self.n_dof > JOINTS {
+            self.hand
+                .target
+                .store(c.position[JOINTS].to_bits(), Ordering::Relaxed);
+        }
+        let (mut q, mut v, mut a) = ([0.0; JOINTS], [0.0; JOINTS], [0.0; JOINTS]);
+        q.copy_from_slice(&c.position[..JOINTS]);
+        v.copy_from_slice(&c.velocity[..JOINTS]);
+        a.copy_from_slice(&c.acceleration[..JOINTS]);
+        step.desired = (q, v);
+        if self.no_guard {
+            step.path = 7;
+            Motion::after(&self.reference, &q, CYCLE_S)
+        } else if short {
+            // a state less than half a cycle after the last: the robot (a simulator catching
+            // up, a delayed packet) left this answer less than a cycle, and it may arrive after
+            // the next state. The reference's own continuation is the one answer that is the
+            // same whether the robot takes it or continues without it: no guess about which it
+            // did can then be wrong
+            self.s.short_continued += 1;
+            self.guard.extrapolate(&self.reference)
         } else {
-            let mut others = [(Motion::rest(next.q), 0u64); ALTS + 2];
-            let mut n = 0;
-            for o in hedge_from
-                .iter()
-                .copied()
-                .chain(
-                    self.alts
-                        .iter()
-                        .flatten()
-                        .map(|&(m, p)| (m, seq.saturating_sub(p))),
-                )
-                .chain(
-                    self.alt_base
-                        .iter()
-                        .map(|&(m, p)| (m, seq.saturating_sub(p))),
-                )
-            {
-                others[n] = o;
-                n += 1;
+            let (m, clamped) = self.guard.follow(&self.reference, &q, &v, &a);
+            step.clamped = clamped;
+            step.path = self.guard.path;
+            step.broke = self.guard.broke;
+            m
+        }
+    }
+
+    /// An answer the robot did not apply although it went out (late): the FCI dropped it, a
+    /// simulator may still apply it, and the answers after it are judged against whichever
+    /// history it made: this one passes from all of them where it can.
+    fn hedged(&mut self, mut step: Step, hedge_from: Option<(Motion, u64)>, seq: u64) -> Step {
+        if self.no_guard || self.lag > 1 {
+            return step;
+        }
+        let mut others = [(Motion::rest(step.motion.q), 0u64); ALTS + 2];
+        let mut n = 0;
+        for o in hedge_from
+            .iter()
+            .copied()
+            .chain(
+                self.alts
+                    .iter()
+                    .flatten()
+                    .map(|&(m, p)| (m, seq.saturating_sub(p))),
+            )
+            .chain(
+                self.alt_base
+                    .iter()
+                    .map(|&(m, p)| (m, seq.saturating_sub(p))),
+            )
+        {
+            others[n] = o;
+            n += 1;
+        }
+        if n > 0 {
+            let (q, changed) = self
+                .guard
+                .hedge(&self.reference, &others[..n], &step.motion.q);
+            self.s.hedged += changed as u64;
+            self.notes |= if changed { 4 } else { 0 };
+            if changed {
+                step.motion = Motion::after(&self.reference, &q, CYCLE_S);
             }
-            if n == 0 {
-                next
-            } else {
-                let (q, changed) = self.guard.hedge(&self.reference, &others[..n], &next.q);
-                self.s.hedged += changed as u64;
-                self.notes |= if changed { 4 } else { 0 };
-                if changed {
-                    Motion::after(&self.reference, &q, CYCLE_S)
-                } else {
-                    next
-                }
-            }
-        };
-        // the arm's geometry: a command whose stop (braking from its velocity) would leave the
-        // workspace box or fold links closer than the clearance, further than the arm is now,
-        // is refused and the arm braked (a pose already inside may move out)
-        let (next, path) = if path <= 3 && !self.no_guard && self.beyond_workspace(&next) {
+        }
+        step
+    }
+
+    /// The arm's geometry: a command whose stop (braking from its velocity) would leave the
+    /// workspace box or fold links closer than the clearance, further than the arm is now, is
+    /// refused and the arm braked (a pose already inside may move out).
+    fn within_workspace(&mut self, mut step: Step) -> Step {
+        if step.path <= 3 && !self.no_guard && self.beyond_workspace(&step.motion) {
             self.s.workspace_refused += 1;
-            (self.guard.brake(&self.reference).0, 8)
-        } else {
-            (next, path)
-        };
-        self.refused_last = path == 8;
-        if desired.0[0].is_finite() {
+            step.motion = self.guard.brake(&self.reference).0;
+            step.path = 8;
+        }
+        self.refused_last = step.path == 8;
+        step
+    }
+
+    /// Who led, the tracking, the live counters; the motion becomes the last answer.
+    fn account(&mut self, st: &RobotState, step: &Step, live: bool) {
+        if step.desired.0[0].is_finite() {
             // a fresh command: who led, and how far the arm is from the controller's command
-            let led = path <= 2;
+            let led = step.path <= 2;
             self.s.led += led as u64;
             if led {
                 self.not_led_run = 0;
@@ -1131,12 +1222,12 @@ impl Core {
                 self.not_led_run += 1;
                 self.s.not_led_longest_ms = self.s.not_led_longest_ms.max(self.not_led_run);
             }
-            let e = (0..JOINTS).fold(0.0f64, |m, j| m.max((st.q[j] - desired.0[j]).abs()));
+            let e = (0..JOINTS).fold(0.0f64, |m, j| m.max((st.q[j] - step.desired.0[j]).abs()));
             if e.is_finite() {
                 self.tracking.saturating_record((e * 1e6) as u64);
             }
         }
-        self.s.clamped += clamped as u64;
+        self.s.clamped += step.clamped as u64;
         let l = &self.live;
         l.cycles.store(self.s.cycles, Ordering::Relaxed);
         l.success_rate
@@ -1148,7 +1239,7 @@ impl Core {
         l.led.store(self.s.led, Ordering::Relaxed);
         l.not_led_longest
             .store(self.s.not_led_longest_ms, Ordering::Relaxed);
-        if self.last_cmd_seq != 0 && live.is_some() {
+        if self.last_cmd_seq != 0 && live {
             for j in 0..JOINTS {
                 let e = (self.last.q[j] - st.q[j]).abs();
                 if e > self.s.max_tracking_error {
@@ -1156,27 +1247,31 @@ impl Core {
                 }
             }
         }
-        self.clamped_last = clamped;
-        self.holding = path == 5 || path == 6;
-        self.at_rest = path == 6;
-        self.last = next;
+        self.clamped_last = step.clamped;
+        self.holding = step.path == 5 || step.path == 6;
+        self.at_rest = step.path == 6;
+        self.last = step.motion;
         if let Some(r) = &mut self.record {
             if r.len() < r.capacity() {
-                r.push(next.q);
+                r.push(step.motion.q);
             }
         }
+    }
+
+    /// `--trace`: this cycle's row in the ring.
+    fn trace_row(&mut self, st: &RobotState, seq: u64, step: &Step) {
         if let Some((rows, next_slot)) = &mut self.trace {
             let row = TraceRow {
                 seq,
-                path,
+                path: step.path,
                 notes: self.notes,
-                broke: guard_broke,
+                broke: step.broke,
                 measured: st.q,
                 reported: st.q_d,
                 reference: self.reference.q,
-                desired: desired.0,
-                desired_v: desired.1,
-                sent: next.q,
+                desired: step.desired.0,
+                desired_v: step.desired.1,
+                sent: step.motion.q,
             };
             if rows.len() < rows.capacity() {
                 rows.push(row);
@@ -1185,19 +1280,26 @@ impl Core {
             }
             *next_slot = (*next_slot + 1) % TRACE_CYCLES;
         }
-        // an answer this late (the machine stalled the driver after the state came), or one whose
-        // next state has already come (the robot went on: a simulator catching up, a stall),
-        // misses its cycle: the FCI would drop it, a simulator might apply it late and judge the
-        // next answers against a history its reports never showed; withheld, the robot
-        // continues its reference as for any lost packet, and says so in the next state. Decided
-        // as late as it can be, just before the answer goes out.
+    }
+
+    /// Whether this answer goes out. One this late (the machine stalled the driver after the
+    /// state came), or whose next state has already come (the robot went on: a simulator
+    /// catching up, a stall), misses its cycle: the FCI would drop it, a simulator might apply
+    /// it late and judge the next answers against a history its reports never showed; withheld,
+    /// the robot continues its reference as for any lost packet, and says so in the next state.
+    /// Decided as late as it can be, just before the answer goes out.
+    fn decide_withhold(&mut self, now: u64, stopping: bool) {
         self.withhold = monotonic_ns().saturating_sub(now) > LATE_NS;
         self.s.withheld_late += self.withhold as u64;
-        if !self.withhold && self.state_fd.is_some_and(datagram_waiting) {
+        // (a few in a row at most: a robot whose states come in a burst, a simulator catching up
+        // after a stall of its own, would otherwise lose 20 in a row and stop the motion; past
+        // them the answer goes out, late, and the hedge covers it)
+        let may_withhold = self.withheld_run < MAX_WITHHELD_RUN;
+        if !self.withhold && may_withhold && self.state_fd.is_some_and(datagram_waiting) {
             self.withhold = true;
             self.s.withheld_next_state += 1;
         }
-        if !self.withhold && self.state_queued && !stopping {
+        if !self.withhold && may_withhold && self.state_queued && !stopping {
             // a state of unknown age (it was queued: the driver stalled, or the robot's states
             // came in a burst): its answer may reach the robot after the next state, which a
             // simulator applies late; withheld, the next state (waited for) is answered in time
@@ -1221,11 +1323,16 @@ impl Core {
             }
         }
         self.sent_last = !self.withhold;
-        if self.sent_last {
-            self.last_sent_seq = seq;
-            self.last_sent = next;
-            self.advance_alts(seq, &next);
-        }
+        self.withheld_run = if self.withhold {
+            self.withheld_run + 1
+        } else {
+            0
+        };
+    }
+
+    /// The command to the robot (`--inject-reflex-at` steps it on purpose once); the motion
+    /// finishes when the driver stops at rest.
+    fn answer(&mut self, next: &Motion, now: u64, stopping: bool) -> JointPositions {
         let mut sent = next.q;
         if self.inject_reflex_ns != 0 && now >= self.inject_reflex_ns && !stopping {
             // --inject-reflex-at: a step the robot must abort (a test of the recovery)
@@ -1285,78 +1392,157 @@ fn one_motion(robot: &Robot, core: &mut Core) -> Result<(), FrankaError> {
 pub fn drive(args: &Args) -> anyhow::Result<Summary> {
     let stop = shutdown::flag();
     let (cfg, ns) = args.common.load()?;
-    let n_dof = cfg.robot.joints.len();
-    anyhow::ensure!(
-        n_dof == JOINTS || n_dof == JOINTS + 1,
-        "the configuration lists {n_dof} joints: an FR3 has {JOINTS}, and the hand's width may \
-         be an 8th (config/franka_fr3.toml)"
-    );
-    anyhow::ensure!(
-        (cfg.robot.joint_state_rate_hz - 1000.0).abs() < 1e-9,
-        "robot.joint_state_rate_hz is {}: the FCI's cycle is 1 kHz",
-        cfg.robot.joint_state_rate_hz
-    );
-    let budget_us = args.answer_budget_us;
-    anyhow::ensure!(
-        budget_us.is_finite() && (0.0..=900.0).contains(&budget_us),
-        "--answer-budget-us {budget_us}: must be within 0..=900 (a cycle is 1000 µs)"
-    );
-    let timeout_ms = args.command_timeout_ms;
-    anyhow::ensure!(
-        timeout_ms.is_finite() && (1.0..=10_000.0).contains(&timeout_ms),
-        "--command-timeout-ms {timeout_ms}: must be within 1..=10000"
-    );
-    anyhow::ensure!(
-        args.limit_margin.is_finite() && (0.1..=1.0).contains(&args.limit_margin),
-        "--limit-margin {}: must be within 0.1..=1",
-        args.limit_margin
-    );
-    let workspace = workspace(args)?;
-    anyhow::ensure!(
-        args.max_reflexes >= 1
-            && args.reflex_window_s.is_finite()
-            && (0.1..=3600.0).contains(&args.reflex_window_s),
-        "--max-reflexes {} --reflex-window-s {}: at least 1, within 0.1..=3600 s",
-        args.max_reflexes,
-        args.reflex_window_s
-    );
-    anyhow::ensure!(
-        args.drop_answers.is_finite() && (0.0..=0.05).contains(&args.drop_answers),
-        "--drop-answers {}: must be within 0..=0.05 (20 lost in a row stop the robot)",
-        args.drop_answers
-    );
-    if args.drop_answers > 0.0 {
-        tracing::warn!(
-            "franka: --drop-answers {}: that share of the answers is withheld on purpose",
-            args.drop_answers
-        );
-    }
-    anyhow::ensure!(
-        args.bind_tolerance.is_finite() && args.bind_tolerance > 0.0,
-        "--bind-tolerance {}: must be > 0",
-        args.bind_tolerance
-    );
-    if args.no_guard {
-        tracing::warn!("franka: --no-guard: the controller's positions go to the robot unchanged");
-    }
-    let start = monotonic_ns();
-    let end_ns = end_time_ns(start, args.duration)?;
-
+    let setup = Setup::check(args, &cfg)?;
     let realtime = match args.realtime {
         Realtime::Enforce => RealtimeConfig::Enforce,
         Realtime::Ignore => RealtimeConfig::Ignore,
     };
-    // the first connection must succeed (a wrong address, FCI off, a wrong model: said at once,
-    // or after --wait-for-robot)
-    anyhow::ensure!(
-        args.wait_for_robot.is_finite() && (0.0..=3600.0).contains(&args.wait_for_robot),
-        "--wait-for-robot {}: must be within 0..=3600 s",
-        args.wait_for_robot
+    let (robot, state_fd) = first_connection(args, realtime, stop)?;
+    let node = open_node("chunkrt-franka")?;
+    let hand = Arc::new(Hand {
+        width: AtomicU64::new(f64::NAN.to_bits()),
+        target: AtomicU64::new(f64::NAN.to_bits()),
+        moves: AtomicU64::new(0),
+    });
+    let hand_thread = spawn_hand(args, setup.n_dof, &hand, stop)?;
+    let live = Arc::new(Live::default());
+    let status_thread = spawn_status(args, &live, stop)?;
+    let outcome = chunkrt_rt::thread::make_current_thread_realtime(
+        args.cpu,
+        args.priority,
+        args.realtime == Realtime::Enforce,
     );
+    tracing::info!("franka: FCI thread: {outcome}");
+    let parts = Parts {
+        setup,
+        state_fd,
+        stop,
+        hand: hand.clone(),
+        live,
+    };
+    let mut core = Core::new(args, &ns, &node, parts)?;
+    let failure = run_motions(args, &mut core, robot, realtime);
+    stop.store(true, Ordering::SeqCst);
+    if let Some(t) = hand_thread {
+        let _ = t.join();
+    }
+    if let Some(t) = status_thread {
+        let _ = t.join();
+    }
+    core.finish_summary(&hand);
+    write_outputs(args, &core)?;
+    if let Some(e) = failure {
+        println!("{}", core.s);
+        return Err(e);
+    }
+    Ok(core.s)
+}
+
+/// The arguments and configuration checked, and what the run derives from them.
+struct Setup {
+    n_dof: usize,
+    budget_us: f64,
+    timeout_ms: f64,
+    max_future_ms: f64,
+    workspace: crate::geometry::Workspace,
+    start: u64,
+    end_ns: u64,
+}
+
+impl Setup {
+    /// Every argument within its range, the configuration an FR3's (7 joints, the hand's width
+    /// an 8th; 1 kHz): a clear error otherwise.
+    fn check(args: &Args, cfg: &SharedConfig) -> anyhow::Result<Self> {
+        let n_dof = cfg.robot.joints.len();
+        anyhow::ensure!(
+            n_dof == JOINTS || n_dof == JOINTS + 1,
+            "the configuration lists {n_dof} joints: an FR3 has {JOINTS}, and the hand's width \
+             may be an 8th (config/franka_fr3.toml)"
+        );
+        anyhow::ensure!(
+            (cfg.robot.joint_state_rate_hz - 1000.0).abs() < 1e-9,
+            "robot.joint_state_rate_hz is {}: the FCI's cycle is 1 kHz",
+            cfg.robot.joint_state_rate_hz
+        );
+        let budget_us = args.answer_budget_us;
+        anyhow::ensure!(
+            budget_us.is_finite() && (0.0..=900.0).contains(&budget_us),
+            "--answer-budget-us {budget_us}: must be within 0..=900 (a cycle is 1000 µs)"
+        );
+        let timeout_ms = args.command_timeout_ms;
+        anyhow::ensure!(
+            timeout_ms.is_finite() && (1.0..=10_000.0).contains(&timeout_ms),
+            "--command-timeout-ms {timeout_ms}: must be within 1..=10000"
+        );
+        anyhow::ensure!(
+            args.limit_margin.is_finite() && (0.1..=1.0).contains(&args.limit_margin),
+            "--limit-margin {}: must be within 0.1..=1",
+            args.limit_margin
+        );
+        let workspace = workspace(args)?;
+        anyhow::ensure!(
+            args.max_reflexes >= 1
+                && args.reflex_window_s.is_finite()
+                && (0.1..=3600.0).contains(&args.reflex_window_s),
+            "--max-reflexes {} --reflex-window-s {}: at least 1, within 0.1..=3600 s",
+            args.max_reflexes,
+            args.reflex_window_s
+        );
+        anyhow::ensure!(
+            args.drop_answers.is_finite() && (0.0..=0.05).contains(&args.drop_answers),
+            "--drop-answers {}: must be within 0..=0.05 (20 lost in a row stop the robot)",
+            args.drop_answers
+        );
+        if args.drop_answers > 0.0 {
+            tracing::warn!(
+                "franka: --drop-answers {}: that share of the answers is withheld on purpose",
+                args.drop_answers
+            );
+        }
+        anyhow::ensure!(
+            args.bind_tolerance.is_finite() && args.bind_tolerance > 0.0,
+            "--bind-tolerance {}: must be > 0",
+            args.bind_tolerance
+        );
+        if args.no_guard {
+            tracing::warn!(
+                "franka: --no-guard: the controller's positions go to the robot unchanged"
+            );
+        }
+        anyhow::ensure!(
+            args.wait_for_robot.is_finite() && (0.0..=3600.0).contains(&args.wait_for_robot),
+            "--wait-for-robot {}: must be within 0..=3600 s",
+            args.wait_for_robot
+        );
+        anyhow::ensure!(
+            args.status_every.is_nan() || args.status_every <= 3600.0,
+            "--status-every {}: must be within 0..=3600 s",
+            args.status_every
+        );
+        let start = monotonic_ns();
+        Ok(Self {
+            n_dof,
+            budget_us,
+            timeout_ms,
+            max_future_ms: cfg.control.max_future_ms,
+            workspace,
+            start,
+            end_ns: end_time_ns(start, args.duration)?,
+        })
+    }
+}
+
+/// The first connection must succeed (a wrong address, FCI off, a wrong model: said at once,
+/// or after `--wait-for-robot`).
+fn first_connection(
+    args: &Args,
+    realtime: RealtimeConfig,
+    stop: &AtomicBool,
+) -> anyhow::Result<(Option<Robot>, Option<i32>)> {
     let until = std::time::Instant::now() + Duration::from_secs_f64(args.wait_for_robot);
-    let (mut robot, state_fd) = loop {
+    loop {
         match connect(&args.robot, realtime) {
-            Ok((r, fd)) => break (Some(r), fd),
+            Ok((r, fd)) => return Ok((Some(r), fd)),
             Err(e) if e.to_string().contains("FCI version") => return Err(e),
             Err(e) => {
                 if std::time::Instant::now() >= until || stop.load(Ordering::Relaxed) {
@@ -1365,186 +1551,280 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
                 std::thread::sleep(Duration::from_millis(200));
             }
         }
-    };
-    let node = open_node("chunkrt-franka")?;
-    let state_name = ns.joint_state();
-    let cmd_name = ns.joint_command();
-    let status_name = ns.status();
-    let state_service = services::joint_state_service(&node, &state_name)?;
-    let cmd_service = services::joint_command_service(&node, &cmd_name)?;
-    let state_events = services::event_service(&node, &state_name)?;
-    let cmd_events = services::event_service(&node, &cmd_name)?;
+    }
+}
 
-    let hand = Arc::new(Hand {
-        width: AtomicU64::new(f64::NAN.to_bits()),
-        target: AtomicU64::new(f64::NAN.to_bits()),
-        moves: AtomicU64::new(0),
-    });
-    let hand_addr = match args.gripper.as_deref() {
+/// The hand's thread (`--gripper`, or the robot's address when the configuration has an 8th
+/// joint), or none (its width then reads 0).
+fn spawn_hand(
+    args: &Args,
+    n_dof: usize,
+    hand: &Arc<Hand>,
+    stop: &'static AtomicBool,
+) -> anyhow::Result<Option<std::thread::JoinHandle<()>>> {
+    let addr = match args.gripper.as_deref() {
         Some("none") => None,
         Some(a) => Some(a.to_string()),
         None if n_dof > JOINTS => Some(args.robot.clone()),
         None => None,
     };
-    let hand_thread = match hand_addr {
-        Some(addr) => {
-            let hand = hand.clone();
-            let gripper = Gripper::new(&addr).map_err(|e| {
-                anyhow::anyhow!(
-                    "franka: cannot connect to the hand at {addr}: {e} (--gripper none: without it)"
-                )
-            })?;
-            Some(
-                std::thread::Builder::new()
-                    .name("franka-hand".into())
-                    .spawn(move || hand_loop(&addr, gripper, &hand, stop))
-                    .context("franka: hand thread")?,
-            )
-        }
-        None => {
-            hand.width.store(0f64.to_bits(), Ordering::Relaxed);
-            None
-        }
+    let Some(addr) = addr else {
+        hand.width.store(0f64.to_bits(), Ordering::Relaxed);
+        return Ok(None);
     };
-
-    let live = Arc::new(Live::default());
-    let status_thread = if args.status_every > 0.0 {
-        anyhow::ensure!(
-            args.status_every.is_finite() && args.status_every <= 3600.0,
-            "--status-every {}: must be within 0..=3600 s",
-            args.status_every
-        );
-        let (live, every) = (live.clone(), Duration::from_secs_f64(args.status_every));
-        Some(
-            std::thread::Builder::new()
-                .name("franka-status".into())
-                .spawn(move || {
-                    while !stop.load(Ordering::Relaxed) {
-                        std::thread::sleep(every);
-                        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
-                        let fresh = g(&live.fresh);
-                        println!(
-                            "franka status: cycles={} success_rate={:.3} reflexes={} late={} \
-                             guarded={} braking={} led={:.4} not_led_longest_ms={}",
-                            g(&live.cycles),
-                            f64::from_bits(g(&live.success_rate)),
-                            g(&live.reflexes),
-                            g(&live.late),
-                            g(&live.clamped),
-                            g(&live.braking),
-                            if fresh > 0 {
-                                g(&live.led) as f64 / fresh as f64
-                            } else {
-                                1.0
-                            },
-                            g(&live.not_led_longest)
-                        );
-                    }
-                })
-                .context("franka: status thread")?,
+    let hand = hand.clone();
+    let gripper = Gripper::new(&addr).map_err(|e| {
+        anyhow::anyhow!(
+            "franka: cannot connect to the hand at {addr}: {e} (--gripper none: without it)"
         )
-    } else {
-        None
-    };
-    let mut intake = CommandIntake::new(
-        "franka",
-        n_dof,
-        (timeout_ms * 1e6) as u64,
-        (cfg.control.max_future_ms * 1e6) as u64,
-        start,
-    );
-    intake.bind_to_controller(chunkrt_tools::fake_robot::SESSION_TIMEOUT_NS);
-    intake.set_bind_tolerance(args.bind_tolerance);
-    let record = args.record.as_ref().map(|_| {
-        // ten minutes of cycles (or the run's duration), allocated once
-        let cycles = args.duration.map_or(600_000.0, |d| d * 1100.0 + 1000.0);
-        Vec::with_capacity(cycles.min(4e6) as usize)
-    });
-    let trace = args
-        .trace
-        .as_ref()
-        .map(|_| (Vec::with_capacity(TRACE_CYCLES), 0));
-    let outcome = chunkrt_rt::thread::make_current_thread_realtime(
-        args.cpu,
-        args.priority,
-        args.realtime == Realtime::Enforce,
-    );
-    tracing::info!("franka: FCI thread: {outcome}");
-    let mut core = Core {
-        n_dof,
-        intake,
-        guard: Guard::new(GuardLimits::fr3(args.limit_margin, 0.02), CYCLE_S)?,
-        reference: Motion::rest([0.0; JOINTS]),
-        last: Motion::rest([0.0; JOINTS]),
-        sent_last: true,
-        withhold: false,
-        drop_p: args.drop_answers,
-        // xorshift64 needs a state other than 0
-        rng: args.drop_seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1,
-        not_led_run: 0,
-        notes: 0,
-        ambiguous: None,
-        late_applied_seen: false,
-        alts: [None; ALTS],
-        alt_base: None,
-        last_sent_seq: 0,
-        last_sent: Motion::rest([0.0; JOINTS]),
-        lag: 1,
-        alt_age: 0,
-        state_fd,
-        state_queued: false,
-        tracking: Histogram::new_with_bounds(1, 100_000_000, 3)
-            .expect("constant histogram bounds are valid"),
-        seq: 0,
-        state_pub: services::publisher(&state_service)?,
-        state_event: services::notifier(&state_events)?,
-        cmd_sub: services::subscriber(&cmd_service)?,
-        cmd_event: services::listener(&cmd_events)?,
-        status_sub: services::subscriber(&services::status_service(&node, &status_name)?)?,
-        budget_ns: (budget_us * 1e3) as u64,
-        last_cmd_seq: 0,
-        late_run: 0,
-        last_state_ns: 0,
-        extrapolate_cycles: args.extrapolate_cycles,
-        no_guard: args.no_guard,
-        workspace,
-        clamped_last: false,
-        refused_last: false,
-        holding: true,
-        at_rest: true,
-        motion_cycles: 0,
-        end_ns,
-        inject_reflex_ns: match args.inject_reflex_at {
-            Some(s) if s.is_finite() && (0.0..=86_400.0).contains(&s) => start + (s * 1e9) as u64,
+    })?;
+    Ok(Some(
+        std::thread::Builder::new()
+            .name("franka-hand".into())
+            .spawn(move || hand_loop(&addr, gripper, &hand, stop))
+            .context("franka: hand thread")?,
+    ))
+}
+
+/// `--status-every S`: a line of the live counters every S seconds, from a thread of its own.
+fn spawn_status(
+    args: &Args,
+    live: &Arc<Live>,
+    stop: &'static AtomicBool,
+) -> anyhow::Result<Option<std::thread::JoinHandle<()>>> {
+    if args.status_every <= 0.0 {
+        return Ok(None);
+    }
+    let (live, every) = (live.clone(), Duration::from_secs_f64(args.status_every));
+    Ok(Some(
+        std::thread::Builder::new()
+            .name("franka-status".into())
+            .spawn(move || {
+                while !stop.load(Ordering::Relaxed) {
+                    std::thread::sleep(every);
+                    live.print();
+                }
+            })
+            .context("franka: status thread")?,
+    ))
+}
+
+impl Live {
+    /// One `franka status:` line.
+    fn print(&self) {
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let fresh = g(&self.fresh);
+        println!(
+            "franka status: cycles={} success_rate={:.3} reflexes={} late={} guarded={} \
+             braking={} led={:.4} not_led_longest_ms={}",
+            g(&self.cycles),
+            f64::from_bits(g(&self.success_rate)),
+            g(&self.reflexes),
+            g(&self.late),
+            g(&self.clamped),
+            g(&self.braking),
+            if fresh > 0 {
+                g(&self.led) as f64 / fresh as f64
+            } else {
+                1.0
+            },
+            g(&self.not_led_longest)
+        );
+    }
+}
+
+/// What [`Core::new`] takes besides the arguments and the ports.
+struct Parts {
+    setup: Setup,
+    state_fd: Option<i32>,
+    stop: &'static AtomicBool,
+    hand: Arc<Hand>,
+    live: Arc<Live>,
+}
+
+impl Core {
+    /// The FCI thread's state, every port and buffer allocated here, before the first cycle.
+    fn new(
+        args: &Args,
+        ns: &Namespace,
+        node: &iceoryx2::prelude::Node<Ipc>,
+        parts: Parts,
+    ) -> anyhow::Result<Self> {
+        let Parts {
+            setup,
+            state_fd,
+            stop,
+            hand,
+            live,
+        } = parts;
+        let (state_name, cmd_name) = (ns.joint_state(), ns.joint_command());
+        let state_service = services::joint_state_service(node, &state_name)?;
+        let cmd_service = services::joint_command_service(node, &cmd_name)?;
+        let state_events = services::event_service(node, &state_name)?;
+        let cmd_events = services::event_service(node, &cmd_name)?;
+        let mut intake = CommandIntake::new(
+            "franka",
+            setup.n_dof,
+            (setup.timeout_ms * 1e6) as u64,
+            (setup.max_future_ms * 1e6) as u64,
+            setup.start,
+        );
+        intake.bind_to_controller(chunkrt_tools::fake_robot::SESSION_TIMEOUT_NS);
+        intake.set_bind_tolerance(args.bind_tolerance);
+        let record = args.record.as_ref().map(|_| {
+            // ten minutes of cycles (or the run's duration), allocated once
+            let cycles = args.duration.map_or(600_000.0, |d| d * 1100.0 + 1000.0);
+            Vec::with_capacity(cycles.min(4e6) as usize)
+        });
+        let inject_reflex_ns = match args.inject_reflex_at {
+            Some(s) if s.is_finite() && (0.0..=86_400.0).contains(&s) => {
+                setup.start + (s * 1e9) as u64
+            }
             Some(s) => anyhow::bail!("--inject-reflex-at {s}: must be within 0..=86400 s"),
             None => 0,
-        },
-        stop,
-        hand: hand.clone(),
-        live: live.clone(),
-        round_trip: Histogram::new_with_bounds(1, 10_000_000_000, 3)
-            .expect("constant histogram bounds are valid"),
-        record,
-        trace,
-        rate_sum: 0.0,
-        rate_n: 0,
-        s: Summary {
-            success_rate_min: 1.0,
-            ..Summary::default()
-        },
-    };
-    tracing::info!(
-        "franka: publishing '{state_name}', following '{cmd_name}' (answer budget {budget_us} µs, \
-         command timeout {timeout_ms} ms, guard at {} of the FR3's limits{})",
-        args.limit_margin,
-        if args.no_guard { ", OFF" } else { "" }
-    );
+        };
+        let core = Core {
+            n_dof: setup.n_dof,
+            intake,
+            guard: Guard::new(GuardLimits::fr3(args.limit_margin, 0.02), CYCLE_S)?,
+            reference: Motion::rest([0.0; JOINTS]),
+            last: Motion::rest([0.0; JOINTS]),
+            sent_last: true,
+            withhold: false,
+            drop_p: args.drop_answers,
+            // xorshift64 needs a state other than 0
+            rng: args.drop_seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1,
+            not_led_run: 0,
+            notes: 0,
+            ambiguous: None,
+            late_applied_seen: false,
+            alts: [None; ALTS],
+            alt_base: None,
+            last_sent_seq: 0,
+            last_sent: Motion::rest([0.0; JOINTS]),
+            lag: 1,
+            alt_age: 0,
+            state_fd,
+            state_queued: false,
+            withheld_run: 0,
+            tracking: Histogram::new_with_bounds(1, 100_000_000, 3)
+                .expect("constant histogram bounds are valid"),
+            seq: 0,
+            state_pub: services::publisher(&state_service)?,
+            state_event: services::notifier(&state_events)?,
+            cmd_sub: services::subscriber(&cmd_service)?,
+            cmd_event: services::listener(&cmd_events)?,
+            status_sub: services::subscriber(&services::status_service(node, &ns.status())?)?,
+            budget_ns: (setup.budget_us * 1e3) as u64,
+            last_cmd_seq: 0,
+            late_run: 0,
+            last_state_ns: 0,
+            extrapolate_cycles: args.extrapolate_cycles,
+            no_guard: args.no_guard,
+            workspace: setup.workspace,
+            clamped_last: false,
+            refused_last: false,
+            holding: true,
+            at_rest: true,
+            motion_cycles: 0,
+            end_ns: setup.end_ns,
+            inject_reflex_ns,
+            stop,
+            hand,
+            live,
+            round_trip: Histogram::new_with_bounds(1, 10_000_000_000, 3)
+                .expect("constant histogram bounds are valid"),
+            record,
+            trace: args
+                .trace
+                .as_ref()
+                .map(|_| (Vec::with_capacity(TRACE_CYCLES), 0)),
+            rate_sum: 0.0,
+            rate_n: 0,
+            s: Summary {
+                success_rate_min: 1.0,
+                ..Summary::default()
+            },
+        };
+        tracing::info!(
+            "franka: publishing '{state_name}', following '{cmd_name}' (answer budget {} µs, \
+             command timeout {} ms, guard at {} of the FR3's limits{})",
+            setup.budget_us,
+            setup.timeout_ms,
+            args.limit_margin,
+            if args.no_guard { ", OFF" } else { "" }
+        );
+        Ok(core)
+    }
 
-    let mut failure = None;
+    /// A reflex ended the motion: counted, named, marked in the trace.
+    fn on_reflex(&mut self, e: &franka::ControlException) {
+        self.s.reflexes += 1;
+        if let Some((rows, next_slot)) = &mut self.trace {
+            let i = (*next_slot + TRACE_CYCLES - 1) % TRACE_CYCLES;
+            if let Some(r) = rows.get_mut(i) {
+                r.notes |= 16;
+            }
+        }
+        self.live.reflexes.store(self.s.reflexes, Ordering::Relaxed);
+        let names = e.last_motion_errors.names().join("+");
+        tracing::error!(
+            "franka: REFLEX: the robot aborted the motion: {} ({})",
+            if names.is_empty() {
+                "no error named"
+            } else {
+                &names
+            },
+            e.message.lines().next().unwrap_or("")
+        );
+        if self.s.reflex_errors.len() < 400 {
+            if !self.s.reflex_errors.is_empty() {
+                self.s.reflex_errors.push(',');
+            }
+            self.s
+                .reflex_errors
+                .push_str(if names.is_empty() { "unnamed" } else { &names });
+        }
+    }
+
+    /// The summary's figures that come from histograms and counters kept elsewhere.
+    fn finish_summary(&mut self, hand: &Hand) {
+        let h = &self.round_trip;
+        let us = |q: f64| h.value_at_quantile(q) as f64 / 1e3;
+        self.s.round_trip_us = [us(0.5), us(0.99), h.max() as f64 / 1e3];
+        let c = &self.intake.counters;
+        self.s.commands = [
+            c.commands_applied,
+            c.commands_expired,
+            c.commands_rejected,
+            c.commands_unbound,
+            c.commands_far,
+        ];
+        self.s.gripper_moves = hand.moves.load(Ordering::Relaxed);
+        self.s.success_rate_mean = if self.rate_n > 0 {
+            self.rate_sum / self.rate_n as f64
+        } else {
+            0.0
+        };
+        self.s.guard_acted = self.guard.acted;
+        let t = &self.tracking;
+        self.s.controller_tracking = [t.value_at_quantile(0.99) as f64 / 1e6, t.max() as f64 / 1e6];
+    }
+}
+
+/// Motions until the run ends: each state read, a robot in a reflex recovered (or, after
+/// `--max-reflexes` within `--reflex-window-s`, given up on), a robot gone reconnected. Returns
+/// why it gave up, if it did.
+fn run_motions(
+    args: &Args,
+    core: &mut Core,
+    mut robot: Option<Robot>,
+    realtime: RealtimeConfig,
+) -> Option<anyhow::Error> {
     // the times of the reflexes within the window (a few: allocated here, once)
     let window_ns = (args.reflex_window_s * 1e9) as u64;
     let mut recent_reflexes: Vec<u64> = Vec::with_capacity(args.max_reflexes as usize + 1);
-    while !stop.load(Ordering::Relaxed) && monotonic_ns() < end_ns {
+    while !core.stop.load(Ordering::Relaxed) && monotonic_ns() < core.end_ns {
         let Some(r) = robot.as_ref() else {
             // the robot went away (a restarted control box or simulator): try again, holding
             // nothing (no state is published, so the controller holds)
@@ -1573,52 +1853,23 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
                 state.current_errors
             );
             if let Err(e) = r.automatic_error_recovery() {
-                failure = Some(anyhow::anyhow!("franka: error recovery failed: {e}"));
-                break;
+                return Some(anyhow::anyhow!("franka: error recovery failed: {e}"));
             }
             continue;
         }
         core.begin_motion(state.q);
-        let result = one_motion(r, &mut core);
-        match result {
-            Ok(()) => break,
+        match one_motion(r, core) {
+            Ok(()) => return None,
             Err(FrankaError::Control(e)) => {
-                core.s.reflexes += 1;
-                if let Some((rows, next_slot)) = &mut core.trace {
-                    let i = (*next_slot + TRACE_CYCLES - 1) % TRACE_CYCLES;
-                    if let Some(r) = rows.get_mut(i) {
-                        r.notes |= 16;
-                    }
-                }
-                core.live.reflexes.store(core.s.reflexes, Ordering::Relaxed);
-                let names = e.last_motion_errors.names().join("+");
-                tracing::error!(
-                    "franka: REFLEX: the robot aborted the motion: {} ({})",
-                    if names.is_empty() {
-                        "no error named"
-                    } else {
-                        &names
-                    },
-                    e.message.lines().next().unwrap_or("")
-                );
-                if core.s.reflex_errors.len() < 400 {
-                    if !core.s.reflex_errors.is_empty() {
-                        core.s.reflex_errors.push(',');
-                    }
-                    core.s.reflex_errors.push_str(if names.is_empty() {
-                        "unnamed"
-                    } else {
-                        &names
-                    });
-                }
+                core.on_reflex(&e);
                 if args.stop_on_reflex {
-                    break;
+                    return None;
                 }
                 let t = monotonic_ns();
                 recent_reflexes.retain(|&at| t.saturating_sub(at) < window_ns);
                 recent_reflexes.push(t);
                 if recent_reflexes.len() >= args.max_reflexes as usize {
-                    failure = Some(anyhow::anyhow!(
+                    return Some(anyhow::anyhow!(
                         "franka: {} reflexes within {} s ({}): recovery gives up (--max-reflexes, \
                          --reflex-window-s); the robot is in its own stop. Read the reflexes' \
                          names above, then restart the driver",
@@ -1626,7 +1877,6 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
                         args.reflex_window_s,
                         core.s.reflex_errors
                     ));
-                    break;
                 }
                 if let Err(e) = r.automatic_error_recovery() {
                     tracing::warn!("franka: error recovery failed ({e}): reconnecting");
@@ -1639,35 +1889,12 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
             }
         }
     }
-    stop.store(true, Ordering::SeqCst);
-    if let Some(t) = hand_thread {
-        let _ = t.join();
-    }
-    if let Some(t) = status_thread {
-        let _ = t.join();
-    }
-    let h = &core.round_trip;
-    let us = |q: f64| h.value_at_quantile(q) as f64 / 1e3;
-    core.s.round_trip_us = [us(0.5), us(0.99), h.max() as f64 / 1e3];
-    let c = &core.intake.counters;
-    core.s.commands = [
-        c.commands_applied,
-        c.commands_expired,
-        c.commands_rejected,
-        c.commands_unbound,
-        c.commands_far,
-    ];
-    core.s.gripper_moves = hand.moves.load(Ordering::Relaxed);
-    core.s.success_rate_mean = if core.rate_n > 0 {
-        core.rate_sum / core.rate_n as f64
-    } else {
-        0.0
-    };
-    core.s.guard_acted = core.guard.acted;
-    let t = &core.tracking;
-    core.s.controller_tracking = [t.value_at_quantile(0.99) as f64 / 1e6, t.max() as f64 / 1e6];
+    None
+}
+
+/// `--trace` (the ring, oldest first) and `--record` (a line of positions per robot cycle).
+fn write_outputs(args: &Args, core: &Core) -> anyhow::Result<()> {
     if let (Some(path), Some((rows, next_slot))) = (&args.trace, &core.trace) {
-        // oldest first
         let (newer, older) = rows.split_at(*next_slot % rows.len().max(1));
         write_trace(path, older.iter().chain(newer))?;
     }
@@ -1690,11 +1917,7 @@ pub fn drive(args: &Args) -> anyhow::Result<Summary> {
             path.display()
         );
     }
-    if let Some(e) = failure {
-        println!("{}", core.s);
-        return Err(e);
-    }
-    Ok(core.s)
+    Ok(())
 }
 
 /// The hand's own loop: follows the gripper channel's target width (a move, or a grasp when it
