@@ -488,6 +488,11 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
     );
     // the controller led after the recovery: commands applied in the second motion
     let rows = std::fs::read_to_string(&trace).unwrap_or_default();
+    let path_col = rows
+        .lines()
+        .next()
+        .and_then(|h| h.split(',').position(|c| c == "path"))
+        .expect("the driver's trace has no path column");
     let after: Vec<&str> = rows
         .lines()
         .skip_while(|l| !l.contains("reflex"))
@@ -496,7 +501,7 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
     let led_after = after
         .iter()
         .filter(|l| {
-            let p = l.split(',').nth(1).unwrap_or("");
+            let p = l.split(',').nth(path_col).unwrap_or("");
             p == "pass" || p == "offset" || p == "restart"
         })
         .count();

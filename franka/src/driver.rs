@@ -614,7 +614,11 @@ struct TraceRow {
     notes: u8,
     /// The guard's first broken limit that cycle: (joint, code), or none.
     broke: Option<(u8, u8)>,
+    /// The robot's clock (ms) and the arm's measured positions and velocities: the robot judges
+    /// the measured velocity against its envelope.
+    robot_ms: u64,
     measured: [f64; JOINTS],
+    measured_dq: [f64; JOINTS],
     /// The robot's reported reference (`q_d`) and the one this cycle's answer was computed
     /// against.
     reported: [f64; JOINTS],
@@ -1266,7 +1270,9 @@ impl Core {
                 path: step.path,
                 notes: self.notes,
                 broke: step.broke,
+                robot_ms: st.time.as_millis(),
                 measured: st.q,
+                measured_dq: st.dq,
                 reported: st.q_d,
                 reference: self.reference.q,
                 desired: step.desired.0,
@@ -1982,9 +1988,10 @@ fn write_trace<'a>(
     use std::fmt::Write as _;
     let mut text = String::with_capacity(TRACE_CYCLES * 30 * 12 + 512);
     let mut n = 0usize;
-    text.push_str("seq,path,notes,broke");
+    text.push_str("seq,robot_ms,path,notes,broke");
     for name in [
         "measured",
+        "measured_dq",
         "reported",
         "reference",
         "desired",
@@ -1998,7 +2005,13 @@ fn write_trace<'a>(
     text.push('\n');
     for r in rows {
         n += 1;
-        let _ = write!(text, "{},{},", r.seq, TRACE_PATHS[r.path as usize % 8]);
+        let _ = write!(
+            text,
+            "{},{},{},",
+            r.seq,
+            r.robot_ms,
+            TRACE_PATHS[r.path as usize % 8]
+        );
         for (i, name) in TRACE_NOTES.iter().enumerate() {
             if r.notes & (1 << i) != 0 {
                 let _ = write!(text, "{name};");
@@ -2011,6 +2024,9 @@ fn write_trace<'a>(
         }
         for v in &r.measured {
             let _ = write!(text, ",{v:.6}");
+        }
+        for v in &r.measured_dq {
+            let _ = write!(text, ",{v:.4}");
         }
         // the references and desired positions at a nanoradian too: their differences are what
         // the guard judges

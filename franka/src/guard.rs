@@ -185,11 +185,16 @@ pub struct GuardLimits {
 
 /// Positions the generator keeps inside the envelope's limits (rad).
 const GENERATOR_POSITION_MARGIN: f64 = 0.15;
-/// Room kept below the robot's velocity envelope near a position limit (rad/s): the robot judges
-/// the arm's *measured* velocity against it, and the arm runs up to 0.15 rad/s past the
-/// commanded one when a joint brakes along the envelope at speed under gravity (franka-sim:
-/// `joint_velocity_violation`, joint 2 at 1.35 rad/s against 1.20, DROID's all -1).
+/// Room kept below the robot's velocity envelope near a position limit (rad/s), and the share of
+/// the envelope commanded at most: the robot judges the arm's *measured* velocity against it,
+/// and the measured velocity runs past the commanded one by an amount that grows with it.
+/// franka-sim: 0.15 rad/s when a joint brakes along the envelope at speed under gravity
+/// (`joint_velocity_violation`, joint 2 at 1.35 rad/s against 1.20, DROID's all -1); half the
+/// commanded velocity for a few cycles after its physics loop ran a few milliseconds late on a
+/// loaded machine (joint 3 at 2.01 rad/s for 1.32 commanded; a fresh-clone CI: joint 4 at 1.70
+/// against 1.54 at the rectangular range's 1.125). At 0.6 the arm may run 1.67 times the command.
 const ENVELOPE_TRACKING: f64 = 0.25;
+const ENVELOPE_SHARE: f64 = 0.6;
 /// Fraction of the robot's acceleration and jerk the generator plans with.
 const GENERATOR_MARGIN: f64 = 0.7;
 
@@ -219,7 +224,7 @@ impl GuardLimits {
         let room = (2.0 * ENVELOPE_DECEL[j].min(0.6 * self.ddq) * (self.q_max[j] - q))
             .max(0.0)
             .sqrt();
-        self.dq[j].min((room - ENVELOPE_OFFSET[j] - ENVELOPE_TRACKING).max(0.0)) - ENVELOPE_EPS
+        self.dq[j].min(Self::kept_below(j, room)) - ENVELOPE_EPS
     }
 
     /// The envelope's lowest velocity at `q` against this range (rad/s).
@@ -227,7 +232,14 @@ impl GuardLimits {
         let room = (2.0 * ENVELOPE_DECEL[j].min(0.6 * self.ddq) * (q - self.q_min[j]))
             .max(0.0)
             .sqrt();
-        (-self.dq[j]).max((ENVELOPE_OFFSET[j] + ENVELOPE_TRACKING - room).min(0.0)) + ENVELOPE_EPS
+        -self.dq[j].min(Self::kept_below(j, room)) + ENVELOPE_EPS
+    }
+
+    /// The speed commanded at most where the envelope's speed is `room - offset`: its share,
+    /// and at least the tracking room below it.
+    fn kept_below(j: usize, room: f64) -> f64 {
+        let v = room - ENVELOPE_OFFSET[j];
+        (v - ENVELOPE_TRACKING.max((1.0 - ENVELOPE_SHARE) * v)).max(0.0)
     }
 
     /// How fast the envelope's upper bound closes (rad/s²) for joint `j` at `q` moving at `v`
@@ -235,7 +247,8 @@ impl GuardLimits {
     fn closing(&self, j: usize, q: f64, v: f64) -> (f64, f64) {
         let d = ENVELOPE_DECEL[j].min(0.6 * self.ddq);
         let rate = |room: f64, speed: f64| {
-            if speed <= 0.0 || room - ENVELOPE_OFFSET[j] - ENVELOPE_TRACKING >= self.dq[j] {
+            // (the envelope's own rate bounds its share's)
+            if speed <= 0.0 || Self::kept_below(j, room) >= self.dq[j] {
                 0.0
             } else {
                 d * speed / room.max(1e-3)
@@ -977,6 +990,43 @@ mod tests {
     }
 
     #[test]
+    fn near_a_limit_an_arm_running_1_6_times_the_command_stays_inside_the_envelope() {
+        // The robot judges the *measured* velocity against its envelope; the measured one runs
+        // up to half again past the command for a few cycles (franka-sim after its physics loop
+        // ran late: joint 4 at 1.70 rad/s against 1.54 in a CI, commanded 1.125 by the
+        // controller's rectangular range). Every joint, both ways, from the middle of its range
+        // at the controller's speeds and at the guard's own.
+        use crate::limits::{lower_velocity, upper_velocity};
+        let l = GuardLimits::fr3(0.83, 0.02);
+        for j in 0..JOINTS {
+            for (sign, speed) in [(1.0, 1.125), (-1.0, 1.125), (1.0, l.dq[j]), (-1.0, l.dq[j])] {
+                let mut g = Guard::new(l, CYCLE_S).unwrap();
+                let mut start = home();
+                start[j] = 0.5 * (l.q_min[j] + l.q_max[j]);
+                let mut m = Motion::rest(start);
+                let mut desired = start;
+                let mut seq = vec![m];
+                for _ in 0..6000 {
+                    desired[j] += sign * speed * CYCLE_S;
+                    let mut v = [0.0; JOINTS];
+                    v[j] = sign * speed;
+                    m = g.follow(&m, &desired, &v, &[0.0; JOINTS]).0;
+                    seq.push(m);
+                    let (up, lo) = (upper_velocity(j, m.q[j]), lower_velocity(j, m.q[j]));
+                    assert!(
+                        1.6 * m.dq[j] <= up.max(0.0) + 1e-9 && 1.6 * m.dq[j] >= lo.min(0.0) - 1e-9,
+                        "joint {}: {} rad/s at {} (envelope {lo}..{up})",
+                        j + 1,
+                        m.dq[j],
+                        m.q[j]
+                    );
+                }
+                check(&seq);
+            }
+        }
+    }
+
+    #[test]
     fn whatever_the_controller_sends_the_robot_sees_no_violation() {
         // 40 s of what reaches the driver besides a clean stream: offsets of up to 0.05 rad (a
         // re-seed from the measured pose, a new controller within the bind tolerance), NaN,
@@ -1110,6 +1160,8 @@ mod tests {
 
     #[test]
     fn a_jump_at_speed_and_an_abrupt_stop_stay_near_the_controller() {
+        // (on joint 5, whose envelope leaves 2.4 rad/s unshaped over the whole travel: on joint
+        // 6 the guard keeps it to 0.6 of the envelope from 1.6 rad before the limit)
         for (vmax, jump) in [
             (2.3, 0.05),
             (2.3, -0.05),
@@ -1117,7 +1169,7 @@ mod tests {
             (1.0, 0.3),
             (2.4, 0.01),
         ] {
-            let (worst, _, end) = at_speed(5, vmax, jump, 0.0);
+            let (worst, _, end) = at_speed(4, vmax, jump, 0.0);
             assert!(
                 worst < jump.abs() + 0.01,
                 "{vmax} rad/s, jump {jump}: {worst} rad from the controller"

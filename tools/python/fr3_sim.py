@@ -12,7 +12,9 @@ consecutive lost cycles), and counts what the simulator itself logs:
   lost_cycles   its reports of lost command cycles
 
 Prints "franka-sim: ready HOST:PORT" once its simulation loop runs, and on SIGTERM / SIGINT /
---duration "franka-sim summary: reflexes=N violations=N lost_reports=N" and the first reasons.
+--duration "franka-sim summary: reflexes=N violations=N lost_reports=N enforced=0|1" with how
+often its own physics loop ran late (physics_late_*, physics_gap_max_ms: see `Steps`), and the
+first reasons.
 
   $CHUNKRT_FRANKA_PYTHON tools/python/fr3_sim.py --host 127.0.0.2 [--no-enforce]
 Needs FR3_MJCF (scripts/franka-env.sh) so that nothing is fetched from the network.
@@ -118,6 +120,39 @@ def trace_events(path):
         note_published, extrapolate, absorb_command, report)
 
 
+class Steps:
+    """The simulated robot's own computer: how often its physics loop (one state published, one
+    control applied, one MuJoCo step per millisecond) ran late. A late step turns the commands
+    that came meanwhile into one step's worth of motion, and the arm's measured velocity jumps:
+    the robot's fault, not the stream's, and said in the summary so a run can tell them apart."""
+
+    def __init__(self):
+        from franka_sim import mujoco_franka_sim as m
+
+        self.last = None
+        self.late = [0, 0, 0]  # gaps past 1.5, 2.5 and 5 ms
+        self.worst = 0.0
+        cls = m.MujocoFrankaSim
+        orig = cls._read_and_publish_state
+        me = self
+
+        def publish(sim, *a, **k):
+            now = time.perf_counter()
+            if me.last is not None and now - me.last < 1.0:  # (not the wait before the loop)
+                gap = now - me.last
+                me.worst = max(me.worst, gap)
+                for i, limit in enumerate((1.5e-3, 2.5e-3, 5e-3)):
+                    me.late[i] += gap > limit
+            me.last = now
+            return orig(sim, *a, **k)
+
+        cls._read_and_publish_state = publish
+
+    def summary(self):
+        return (f"physics_late_1_5ms={self.late[0]} physics_late_2_5ms={self.late[1]} "
+                f"physics_late_5ms={self.late[2]} physics_gap_max_ms={self.worst * 1e3:.1f}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--host", default="127.0.0.1")
@@ -150,6 +185,9 @@ def main():
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime))
             print(f"franka-sim: SCHED_FIFO priority {args.realtime}", flush=True)
+            # the simulator's threads share one interpreter lock: a thread that wants it waits
+            # for the holder's switch interval (5 ms by default), five of the robot's cycles
+            sys.setswitchinterval(float(os.environ.get("FR3_SIM_SWITCH", "0.0002")))
         except (OSError, AttributeError, ValueError) as e:
             print(f"franka-sim: NOT real-time ({e}): a loaded machine can starve its physics",
                   flush=True)
@@ -170,6 +208,7 @@ def main():
     if os.environ.get("FR3_SIM_EVENTS"):
         trace_events(os.environ["FR3_SIM_EVENTS"])
 
+    steps = Steps()
     enforce = not args.no_enforce
     server = FrankaSimServer(host=args.host, port=args.port, enable_gripper=not args.no_gripper,
                              enforce_comm_constraints=enforce, enforce_motion_limits=enforce)
@@ -194,7 +233,7 @@ def main():
     except Exception as e:  # report, still print the summary
         print(f"fr3_sim.py: stop: {e}", file=sys.stderr)
     print(f"franka-sim summary: reflexes={counter.reflexes} violations={counter.violations} "
-          f"lost_reports={counter.lost} enforced={int(enforce)}", flush=True)
+          f"lost_reports={counter.lost} enforced={int(enforce)} {steps.summary()}", flush=True)
     for r in counter.reasons:
         print(f"franka-sim reason: {r}", flush=True)
     sys.exit(0 if runner.is_alive() or done.is_set() or args.duration else 1)
