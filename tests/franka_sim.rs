@@ -66,6 +66,16 @@ fn franka_env(test: &str) -> Option<(String, String)> {
 /// loop beside it starved its physics thread, whose measured velocity then jumped past the
 /// envelope on a stream commanded inside it: `joint_velocity_violation` with no cycle missed).
 fn sim(py: &str, model: &str, host: &str, enforce: bool) -> ChildGuard {
+    sim_with(
+        py,
+        model,
+        host,
+        if enforce { &[] } else { &["--no-enforce"] },
+    )
+}
+
+/// franka-sim on `host` as [`sim`] (enforced), with `extra` arguments.
+fn sim_with(py: &str, model: &str, host: &str, extra: &[&str]) -> ChildGuard {
     let script = format!("{ROOT}/tools/python/fr3_sim.py");
     let mut args = vec![
         script.as_str(),
@@ -77,9 +87,7 @@ fn sim(py: &str, model: &str, host: &str, enforce: bool) -> ChildGuard {
         "--realtime",
         "70",
     ];
-    if !enforce {
-        args.push("--no-enforce");
-    }
+    args.extend_from_slice(extra);
     ChildGuard::spawn(py, &args).expect("start franka-sim")
 }
 
@@ -786,6 +794,68 @@ fn a_driver_that_cannot_follow_the_controller_says_so_and_the_controller_is_not_
         "the controller's log does not say so:\n{}",
         c_out.stderr
     );
+}
+
+#[test]
+fn a_joint_held_by_an_obstacle_brakes_the_arm_and_trips_no_reflex_when_it_comes_free() {
+    // A joint the arm does not follow (franka-sim's `--block`: an obstacle holds joint 7 for
+    // 3 s, a viscous brake in the physics) under the scripted test double's slow, wide motion
+    // (0.6 rad at 0.2 Hz): without a bound the command ran on up to 2 rad from the held joint,
+    // and when it came free its servo swung it across the gap past the FR3's velocity limit
+    // (`joint_velocity_violation`, joint 7 at 5.45 rad/s). With `--follow-bound` (0.1 rad) the
+    // driver brakes the arm as soon as the joint lags that far and a command would take it
+    // further, says the robot does not follow, and the controller leads again once it is free.
+    let Some((py, model)) = franka_env("franka_sim: blocked joint") else {
+        return;
+    };
+    let _one = serial();
+    let host = "127.0.0.43";
+    let ns = unique_namespace("fr3-blocked");
+    let cfg = scripted_config("blocked", "replace", "");
+    let text = std::fs::read_to_string(&cfg)
+        .unwrap()
+        .replace("amplitude = 0.25", "amplitude = 0.6")
+        .replace("frequency_hz = 0.3", "frequency_hz = 0.2");
+    std::fs::write(&cfg, text).unwrap();
+    let sim_g = sim_with(&py, &model, host, &["--block", "7,5,3"]);
+    let trace = std::env::temp_dir().join(format!("fr3_blocked_{}.csv", std::process::id()));
+    let tr = trace.display().to_string();
+    let d = driver(&ns, host, 17.0, &["--trace", &tr]);
+    let c = controller(&ns, &cfg, "14");
+    let c_out = c.finish(Duration::from_secs(40));
+    let d_out = d.finish(Duration::from_secs(20));
+    let s_out = sim_g.terminate(Duration::from_secs(5));
+    let _ = std::fs::remove_file(&cfg);
+    println!("blocked joint: the driver's trace: {tr}");
+    assert!(
+        s_out.stdout.contains("joint 7 blocked") && s_out.stdout.contains("joint 7 released"),
+        "the obstacle did not come and go within the run:\n{}",
+        s_out.stdout
+    );
+    assert_eq!(c_out.code, Some(0), "{}", c_out.stderr);
+    assert_no_reflex("blocked joint", &d_out, &s_out);
+    assert!(
+        drv(&d_out, "blocked") > 0.0 && drv(&d_out, "blocked_joint") == 7.0,
+        "the driver never braked for the held joint: {}",
+        summary_line(&d_out)
+    );
+    let gap = drv(&d_out, "blocked_error_max");
+    let err = drv(&d_out, "max_tracking_error");
+    assert!(
+        gap < 0.4 && err < 0.4,
+        "the command ran {gap} rad from the held joint (tracking error {err} rad)"
+    );
+    for said in [
+        "NOT FOLLOWED",
+        "the robot follows this controller's commands again",
+    ] {
+        assert!(
+            c_out.stderr.contains(said),
+            "the controller's log does not say {said:?}:\n{}",
+            c_out.stderr
+        );
+    }
+    let _ = std::fs::remove_file(trace);
 }
 
 #[test]

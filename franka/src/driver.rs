@@ -95,6 +95,13 @@ pub struct Args {
     /// them (`franka/src/geometry.rs`): a command that would fold the arm closer is refused.
     #[arg(long, value_name = "M", default_value_t = 0.05)]
     pub link_clearance: f64,
+    /// Following error bound (rad): a joint of the arm further than this from the robot's
+    /// reference (a contact, an obstacle, a person holding it) stops the command: every command
+    /// that would take that joint further from the arm is refused and the arm braked, so the
+    /// joint's servo cannot snap it across the gap at speed when it comes free. The arm lags
+    /// its reference by ~0.01 rad at speed.
+    #[arg(long, value_name = "RAD", default_value_t = 0.1)]
+    pub follow_bound: f64,
     /// Real-time scheduling of the FCI thread: `enforce` (a real arm: a PREEMPT_RT kernel and
     /// SCHED_FIFO are required) or `ignore` (a simulator on an ordinary kernel).
     #[arg(long, value_enum, default_value_t = Realtime::Enforce)]
@@ -273,6 +280,12 @@ pub struct Summary {
     pub workspace_refused: u64,
     /// The last limit a refused command ran into.
     pub workspace_limit: Option<crate::geometry::Limit>,
+    /// Cycles whose command was refused because a joint of the arm was further than
+    /// `--follow-bound` from the reference and the command took it further: the arm braked.
+    pub blocked: u64,
+    /// The joint (1..7) that last did not follow (0: none) and its largest error (rad).
+    pub blocked_joint: usize,
+    pub blocked_error_max: f64,
 }
 
 impl std::fmt::Display for Summary {
@@ -289,7 +302,8 @@ impl std::fmt::Display for Summary {
              hedged={} reference_exact={} reference_corrected={} \
              reference_adopted={} reference_kept={} reference_stale={} led_share={:.5} not_led_longest_ms={} \
              controller_tracking_p99={:.5} controller_tracking_max={:.5} workspace_refused={} \
-             workspace_limit={} reflex_errors={}",
+             workspace_limit={} blocked={} blocked_joint={} blocked_error_max={:.4} \
+             reflex_errors={}",
             self.cycles,
             self.states_published,
             self.fresh,
@@ -356,6 +370,9 @@ impl std::fmt::Display for Summary {
             self.workspace_refused,
             self.workspace_limit
                 .map_or("none".to_string(), |l| l.to_string().replace(' ', "_")),
+            self.blocked,
+            self.blocked_joint,
+            self.blocked_error_max,
             if self.reflex_errors.is_empty() {
                 "none"
             } else {
@@ -574,6 +591,8 @@ struct Core {
     extrapolate_cycles: u32,
     no_guard: bool,
     workspace: crate::geometry::Workspace,
+    /// `--follow-bound` (rad).
+    follow_bound: f64,
     clamped_last: bool,
     refused_last: bool,
     /// The last cycle was the driver's own stop or hold (brake, rest): the state says HOLDING.
@@ -647,7 +666,7 @@ struct Step {
 const TRACE_NOTES: [&str; 5] = ["withheld", "unapplied", "hedged", "reported", "reflex"];
 
 /// `TraceRow::path` names (0..=3: the guard's own paths).
-const TRACE_PATHS: [&str; 9] = [
+const TRACE_PATHS: [&str; 10] = [
     "pass",
     "offset",
     "restart",
@@ -657,6 +676,7 @@ const TRACE_PATHS: [&str; 9] = [
     "rest",
     "unguarded",
     "workspace",
+    "blocked",
 ];
 
 /// The joints' deceleration the stop is predicted with (rad/s²): the guard's own brake plans at
@@ -950,6 +970,7 @@ impl Core {
         let step = self.next_step(live.as_ref(), seq, short);
         let step = self.hedged(step, hedge_from, seq);
         let step = self.within_workspace(step);
+        let step = self.within_following(st, step);
         self.account(st, &step, live.is_some());
         self.trace_row(st, seq, &step);
         self.decide_withhold(now, stopping);
@@ -1214,6 +1235,29 @@ impl Core {
         step
     }
 
+    /// The following error: a joint of the arm further than `--follow-bound` from the robot's
+    /// reference does not follow (something holds it); a command that would take it further
+    /// is refused and the arm braked (the brake plans from the reference, within the limits).
+    /// The joint's servo then closes a gap of the bound plus the brake's travel when the joint
+    /// comes free, not one as wide as the command ran on meanwhile.
+    fn within_following(&mut self, st: &RobotState, mut step: Step) -> Step {
+        if step.path > 3 || self.no_guard {
+            return step;
+        }
+        for j in 0..JOINTS {
+            let e = (st.q[j] - self.reference.q[j]).abs();
+            if e > self.follow_bound && (step.motion.q[j] - st.q[j]).abs() > e {
+                self.s.blocked += 1;
+                self.s.blocked_joint = j + 1;
+                self.s.blocked_error_max = self.s.blocked_error_max.max(e);
+                step.motion = self.guard.brake(&self.reference).0;
+                step.path = 9;
+                break;
+            }
+        }
+        step
+    }
+
     /// Who led, the tracking, the live counters; the motion becomes the last answer.
     fn account(&mut self, st: &RobotState, step: &Step, live: bool) {
         if step.desired.0[0].is_finite() {
@@ -1469,6 +1513,12 @@ impl Setup {
             (cfg.robot.joint_state_rate_hz - 1000.0).abs() < 1e-9,
             "robot.joint_state_rate_hz is {}: the FCI's cycle is 1 kHz",
             cfg.robot.joint_state_rate_hz
+        );
+        anyhow::ensure!(
+            args.follow_bound.is_finite() && (0.02..=1.0).contains(&args.follow_bound),
+            "--follow-bound {}: must be within 0.02..=1 rad (the arm lags its reference by \
+             ~0.01 rad at speed)",
+            args.follow_bound
         );
         let budget_us = args.answer_budget_us;
         anyhow::ensure!(
@@ -1728,6 +1778,7 @@ impl Core {
             extrapolate_cycles: args.extrapolate_cycles,
             no_guard: args.no_guard,
             workspace: setup.workspace,
+            follow_bound: args.follow_bound,
             clamped_last: false,
             refused_last: false,
             holding: true,
@@ -2010,7 +2061,7 @@ fn write_trace<'a>(
             "{},{},{},",
             r.seq,
             r.robot_ms,
-            TRACE_PATHS[r.path as usize % 8]
+            TRACE_PATHS.get(r.path as usize).unwrap_or(&"?")
         );
         for (i, name) in TRACE_NOTES.iter().enumerate() {
             if r.notes & (1 << i) != 0 {

@@ -338,6 +338,11 @@ pub struct Guard {
     /// next step continues from it when the motion is still the one it made (the differences
     /// the robot sees lag it by half a cycle, and restarting from them would slow it).
     planned: Option<([f64; JOINTS], [f64; JOINTS], [f64; JOINTS])>,
+    /// The brake's own plan, which a `follow` in the same cycle (its command then refused, the
+    /// arm braked instead: the driver's geometry and following checks) does not overwrite:
+    /// restarted each cycle from the robot's differences, which lag by half a cycle, the
+    /// brake's deceleration would settle at a sixth of its jerk per cycle (1.2 rad/s²).
+    brake_plan: Option<([f64; JOINTS], [f64; JOINTS], [f64; JOINTS])>,
     /// The offset between the stream sent and the controller's motion while it is taken out
     /// ([`Self::follow`]): its own generator, its state.
     offset_otg: Otg,
@@ -425,6 +430,7 @@ impl Guard {
             out: OtgOutput::default(),
             acted: [0; 5],
             planned: None,
+            brake_plan: None,
             offset_otg,
             offset_in,
             offset_out: OtgOutput::default(),
@@ -817,7 +823,14 @@ impl Guard {
             self.input.target_velocity[j] = 0.0;
             self.input.target_acceleration[j] = 0.0;
         }
+        if let Some(p) = self
+            .brake_plan
+            .filter(|(q, v, a)| q == &prev.q && self.consistent(prev, v, a))
+        {
+            self.planned = Some(p);
+        }
         let m = self.generate(prev);
+        self.brake_plan = self.planned;
         (m, m.at_rest())
     }
 
@@ -964,6 +977,46 @@ mod tests {
         // well under a second
         assert!(k < 800, "{k} cycles");
         assert!(m.at_rest());
+    }
+
+    #[test]
+    fn a_brake_after_a_refused_command_each_cycle_stops_as_fast_as_a_brake_alone() {
+        // The driver's geometry and following checks refuse the guard's answer to the
+        // controller and brake instead, every cycle: the brake must keep its own plan (from the
+        // robot's differences alone it decelerated at 1.2 rad/s², a sixth of its jerk per cycle)
+        let stop = |interleaved: bool| {
+            let mut g = Guard::new(GuardLimits::fr3(0.83, 0.02), CYCLE_S).unwrap();
+            let mut m = Motion::rest(home());
+            m.dq[6] = -1.05;
+            let mut d = m.q;
+            let mut seq = vec![m];
+            for k in 0..3000 {
+                if interleaved {
+                    // the controller's motion runs on at -1.05 rad/s
+                    d[6] -= 1.05e-3;
+                    let mut v = [0.0; JOINTS];
+                    v[6] = -1.05;
+                    let _ = g.follow(&m, &d, &v, &[0.0; JOINTS]);
+                }
+                let (next, done) = g.brake(&m);
+                m = next;
+                seq.push(m);
+                if done {
+                    check(&seq);
+                    return (k, m.q[6] - home()[6]);
+                }
+            }
+            panic!("no stop in 3 s (interleaved: {interleaved})");
+        };
+        let (alone, travel_alone) = stop(false);
+        let (k, travel) = stop(true);
+        // 1.05 rad/s at 0.7 x 10 rad/s² with the jerk ramp: ~150 cycles, ~8 cm of travel
+        assert!(alone < 200, "alone: {alone} cycles");
+        assert!(k <= alone + 2, "interleaved: {k} cycles, alone {alone}");
+        assert!(
+            (travel - travel_alone).abs() < 1e-3,
+            "interleaved travel {travel}, alone {travel_alone}"
+        );
     }
 
     #[test]

@@ -153,6 +153,44 @@ class Steps:
                 f"physics_late_5ms={self.late[2]} physics_gap_max_ms={self.worst * 1e3:.1f}")
 
 
+def block(spec, t0):
+    """`--block J,START,SECONDS`: an obstacle holds joint J (1..7) where it is from START to
+    START + SECONDS (seconds after the simulator started): the arm does not follow its command
+    (a contact, a person, a part in the way), and when the obstacle goes its position servo
+    pulls the joint to wherever the command went meanwhile, the snap a driver must bound."""
+    from franka_sim import mujoco_franka_sim as m
+
+    try:
+        j, start, secs = spec.split(",")
+        j, start, secs = int(j), float(start), float(secs)
+        if not (1 <= j <= 7 and start >= 0 and secs > 0):
+            raise ValueError
+    except ValueError:
+        sys.exit(f"fr3_sim.py: --block {spec!r}: want JOINT,START_S,SECONDS (joint 1..7)")
+    cls = m.MujocoFrankaSim
+    orig = cls._apply_control
+    held = {}
+
+    def apply(sim):
+        # the obstacle as a viscous brake on the joint (MuJoCo integrates joint damping
+        # implicitly: stable at any value), 1e5 N·m·s/rad: under the FR3's 87 N·m the joint
+        # creeps at 1 mrad/s; the rest of the arm keeps its own dynamics
+        t = time.monotonic() - t0
+        da = sim.arm_dofs_idx[j - 1]
+        if start <= t < start + secs and "q" not in held:
+            held["q"] = float(sim.data.qpos[sim.arm_qpos_adr[j - 1]])
+            held["damping"] = float(sim.model.dof_damping[da])
+            sim.model.dof_damping[da] = 1e5
+            print(f"franka-sim: joint {j} blocked at {held['q']:.4f} rad", flush=True)
+        elif t >= start + secs and "q" in held and "released" not in held:
+            held["released"] = True
+            sim.model.dof_damping[da] = held["damping"]
+            print(f"franka-sim: joint {j} released", flush=True)
+        orig(sim)
+
+    cls._apply_control = apply
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--host", default="127.0.0.1")
@@ -170,7 +208,11 @@ def main():
     ap.add_argument("--strict", type=float, default=1.0, metavar="F",
                     help="a stricter robot: franka-sim's joint acceleration and jerk limits and its "
                          "velocity envelope (maximum velocity and deceleration) times F (0.5..1)")
+    ap.add_argument("--block", default=None, metavar="J,START,SECONDS",
+                    help="an obstacle holds joint J (1..7) from START for SECONDS (seconds after "
+                         "the simulator started): a joint that does not follow its command")
     args = ap.parse_args()
+    t0 = time.monotonic()
     if not 0.5 <= args.strict <= 1.0:
         sys.exit(f"fr3_sim.py: --strict {args.strict}: must be within 0.5..1")
     if args.model:
@@ -209,6 +251,8 @@ def main():
         trace_events(os.environ["FR3_SIM_EVENTS"])
 
     steps = Steps()
+    if args.block:
+        block(args.block, t0)
     enforce = not args.no_enforce
     server = FrankaSimServer(host=args.host, port=args.port, enable_gripper=not args.no_gripper,
                              enforce_comm_constraints=enforce, enforce_motion_limits=enforce)
@@ -220,7 +264,6 @@ def main():
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     runner = threading.Thread(target=server.start, daemon=True)
-    t0 = time.monotonic()
     runner.start()
     while not done.wait(0.1):
         if args.duration is not None and time.monotonic() - t0 > args.duration:
