@@ -841,8 +841,11 @@ fn a_joint_held_by_an_obstacle_brakes_the_arm_and_trips_no_reflex_when_it_comes_
     );
     let gap = drv(&d_out, "blocked_error_max");
     let err = drv(&d_out, "max_tracking_error");
+    // the bound (0.1) plus the stop from the joint's speed when the obstacle came: at the
+    // guard's generator's half speed (2.2 rad/s on joint 7) braked at 7 rad/s², 0.35 rad
+    // (0.45 traced); without the bound 0.72-2.0 rad
     assert!(
-        gap < 0.4 && err < 0.4,
+        gap < 0.6 && err < 0.6,
         "the command ran {gap} rad from the held joint (tracking error {err} rad)"
     );
     for said in [

@@ -968,9 +968,12 @@ impl Core {
             self.intake.live(monotonic_ns()).copied()
         };
         let step = self.next_step(live.as_ref(), seq, short);
-        let step = self.hedged(step, hedge_from, seq);
         let step = self.within_workspace(step);
         let step = self.within_following(st, step);
+        // every answer is hedged, whichever path made it: a brake for the geometry or the
+        // following bound too (planned from one reference, it ramps its jerk at 0.7 of the
+        // robot's, and may not pass from a history a late answer made)
+        let step = self.hedged(step, hedge_from, seq);
         self.account(st, &step, live.is_some());
         self.trace_row(st, seq, &step);
         self.decide_withhold(now, stopping);
