@@ -151,6 +151,20 @@ fn scripted_config(tag: &str, strategy: &str, extra: &str) -> PathBuf {
     path
 }
 
+/// [`scripted_config`] (`replace`) with a wide motion: 0.6 rad at `frequency_hz`.
+fn scripted_wide(tag: &str, frequency_hz: &str) -> PathBuf {
+    let cfg = scripted_config(tag, "replace", "");
+    let text = std::fs::read_to_string(&cfg)
+        .unwrap()
+        .replace("amplitude = 0.25", "amplitude = 0.6")
+        .replace(
+            "frequency_hz = 0.3",
+            &format!("frequency_hz = {frequency_hz}"),
+        );
+    std::fs::write(&cfg, text).unwrap();
+    cfg
+}
+
 /// The driver's summary values.
 fn drv(out: &Finished, key: &str) -> f64 {
     summary_value(&out.stdout, key).unwrap_or_else(|| {
@@ -733,12 +747,7 @@ fn a_driver_that_cannot_follow_the_controller_says_so_and_the_controller_is_not_
     let _one = serial();
     let host = "127.0.0.36";
     let ns = unique_namespace("fr3-notfollowed");
-    let cfg = scripted_config("notfollowed", "replace", "");
-    let text = std::fs::read_to_string(&cfg)
-        .unwrap()
-        .replace("amplitude = 0.25", "amplitude = 0.6")
-        .replace("frequency_hz = 0.3", "frequency_hz = 0.8");
-    std::fs::write(&cfg, text).unwrap();
+    let cfg = scripted_wide("notfollowed", "0.8");
     let sim_g = sim(&py, &model, host, true);
     let d = driver(&ns, host, 23.0, &["--limit-margin", "0.3"]);
     let c = controller(&ns, &cfg, "20");
@@ -811,12 +820,7 @@ fn a_joint_held_by_an_obstacle_brakes_the_arm_and_trips_no_reflex_when_it_comes_
     let _one = serial();
     let host = "127.0.0.43";
     let ns = unique_namespace("fr3-blocked");
-    let cfg = scripted_config("blocked", "replace", "");
-    let text = std::fs::read_to_string(&cfg)
-        .unwrap()
-        .replace("amplitude = 0.25", "amplitude = 0.6")
-        .replace("frequency_hz = 0.3", "frequency_hz = 0.2");
-    std::fs::write(&cfg, text).unwrap();
+    let cfg = scripted_wide("blocked", "0.2");
     let sim_g = sim_with(&py, &model, host, &["--block", "7,5,3"]);
     let trace = std::env::temp_dir().join(format!("fr3_blocked_{}.csv", std::process::id()));
     let tr = trace.display().to_string();
