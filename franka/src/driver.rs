@@ -971,7 +971,7 @@ impl Core {
         let step = self.within_workspace(step);
         let step = self.within_following(st, step);
         // every answer is hedged, whichever path made it: a brake for the geometry or the
-        // following bound too (planned from one reference, it ramps its jerk at 0.7 of the
+        // following bound too (planned from one reference, it ramps its jerk at 0.5 of the
         // robot's, and may not pass from a history a late answer made)
         let step = self.hedged(step, hedge_from, seq);
         self.account(st, &step, live.is_some());

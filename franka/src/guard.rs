@@ -66,6 +66,20 @@ impl Motion {
         m
     }
 
+    /// The velocity and acceleration at the last position of a motion at constant acceleration
+    /// whose differences these are: a backward difference lags the velocity by half a cycle's
+    /// acceleration. A plan that took the difference for the velocity (a restart of the guard's
+    /// offset after a late cycle did) halves the acceleration on its first step: a jerk of
+    /// `ddq / (2 dt)`, 3 800 rad/s³ at 7.6 rad/s², too much for the next answer to pass from
+    /// both histories should that step go out late ([`Guard::hedge`]).
+    pub fn rates(&self, dt: f64) -> ([f64; JOINTS], [f64; JOINTS]) {
+        let mut v = self.dq;
+        for (j, v) in v.iter_mut().enumerate() {
+            *v += 0.5 * self.ddq[j] * dt;
+        }
+        (v, self.ddq)
+    }
+
     /// The robot's own next cycle when no command came: the last command continued at constant
     /// acceleration (FCI's rule for a lost motion-generator packet).
     pub fn continued(&self, dt: f64) -> Motion {
@@ -195,8 +209,13 @@ const GENERATOR_POSITION_MARGIN: f64 = 0.15;
 /// against 1.54 at the rectangular range's 1.125). At 0.6 the arm may run 1.67 times the command.
 const ENVELOPE_TRACKING: f64 = 0.25;
 const ENVELOPE_SHARE: f64 = 0.6;
-/// Fraction of the robot's acceleration and jerk the generator plans with.
+/// Fraction of the robot's acceleration the generator (and the stop) plans with.
 const GENERATOR_MARGIN: f64 = 0.7;
+/// Fraction of the robot's jerk the generator plans with: the controller's own (0.5,
+/// config/franka_fr3.toml), under 2/3 of the guard's, so that the answer after one of its steps
+/// that went out late can still pass from both histories ([`Guard::hedge`]; at 0.7 a stop's
+/// steps jerked at up to 2 917 rad/s³, past the 2 767 that leaves).
+const GENERATOR_JERK: f64 = 0.5;
 
 impl GuardLimits {
     /// The FR3's limits scaled by `margin` (0 < margin ≤ 1), positions `position_margin` inside.
@@ -405,7 +424,7 @@ impl Guard {
             // controller may (its steps pass `enforce`, which keeps them to the envelope's band)
             input.max_velocity[j] = limits.dq[j] * 0.5;
             input.max_acceleration[j] = DDQ_MAX * GENERATOR_MARGIN;
-            input.max_jerk[j] = DDDQ_MAX * GENERATOR_MARGIN;
+            input.max_jerk[j] = DDDQ_MAX * GENERATOR_JERK;
             input.min_position[j] = ENVELOPE_Q_MIN[j].max(Q_MIN[j]) + GENERATOR_POSITION_MARGIN;
             input.max_position[j] = ENVELOPE_Q_MAX[j].min(Q_MAX[j]) - GENERATOR_POSITION_MARGIN;
         }
@@ -701,12 +720,15 @@ impl Guard {
         out
     }
 
-    /// The stream's analytic state after `prev` (the generator's or the controller's), or its
-    /// differences where none is known.
+    /// The stream's analytic state after `prev` (the generator's or the controller's), or the
+    /// one its differences imply where none is known ([`Motion::rates`]).
     fn stream_state(&self, prev: &Motion) -> ([f64; JOINTS], [f64; JOINTS], [f64; JOINTS]) {
         match &self.planned {
             Some((q, v, a)) if q == &prev.q && self.consistent(prev, v, a) => (*q, *v, *a),
-            _ => (prev.q, prev.dq, prev.ddq),
+            _ => {
+                let (v, a) = prev.rates(self.dt);
+                (prev.q, v, a)
+            }
         }
     }
 
@@ -798,11 +820,7 @@ impl Guard {
         self.desired = None;
         let next = prev.continued(self.dt);
         if (0..JOINTS).all(|j| self.limits.passes(j, prev, next.q[j], self.dt)) {
-            let mut v = [0.0; JOINTS];
-            for (j, v) in v.iter_mut().enumerate() {
-                *v = prev.dq[j] + prev.ddq[j] * self.dt;
-            }
-            self.planned = Some((next.q, v, prev.ddq));
+            self.planned = Some((next.q, next.rates(self.dt).0, prev.ddq));
             next
         } else {
             self.brake(prev).0
@@ -845,7 +863,7 @@ impl Guard {
             let amax = self.input.max_acceleration[j];
             let (v, a) = match (&self.planned, continued) {
                 (Some((_, v, a)), true) => (v[j], a[j]),
-                _ => (prev.dq[j], prev.ddq[j]),
+                _ => (prev.dq[j] + 0.5 * prev.ddq[j] * self.dt, prev.ddq[j]),
             };
             self.input.current_position[j] = prev.q[j];
             self.input.current_velocity[j] = v.clamp(-vmax, vmax);
@@ -1387,6 +1405,113 @@ mod tests {
             reconcile(&near, &[applied, skipped]),
             (near, Reference::Adopted)
         );
+    }
+
+    /// The largest jerk (rad/s³) an answer of the guard's own may have against the robot's
+    /// reference: should it go out late and be applied after all, the next answer must pass from
+    /// both that history and the robot's continuation, and those part by three times its jerk
+    /// ([`Guard::hedge`]): possible under 2/3 of the guard's jerk limit.
+    fn hedgeable(l: &GuardLimits) -> f64 {
+        2.0 / 3.0 * l.dddq
+    }
+
+    #[test]
+    fn a_restart_after_a_late_cycle_continues_the_stream_and_leaves_the_hedge_room() {
+        // The trace of a fresh-clone CI's reflex (benches/data/franka/2026-11-28-suite/c218325/
+        // ci2-failure): joint 3 accelerating at 7.6 rad/s², a late cycle (the stream continued),
+        // then the controller's answer off the continuation (an offset restarts). The restart's
+        // first step took the stream's state as analytic when it was the robot's differences:
+        // it halved the acceleration, a jerk of -3 788 rad/s³; that answer went out late, the
+        // simulator applied it after all, and no next answer could pass from both histories
+        // (11.0 rad/s² from the applied one: `joint_motion_generator_velocity_discontinuity`).
+        let mut g = Guard::new(GuardLimits::fr3(0.83, 0.02), CYCLE_S).unwrap();
+        let l = *g.limits();
+        let (v0, a0) = (-0.5, 7.6);
+        let desired = |k: usize, jump: f64| {
+            let t = k as f64 * CYCLE_S;
+            let mut q = home();
+            q[2] += v0 * t + 0.5 * a0 * t * t + jump;
+            q[3] += 0.7 * t;
+            let mut v = [0.0; JOINTS];
+            v[2] = v0 + a0 * t;
+            v[3] = 0.7;
+            let mut a = [0.0; JOINTS];
+            a[2] = a0;
+            (q, v, a)
+        };
+        for path_to_the_restart in ["offset", "brake"] {
+            let (q, v, _) = desired(0, 0.0);
+            // already moving at v0: the cycle before at the position a cycle back
+            let back: [f64; JOINTS] = std::array::from_fn(|j| q[j] - v[j] * CYCLE_S);
+            let mut m = Motion {
+                q: back,
+                dq: v,
+                ddq: [0.0; JOINTS],
+            };
+            m = Motion::after(&m, &q, CYCLE_S);
+            let mut k = 1;
+            while k < 40 {
+                let (q, v, a) = desired(k, 0.0);
+                m = g.follow(&m, &q, &v, &a).0;
+                k += 1;
+            }
+            assert!((m.ddq[2] - a0).abs() < 0.1, "{}", m.ddq[2]);
+            // the late cycle: the stream continues at constant acceleration
+            m = g.extrapolate(&m);
+            k += 1;
+            let prev = m;
+            let next = if path_to_the_restart == "offset" {
+                // the controller's answer, moved on and off the stream: an offset restarts
+                let (q, v, a) = desired(k, 5e-3);
+                let next = g.follow(&prev, &q, &v, &a).0;
+                assert_eq!(g.path, 2, "a restart");
+                next
+            } else {
+                let next = g.brake(&prev).0;
+                // and every step of the stop after it
+                let mut b = next;
+                for _ in 0..400 {
+                    // as the robot differences it (a stop at rest reports zero rates)
+                    let n = Motion::after(&b, &g.brake(&b).0.q, CYCLE_S);
+                    let jerk = (0..JOINTS).fold(0.0f64, |x, j| {
+                        x.max(((n.ddq[j] - b.ddq[j]) / CYCLE_S).abs())
+                    });
+                    assert!(jerk <= hedgeable(&l), "the stop jerks at {jerk:.0} rad/s³");
+                    b = n;
+                }
+                next
+            };
+            for j in 0..JOINTS {
+                let jerk = (next.ddq[j] - prev.ddq[j]) / CYCLE_S;
+                assert!(
+                    jerk.abs() <= hedgeable(&l),
+                    "{path_to_the_restart}: joint {} jerks at {jerk:.0} rad/s³ from the stream \
+                     (at most {:.0} leaves the hedge room)",
+                    j + 1,
+                    hedgeable(&l)
+                );
+            }
+            // that answer went out late: the robot continued, a simulator applies it after all;
+            // the next answer, computed against the continuation, passes from both
+            let cont = prev.continued(CYCLE_S);
+            let q = desired(k + 1, 0.0).0;
+            let own = g.follow(&cont, &q, &[0.0; JOINTS], &[0.0; JOINTS]).0;
+            let (h, _) = g.hedge(&cont, &[(next, 1)], &own.q);
+            for r in [&cont, &next] {
+                let m = Motion::after(r, &h, CYCLE_S);
+                for j in 0..JOINTS {
+                    let jerk = (m.ddq[j] - r.ddq[j]) / CYCLE_S;
+                    assert!(
+                        m.ddq[j].abs() <= l.ddq * (1.0 + 1e-6)
+                            && jerk.abs() <= l.dddq * (1.0 + 1e-6),
+                        "{path_to_the_restart}: joint {}: {} rad/s², {jerk:.0} rad/s³",
+                        j + 1,
+                        m.ddq[j]
+                    );
+                }
+            }
+            g = Guard::new(l, CYCLE_S).unwrap();
+        }
     }
 
     #[test]
