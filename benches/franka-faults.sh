@@ -7,7 +7,11 @@
 #   stalls   SHORT_S of the same, the driver stopped (SIGSTOP) for 1-5 ms 100 times, then once for
 #            60 ms (three times what the FCI allows)
 #
+#   soak     (only when SOAK_S is set) SOAK_S of the same, the driver stopped for 1-5 ms five times
+#            a second (then once for 60 ms): a stall's late answer at every kind of cycle
+#
 #   bash benches/franka-faults.sh [SHORT_S [LONG_S]]     # defaults: 40 s, 600 s
+#   RUNS="soak" SOAK_S=600 bash benches/franka-faults.sh  # only the stall soak
 #
 # Raw outputs (each process's log, the driver's summary and last 120 s of trace) go to $OUT
 # (default benches/data/franka/<date>-faults); summary.md has one line per run. $EXE picks the
@@ -72,12 +76,19 @@ EOF
   grep -h 'franka summary\|franka-sim summary\|stalls=' "$dir"/*.log || true
 }
 
-run drops 127.0.0.61 "$long" "--drop-answers 0.01" "" 0
-run strict 127.0.0.62 "$short" "--drop-answers 0.01" "--strict 0.85" 0
-run stalls 127.0.0.63 "$short" "" "" 100
+runs=${RUNS:-drops strict stalls${SOAK_S:+ soak}}
+for n in $runs; do
+  case $n in
+    drops) run drops 127.0.0.61 "$long" "--drop-answers 0.01" "" 0 ;;
+    strict) run strict 127.0.0.62 "$short" "--drop-answers 0.01" "--strict 0.85" 0 ;;
+    stalls) run stalls 127.0.0.63 "$short" "" "" 100 ;;
+    soak) run soak 127.0.0.64 "${SOAK_S:?SOAK_S}" "" "" $((SOAK_S * 5)) ;;
+    *) echo "unknown run: $n" >&2 && exit 2 ;;
+  esac
+done
 {
   echo "# FR3 under faults ($(date -u +%FT%TZ), $(nproc) cores, $(uname -r), $EXE)"
-  for n in drops strict stalls; do
+  for n in $runs; do
     echo
     echo "## $n"
     grep -h 'franka summary\|franka-sim summary\|REFLEX\|stalls=' "$out/$n"/*.log | sed 's/^/    /'
