@@ -868,17 +868,11 @@ impl Guard {
 
     /// One step of the generator from `prev` towards the input's targets, as the robot sees it.
     fn generate(&mut self, prev: &Motion) -> Motion {
-        let continued = match &self.planned {
-            Some((q, v, a)) => q == &prev.q && self.consistent(prev, v, a),
-            None => false,
-        };
+        let (_, sv, sa) = self.stream_state(prev);
         for j in 0..JOINTS {
             let vmax = self.input.max_velocity[j];
             let amax = self.input.max_acceleration[j];
-            let (v, a) = match (&self.planned, continued) {
-                (Some((_, v, a)), true) => (v[j], a[j]),
-                _ => (prev.dq[j] + 0.5 * prev.ddq[j] * self.dt, prev.ddq[j]),
-            };
+            let (v, a) = (sv[j], sa[j]);
             self.input.current_position[j] = prev.q[j];
             self.input.current_velocity[j] = v.clamp(-vmax, vmax);
             self.input.current_acceleration[j] = a.clamp(-amax, amax);
