@@ -357,7 +357,7 @@ fn droid_run(
     let script = format!("{ROOT}/tools/python/droid_scripted.py");
     let mut server_args = vec![script.as_str(), "--port", &port_s, "--latency-ms", "80"];
     server_args.extend_from_slice(mode);
-    let server = ChildGuard::spawn("python3", &server_args).unwrap();
+    let mut server = ChildGuard::spawn("python3", &server_args).unwrap();
     let sim_g = sim(py, model, host, true);
     let d = driver(&ns, host, 18.0, driver_extra);
     let cfg = format!("{ROOT}/config/franka_fr3.toml");
@@ -377,6 +377,8 @@ fn droid_run(
     )
     .unwrap();
     std::thread::sleep(Duration::from_secs(2));
+    // openpi's server up before the controller connects (it does not retry at start)
+    wait_listening(port, &mut server, "openpi's server (droid_scripted.py)");
     let c = start(
         "run",
         &ns,
@@ -477,7 +479,9 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         py,
         model,
         host,
-        &["--mode", "constant", "--value", "-1", "--flip-after", "12"],
+        // turn back 9 s after the first request (the controller's 13 s run leaves it ~4 s to
+        // lead; by request count, 12, a loaded machine's slower requests once left it none)
+        &["--mode", "constant", "--value", "-1", "--flip-after-s", "9"],
         &["--inject-reflex-at", "9", "--trace", &tr],
     );
     println!("rejoin: the driver's trace: {tr}");
@@ -497,6 +501,12 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         s_out.stdout
     );
     assert!(drv(&d_out, "motions") >= 2.0, "no recovery: {line}");
+    let turned = summary_value(&srv_out.stdout, "turned_back_at").unwrap_or(0.0);
+    assert!(
+        turned > 0.0,
+        "the policy never turned back: the test did not reach its point\n{}",
+        srv_out.stdout
+    );
     let far = drv(&d_out, "commands_far");
     assert!(
         far < 200.0,

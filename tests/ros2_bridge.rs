@@ -761,12 +761,7 @@ fn so101_episode(
         &[&script, "serve", "--plan", &plan_s, "--port", &port_s],
     )
     .expect("python3");
-    let t0 = Instant::now();
-    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(server.running(), "the plan server exited");
-        assert!(t0.elapsed() < Duration::from_secs(30), "no plan server");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    wait_listening(port, &mut server, "the plan server");
     let ns = unique_namespace(tag);
     let dom = domain().to_string();
     let cfg = if ros2 {

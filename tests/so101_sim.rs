@@ -33,18 +33,6 @@ fn free_port() -> u16 {
         .expect("a free port")
 }
 
-fn wait_listening(port: u16, server: &mut ChildGuard) {
-    let t0 = Instant::now();
-    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(server.running(), "the plan server exited");
-        assert!(
-            t0.elapsed() < Duration::from_secs(30),
-            "no server on {port}"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
 /// A joint plan written by `so101_plan.py <args> --out <tmp>/so101_<tag>_<pid>.json`.
 fn make_plan(tag: &str, args: &[&str]) -> std::path::PathBuf {
     let plan = std::env::temp_dir().join(format!("so101_{tag}_{}.json", std::process::id()));
@@ -100,7 +88,7 @@ fn closed_loop(plan: &str, seed: u64, seconds: f64) -> String {
         ],
     )
     .expect("python3");
-    wait_listening(port, &mut server);
+    wait_listening(port, &mut server, "the plan server");
     let robot_s = (seconds + 4.0).to_string();
     let seed_s = seed.to_string();
     let robot = ChildGuard::spawn(

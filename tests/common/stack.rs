@@ -61,6 +61,21 @@ pub fn rogue_command(seq: u64, n_dof: u32) -> JointCommand {
     c
 }
 
+/// Waits until `server` (a child process) accepts connections on 127.0.0.1:`port`, up to 30 s;
+/// fails at once, by name, if it exits first. A fixed sleep instead raced a Python server's
+/// first start on a fresh machine (its imports compiled cold, a busy loop beside it).
+pub fn wait_listening(port: u16, server: &mut ChildGuard, what: &str) {
+    let t0 = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(server.running(), "{what} exited before it listened on {port}");
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "{what}: nothing listened on {port} after 30 s"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 /// Receives everything the test needs to watch, from the test process itself.
 pub struct Watch {
     pub _node: Node<Ipc>,

@@ -14,11 +14,13 @@ pi05_droid server would shape them: it checks the observation a DROID client sen
   --mode random      random velocities in [-1, 1] and a random gripper (the hostile test)
   --mode constant    every joint velocity at --value (-1 or +1: the arm driven into its own
                      joint limits, its links or the floor; the driver's geometry test), the
-                     arm back to its start pose after --flip-after requests (a policy that
-                     turns back)
+                     arm back to its start pose --flip-after-s seconds after the first request
+                     (a policy that turns back; by the clock, not by a count of requests, which a
+                     loaded machine makes fewer)
 
 Every answer waits --latency-ms first (a GPU server's inference time). Prints one line per 50
-requests and, on SIGTERM / SIGINT, "droid-scripted summary: requests=N bad=N".
+requests and, on SIGTERM / SIGINT, "droid-scripted summary: requests=N bad=N turned_back_at=N"
+(the request that turned back, 0: none).
 """
 import argparse
 import signal
@@ -41,9 +43,11 @@ MAX_JOINT_DELTA = 0.2
 
 
 class ScriptedDroidPolicy:
-    def __init__(self, mode, horizon, latency_s, seed, value=0.0, flip_after=0):
+    def __init__(self, mode, horizon, latency_s, seed, value=0.0, flip_after_s=0.0):
         self.mode, self.horizon, self.latency_s, self.value = mode, horizon, latency_s, value
-        self.flip_after = flip_after
+        self.flip_after_s = flip_after_s
+        self.first_request = None
+        self.flipped_at = None
         self.rng = np.random.default_rng(seed)
         self.home = None
         self.requests = self.bad = 0
@@ -76,9 +80,15 @@ class ScriptedDroidPolicy:
                 raise
             if self.home is None:
                 self.home = q.copy()
+                self.first_request = t0
             h = self.horizon
             actions = np.zeros((h, 8), dtype=np.float32)
-            flipped = self.mode == "constant" and self.flip_after and n > self.flip_after
+            flipped = (self.mode == "constant" and self.flip_after_s > 0
+                       and t0 - self.first_request >= self.flip_after_s)
+            if flipped and self.flipped_at is None:
+                self.flipped_at = n
+                print(f"droid-scripted: turned back at request {n}, "
+                      f"{t0 - self.first_request:.2f} s after the first", flush=True)
             if self.mode == "constant" and not flipped:
                 actions[:, :7] = self.value
                 actions[:, 7] = 0.0
@@ -117,16 +127,18 @@ def main():
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--value", type=float, default=-1.0,
                     help="--mode constant: every joint velocity (DROID's normalised, in [-1, 1])")
-    ap.add_argument("--flip-after", type=int, default=0,
-                    help="--mode constant: after this many requests, back to the start pose (0: never)")
+    ap.add_argument("--flip-after-s", type=float, default=0.0,
+                    help="--mode constant: this many seconds after the first request, back to the "
+                         "start pose (0: never)")
     args = ap.parse_args()
     from openpi_server import WebsocketPolicyServer
 
     policy = ScriptedDroidPolicy(args.mode, args.horizon, args.latency_ms / 1e3, args.seed, args.value,
-                                 args.flip_after)
+                                 args.flip_after_s)
 
     def stop(*_):
-        print(f"droid-scripted summary: requests={policy.requests} bad={policy.bad}", flush=True)
+        print(f"droid-scripted summary: requests={policy.requests} bad={policy.bad} "
+              f"turned_back_at={policy.flipped_at or 0}", flush=True)
         sys.exit(0)
 
     signal.signal(signal.SIGTERM, stop)
