@@ -5,7 +5,7 @@
 //! DOUBLE replaying a joint plan by the clock through openpi's own server) in place of a learned
 //! policy.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use chunkrt_tools::testing::{summary_value, unique_namespace, ChildGuard};
 

@@ -67,7 +67,10 @@ pub fn rogue_command(seq: u64, n_dof: u32) -> JointCommand {
 pub fn wait_listening(port: u16, server: &mut ChildGuard, what: &str) {
     let t0 = Instant::now();
     while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(server.running(), "{what} exited before it listened on {port}");
+        assert!(
+            server.running(),
+            "{what} exited before it listened on {port}"
+        );
         assert!(
             t0.elapsed() < Duration::from_secs(30),
             "{what}: nothing listened on {port} after 30 s"
