@@ -459,8 +459,8 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
     // (issue: once it refused to, 11 190 commands "far", then FAULT): openpi's server drives
     // every DROID joint velocity at -1 (the arm folds until the driver's geometry holds it at
     // the base), the driver trips the robot's reflex on purpose there (`--inject-reflex-at`),
-    // and the policy then turns back (+1). The controller must lead the arm out: commands
-    // applied after the recovery, few refused as far, never in FAULT.
+    // and the policy turns back 9 s after its first request. The controller must rejoin: lead
+    // most of the recovery's first 500 cycles, few commands refused as far, never in FAULT.
     let Some((py, model)) = franka_env("franka_sim: rejoin after a reflex") else {
         return;
     };
@@ -518,7 +518,10 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         "the controller went to FAULT:\n{}",
         c_out.stderr
     );
-    // the controller led after the recovery: commands applied in the second motion
+    // the controller rejoined after the recovery: it led most of the robot's first 500 cycles
+    // of the new motion (the driver's offset onto its stream, then its commands passed). What
+    // the policy still asks after that (the fold, refused again) is the driver's to hold; the
+    // arm once stayed with the driver for all of them (11 190 commands "far", then FAULT).
     let rows = std::fs::read_to_string(&trace).unwrap_or_default();
     let path_col = rows
         .lines()
@@ -529,6 +532,7 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         .lines()
         .skip_while(|l| !l.contains("reflex"))
         .skip(1)
+        .take(500)
         .collect();
     let led_after = after
         .iter()
@@ -538,12 +542,12 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         })
         .count();
     println!(
-        "rejoin: after the reflex {} cycles, {led_after} led by the controller",
+        "rejoin: of the first {} cycles after the recovery, {led_after} led by the controller",
         after.len()
     );
     assert!(
-        led_after >= 1000,
-        "the controller led {led_after} cycles after the recovery (of {})",
+        after.len() == 500 && led_after >= 300,
+        "the controller led {led_after} of the first {} cycles after the recovery",
         after.len()
     );
     let _ = std::fs::remove_file(trace);
