@@ -1321,30 +1321,27 @@ fn run_takes_a_lerobot_checkpoint_as_shipped() {
 
 /// Issue 54 §3: a foreign publisher forging joint states while the controller itself is
 /// stalled (the robot's own states pile up unread, so the bound robot looks silent to the
-/// controller when it wakes). The forged states say the arm is 0.06 rad away on joint 0 and held
+/// controller when it wakes). The forged states say the arm is 0.12 rad away on joint 0 and held
 /// at rest by its driver (`JOINT_STATUS_AT_REST`, which skips the stall's re-seed). Nothing
-/// forged may lead the robot: nothing is refused as far, the command stream stays within the
-/// joints' velocity limits, and the robot's largest command offset is the scenario's own (the
-/// same stall without the forger, in the same run, + 0.01 rad). On main before: steps of
-/// 8-9.5 x a joint's velocity limit in one command, offset 0.041 rad. The scenario's own offset
-/// (the reach at its velocity limit) is 0.028-0.029 rad whatever is forged (0, -0.06, +0.06,
-/// +0.12 measured alike), so a fixed bound of 0.03 failed a loaded fresh machine (0.0304)
-/// without telling a forger from the reach.
+/// forged may lead the robot: nothing is refused as far (the fake robot's bind tolerance is
+/// 0.05), the command stream stays within the joints' velocity limits, and the robot's largest
+/// command offset stays the reach's own. On main before, with 0.06 forged: steps of 8-9.5 x a
+/// joint's velocity limit in one command, offset 0.041 rad. The reach's own offset (its tracking
+/// at the velocity limit) is 0.019-0.031 rad whatever is forged (0, -0.06, +0.06, +0.12 measured
+/// alike, 2026-11-28; 0.0304 on a loaded fresh machine, which failed the old bound of 0.03 with
+/// 0.06 forged): hence 0.12 forged and a bound of 0.04, each side clear of the other.
 #[test]
 fn states_forged_during_the_controllers_stall_lead_nothing() {
     let _serial = serial();
-    let (control, _) = forged_stall_run(None);
-    let (forged, w) = forged_stall_run(Some(0.06));
-    eprintln!("without a forger: {}", control.trim());
+    let (forged, w) = forged_stall_run(Some(0.12));
     eprintln!("forged states: {}", forged.trim());
     assert_continuous(&w, "states forged during the controller's stall", 500);
-    let offset = |out: &str| summary_value(out, "max_command_offset").expect(out);
-    let (own, off) = (offset(&control), offset(&forged));
+    let off = summary_value(&forged, "max_command_offset").expect(&forged);
     let far = summary_value(&forged, "commands_far").expect(&forged);
     assert!(
-        off <= own + 0.01 && far == 0.0,
-        "the forged states led the robot: offset {off:.4} rad (the scenario's own {own:.4}), \
-         {far} commands refused as far: {forged}"
+        off <= 0.04 && far == 0.0,
+        "the forged states led the robot: offset {off:.4} rad, {far} commands refused as far: \
+         {forged}"
     );
 }
 
