@@ -1333,7 +1333,7 @@ fn run_takes_a_lerobot_checkpoint_as_shipped() {
 #[test]
 fn states_forged_during_the_controllers_stall_lead_nothing() {
     let _serial = serial();
-    let (forged, w) = forged_stall_run(Some(0.12));
+    let (forged, w) = forged_stall_run(0.12);
     eprintln!("forged states: {}", forged.trim());
     assert_continuous(&w, "states forged during the controller's stall", 500);
     let off = summary_value(&forged, "max_command_offset").expect(&forged);
@@ -1347,8 +1347,8 @@ fn states_forged_during_the_controllers_stall_lead_nothing() {
 
 /// The stall of `states_forged_during_the_controllers_stall_lead_nothing`: the reach, the
 /// controller SIGSTOPped for 1.5 s, then 2 s; `forge`: joint 0's offset of the states a foreign
-/// publisher sends meanwhile (none: nobody forges). The robot's summary and the watch.
-fn forged_stall_run(forge: Option<f64>) -> (String, Watch) {
+/// publisher sends meanwhile. The robot's summary and the watch.
+fn forged_stall_run(forge: f64) -> (String, Watch) {
     let ns = unique_namespace("forged-stall");
     let robot = start("fake-robot", &ns, &[]);
     let _camera = start("fake-camera", &ns, &["--scene", "reach"]);
@@ -1378,16 +1378,14 @@ fn forged_stall_run(forge: Option<f64>) -> (String, Watch) {
             unsafe { libc::kill(ctl.id() as libc::pid_t, libc::SIGCONT) };
             resumed = true;
         }
-        if let Some(d) = forge {
-            seq += 1;
-            let mut m = real;
-            m.seq = seq;
-            m.measurement_time_ns = monotonic_ns();
-            m.position[0] += d;
-            m.velocity = [0.0; chunkrt_ipc::MAX_DOF];
-            m.status_flags = chunkrt_ipc::JOINT_STATUS_AT_REST;
-            forger.send_copy(m).unwrap();
-        }
+        seq += 1;
+        let mut m = real;
+        m.seq = seq;
+        m.measurement_time_ns = monotonic_ns();
+        m.position[0] += forge;
+        m.velocity = [0.0; chunkrt_ipc::MAX_DOF];
+        m.status_flags = chunkrt_ipc::JOINT_STATUS_AT_REST;
+        forger.send_copy(m).unwrap();
         std::thread::sleep(Duration::from_millis(1));
     }
     w.pump(Duration::from_millis(2_000));
