@@ -167,18 +167,34 @@ fn a_run_is_recorded_and_rerun_reads_it_back() {
     }
     assert_eq!(
         v["chunk_styles"][0]["series"].as_u64(),
-        Some(chunks as u64 * n as u64),
+        Some(recorded_chunks as u64 * n as u64),
         "every chunk series in one style\n{text}"
     );
-    // every chunk the controller counted is in the file, as one series per joint
+    // every chunk the controller counted is in the file, as one series per joint, or counted as
+    // missed: the forger's 500 chunks a second can push the controller's out of the service's
+    // 4-slot subscriber buffer when the recorder is slow (a loaded machine), and the recorder
+    // must say so (a gap in the controller's chunk seq); none of the controller's is refused
+    let missed = summary_value(&r_out.stdout, "chunks_missed").expect(&r_out.stdout);
+    println!("chunks: the controller made {chunks}, recorded {recorded_chunks}, missed {missed}");
     assert!(chunks >= 5.0, "only {chunks} chunks in 8 s");
+    assert!(
+        recorded_chunks >= 5.0,
+        "only {recorded_chunks} of the controller's chunks recorded"
+    );
     assert_eq!(
-        recorded_chunks, chunks,
-        "the recorder saw {recorded_chunks} chunks, the controller made {chunks}"
+        recorded_chunks + missed,
+        chunks,
+        "the recorder saw {recorded_chunks} chunks and missed {missed}, the controller made {chunks}"
+    );
+    assert_eq!(
+        summary_value(&r_out.stdout, "rejected"),
+        Some(0.0),
+        "the recorder refused messages (the forger's are foreign, not refused)\n{}",
+        r_out.stdout
     );
     assert_eq!(
         v["chunk_series"].as_u64(),
-        Some(chunks as u64 * n as u64),
+        Some(recorded_chunks as u64 * n as u64),
         "chunk series in the file\n{text}"
     );
     let frames = v["frames"].as_u64().unwrap_or(0);

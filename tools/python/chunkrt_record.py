@@ -5,7 +5,9 @@ A process of its own: it subscribes to a namespace's services (joint states, com
 controller's status, its chunks, the camera frames) and writes them on one timeline,
 ``robot_time`` (the CLOCK_MONOTONIC time every chunkrt message carries), so the controller does no
 work for it and nobody waits for it (iceoryx2 drops what a full subscriber buffer cannot hold;
-it is counted). In the recording:
+it is counted: ``joint_states_missed``, ``commands_missed``, and ``chunks_missed``, the
+controller's chunks pushed out of the buffer, e.g. by a flood from another publisher). In the
+recording:
 
 - ``joints/<j>/measured``, ``joints/<j>/command``, ``joints/<j>/velocity``: per joint;
 - ``joints/<j>/target``: the active chunk's action at each command's time (linear
@@ -298,8 +300,8 @@ class Recorder:
         self.last_chunk_id = 0
         self.counts = dict(joint_states=0, commands=0, statuses=0, chunks=0, frames=0, frames_kept=0,
                            dropped_over_limit=0, joint_states_missed=0, commands_missed=0,
-                           rejected=0, foreign=0, errors=0, chunk_series=0, chunks_not_plotted=0,
-                           chunks_unbound=0)
+                           chunks_missed=0, rejected=0, foreign=0, errors=0, chunk_series=0,
+                           chunks_not_plotted=0, chunks_unbound=0)
         self.rejected = {}
         self.last_seq = {}
         self.last_state = None
@@ -310,6 +312,10 @@ class Recorder:
         # the controller, bound from its status (SessionGate's rules)
         self.status_stream = Stream()
         self.controller_pid = None  # the bound status publisher's process
+        # the bound controller's first status was its first (seq 1): the recorder was there before
+        # its first chunk, so a chunk seq above 1 at the start is a chunk lost, not one before us
+        self.controller_from_start = False
+        self.controller_chunk_origin = None
         # the process of the controller that last stopped cleanly: its last chunks may come after
         # its STOPPED status (the inference thread publishes them; statuses are read first)
         self.stopped_pid = None
@@ -450,6 +456,7 @@ class Recorder:
         if previous != origin:
             # a controller bound (the first, or another after the last one's silence or stop)
             self.controller_pid = pid
+            self.controller_from_start = st.seq == 1
             self.command_publisher = 0
             self.chunk_stream.release()
         if st.state == c.CONTROLLER_STATE_STOPPED:
@@ -481,6 +488,14 @@ class Recorder:
 
     def chunk(self, m, origin=0, pid=0):
         now = now_ns()
+        if self.controller_pid is not None and pid == self.controller_pid:
+            # every chunk the controller's process published and the recorder received, valid or
+            # not, before the checks below: a gap is one a full buffer dropped (a flood on the
+            # service from others pushes the controller's chunks out of the 4-slot buffer)
+            if origin != self.controller_chunk_origin:
+                self.controller_chunk_origin = origin
+                self.last_seq["chunks"] = 0 if self.controller_from_start else None
+            self.missed("chunks", m.seq)
         h, n, t0, period = validate_chunk(m, now)
         if self.controller_pid is None and pid is not None and pid == self.stopped_pid:
             pass  # the stopped controller's last chunks, from its own process
