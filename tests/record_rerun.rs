@@ -186,10 +186,13 @@ fn a_run_is_recorded_and_rerun_reads_it_back() {
         chunks,
         "the recorder saw {recorded_chunks} chunks and missed {missed}, the controller made {chunks}"
     );
-    assert_eq!(
-        summary_value(&r_out.stdout, "rejected"),
-        Some(0.0),
-        "the recorder refused messages (the forger's are foreign, not refused)\n{}",
+    // refused: at most the forger's first chunk (its times at 2^63, refused before the question
+    // of whose it is); any other refusal may be one of the controller's, hidden from the account
+    let refused = summary_value(&r_out.stdout, "rejected").expect(&r_out.stdout);
+    let refused_times = summary_value(&r_out.stdout, "chunks:time").unwrap_or(0.0);
+    assert!(
+        refused <= 1.0 && refused == refused_times,
+        "the recorder refused more than the forger's chunk at 2^63\n{}",
         r_out.stdout
     );
     assert_eq!(

@@ -648,7 +648,10 @@ def main():
                     break
                 try:
                     header = c.CameraFrameHeader.from_buffer_copy(sample.user_header().contents)
-                    pixels = bytes(sample.payload())
+                    # one copy of the slice (bytes(slice) would read it a byte at a time through
+                    # the Slice's __getitem__: 4.4 M calls, 70 % of the recorder's time, in 12 s)
+                    payload = sample.payload()
+                    pixels = ctypes.string_at(payload.as_ptr(), payload.len())
                 except Exception as e:  # noqa: BLE001
                     rec.error("frame", e)
                     continue
