@@ -5,7 +5,9 @@ franka-sim's command line binds the single arm to 0.0.0.0:1337 (and the Franka H
 FCI's port is fixed for libfranka, so tests that run side by side each take their own address
 (127.0.0.x). This starts franka-sim's own server class on HOST with both of the FCI's checks
 enforced by default (motion limits: position, velocity, acceleration, jerk; communication: 20
-consecutive lost cycles), and counts what the simulator itself logs:
+consecutive lost cycles) and the FCI's rule for a command that misses its cycle (dropped: the
+robot's continuation stands; franka-sim itself applies it after the fact, `--late apply`), and
+counts what the simulator itself logs:
 
   reflexes      every motion it aborted ("... -- aborting the motion": a reflex on a real FR3)
   violations    limit violations it only logged (with --no-enforce: what would have been one)
@@ -13,8 +15,8 @@ consecutive lost cycles), and counts what the simulator itself logs:
 
 Prints "franka-sim: ready HOST:PORT" once its simulation loop runs, and on SIGTERM / SIGINT /
 --duration "franka-sim summary: reflexes=N violations=N lost_reports=N enforced=0|1" with how
-often its own physics loop ran late (physics_late_*, physics_gap_max_ms: see `Steps`), and the
-first reasons.
+often its own physics loop ran late (physics_late_*, physics_gap_max_ms: see `Steps`), the rule
+for late commands and how many it dropped (late=, late_dropped=), and the first reasons.
 
   $CHUNKRT_FRANKA_PYTHON tools/python/fr3_sim.py --host 127.0.0.2 [--no-enforce]
 Needs FR3_MJCF (scripts/franka-env.sh) so that nothing is fetched from the network.
@@ -120,6 +122,32 @@ def trace_events(path):
         note_published, extrapolate, absorb_command, report)
 
 
+class DropLate:
+    """`--late drop`: a command that missed its cycle is dropped, as the FCI drops it ("If the <1 ms
+    constraint is violated for a cycle, the packet is dropped by FCI", libfranka's network
+    requirements): the robot's continuation of that cycle stands, the command reaches neither the
+    limit checker's history nor the physics. franka-sim itself applies such a command after the
+    fact (it rewinds its continuation and differences the command over the cycles since: its
+    `MotionLimitChecker.rewind_extrapolation` says it is the one place it parts from the robot);
+    `--late apply` keeps that (what a real FR3 never does). The cycle counts as lost either way
+    (franka-sim's accounting)."""
+
+    def __init__(self):
+        from franka_sim.franka_sim_server import FrankaSimServer
+
+        self.dropped = 0
+        orig = FrankaSimServer._absorb_within_motion_limits
+        me = self
+
+        def absorb(server, command, *, fresh):
+            if not fresh:
+                me.dropped += 1
+                return False  # the caller then neither records nor dispatches it
+            return orig(server, command, fresh=fresh)
+
+        FrankaSimServer._absorb_within_motion_limits = absorb
+
+
 class Steps:
     """The simulated robot's own computer: how often its physics loop (one state published, one
     control applied, one MuJoCo step per millisecond) ran late. A late step turns the commands
@@ -208,6 +236,9 @@ def main():
     ap.add_argument("--strict", type=float, default=1.0, metavar="F",
                     help="a stricter robot: franka-sim's joint acceleration and jerk limits and its "
                          "velocity envelope (maximum velocity and deceleration) times F (0.5..1)")
+    ap.add_argument("--late", choices=("apply", "drop"), default=os.environ.get("FR3_SIM_LATE", "drop"),
+                    help="a command that missed its cycle: 'apply' it after the fact (franka-sim's own "
+                         "choice) or 'drop' it, as the FCI does (default: $FR3_SIM_LATE, else drop)")
     ap.add_argument("--block", default=None, metavar="J,START,SECONDS",
                     help="an obstacle holds joint J (1..7) from START for SECONDS (seconds after "
                          "the simulator started): a joint that does not follow its command")
@@ -251,6 +282,10 @@ def main():
         trace_events(os.environ["FR3_SIM_EVENTS"])
 
     steps = Steps()
+    drop = DropLate() if args.late == "drop" else None
+    if drop:
+        print("franka-sim: commands that miss their cycle are dropped, as the FCI drops them",
+              flush=True)
     if args.block:
         block(args.block, t0)
     enforce = not args.no_enforce
@@ -276,7 +311,8 @@ def main():
     except Exception as e:  # report, still print the summary
         print(f"fr3_sim.py: stop: {e}", file=sys.stderr)
     print(f"franka-sim summary: reflexes={counter.reflexes} violations={counter.violations} "
-          f"lost_reports={counter.lost} enforced={int(enforce)} {steps.summary()}", flush=True)
+          f"lost_reports={counter.lost} enforced={int(enforce)} {steps.summary()} "
+          f"late={args.late} late_dropped={drop.dropped if drop else 0}", flush=True)
     for r in counter.reasons:
         print(f"franka-sim reason: {r}", flush=True)
     sys.exit(0 if runner.is_alive() or done.is_set() or args.duration else 1)
