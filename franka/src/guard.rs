@@ -1592,4 +1592,72 @@ mod tests {
         let (same, changed) = g.hedge(&cont, &[(cont, 1)], &q);
         assert!(!changed && same == q);
     }
+
+    #[test]
+    #[ignore = "an open defect (issue 52 §1): the offset re-seeded from a clipped step's backward \
+                differences falls behind a hard acceleration; fixing it with Motion::rates broke \
+                two tests above, not yet resolved"]
+    fn an_offset_clipped_every_cycle_still_converges_behind_a_hard_acceleration() {
+        // A trace (franka/src/testdata/offset_after_restart.csv): after a restart, the
+        // controller accelerates joint 7 at 8 rad/s² (0.96 of this guard's 8.3) while the stream
+        // still moves back at 0.07 rad/s. Replayed through the guard in closed loop (each answer
+        // applied), the offset must stay small. Today it does not: every step is clipped
+        // (`enforce`, the hedgeable jerk), `apply_offset` re-seeds the offset with the step's
+        // backward difference for its velocity (half a cycle's acceleration behind the
+        // controller's velocity field), the offset's next step asks for a jump the clip cuts
+        // again, and the stream accelerates at 3-6 rad/s² behind the controller's 8: the offset
+        // reaches 0.089 rad by the end of this window (in the run: 0.15 and the generator's
+        // take-over 90 ms later, the led share 0.67). With `Motion::rates` in its place this
+        // passes (0.008 rad) but `a_jump_at_speed_and_an_abrupt_stop_stay_near_the_controller`
+        // and `a_controller_whose_every_position_breaks_a_limit_does_not_carry_the_arm_away` fail.
+        let text = include_str!("testdata/offset_after_restart.csv");
+        let rows: Vec<Vec<f64>> = text
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .map(|l| {
+                l.split(',')
+                    .map(|x| x.parse().unwrap_or(f64::NAN))
+                    .collect()
+            })
+            .collect();
+        let cols =
+            |r: &Vec<f64>, c0: usize| -> [f64; JOINTS] { std::array::from_fn(|j| r[c0 + j]) };
+        // the robot's history: the first three rows' answers
+        let mut m = Motion::rest(cols(&rows[0], 15));
+        m = Motion::after(&m, &cols(&rows[1], 15), CYCLE_S);
+        m = Motion::after(&m, &cols(&rows[2], 15), CYCLE_S);
+        let mut g = Guard::new(GuardLimits::fr3(0.83, 0.02), CYCLE_S).unwrap();
+        let mut seq = vec![m];
+        let mut last_v: Option<[f64; JOINTS]> = None;
+        let mut worst: f64 = 0.0;
+        for r in &rows[3..] {
+            let (q, v) = (cols(r, 1), cols(r, 8));
+            if q[0].is_nan() {
+                m = g.extrapolate(&m);
+                last_v = None;
+            } else {
+                let a: [f64; JOINTS] = match last_v {
+                    Some(p) => std::array::from_fn(|j| (v[j] - p[j]) / CYCLE_S),
+                    None => [0.0; JOINTS],
+                };
+                m = g.follow(&m, &q, &v, &a).0;
+                last_v = Some(v);
+                assert!(g.path <= 2, "the generator leads at {}", r[0]);
+                worst = worst.max((m.q[6] - q[6]).abs());
+            }
+            seq.push(m);
+        }
+        check(&seq);
+        assert!(
+            worst < 0.02,
+            "joint 7 {worst} rad from the controller's position"
+        );
+        let last = rows.last().unwrap();
+        assert!(
+            (m.q[6] - last[7]).abs() < 0.01,
+            "{} against {}",
+            m.q[6],
+            last[7]
+        );
+    }
 }
