@@ -1321,25 +1321,28 @@ fn run_takes_a_lerobot_checkpoint_as_shipped() {
 
 /// Issue 54 §3: a foreign publisher forging joint states while the controller itself is
 /// stalled (the robot's own states pile up unread, so the bound robot looks silent to the
-/// controller when it wakes). The forged states say the arm is 0.12 rad away on joint 0 and held
+/// controller when it wakes). The forged states say the arm is 0.3 rad away on joint 0 and held
 /// at rest by its driver (`JOINT_STATUS_AT_REST`, which skips the stall's re-seed). Nothing
 /// forged may lead the robot: nothing is refused as far (the fake robot's bind tolerance is
 /// 0.05), the command stream stays within the joints' velocity limits, and the robot's largest
 /// command offset stays the reach's own. On main before, with 0.06 forged: steps of 8-9.5 x a
 /// joint's velocity limit in one command, offset 0.041 rad. The reach's own offset (its tracking
 /// at the velocity limit) is 0.019-0.031 rad whatever is forged (0, -0.06, +0.06, +0.12 measured
-/// alike, 2026-11-28; 0.0304 on a loaded fresh machine, which failed the old bound of 0.03 with
-/// 0.06 forged): hence 0.12 forged and a bound of 0.04, each side clear of the other.
+/// alike, 2026-11-28), but it grows with the fake robot's own lateness: 0.0304 on a loaded fresh
+/// machine, 0.0402 in the project's CI with the robot 16 ms late once. A bound that sits a hair
+/// above the reach's own is a bound on the machine's timing, so the forged offset is 0.3 and the
+/// bound a third of it, 0.1: a forged state that led the robot even a third of the way fails,
+/// and the reach's own tracking would need a robot ~60 ms late to reach it.
 #[test]
 fn states_forged_during_the_controllers_stall_lead_nothing() {
     let _serial = serial();
-    let (forged, w) = forged_stall_run(0.12);
+    let (forged, w) = forged_stall_run(0.3);
     eprintln!("forged states: {}", forged.trim());
     assert_continuous(&w, "states forged during the controller's stall", 500);
     let off = summary_value(&forged, "max_command_offset").expect(&forged);
     let far = summary_value(&forged, "commands_far").expect(&forged);
     assert!(
-        off <= 0.04 && far == 0.0,
+        off <= 0.1 && far == 0.0,
         "the forged states led the robot: offset {off:.4} rad, {far} commands refused as far: \
          {forged}"
     );
