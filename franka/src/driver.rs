@@ -642,6 +642,13 @@ struct TraceRow {
     /// against.
     reported: [f64; JOINTS],
     reference: [f64; JOINTS],
+    /// The robot's reported `dq_d`, `ddq_d`, and the reference's velocity and acceleration as
+    /// this driver took them ([`crate::guard::reconcile`]): a report whose derivatives disagree
+    /// with its positions shows here.
+    reported_dq: [f64; JOINTS],
+    reported_ddq: [f64; JOINTS],
+    reference_dq: [f64; JOINTS],
+    reference_ddq: [f64; JOINTS],
     desired: [f64; JOINTS],
     desired_v: [f64; JOINTS],
     sent: [f64; JOINTS],
@@ -1322,6 +1329,10 @@ impl Core {
                 measured_dq: st.dq,
                 reported: st.q_d,
                 reference: self.reference.q,
+                reported_dq: st.dq_d,
+                reported_ddq: st.ddq_d,
+                reference_dq: self.reference.dq,
+                reference_ddq: self.reference.ddq,
                 desired: step.desired.0,
                 desired_v: step.desired.1,
                 sent: step.motion.q,
@@ -2051,6 +2062,10 @@ fn write_trace<'a>(
         "desired",
         "desired_v",
         "sent",
+        "reported_dq",
+        "reference_dq",
+        "reported_ddq",
+        "reference_ddq",
     ] {
         for j in 1..=JOINTS {
             let _ = write!(text, ",{name}_{j}");
@@ -2093,6 +2108,16 @@ fn write_trace<'a>(
         // checks (1e-9 rad is 1e-3 rad/s² at 1 kHz)
         for v in &r.sent {
             let _ = write!(text, ",{v:.9}");
+        }
+        for x in [&r.reported_dq, &r.reference_dq] {
+            for v in x {
+                let _ = write!(text, ",{v:.7}");
+            }
+        }
+        for x in [&r.reported_ddq, &r.reference_ddq] {
+            for v in x {
+                let _ = write!(text, ",{v:.4}");
+            }
         }
         text.push('\n');
     }

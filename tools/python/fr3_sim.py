@@ -112,9 +112,13 @@ def trace_events(path):
         return out
 
     def report(self, violation, *, enforced):
+        # a copy first: list() of a deque holds the interpreter lock throughout, while iterating
+        # the ring itself raced the other threads' appends (a dump cut short by "deque mutated
+        # during iteration", in the thread that was reporting)
+        events = list(ring)
         with open(path, "a") as f:
             f.write(f"--- violation {violation.describe()}\n")
-            for e in ring:
+            for e in events:
                 f.write(repr(e) + "\n")
         return orig_rep(self, violation, enforced=enforced)
 
