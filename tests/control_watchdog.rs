@@ -329,6 +329,70 @@ fn resume_after_a_robot_restart_starts_from_the_measured_position() {
     assert_brakes_within_limits_partial(&cfg, &s.commands[first_running..]);
 }
 
+/// A robot whose driver says it followed this controller through a gap in its states (the
+/// session bound to this controller's commands, no hold of its own: the FR3's driver continuing
+/// the stream while franka-sim went silent for 20 ms) comes back with the arm where its
+/// tracking lag left it, 0.02 rad behind, moving at half the commanded speed. The generator
+/// goes on from its own state: no step to the measured state (re-seeded from it, the generator
+/// took franka-sim's measured 0.47 rad/s for the commanded 0.96 and the driver carried the
+/// difference as an offset, 0.10-0.15 rad from the controller's command). The same return
+/// without the session reported still starts from the measured state (a restarted robot).
+#[test]
+fn a_robot_that_followed_through_a_gap_resumes_the_generators_own_stream() {
+    const ME: u128 = 0x5eed;
+    for reported in [true, false] {
+        let (cfg, mut s) = sim(10_000.0);
+        s.exec.set_command_publisher(ME);
+        if reported {
+            s.joint_state.set_obeyed_publisher(ME);
+        }
+        s.run(1500);
+        assert_eq!(s.exec.state(), State::Running);
+        s.robot_reports = false;
+        s.run(300);
+        assert_eq!(s.exec.state(), State::Hold);
+        let last = *s.commands.last().expect("commands");
+        let mut measured = last.position;
+        measured[0] -= 0.02;
+        let resume_at = s.commands.len();
+        s.robot_reports = true;
+        // the first state back: the lagging arm at half the commanded velocity
+        s.joint_state.seq += 1;
+        s.joint_state.measurement_time_ns = s.now_ns;
+        s.joint_state.position = measured;
+        for (v, c) in s.joint_state.velocity.iter_mut().zip(&last.velocity) {
+            *v = 0.5 * c;
+        }
+        let mut cmd = JointCommand::default();
+        let now = s.now_ns;
+        s.exec.tick(now, Some(&s.joint_state), &mut cmd);
+        s.commands.push(cmd);
+        s.now_ns += s.period_ns;
+        s.run(200);
+        let first_running = s.reports[s.reports.len() - 200..]
+            .iter()
+            .position(|r| r.state == State::Running)
+            .map(|k| resume_at + 1 + k)
+            .unwrap_or(resume_at);
+        let step = (s.commands[resume_at].position[0] - last.position[0]).abs();
+        if reported {
+            let vmax = cfg.robot.joints[0].max_velocity;
+            assert!(
+                step <= vmax * 1e-3 + 1e-9,
+                "a robot that followed: the first command after the gap stepped {step} rad"
+            );
+            assert_brakes_within_limits_partial(&cfg, &s.commands[resume_at - 1..]);
+        } else {
+            let d = (s.commands[resume_at].position[0] - measured[0]).abs();
+            assert!(
+                d < 0.005,
+                "no session reported: the first command {d} rad from the measured state \
+                 (first running at {first_running})"
+            );
+        }
+    }
+}
+
 /// The robot comes back with the arm outside the controller's position range (a reflex in an
 /// extreme pose, a person who moved it): the first command starts where the arm is (a command
 /// clamped into the range would be a step, refused as far by the robot every tick: the FR3
