@@ -245,6 +245,9 @@ pub struct Summary {
     /// Cycles continued at constant acceleration after the controller's last command expired
     /// (it answered nothing in time): the first `--extrapolate-cycles` of each such run.
     pub expired_continued: u64,
+    /// Reports whose position had moved to a candidate's and whose velocity and acceleration
+    /// were the cycle before's ([`crate::guard::torn`]): taken as that candidate.
+    pub torn_reports: u64,
     /// Late answers the robot's later report shows it applied after all (a simulator does; the
     /// FCI drops them).
     pub late_applied: u64,
@@ -301,7 +304,7 @@ impl std::fmt::Display for Summary {
              round_trip_p50_us={:.1} round_trip_p99_us={:.1} round_trip_max_us={:.1} \
              commands_applied={} commands_expired={} commands_rejected={} commands_unbound={} \
              commands_far={} gripper_moves={} max_tracking_error={:.5} guard_acted={} \
-             dropped={} withheld_late={} short_continued={} expired_continued={} unapplied={} late_applied={} late_at_send={} slow_send={} withheld_next_state={} stale_states={} withheld_queued={} lagging={} \
+             dropped={} withheld_late={} short_continued={} expired_continued={} torn_reports={} unapplied={} late_applied={} late_at_send={} slow_send={} withheld_next_state={} stale_states={} withheld_queued={} lagging={} \
              hedged={} reference_exact={} reference_corrected={} \
              reference_adopted={} reference_kept={} reference_stale={} led_share={:.5} not_led_longest_ms={} \
              controller_tracking_p99={:.5} controller_tracking_max={:.5} workspace_refused={} \
@@ -349,6 +352,7 @@ impl std::fmt::Display for Summary {
             self.withheld_late,
             self.short_continued,
             self.expired_continued,
+            self.torn_reports,
             self.unapplied,
             self.late_applied,
             self.late_at_send,
@@ -871,7 +875,16 @@ impl Core {
             _ => applied,
         };
         self.ambiguous = None;
-        let (mut r, mut how) = reconcile(&reported, &[applied, skipped, self.reference, other]);
+        let candidates = [applied, skipped, self.reference, other];
+        let (mut r, mut how) = reconcile(&reported, &candidates);
+        if let (Reference::Corrected(i), 1) = (how, e) {
+            if crate::guard::torn(&reported, &self.reference) {
+                // the report's position is this candidate's, its derivatives the cycle before's
+                // (a half-written state): the candidate as it is
+                self.s.torn_reports += 1;
+                (r, how) = (candidates[i], Reference::Candidate(i));
+            }
+        }
         if matches!(how, Reference::Candidate(3) | Reference::Corrected(3))
             && !matches!(reconcile(&reported, &[applied]).1, Reference::Candidate(0))
         {

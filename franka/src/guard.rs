@@ -181,6 +181,21 @@ pub fn reconcile(reported: &Motion, candidates: &[Motion]) -> (Motion, Reference
     }
 }
 
+/// Whether a report that moved to a candidate's position still carries `before`'s velocity and
+/// acceleration (the reference of the cycle before, the one the last answer was computed
+/// against): a state packed between the robot's update of `q_d` and of its derivatives. The
+/// FCI's reports are consistent; franka-sim's publish thread packs such a state when its drain
+/// gate gives up on a starved machine. Taken as the robot's derivatives, they are a cycle old:
+/// the next answer continued the old velocity, a jerk of `ddq / dt` against the robot's own
+/// history (8 300 rad/s³ at 8.3 rad/s², twice in a loaded run). Only where the candidate's own
+/// derivatives differ (a report that agrees with a candidate is taken as it is).
+pub fn torn(reported: &Motion, before: &Motion) -> bool {
+    (0..JOINTS).all(|j| {
+        agrees(before.dq[j], reported.dq[j], 2, 1e-7)
+            && agrees(before.ddq[j], reported.ddq[j], 2, 1e-4)
+    }) && (0..JOINTS).any(|j| (reported.q[j] - before.q[j]).abs() > 1e-9)
+}
+
 /// The limits a command passes unchanged within: `margin` × the FR3's acceleration, jerk and
 /// velocity envelope, inside the stricter of the datasheet's and the envelope's position range.
 #[derive(Debug, Clone, Copy)]
@@ -1373,6 +1388,41 @@ mod tests {
             "{:?}",
             m.q
         );
+    }
+
+    #[test]
+    fn a_report_whose_derivatives_are_the_cycle_befores_is_torn() {
+        // joint 2 of a loaded run's trace (robot cycles 11107 and 11108): the report moved to
+        // the answer (0.147553688) and kept the cycle before's -0.5044515 rad/s, -8.3 rad/s²
+        let mut before = Motion::rest(home());
+        before.q[1] = 0.148066440;
+        before.dq[1] = -0.5044515;
+        before.ddq[1] = -8.3;
+        let answer = Motion::after(
+            &before,
+            &{
+                let mut q = before.q;
+                q[1] = 0.147553688;
+                q
+            },
+            CYCLE_S,
+        );
+        let mut report = answer;
+        report.dq = before.dq;
+        report.ddq = before.ddq;
+        assert!(torn(&report, &before));
+        // the same position with the derivatives the robot differenced it with: not torn, and
+        // a report that did not move (the answer not applied) is not this either
+        assert!(!torn(&answer, &before));
+        assert!(!torn(&before, &before));
+        // f32-rounded as the FCI sends it: still torn
+        let mut f = report;
+        for j in 0..JOINTS {
+            f.q[j] = f.q[j] as f32 as f64;
+            f.dq[j] = f.dq[j] as f32 as f64;
+            f.ddq[j] = f.ddq[j] as f32 as f64;
+        }
+        assert!(torn(&f, &before));
     }
 
     #[test]
