@@ -1014,6 +1014,14 @@ impl Core {
         self.s.cycles += 1;
         let short =
             self.last_state_ns != 0 && now.saturating_sub(self.last_state_ns) < HALF_CYCLE_NS;
+        if self.last_state_ns != 0 && self.motion_cycles > 0 {
+            // the robot's own silence past a cycle and a half within a motion (a simulator's
+            // stall) is not the controller's: it does not count against the command timeout
+            let gap = now.saturating_sub(self.last_state_ns);
+            if gap > 3 * HALF_CYCLE_NS {
+                self.intake.robot_silent(gap - 2 * HALF_CYCLE_NS);
+            }
+        }
         self.s.short_cycles += short as u64;
         self.last_state_ns = now;
         self.motion_cycles += 1;

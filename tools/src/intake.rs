@@ -232,6 +232,18 @@ impl CommandIntake {
         self.active.as_ref()
     }
 
+    /// The robot itself was silent for `ns` beyond its cycle (a robot-clocked driver that had no
+    /// state to answer: a simulator's stall). The command timeout measures the controller's
+    /// silence while the robot asks: that time does not count against it. (franka-sim stalled
+    /// 16 ms on a loaded machine; the controller's next command, 20 ms after the last the
+    /// driver accepted, was taken as a new session's and refused as far from the lagging arm,
+    /// and the controller re-seeded from it: 0.19 rad from its own motion after.) A robot that
+    /// stopped meanwhile (the FCI's own stop after 20 lost cycles) restarts its motion, which
+    /// disarms the intake.
+    pub fn robot_silent(&mut self, ns: u64) {
+        self.last_command_ns = self.last_command_ns.saturating_add(ns);
+    }
+
     /// The robot began to hold: the next command must start near the arm again.
     pub fn disarm(&mut self) {
         self.armed = false;
@@ -245,5 +257,41 @@ impl CommandIntake {
             f |= JOINT_STATUS_COMMAND_TIMEOUT;
         }
         f
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn command(seq: u64, t: u64, q0: f64) -> JointCommand {
+        let mut c = JointCommand {
+            seq,
+            publish_time_ns: t,
+            deadline_ns: t + 2_000_000,
+            n_dof: 2,
+            ..Default::default()
+        };
+        c.position[0] = q0;
+        c
+    }
+
+    #[test]
+    fn a_robots_own_silence_does_not_time_the_controller_out() {
+        // a bound, armed session; then 25 ms without a state (the robot's, 24 ms of it beyond
+        // its cycle), and the controller's next command 0.05 rad from the lagging arm
+        for credited in [true, false] {
+            let t0 = 1_000_000_000;
+            let mut intake = CommandIntake::new("test", 2, 20_000_000, 5_000_000, t0);
+            intake.set_bind_tolerance(0.02);
+            assert!(intake.on_command(&command(1, t0, 0.0), 7, t0, &[0.0, 0.0]));
+            let t1 = t0 + 25_000_000;
+            if credited {
+                intake.robot_silent(24_000_000);
+            }
+            let ok = intake.on_command(&command(2, t1, 0.05), 7, t1, &[0.0, 0.0]);
+            assert_eq!(ok, credited, "credited {credited}");
+            assert_eq!(intake.counters.commands_far, u64::from(!credited));
+        }
     }
 }
