@@ -90,6 +90,9 @@ const RESUME_TOLERANCE: f64 = 0.01;
 /// The least tracking gain (1/s) of a rejoin (a controller the robot does not obey following
 /// the measured arm): also with the fixed-target chase (`tracking_gain` 0).
 const REJOIN_GAIN: f64 = 10.0;
+/// The longest hold (ns) after which a robot that says it followed through a gap in its states
+/// resumes from this generator's own stream ([`Executor::followed_through_gap`]).
+const FOLLOWED_HOLD_NS: u64 = 5_000_000;
 /// A gap between two ticks longer than this (ns) means the controller itself stood still (a
 /// SIGSTOP, a swapped-out process): the robot did not wait for it.
 const STALL_NS: u64 = 50_000_000;
@@ -458,7 +461,7 @@ impl Executor {
             // keeps the generator's own (continuous) state.
             // (a robot whose driver says it followed through the hold: see `check_joint_state`)
             if self.safety.state() == State::Running
-                && !self.followed_through_gap(js)
+                && !self.followed_through_gap(js, now_ns)
                 && self.away_from(js)
             {
                 self.init_generator(js);
@@ -555,7 +558,7 @@ impl Executor {
                 // a measured 0.47 rad/s for the commanded 0.96, and the driver's guard carried
                 // that step as an offset it could not close while the controller accelerated:
                 // 0.10-0.15 rad from the controller's command
-                let followed = self.followed_through_gap(js);
+                let followed = self.followed_through_gap(js, now_ns);
                 if self.initialized && !running && !followed && self.away_from(js) {
                     self.init_generator(js);
                 } else if self.initialized && !running && !followed && self.hold_last_state {
@@ -776,8 +779,15 @@ impl Executor {
     /// The measured position is further than [`RESUME_TOLERANCE`] from the generator's.
     /// Whether the robot says it followed this controller's commands through a gap in its
     /// states: its driver reports the session bound to this controller's publisher, and none of
-    /// its own hold, a refusal or a fault.
-    fn followed_through_gap(&self, js: &JointState) -> bool {
+    /// its own hold, a refusal or a fault, and this controller's hold in the gap was short
+    /// (`FOLLOWED_HOLD_NS`: its brake then left the robot's stream a few mrad/s; after a
+    /// longer one the robot, silent, did not brake with it: a fake robot stopped for 1 s
+    /// answered its first state back with the session bound and no flag, 0.06 rad from where
+    /// this controller's brake had gone).
+    fn followed_through_gap(&self, js: &JointState, now_ns: u64) -> bool {
+        if self.safety.hold_lasted(now_ns) > FOLLOWED_HOLD_NS {
+            return false;
+        }
         let own = chunkrt_ipc::JOINT_STATUS_HOLDING
             | chunkrt_ipc::JOINT_STATUS_AT_REST
             | chunkrt_ipc::JOINT_STATUS_COMMAND_FAR

@@ -170,6 +170,8 @@ pub(crate) struct Safety {
     /// Reason of the last transition.
     reason: Option<Reason>,
     hold_since_ns: u64,
+    /// How long the last HOLD lasted (ns), once it ended.
+    last_hold_ns: u64,
     /// Since when STARTING has had a problem that waiting does not cure (None: it has not).
     stuck_since_ns: Option<u64>,
     /// Whether STARTING escalates (off for a controller that runs without a chunk source).
@@ -188,6 +190,7 @@ impl Safety {
             state: State::Starting,
             reason: None,
             hold_since_ns: 0,
+            last_hold_ns: 0,
             stuck_since_ns: None,
             escalate: true,
             hold_to_fault_ns,
@@ -204,6 +207,15 @@ impl Safety {
     /// Why the machine is in its state (the reason of the last transition).
     pub fn reason(&self) -> Option<Reason> {
         self.reason
+    }
+
+    /// How long HOLD has lasted at `now_ns`, or, out of HOLD, how long the last one lasted.
+    pub fn hold_lasted(&self, now_ns: u64) -> u64 {
+        if self.state == State::Hold {
+            now_ns.saturating_sub(self.hold_since_ns)
+        } else {
+            self.last_hold_ns
+        }
     }
 
     /// Times HOLD was entered.
@@ -289,6 +301,9 @@ impl Safety {
         if to == State::Hold {
             self.hold_entries += 1;
             self.hold_since_ns = now_ns;
+        }
+        if self.state == State::Hold {
+            self.last_hold_ns = now_ns.saturating_sub(self.hold_since_ns);
         }
         if to == State::Starting {
             self.stuck_since_ns = None;
