@@ -1161,19 +1161,13 @@ impl Core {
             Some(c) if c.seq != self.last_cmd_seq && c.state_seq == seq => {
                 self.follow(c, short, &mut step)
             }
-            Some(_) if self.late_run < self.extrapolate_cycles => {
-                self.late_run += 1;
-                self.s.late += 1;
-                self.guard.extrapolate(&self.reference)
-            }
+            Some(_) if self.late_run < self.extrapolate_cycles => self.continue_late(),
             None if !stopping
                 && self.late_run < self.extrapolate_cycles
                 && !self.reference.at_rest() =>
             {
-                self.late_run += 1;
-                self.s.late += 1;
                 self.s.expired_continued += 1;
-                self.guard.extrapolate(&self.reference)
+                self.continue_late()
             }
             _ if self.reference.at_rest() => {
                 self.s.rest += 1;
@@ -1187,6 +1181,14 @@ impl Core {
             }
         };
         step
+    }
+
+    /// One cycle without the controller's answer: the reference continued at constant
+    /// acceleration (counted in the run `--extrapolate-cycles` bounds).
+    fn continue_late(&mut self) -> Motion {
+        self.late_run += 1;
+        self.s.late += 1;
+        self.guard.extrapolate(&self.reference)
     }
 
     /// The robot differences this answer over `lag` cycles from its report: the reference

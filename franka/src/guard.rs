@@ -126,6 +126,15 @@ fn agrees(exact: f64, reported: f64, ulps: u32, slack: f64) -> bool {
     a.to_bits().abs_diff(b.to_bits()) <= ulps
 }
 
+/// Whether a motion's velocity and acceleration and the robot's f32 report of them agree: within
+/// 1e-7 rad/s and 1e-4 rad/s² (1e-4 rad/s² and 0.1 rad/s³ in the next command), or two f32 steps.
+fn derivatives_agree(exact: &Motion, reported: &Motion) -> bool {
+    (0..JOINTS).all(|j| {
+        agrees(exact.dq[j], reported.dq[j], 2, 1e-7)
+            && agrees(exact.ddq[j], reported.ddq[j], 2, 1e-4)
+    })
+}
+
 /// The robot's reference (the motion it will judge the next command against) from its report
 /// (`q_d`, `dq_d`, `ddq_d`: on FCI 10 f32, the last command the robot applied and its
 /// differences, the extrapolated one after a lost packet) and this driver's exact candidates
@@ -151,15 +160,7 @@ pub fn reconcile(reported: &Motion, candidates: &[Motion]) -> (Motion, Reference
     // a position must round to the report: one f32 step at 2 rad is 2.4e-7 rad, which is
     // 0.24 rad/s² in the next command's acceleration
     let q_agrees = |c: &Motion| (0..JOINTS).all(|j| agrees(c.q[j], reported.q[j], 0, 0.0));
-    let all_agree = |c: &Motion| {
-        q_agrees(c)
-            && (0..JOINTS).all(|j| {
-                // the derivatives within 1e-7 rad/s and 1e-4 rad/s² (1e-4 rad/s² and 0.1
-                // rad/s³ in the next command), or two f32 steps
-                agrees(c.dq[j], reported.dq[j], 2, 1e-7)
-                    && agrees(c.ddq[j], reported.ddq[j], 2, 1e-4)
-            })
-    };
+    let all_agree = |c: &Motion| q_agrees(c) && derivatives_agree(c, reported);
     if let Some(i) = candidates.iter().position(all_agree) {
         return (candidates[i], Reference::Candidate(i));
     }
@@ -190,10 +191,8 @@ pub fn reconcile(reported: &Motion, candidates: &[Motion]) -> (Motion, Reference
 /// history (8 300 rad/s³ at 8.3 rad/s², twice in a loaded run). Only where the candidate's own
 /// derivatives differ (a report that agrees with a candidate is taken as it is).
 pub fn torn(reported: &Motion, before: &Motion) -> bool {
-    (0..JOINTS).all(|j| {
-        agrees(before.dq[j], reported.dq[j], 2, 1e-7)
-            && agrees(before.ddq[j], reported.ddq[j], 2, 1e-4)
-    }) && (0..JOINTS).any(|j| (reported.q[j] - before.q[j]).abs() > 1e-9)
+    derivatives_agree(before, reported)
+        && (0..JOINTS).any(|j| (reported.q[j] - before.q[j]).abs() > 1e-9)
 }
 
 /// The limits a command passes unchanged within: `margin` × the FR3's acceleration, jerk and
