@@ -278,9 +278,15 @@ fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
             assert!(rate >= 0.95, "{strategy}: command success rate {rate}");
             let err = drv(&d_out, "max_tracking_error");
             assert!(err < 0.05, "{strategy}: tracking error {err} rad");
+            // the controller's commands reached the robot: in most cycles out of rest, and for
+            // seconds (not a cycle count of its 11 s: a loaded machine spends up to 3 s of them
+            // starting, 7 875 fresh of 10 598 on this 2-core Xeon)
+            let fresh = drv(&d_out, "fresh");
+            let moving = drv(&d_out, "cycles") - drv(&d_out, "rest");
             assert!(
-                drv(&d_out, "fresh") > 8000.0,
-                "{strategy}: the controller's commands did not reach the robot"
+                fresh > 5000.0 && fresh >= 0.95 * moving,
+                "{strategy}: the controller's commands did not reach the robot: {fresh} fresh \
+                 in {moving} cycles out of rest"
             );
             let _ = std::fs::remove_file(trace);
         }
@@ -997,8 +1003,22 @@ fn libfranka_replays_a_recorded_command_stream_without_a_reflex() {
         replay.stderr
     );
     assert_eq!(sim_reflexes(&s_out), 0.0, "{}", s_out.stdout);
+    // the whole stream replayed (a line the client skipped while catching up counts as reached),
+    // and a stream long enough to hold the motion: its length is the controller's 8 s less what
+    // the loaded machine spent starting it (4 718 cycles on the project's CI, 7 170 here)
+    let cycles = summary_value(&replay.stdout, "cycles").unwrap_or(0.0);
     let sent = summary_value(&replay.stdout, "sent").unwrap_or(0.0);
-    assert!(sent > 5000.0, "only {sent} commands replayed");
+    let skipped = summary_value(&replay.stdout, "skipped").unwrap_or(0.0);
+    assert!(
+        cycles >= 3000.0,
+        "a recording of only {cycles} cycles:\n{}",
+        d_out.stdout
+    );
+    assert!(
+        sent + skipped >= cycles,
+        "the replay stopped before the stream's end:\n{}",
+        replay.stdout
+    );
     let _ = std::fs::remove_file(stream);
     let _ = std::fs::remove_file(cfg);
 }
