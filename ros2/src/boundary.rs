@@ -44,10 +44,11 @@ pub enum ErrorKind {
     CommandRefused = 8,
     PublishFailed = 9,
     ImageRejected = 10,
+    StaleArrival = 11,
 }
 
 /// Number of [`ErrorKind`]s.
-pub const ERROR_KINDS: usize = 11;
+pub const ERROR_KINDS: usize = 12;
 
 impl ErrorKind {
     /// Every kind, in counter order.
@@ -63,6 +64,7 @@ impl ErrorKind {
         ErrorKind::CommandRefused,
         ErrorKind::PublishFailed,
         ErrorKind::ImageRejected,
+        ErrorKind::StaleArrival,
     ];
 
     /// The key in the summary line.
@@ -79,6 +81,7 @@ impl ErrorKind {
             ErrorKind::CommandRefused => "commands_refused",
             ErrorKind::PublishFailed => "publish_errors",
             ErrorKind::ImageRejected => "images_rejected",
+            ErrorKind::StaleArrival => "stale_arrivals",
         }
     }
 }

@@ -387,12 +387,14 @@ impl Bridge {
         }
         let age = real.saturating_sub(stamp);
         if age > max_age_ns {
-            // the controller will find it stale and hold: say why here
-            self.errors.count(ErrorKind::StampSkew, now, || {
+            // the controller will find it stale and hold: say why here (a message late on the
+            // way, a loaded machine, or a robot clock behind this one's: counted apart from a
+            // stamp ahead, which only a clock can cause)
+            self.errors.count(ErrorKind::StaleArrival, now, || {
                 format!(
-                    "{what} stamped {:.1} ms in the past, older than the controller accepts: is \
-                     the robot's clock synchronised with this machine's (else set ros2.stamp = \
-                     \"receive\")?",
+                    "{what} stamped {:.1} ms in the past, older than the controller accepts: late \
+                     on the way, or the robot's clock is behind this machine's (if every message \
+                     is, synchronise the clocks or set ros2.stamp = \"receive\")",
                     age as f64 / 1e6
                 )
             });
