@@ -404,6 +404,10 @@ pub struct Guard {
     /// This cycle's desired positions' own first and second differences (the velocity and
     /// acceleration fields where there is no earlier desired position).
     desired_diff: ([f64; JOINTS], [f64; JOINTS]),
+    /// The controller's acceleration (as taken) at the last [`Self::follow`], and its jerk
+    /// since the one before (zero where there was none): what the offset's jerk leaves.
+    desired_a: Option<[f64; JOINTS]>,
+    desired_jerk: [f64; JOINTS],
 }
 
 /// The largest of a joint vector's magnitudes.
@@ -486,6 +490,8 @@ impl Guard {
             enforced: 0,
             fields_agree: true,
             desired_diff: ([0.0; JOINTS], [0.0; JOINTS]),
+            desired_a: None,
+            desired_jerk: [0.0; JOINTS],
         })
     }
 
@@ -546,6 +552,11 @@ impl Guard {
                 }
             }
         }
+        self.desired_jerk = match self.desired_a {
+            Some(pa) => std::array::from_fn(|j| (ad[j] - pa[j]) / self.dt),
+            None => [0.0; JOINTS],
+        };
+        self.desired_a = Some(ad);
         let mut v_fd = [0.0; JOINTS];
         if let Some((pq, _)) = self.desired {
             for j in 0..JOINTS {
@@ -655,6 +666,13 @@ impl Guard {
         for (j, a) in ad.iter().enumerate() {
             self.offset_in.max_acceleration[j] =
                 (0.9 * self.limits.ddq - a.abs()).max(DDQ_MAX * OFFSET_ACCELERATION);
+            // the jerk the stream's own steps keep to ([`HEDGEABLE_JERK`]) less the
+            // controller's: an offset that leaves its acceleration apart at a fixed 600 rad/s³
+            // while the stream could at 2 700 ran on at +4 rad/s² behind a controller braking
+            // at 8 after three late cycles (the test below)
+            self.offset_in.max_jerk[j] = (self.limits.dddq * HEDGEABLE_JERK
+                - self.desired_jerk[j].abs())
+            .max(DDDQ_MAX * OFFSET_JERK);
             self.offset_in.current_position[j] = o.0[j];
             self.offset_in.current_velocity[j] = o.1[j];
             self.offset_in.current_acceleration[j] = o.2[j];
@@ -715,14 +733,24 @@ impl Guard {
         // offset half a cycle's acceleration off: its next step was clipped again, every cycle,
         // and the stream accelerated at 3-6 rad/s² behind a controller at 8 until the offset
         // reached the generator's take-over (the test below, from a trace)
+        //
+        // A backward second difference is the acceleration a cycle back, the first difference
+        // the velocity half a cycle back: under the offset's own jerk both lag its plan, and
+        // taken as they are they gave back each cycle what the plan had taken off (after three
+        // late cycles into a controller braking at 8 rad/s², the plan brought the offset's
+        // acceleration from 8 to 6.5 and the differences put it back at 7.75, cycle after
+        // cycle, while the stream ran 0.17 rad/s too fast: the test below). The plan's own
+        // change of acceleration this cycle puts them forward.
         let m = Motion::after(prev, &held, self.dt);
         let (v_fd, a_fd) = self.desired_diff;
         let mut actual = o;
         for j in 0..JOINTS {
             actual.0[j] = held[j] - q[j];
             if self.fields_agree {
-                actual.2[j] = m.ddq[j] - a_fd[j];
-                actual.1[j] = m.dq[j] - v_fd[j] + 0.5 * actual.2[j] * self.dt;
+                let step = self.offset.map_or(0.0, |p| o.2[j] - p.2[j]);
+                let a_back = m.ddq[j] - a_fd[j];
+                actual.2[j] = a_back + step;
+                actual.1[j] = m.dq[j] - v_fd[j] + 0.5 * (a_back + 0.5 * step) * self.dt;
             }
         }
         self.planned = None;
@@ -860,6 +888,7 @@ impl Guard {
         self.offset = None;
         self.generating = false;
         self.desired = None;
+        self.desired_a = None;
         let next = prev.continued(self.dt);
         if (0..JOINTS).all(|j| self.limits.passes(j, prev, next.q[j], self.dt)) {
             self.planned = Some((next.q, next.rates(self.dt).0, prev.ddq));
@@ -875,6 +904,7 @@ impl Guard {
         self.offset = None;
         self.generating = false;
         self.desired = None;
+        self.desired_a = None;
         if prev.at_rest() {
             return (Motion::rest(prev.q), true);
         }
@@ -1670,7 +1700,27 @@ mod tests {
         // later, the led share 0.67). The stream's rates (`Motion::rates`) against the fields
         // fixed this case and broke two above, whose controller's velocity field is its
         // positions' own difference: differences against differences hold for both.
-        let text = include_str!("testdata/offset_after_restart.csv");
+        let (m, worst, generated, last) =
+            replay_closed_loop(include_str!("testdata/offset_after_restart.csv"));
+        assert_eq!(generated, 0, "the generator led");
+        assert!(
+            worst < 0.02,
+            "a joint {worst} rad from the controller's position"
+        );
+        assert!(
+            (m.q[6] - last[6]).abs() < 0.01,
+            "{} against {}",
+            m.q[6],
+            last[6]
+        );
+    }
+
+    /// A driver trace's rows (seq, desired 1-7, desired_v 1-7, sent 1-7; NaN desired: no
+    /// answer that cycle) replayed through a fresh guard in closed loop, each answer applied
+    /// and a cycle without one continued as the robot does: the last motion, the largest
+    /// distance of any joint from the controller's position, the cycles the generator led. The
+    /// robot's verdict on every step is checked.
+    fn replay_closed_loop(text: &str) -> (Motion, f64, usize, [f64; JOINTS]) {
         let rows: Vec<Vec<f64>> = text
             .lines()
             .filter(|l| !l.starts_with('#'))
@@ -1688,36 +1738,53 @@ mod tests {
         m = Motion::after(&m, &cols(&rows[2], 15), CYCLE_S);
         let mut g = Guard::new(GuardLimits::fr3(0.83, 0.02), CYCLE_S).unwrap();
         let mut seq = vec![m];
-        let mut last_v: Option<[f64; JOINTS]> = None;
-        let mut worst: f64 = 0.0;
+        // the controller's acceleration field: its velocity field's difference (over the cycles
+        // since the last answer)
+        let mut last_v: Option<([f64; JOINTS], f64)> = None;
+        let (mut worst, mut generated): (f64, usize) = (0.0, 0);
         for r in &rows[3..] {
             let (q, v) = (cols(r, 1), cols(r, 8));
             if q[0].is_nan() {
                 m = g.extrapolate(&m);
-                last_v = None;
+                last_v = last_v.map(|(p, k)| (p, k + 1.0));
             } else {
                 let a: [f64; JOINTS] = match last_v {
-                    Some(p) => std::array::from_fn(|j| (v[j] - p[j]) / CYCLE_S),
+                    Some((p, k)) => std::array::from_fn(|j| (v[j] - p[j]) / (k * CYCLE_S)),
                     None => [0.0; JOINTS],
                 };
                 m = g.follow(&m, &q, &v, &a).0;
-                last_v = Some(v);
-                assert!(g.path <= 2, "the generator leads at {}", r[0]);
-                worst = worst.max((m.q[6] - q[6]).abs());
+                last_v = Some((v, 1.0));
+                generated += (g.path > 2) as usize;
+                worst = (0..JOINTS).fold(worst, |w, j| w.max((m.q[j] - q[j]).abs()));
             }
             seq.push(m);
         }
         check(&seq);
+        let last = rows
+            .last()
+            .map(|r| cols(r, 1))
+            .unwrap_or([f64::NAN; JOINTS]);
+        (m, worst, generated, last)
+    }
+
+    #[test]
+    fn an_offset_after_late_cycles_into_a_hard_deceleration_closes_within_the_robots_jerk() {
+        // A trace (franka/src/testdata/offset_after_late_decel.csv): joint 7 accelerating at
+        // 8.3 rad/s² when the controller turned to decelerate at 8, three answers late (the
+        // robot continued at +5.4 rad/s² while the controller was at -8: an offset 13 rad/s²
+        // apart at the restart). The offset's own trajectory took that apart at its jerk of
+        // 600 rad/s³ (0.12 of the robot's), and each clipped step's differences gave back what
+        // its plan had taken off, so the stream ran on at +4 rad/s² for 60 ms behind a braking
+        // controller: 0.7 rad/s too fast, the offset 0.15 rad 250 cycles later and the
+        // generator leading 255 cycles (the run's led share 0.917). Replayed here: 0.074 rad
+        // before, 0.043 with the jerk the stream leaves, 0.041 with the differences put
+        // forward alone, 0.016 with both.
+        let (_, worst, generated, _) =
+            replay_closed_loop(include_str!("testdata/offset_after_late_decel.csv"));
+        assert_eq!(generated, 0, "the generator led");
         assert!(
             worst < 0.02,
-            "joint 7 {worst} rad from the controller's position"
-        );
-        let last = rows.last().unwrap();
-        assert!(
-            (m.q[6] - last[7]).abs() < 0.01,
-            "{} against {}",
-            m.q[6],
-            last[7]
+            "a joint {worst} rad from the controller's position"
         );
     }
 }
