@@ -836,6 +836,7 @@ impl Core {
         self.motion_cycles = 0;
         self.late_run = 0;
         self.intake.disarm();
+        self.guard.reset();
         self.s.motions += 1;
     }
 
@@ -992,6 +993,7 @@ impl Core {
             self.intake.live(monotonic_ns()).copied()
         };
         let step = self.next_step(live.as_ref(), seq, short, stopping);
+        let step = self.first_at_rest(step);
         let step = self.within_workspace(step);
         let step = self.within_following(st, step);
         // every answer is hedged, whichever path made it: a brake for the geometry or the
@@ -1280,6 +1282,24 @@ impl Core {
             }
         }
         step
+    }
+
+    /// A motion's first answer is where it starts, at rest: the robot takes a motion's first
+    /// command as its start (franka-sim records it at rest, whatever it moved), and a first
+    /// step of the controller's motion made the second read three times its jerk (a restart
+    /// after a reflex: 8 292 rad/s³). The guard starts afresh from it.
+    fn first_at_rest(&mut self, step: Step) -> Step {
+        if self.motion_cycles != 1 || self.no_guard {
+            return step;
+        }
+        self.guard.reset();
+        Step {
+            motion: Motion::rest(self.reference.q),
+            path: 6,
+            clamped: false,
+            broke: None,
+            ..step
+        }
     }
 
     /// The arm's geometry: a command whose stop (braking from its velocity) would leave the

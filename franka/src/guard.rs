@@ -495,6 +495,22 @@ impl Guard {
         })
     }
 
+    /// Forgets the motion it followed (a new motion starts from rest): no offset, no generator
+    /// leading, no plan of its own or of the brake, no desired state to difference against.
+    /// The robot takes a motion's first command as its start, at rest: an offset carried over
+    /// from a motion a reflex ended moved the first command 2.8e-6 rad, and the next one's
+    /// acceleration then read 8.3 rad/s² in one cycle (8 292 rad/s³, a reflex at the restart).
+    pub fn reset(&mut self) {
+        self.offset = None;
+        self.generating = false;
+        self.planned = None;
+        self.brake_plan = None;
+        self.desired = None;
+        self.desired_a = None;
+        self.broke = None;
+        self.path = 0;
+    }
+
     /// The limits in force.
     pub fn limits(&self) -> &GuardLimits {
         &self.limits
@@ -1767,6 +1783,39 @@ mod tests {
             .map(|r| cols(r, 1))
             .unwrap_or([f64::NAN; JOINTS]);
         (m, worst, generated, last)
+    }
+
+    #[test]
+    fn a_motion_after_a_reset_starts_where_the_arm_rests() {
+        // an offset running when a reflex ends the motion (a jump of 0.05 rad at speed): the
+        // next motion's first command, from rest, must be that rest; without the reset the old
+        // offset's next step moved it (the restart's 8 292 rad/s³ in franka-sim)
+        let running = || {
+            let mut g = Guard::new(GuardLimits::fr3(0.83, 0.02), CYCLE_S).unwrap();
+            let mut m = Motion::rest(home());
+            for k in 1..200 {
+                let mut q = swinging(k);
+                if k > 150 {
+                    q[3] += 0.05;
+                }
+                m = g.follow(&m, &q, &[0.0; JOINTS], &[0.0; JOINTS]).0;
+            }
+            assert!(g.offset.is_some(), "no offset running");
+            (g, Motion::rest(m.q))
+        };
+        let (mut carried, rest) = running();
+        let (first, _) = carried.follow(&rest, &swinging(400), &[0.0; JOINTS], &[0.0; JOINTS]);
+        let (mut g, _) = running();
+        g.reset();
+        let (fresh, _) = g.follow(&rest, &swinging(400), &[0.0; JOINTS], &[0.0; JOINTS]);
+        assert!(
+            (0..JOINTS).all(|j| (fresh.q[j] - rest.q[j]).abs() < 1e-12),
+            "{:?} against {:?}",
+            fresh.q,
+            rest.q
+        );
+        // (and the carried-over offset did move it: the test can fail)
+        assert!((0..JOINTS).any(|j| (first.q[j] - rest.q[j]).abs() > 1e-9));
     }
 
     #[test]
