@@ -540,12 +540,19 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         .next()
         .and_then(|h| h.split(',').position(|c| c == "path"))
         .expect("the driver's trace has no path column");
-    let led_first = rows
+    // (the new motion's first answer is the rest it starts from, the driver's own)
+    let path_of = |l: &str| l.split(',').nth(path_col).unwrap_or("").to_string();
+    let mut after = rows
         .lines()
         .skip_while(|l| !l.contains("reflex"))
         .skip(1)
+        .peekable();
+    if after.peek().is_some_and(|l| path_of(l) == "rest") {
+        after.next();
+    }
+    let led_first = after
         .take_while(|l| {
-            let p = l.split(',').nth(path_col).unwrap_or("");
+            let p = path_of(l);
             p == "pass" || p == "offset" || p == "restart"
         })
         .count();
