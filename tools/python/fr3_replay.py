@@ -15,7 +15,8 @@ stay on the robot's time, and from then on holds each line within the robot's ac
 jerk from the reference the robot reports (q_d, dq_d, ddq_d: libfranka's limitRate rule, 0.9 of
 the limits, which leaves room for the f32 report): a stall of this Python client is not the stream's fault, and the robot's extrapolation parts from
 the recorded line by micro-radians. Prints
-"fr3-replay summary: cycles=N sent=N skipped=N reflexes=R success_rate_mean=X error=..." and
+"fr3-replay summary: cycles=N sent=N skipped=N reflexes=R since_skip=K success_rate_mean=X error=..."
+(since_skip: commands sent since this client's last stall, -1 if it never stalled) and
 exits 1 on a reflex or an error.
 """
 import argparse
@@ -78,6 +79,7 @@ def main():
         sys.exit(f"fr3_replay.py: the robot is {gap:.4f} rad from the stream's start: restart the simulator")
     ctrl = robot.start_joint_position_control(pf.ControllerMode.JointImpedance)
     i = sent = skipped = limited = 0
+    last_skip = -1  # the command count at this client's last stall (-1: none)
     catching_up = False
     rates, error, reflexes = [], "none", 0
     try:
@@ -87,6 +89,7 @@ def main():
             if steps > 1:
                 skipped += steps - 1
                 i += steps - 1
+                last_skip = sent
             i = min(i, len(rows) - 1)
             if sent > 100:
                 rates.append(state.control_command_success_rate)
@@ -107,8 +110,9 @@ def main():
     except (pf.ControlException, pf.CommandException) as e:
         reflexes, error = 1, str(e).replace("\n", " ")[:300]
     mean = statistics.mean(rates) if rates else 0.0
+    since_skip = sent - last_skip if last_skip >= 0 else -1
     print(f"fr3-replay summary: cycles={len(rows)} sent={sent} skipped={skipped} limited={limited} "
-          f"reflexes={reflexes} "
+          f"reflexes={reflexes} since_skip={since_skip} "
           f"success_rate_mean={mean:.5f} error={error}", flush=True)
     sys.exit(1 if reflexes else 0)
 
