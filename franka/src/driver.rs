@@ -836,7 +836,6 @@ impl Core {
         self.motion_cycles = 0;
         self.late_run = 0;
         self.intake.disarm();
-        self.guard.reset();
         self.s.motions += 1;
     }
 

@@ -1716,12 +1716,9 @@ mod tests {
         // later, the led share 0.67). The stream's rates (`Motion::rates`) against the fields
         // fixed this case and broke two above, whose controller's velocity field is its
         // positions' own difference: differences against differences hold for both.
-        let (m, worst, generated, last) =
-            replay_closed_loop(include_str!("testdata/offset_after_restart.csv"), 0.0);
-        assert_eq!(generated, 0, "the generator led");
-        assert!(
-            worst < 0.02,
-            "a joint {worst} rad from the controller's position"
+        let (m, last) = replay_keeps_the_controller_leading(
+            include_str!("testdata/offset_after_restart.csv"),
+            0.0,
         );
         assert!(
             (m.q[6] - last[6]).abs() < 0.01,
@@ -1785,6 +1782,18 @@ mod tests {
         (m, worst, generated, last)
     }
 
+    /// [`replay_closed_loop`], asserting the controller led every answered cycle and no joint
+    /// went 0.02 rad from its position (from row `from_seq`); the last motion and desired row.
+    fn replay_keeps_the_controller_leading(text: &str, from_seq: f64) -> (Motion, [f64; JOINTS]) {
+        let (m, worst, generated, last) = replay_closed_loop(text, from_seq);
+        assert_eq!(generated, 0, "the generator led");
+        assert!(
+            worst < 0.02,
+            "a joint {worst} rad from the controller's position"
+        );
+        (m, last)
+    }
+
     #[test]
     fn a_motion_after_a_reset_starts_where_the_arm_rests() {
         // an offset running when a reflex ends the motion (a jump of 0.05 rad at speed): the
@@ -1825,12 +1834,9 @@ mod tests {
         // late cycle at the turn (seq 639); in the run joint 7's offset grew to 0.149 rad over
         // 480 ms and the generator led 350 ms (the led share 0.926). The window opens with
         // joint 6 0.022 rad off (the run's own offset then), measured from the turn on.
-        let (_, worst, generated, _) =
-            replay_closed_loop(include_str!("testdata/offset_after_late_turn.csv"), 639.0);
-        assert_eq!(generated, 0, "the generator led");
-        assert!(
-            worst < 0.02,
-            "a joint {worst} rad from the controller's position"
+        replay_keeps_the_controller_leading(
+            include_str!("testdata/offset_after_late_turn.csv"),
+            639.0,
         );
     }
 
@@ -1846,12 +1852,9 @@ mod tests {
         // generator leading 255 cycles (the run's led share 0.917). Replayed here: 0.074 rad
         // before, 0.043 with the jerk the stream leaves, 0.041 with the differences put
         // forward alone, 0.016 with both.
-        let (_, worst, generated, _) =
-            replay_closed_loop(include_str!("testdata/offset_after_late_decel.csv"), 0.0);
-        assert_eq!(generated, 0, "the generator led");
-        assert!(
-            worst < 0.02,
-            "a joint {worst} rad from the controller's position"
+        replay_keeps_the_controller_leading(
+            include_str!("testdata/offset_after_late_decel.csv"),
+            0.0,
         );
     }
 }
