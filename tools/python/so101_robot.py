@@ -16,7 +16,8 @@ joint commands over iceoryx2 (``ipc/python/chunkrt_ipc.py``):
   speaks, 0.5 s of settling after a ``stopped`` status or a controller's silence) and refuses the
   first command of a session, or the first after a hold, when it starts further than
   ``--bind-tolerance`` from the measured position;
-- renders the scene's ``front`` camera at the configured size and rate and publishes it as RGB8,
+- renders the scene's ``front`` camera at the configured size and rate in a process of its own
+  (the physics loop never waits for a frame) and publishes it as RGB8,
   with the goal drawn on the table as a green disc (visual only: the package's goal has none);
   to make that affordable on a CPU (the package's meshes have 730 k faces; software OpenGL drew a
   96 x 96 frame in ~0.6 s) the camera draws each link's convex hull and no shadows, reflections
@@ -148,9 +149,9 @@ class Camera:
     """The scene's `front` camera: convex hulls, no shadows / reflections / skybox, and the
     goal drawn on the table.
 
-    Rendered in the physics loop: a thread of its own made the loop's lateness worse (Python's
-    GIL: MuJoCo's renderer holds it; measured max lateness 0.56-0.63 s against 0.13 s), and the
-    loop catches the physics up after each frame (simulated time follows the clock)."""
+    Drawn in a process of its own (`CameraWorker`): in the physics loop a frame (45-150 ms of
+    software OpenGL on a 2-core Xeon) stopped the joint states and commands for as long; a
+    thread of its own was worse (Python's GIL: MuJoCo's renderer holds it)."""
 
     def __init__(self, model, name, width, height, goal=None):
         self.renderer = mujoco.Renderer(model, height=height, width=width)
@@ -162,7 +163,6 @@ class Camera:
         self.name = name
         self.width, self.height = width, height
         self.goal = None if goal is None else np.asarray(goal, dtype=np.float64)
-        self.done = None
 
     def draw(self, data):
         """The state in `data` as an RGB array (height x width x 3)."""
@@ -184,20 +184,122 @@ class Camera:
             scene.ngeom += 1
         return np.ascontiguousarray(self.renderer.render())
 
-    def capture(self, data, now_ns):
-        """Renders the state in `data` as the frame of `now_ns`."""
-        t0 = time.perf_counter()
-        rgb = self.draw(data)
-        self.done = (now_ns, rgb, (time.perf_counter() - t0) * 1e3)
-        return True
-
-    def ready(self):
-        """The frame rendered last (capture time, RGB, render ms), once."""
-        f, self.done = self.done, None
-        return f
-
     def close(self):
         self.renderer.close()
+
+
+def _camera_worker(conn, model, goal, cam_cfg, ns, node_name):
+    """The camera process: each request (capture time, qpos) is drawn and published on chunkrt's
+    camera service, then answered with the render's milliseconds."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the physics process decides when to stop
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        data = mujoco.MjData(model)
+        camera = Camera(model, cam_cfg["name"], cam_cfg["width"], cam_cfg["height"], goal)
+        node = c.node(node_name)
+        frame_bytes = camera.width * camera.height * 3
+        pub = (
+            c.camera_service(node, c.camera_name(ns, cam_cfg["name"]))
+            .publisher_builder()
+            .initial_max_slice_len(frame_bytes)
+            .max_loaned_samples(c.PUBLISHER_MAX_LOANED_SAMPLES)
+            .create()
+        )
+        conn.send(("ready",))
+        seq = 0
+        while True:
+            req = conn.recv()
+            if req is None:
+                break
+            capture_ns, qpos = req
+            data.qpos[:] = qpos
+            mujoco.mj_forward(model, data)
+            t0 = time.perf_counter()
+            rgb = camera.draw(data)
+            ms = (time.perf_counter() - t0) * 1e3
+            frame = pub.loan_slice_uninit(frame_bytes)
+            ctypes.memmove(frame.payload_ptr, rgb.ctypes.data, frame_bytes)
+            seq += 1
+            hdr = c.CameraFrameHeader(
+                seq=seq, capture_time_ns=capture_ns, publish_time_ns=c.monotonic_ns(),
+                camera_id=0, encoding=c.ENCODING_RGB8, width=camera.width,
+                height=camera.height, stride=camera.width * 3,
+            )
+            ctypes.memmove(frame.user_header_ptr, ctypes.byref(hdr), ctypes.sizeof(hdr))
+            frame.assume_init().send()
+            conn.send(("frame", ms))
+        camera.close()
+    except EOFError:  # the physics process is gone
+        pass
+    except Exception as e:  # said once to the physics process, which counts no more frames
+        try:
+            conn.send(("error", "%s: %s" % (type(e).__name__, e)))
+        except OSError:
+            pass
+
+
+class CameraWorker:
+    """The camera in a process of its own (forked before any GL context or iceoryx2 node of this
+    one): the physics loop hands it the joint positions of a capture time when it is idle and
+    never waits for a frame."""
+
+    def __init__(self, model, goal, cam_cfg, ns, node_name):
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("fork")
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(
+            target=_camera_worker, args=(child, model, goal, cam_cfg, ns, node_name), daemon=True
+        )
+        self.proc.start()
+        child.close()
+        self.ready = self.busy = False
+        self.error = None
+        self.frames = 0
+        self.render_ms = []
+
+    def poll(self):
+        """Takes the camera process's answers; True while it can draw."""
+        try:
+            while self.error is None and self.conn.poll():
+                m = self.conn.recv()
+                if m[0] == "ready":
+                    self.ready = True
+                elif m[0] == "frame":
+                    self.busy = False
+                    self.frames += 1
+                    self.render_ms.append(m[1])
+                else:
+                    self.error = m[1]
+        except (EOFError, OSError):
+            self.error = "the camera process ended"
+        if self.error is not None and self.ready:
+            self.ready = False
+            print("so101 camera: %s; no more frames" % self.error, file=sys.stderr, flush=True)
+        return self.error is None
+
+    def capture(self, data, now_ns):
+        """Asks for the frame of `now_ns` from `data`'s joint positions; False while busy."""
+        if not self.poll() or not self.ready or self.busy:
+            return False
+        try:
+            self.conn.send((now_ns, data.qpos.copy()))
+        except OSError:
+            self.error = "the camera process ended"
+            return False
+        self.busy = True
+        return True
+
+    def close(self):
+        try:
+            self.conn.send(None)
+        except OSError:
+            pass
+        self.proc.join(5.0)
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(1.0)
+        self.poll()
 
 
 def main(argv):
@@ -231,7 +333,7 @@ def main(argv):
     hi = model.actuator_ctrlrange[act, 1].copy()
     block = data.sensor("block_pos").data
     z0 = float(block[2])
-    camera = Camera(model, cam_cfg["name"], cam_cfg["width"], cam_cfg["height"], env.goal_pos)
+    camera = CameraWorker(model, env.goal_pos, cam_cfg, ns, "chunkrt-so101-camera")
     frame_period_ns = int(1e9 / cam_cfg["fps"])
     dt = model.opt.timestep
     period_ns = int(round(dt * 1e9))
@@ -241,14 +343,6 @@ def main(argv):
     state_pub = c.publisher(c.typed_service(node, c.joint_state_name(ns), c.JointState))
     cmd_sub = c.subscriber(c.typed_service(node, c.joint_command_name(ns), c.JointCommand))
     status_sub = c.subscriber(c.typed_service(node, c.status_name(ns), c.ControllerStatus))
-    frame_bytes = cam_cfg["width"] * cam_cfg["height"] * 3
-    cam_pub = (
-        c.camera_service(node, c.camera_name(ns, cam_cfg["name"]))
-        .publisher_builder()
-        .initial_max_slice_len(frame_bytes)
-        .max_loaned_samples(c.PUBLISHER_MAX_LOANED_SAMPLES)
-        .create()
-    )
 
     gate = SessionGate(SESSION_TIMEOUT_NS)
     first_publisher = None
@@ -260,7 +354,6 @@ def main(argv):
     )
     max_offset = 0.0
     track_err = []
-    render_ms = []
     max_late_ns = 0
     live = None
     last_seq = {}
@@ -275,7 +368,7 @@ def main(argv):
     end = start + int(args.duration * 1e9) if args.duration > 0 else None
     next_tick = start
     next_frame = start
-    seq = frame_seq = steps = 0
+    seq = steps = 0
     trace = None if not args.trace else dict(ctrl=[], qpos=[], block=[], wall_ns=[])
 
     last_loop_ns = start
@@ -283,7 +376,7 @@ def main(argv):
         now = c.monotonic_ns()
         if end is not None and now >= end:
             break
-        # this process's own absence (a frame's render, a stall of a loaded machine) is not the
+        # this process's own absence (a stall of a loaded machine) is not the
         # controller's silence: the time beyond a period since the last pass is credited to the
         # command timeout, which then measures only the controller's silence (the FR3 driver's
         # rule; a render of 55-90 ms on a 2-core Xeon against the 50 ms timeout disarmed the arm
@@ -356,8 +449,8 @@ def main(argv):
             target = np.clip(np.asarray(live.position[:n]), lo, hi)
             data.ctrl[act] = target
             track_err.append(float(np.max(np.abs(target[:5] - data.qpos[qadr[:5]]))))
-        # simulated time follows the clock: the steps due since the start (a frame's render
-        # costs several; at most 100 ms are caught up at once, the rest is dropped and counted)
+        # simulated time follows the clock: the steps due since the start (a stall of this
+        # process costs several; at most 100 ms are caught up at once, the rest is dropped and counted)
         due = (c.monotonic_ns() - start) // period_ns - steps
         if due > 50:
             s["steps_dropped"] += due - 50
@@ -398,28 +491,13 @@ def main(argv):
             next_frame += frame_period_ns
             if next_frame < now:
                 next_frame = now + frame_period_ns
-        done = camera.ready()
-        if done is not None:
-            capture_ns, rgb, ms = done
-            render_ms.append(ms)
-            frame = cam_pub.loan_slice_uninit(frame_bytes)
-            ctypes.memmove(frame.payload_ptr, rgb.ctypes.data, frame_bytes)
-            frame_seq += 1
-            hdr = c.CameraFrameHeader(
-                seq=frame_seq, capture_time_ns=capture_ns, publish_time_ns=c.monotonic_ns(),
-                camera_id=0, encoding=c.ENCODING_RGB8, width=camera.width,
-                height=camera.height, stride=camera.width * 3,
-            )
-            ctypes.memmove(frame.user_header_ptr, ctypes.byref(hdr), ctypes.sizeof(hdr))
-            frame.assume_init().send()
-            s["frames_published"] += 1
 
         if args.stop_on_success and success_s is not None:
             break
         next_tick += period_ns
         late = c.monotonic_ns() - next_tick
         if late > 0:
-            # behind (a frame's render, a stall): the physics caught up above; the joint
+            # behind (a stall): the physics caught up above; the joint
             # states go on from now rather than in a burst
             max_late_ns = max(max_late_ns, late)
             next_tick = c.monotonic_ns()
@@ -427,6 +505,8 @@ def main(argv):
             time.sleep(-late * 1e-9)
 
     camera.close()
+    s["frames_published"] = camera.frames
+    render_ms = camera.render_ms
     if trace is not None:
         np.savez_compressed(
             args.trace, seed=args.seed, dt=dt, steps_dropped=s["steps_dropped"],
