@@ -171,6 +171,12 @@ fn run_stack(cfg: &str, tag: &str, seconds: f64, rate_hz: f64, peer_args: &[&str
 /// What every closed loop must show: the peer's wire check passed, every state reached chunkrt,
 /// the controller ran, the arm moved, no command left the limits, nothing was refused.
 fn check_closed_loop(r: &Run, rate_hz: f64, seconds: f64) {
+    check_closed_loop_sharing(r, rate_hz, seconds, 0.1, 0.5);
+}
+
+/// [`check_closed_loop`] with the share of the peer's best-effort states the bridge may miss and
+/// the share of the states published that must have been answered with a command.
+fn check_closed_loop_sharing(r: &Run, rate_hz: f64, seconds: f64, lost: f64, answered: f64) {
     let d = r.dump();
     assert_eq!(r.peer.code, Some(0), "the peer failed\n{d}");
     assert!(
@@ -220,9 +226,9 @@ fn check_closed_loop(r: &Run, rate_hz: f64, seconds: f64) {
         states >= 0.5 * rate_hz * seconds,
         "the peer published {states} states\n{d}"
     );
-    // best effort on loopback: a loss is possible (a stalled reader), a lost tenth is not
+    // best effort on loopback: a loss is possible (a stalled reader), more than `lost` is not
     assert!(
-        received >= 0.9 * states,
+        received >= (1.0 - lost) * states,
         "bridge received {received} of {states}\n{d}"
     );
     assert_eq!(
@@ -234,7 +240,7 @@ fn check_closed_loop(r: &Run, rate_hz: f64, seconds: f64) {
     // machine), so half is the floor; reliable keep-last 10 on the way back, which a stalled
     // peer may overrun
     assert!(
-        sent >= 0.5 * published,
+        sent >= answered * published,
         "bridge sent {sent} commands for {published} states\n{d}"
     );
     assert!(
@@ -627,7 +633,13 @@ fn camera_images_become_policy_frames() {
         &["--inject", "badimage@3.0:0.5"],
     );
     let d = r.dump();
-    check_closed_loop(&r, 100.0, seconds);
+    // 27 MB/s of images share the loopback, the bridge's DDS participant and its thread with the
+    // loop: beside two busy loops on 2 cores 0-14 % of the peer's best-effort states were lost
+    // (8 runs; the kernel's UDP receive buffers dropped none) and 33-43 % of the states were
+    // answered (the bridge and the controller starved between images); beside one busy loop none
+    // were lost and 70-73 % answered. A quarter lost and a quarter answered here; the plain
+    // closed loops keep a tenth and a half
+    check_closed_loop_sharing(&r, 100.0, seconds, 0.25, 0.25);
     let sent = r.p("frames_sent");
     let bad = r.p("bad_images_sent");
     let out = r.b("frames_out");
