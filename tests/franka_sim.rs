@@ -560,11 +560,14 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
     if after.peek().is_some_and(|l| path_of(l) == "rest") {
         after.next();
     }
+    // (a cycle whose answer was late and withheld is a lost cycle, which the robot continues:
+    // neither led nor not; beside a busy loop one came 3 cycles after the recovery)
     let led_first = after
         .take_while(|l| {
             let p = path_of(l);
-            p == "pass" || p == "offset" || p == "restart"
+            p == "pass" || p == "offset" || p == "restart" || p == "late"
         })
+        .filter(|l| path_of(l) != "late")
         .count();
     println!("rejoin: the controller led the first {led_first} cycles after the recovery");
     assert!(
@@ -786,10 +789,17 @@ fn lost_answers_on_a_stricter_robot(late: &str) {
         d_out.stdout
     );
     assert_led("lost answers", &d_out);
-    let err = drv(&d_out, "controller_tracking_max");
+    // the arm against the controller's command: 99 % of the cycles within 0.05 rad; the worst
+    // cycle within 0.1 (a state the starved simulator left stale while the command moved on:
+    // 0.056 beside a busy loop with p99 0.034, the controller leading 0.99943; the generator
+    // leading after a lost cycle, the defect this test is for, took the arm 0.22 away)
+    let (p99, worst) = (
+        drv(&d_out, "controller_tracking_p99"),
+        drv(&d_out, "controller_tracking_max"),
+    );
     assert!(
-        err < 0.05,
-        "the arm {err} rad from the controller's command"
+        p99 < 0.05 && worst < 0.1,
+        "the arm {p99} rad (p99) and {worst} (worst) from the controller's command"
     );
     let _ = std::fs::remove_file(trace);
 }
