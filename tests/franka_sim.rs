@@ -286,7 +286,12 @@ fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
                  in {sim_late} cycles)"
             );
             let err = drv(&d_out, "max_tracking_error");
-            assert!(err < 0.05, "{strategy}: tracking error {err} rad");
+            let stale = stale_allowance(&s_out);
+            assert!(
+                err < 0.05 + stale,
+                "{strategy}: tracking error {err} rad (allowed 0.05 + {stale:.3} for the \
+                 simulator's longest stall)"
+            );
             // the controller's commands reached the robot: in most cycles out of rest (the same
             // floor: the project CI 0.953), and for seconds (not a cycle count of its 11 s: a
             // loaded machine spends up to 3 s of them starting, 7 875 fresh of 10 598 on this
@@ -301,6 +306,17 @@ fn chunk_switches_at_delays_0_to_8_under_every_strategy_trip_no_reflex() {
             let _ = std::fs::remove_file(trace);
         }
     }
+}
+
+/// How far the arm's *measured* position may trail a command for the simulator's own stalls: a
+/// state franka-sim left stale while the command moved on at up to 2 rad/s (0.8 of the FR3's
+/// fastest joints), for its longest gap between two physics steps (`physics_gap_max_ms`; 4-13 ms
+/// on a calm 2-core VM, 28-45 ms in a fresh-clone CI right after its build, which ran the robot
+/// a third of real time).
+fn stale_allowance(sim_out: &Finished) -> f64 {
+    let gap_ms = summary_value(&sim_out.stdout, "physics_gap_max_ms")
+        .unwrap_or_else(|| panic!("no physics_gap_max_ms from franka-sim:\n{}", sim_out.stdout));
+    2.0 * gap_ms * 1e-3
 }
 
 /// The controller's motion led the arm: at least 99.5 % of the cycles it answered, and never
@@ -359,16 +375,18 @@ fn droid_once(
     model: &str,
     host: &str,
 ) -> (Finished, Finished, Finished, Finished, Finished) {
-    droid_run(py, model, host, &["--mode", "random"], &[])
+    droid_run(py, model, host, &["--mode", "random"], &[], 13)
 }
 
-/// One run of openpi's server (the scripted DROID test double, `mode`) driving the FR3.
+/// One run of openpi's server (the scripted DROID test double, `mode`) driving the FR3, the
+/// controller for `seconds`.
 fn droid_run(
     py: &str,
     model: &str,
     host: &str,
     mode: &[&str],
     driver_extra: &[&str],
+    seconds: u32,
 ) -> (Finished, Finished, Finished, Finished, Finished) {
     let ns = unique_namespace("fr3-droid");
     let port = std::net::TcpListener::bind("127.0.0.1:0")
@@ -382,8 +400,9 @@ fn droid_run(
     server_args.extend_from_slice(mode);
     let mut server = ChildGuard::spawn("python3", &server_args).unwrap();
     let sim_g = sim(py, model, host, true);
-    let d = driver(&ns, host, 18.0, driver_extra);
+    let d = driver(&ns, host, f64::from(seconds) + 5.0, driver_extra);
     let cfg = format!("{ROOT}/config/franka_fr3.toml");
+    let (camera_s, controller_s) = ((seconds + 4).to_string(), seconds.to_string());
     let camera = ChildGuard::spawn(
         py,
         &[
@@ -395,7 +414,7 @@ fn droid_run(
             "--model",
             model,
             "--duration",
-            "17",
+            &camera_s,
         ],
     )
     .unwrap();
@@ -411,7 +430,7 @@ fn droid_run(
             "--remote",
             &format!("ws://127.0.0.1:{port}"),
             "--duration",
-            "13",
+            &controller_s,
             "--log-every",
             "0",
         ],
@@ -449,12 +468,16 @@ fn droid_chunks_that_drive_every_joint_to_minus_1_and_plus_1_stop_before_the_rob
         let trace =
             std::env::temp_dir().join(format!("fr3_droid{value}_{}.csv", std::process::id()));
         let tr = trace.display().to_string();
+        // all -1 folds the arm after some 8 s of the robot's time; a starved machine ran the
+        // robot 5.7 s of a 13 s run (a fresh-clone CI right after its build), so 24 s there
+        let seconds = if value == "-1" { 24 } else { 13 };
         let (c_out, d_out, _cam, _srv, s_out) = droid_run(
             &py,
             &model,
             &host,
             &["--mode", "constant", "--value", value],
             &["--trace", &tr],
+            seconds,
         );
         println!("{what}: the driver's trace: {tr}");
         assert_eq!(c_out.code, Some(0), "{what}: {}", c_out.stderr);
@@ -506,6 +529,7 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         // lead; by request count, 12, a loaded machine's slower requests once left it none)
         &["--mode", "constant", "--value", "-1", "--flip-after-s", "9"],
         &["--inject-reflex-at", "9", "--trace", &tr],
+        13,
     );
     println!("rejoin: the driver's trace: {tr}");
     println!("rejoin: {}", srv_out.stdout.lines().last().unwrap_or(""));
@@ -797,9 +821,11 @@ fn lost_answers_on_a_stricter_robot(late: &str) {
         drv(&d_out, "controller_tracking_p99"),
         drv(&d_out, "controller_tracking_max"),
     );
+    let stale = stale_allowance(&s_out);
     assert!(
-        p99 < 0.05 && worst < 0.1,
-        "the arm {p99} rad (p99) and {worst} (worst) from the controller's command"
+        p99 < 0.05 + stale && worst < 0.1 + stale,
+        "the arm {p99} rad (p99) and {worst} (worst) from the controller's command (allowed \
+         {stale:.3} more for the simulator's longest stall)"
     );
     let _ = std::fs::remove_file(trace);
 }
