@@ -148,7 +148,17 @@ impl Watch {
     pub fn wait_for(&mut self, timeout: Duration, what: &str, mut f: impl FnMut(&Self) -> bool) {
         let t0 = Instant::now();
         while !f(self) {
-            assert!(t0.elapsed() < timeout, "timed out waiting for {what}");
+            assert!(
+                t0.elapsed() < timeout,
+                "timed out waiting for {what} (the last status: state {} reason {} chunks {} \
+                 holds {} stale cameras {} inference {:.0} ms)",
+                self.last_status.state,
+                chunkrt_ipc::state_reason_name(self.last_status.state_reason),
+                self.last_status.chunks,
+                self.last_status.hold_entries,
+                self.last_status.stale_cameras,
+                self.last_status.last_inference_latency_ns as f64 / 1e6
+            );
             self.pump(Duration::from_millis(20));
         }
     }
