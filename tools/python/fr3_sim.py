@@ -54,7 +54,8 @@ class Counter(logging.Handler):
             self.reflexes += 1
             if len(self.reasons) < 8:
                 self.reasons.append(msg[:240])
-            print(f"franka-sim: REFLEX {msg[:240]}", flush=True)
+            # with the time (CLOCK_MONOTONIC, s): what the machine did then can be looked up
+            print(f"franka-sim: REFLEX {msg[:240]} [t={time.monotonic():.4f}]", flush=True)
         elif "not enforced" in msg:
             self.violations += 1
             if len(self.reasons) < 8:

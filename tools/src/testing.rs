@@ -145,32 +145,37 @@ pub fn summary_value(text: &str, key: &str) -> Option<f64> {
         .and_then(|v| v.parse().ok())
 }
 
-/// This machine's CPU time counters (`/proc/stat`'s first line): how much of it the hypervisor
-/// took for other guests (`steal`). On a 2-core VM of the project's CI kind the host took 1 % of
-/// the time with nothing running and 35 % while an FR3 test ran (`HostSteal::share_since`): a
-/// vCPU taken away for milliseconds, whatever the priority of the thread it was running.
+/// This machine's CPU time counters (`/proc/stat`): how much of it the hypervisor took for
+/// other guests (`steal`). On a 2-core VM of the project's CI kind the host took 1 % of the time
+/// with nothing running and 35 % while an FR3 test ran (`HostSteal::share_since`): a vCPU taken
+/// away for milliseconds, whatever the priority of the thread it was running.
 #[derive(Debug, Clone, Copy)]
 pub struct HostSteal {
     steal: u64,
     total: u64,
 }
 
+/// `/proc/stat`'s line for `cpu` (`None`: the whole machine): (steal, total) in clock ticks.
+fn stat_line(text: &str, cpu: Option<usize>) -> Option<(u64, u64)> {
+    let name = cpu.map_or("cpu".to_string(), |c| format!("cpu{c}"));
+    let line = text
+        .lines()
+        .find(|l| l.split_whitespace().next() == Some(name.as_str()))?;
+    let v: Vec<u64> = line
+        .split_whitespace()
+        .skip(1)
+        .map(|x| x.parse().ok())
+        .collect::<Option<_>>()?;
+    // user nice system idle iowait irq softirq steal (guest time is within user)
+    Some((*v.get(7)?, v.iter().take(8).sum()))
+}
+
 impl HostSteal {
     /// The counters now (`None` where `/proc/stat` cannot be read or has no steal column).
     pub fn now() -> Option<Self> {
         let text = std::fs::read_to_string("/proc/stat").ok()?;
-        let line = text.lines().find(|l| l.starts_with("cpu "))?;
-        let v: Vec<u64> = line
-            .split_whitespace()
-            .skip(1)
-            .map(|x| x.parse().ok())
-            .collect::<Option<_>>()?;
-        // user nice system idle iowait irq softirq steal (guest time is within user)
-        let steal = *v.get(7)?;
-        Some(Self {
-            steal,
-            total: v.iter().take(8).sum(),
-        })
+        let (steal, total) = stat_line(&text, None)?;
+        Some(Self { steal, total })
     }
 
     /// The share of the machine's CPU time since `self` that the hypervisor took (0..1).
@@ -178,5 +183,90 @@ impl HostSteal {
         let now = Self::now()?;
         let total = now.total.checked_sub(self.total)?;
         (total > 0).then(|| now.steal.saturating_sub(self.steal) as f64 / total as f64)
+    }
+}
+
+/// `/proc/stat`'s clock ticks per second (`sysconf(_SC_CLK_TCK)`, 100 where it cannot say).
+fn clock_ticks_per_s() -> f64 {
+    // SAFETY: sysconf has no preconditions.
+    let t = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    if t > 0 {
+        t as f64
+    } else {
+        100.0
+    }
+}
+
+/// CLOCK_MONOTONIC in seconds: the clock of Python's `time.monotonic()` and of Rust's `Instant`.
+pub fn monotonic_s() -> f64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC always exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+}
+
+/// The time the hypervisor took from one CPU, sampled every few milliseconds in a thread of its
+/// own until dropped: what a thread pinned there lost, and when (`/proc/stat` counts it in
+/// 10 ms ticks, accounted when the vCPU runs again).
+pub struct StealTimeline {
+    samples: std::sync::Arc<std::sync::Mutex<Vec<(f64, u64)>>>,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    /// The CPU sampled.
+    pub cpu: usize,
+}
+
+impl StealTimeline {
+    /// Samples `cpu`'s steal every `period` (`None` where `/proc/stat` has no such line).
+    pub fn start(cpu: usize, period: Duration) -> Option<Self> {
+        let text = std::fs::read_to_string("/proc/stat").ok()?;
+        stat_line(&text, Some(cpu))?;
+        let samples = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let (s, st) = (samples.clone(), stop.clone());
+        let thread = std::thread::spawn(move || {
+            while !st.load(Ordering::Relaxed) {
+                if let Some((steal, _)) = std::fs::read_to_string("/proc/stat")
+                    .ok()
+                    .and_then(|t| stat_line(&t, Some(cpu)))
+                {
+                    let mut v = s.lock().unwrap_or_else(|e| e.into_inner());
+                    if v.len() < 1_000_000 {
+                        v.push((monotonic_s(), steal));
+                    }
+                }
+                std::thread::sleep(period);
+            }
+        });
+        Some(Self {
+            samples,
+            stop,
+            thread: Some(thread),
+            cpu,
+        })
+    }
+
+    /// The steal counted on the CPU between the monotonic times `from` and `to` (seconds), in
+    /// milliseconds (whole clock ticks: 10 ms where `getconf CLK_TCK` is 100).
+    pub fn stolen_ms(&self, from: f64, to: f64) -> f64 {
+        let v = self.samples.lock().unwrap_or_else(|e| e.into_inner());
+        let before = v.iter().rev().find(|(t, _)| *t <= from).map(|s| s.1);
+        let after = v.iter().find(|(t, _)| *t >= to).or(v.last()).map(|s| s.1);
+        match (before.or(v.first().map(|s| s.1)), after) {
+            (Some(a), Some(b)) => b.saturating_sub(a) as f64 * 1e3 / clock_ticks_per_s(),
+            _ => 0.0,
+        }
+    }
+}
+
+impl Drop for StealTimeline {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
     }
 }
