@@ -218,17 +218,18 @@ fn remote_stack(ns: &str, url: &str, extra: &[&str]) -> (ChildGuard, ChildGuard,
     (robot, camera, ctl)
 }
 
-/// Largest change of any joint's command between two consecutive commands (rad).
-/// The largest step between two consecutive commands, as a velocity over the time between them
-/// (at least one period `dt`): a tick that ran late (a starved machine) moves the command on by
-/// the periods it missed, within the velocity limit over that time (a fresh-clone CI: 0.0586
-/// rad between two commands, 15 periods apart).
+/// The largest step between two consecutive commands, as a velocity over the time between the
+/// ticks that made them (at least one period `dt`): a command is the motion at the time its tick
+/// woke (`deadline_ns` less the controller's constant deadline), so a tick that ran late (a
+/// starved machine) moves it on by the periods it missed, within the velocity limit over that
+/// time (a fresh-clone CI: 0.0586 rad between two commands, 15 periods apart). Not over the
+/// time between their publications: a tick preempted between its wake-up and its publication
+/// publishes late a command of its wake-up time, and the next one soon after it.
 fn largest_step_velocity(cmds: &[chunkrt_ipc::JointCommand], n: usize, dt: f64) -> f64 {
     cmds.windows(2)
         .filter(|w| w[1].seq == w[0].seq + 1)
         .map(|w| {
-            let elapsed =
-                (w[1].publish_time_ns.saturating_sub(w[0].publish_time_ns) as f64 * 1e-9).max(dt);
+            let elapsed = (w[1].deadline_ns.saturating_sub(w[0].deadline_ns) as f64 * 1e-9).max(dt);
             (0..n)
                 .map(|j| (w[1].position[j] - w[0].position[j]).abs())
                 .fold(0.0, f64::max)
