@@ -197,17 +197,6 @@ fn clock_ticks_per_s() -> f64 {
     }
 }
 
-/// CLOCK_MONOTONIC in seconds: the clock of Python's `time.monotonic()` and of Rust's `Instant`.
-pub fn monotonic_s() -> f64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC always exists on Linux.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
-}
-
 /// The time the hypervisor took from one CPU, sampled every few milliseconds in a thread of its
 /// own until dropped: what a thread pinned there lost, and when (`/proc/stat` counts it in
 /// 10 ms ticks, accounted when the vCPU runs again).
@@ -235,7 +224,7 @@ impl StealTimeline {
                 {
                     let mut v = s.lock().unwrap_or_else(|e| e.into_inner());
                     if v.len() < 1_000_000 {
-                        v.push((monotonic_s(), steal));
+                        v.push((chunkrt_ipc::monotonic_ns() as f64 * 1e-9, steal));
                     }
                 }
                 std::thread::sleep(period);
