@@ -807,6 +807,34 @@ fn takeover_once(py: &str, model: &str, host: &str) -> (Finished, Finished, Fini
     (d_out, s_a, s_b, b_out)
 }
 
+/// A motion's first command that misses its cycle is dropped as the FCI drops it, and the robot
+/// holds its start for that cycle: `fr3_sim.py --self-test` runs franka-sim's own checker and
+/// absorb path on the restarted robot's ramp from the takeover test (3.3 then 4.6 rad/s^2),
+/// where franka-sim alone took the next command as the start and aborted the one after it at
+/// 7 917 rad/s^3. The same run shows that path aborting (the check can fail).
+#[test]
+fn a_dropped_first_command_holds_the_start_instead_of_rebasing_the_next() {
+    let Some((py, _model)) = franka_env("franka_sim: first command dropped") else {
+        return;
+    };
+    let out = std::process::Command::new(&py)
+        .args([&format!("{ROOT}/tools/python/fr3_sim.py"), "--self-test"])
+        .output()
+        .expect("run fr3_sim.py --self-test");
+    let text = String::from_utf8_lossy(&out.stdout);
+    println!("{text}");
+    assert!(
+        out.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        text.contains("only dropped: aborted") && text.contains("7917"),
+        "the check without the hold did not abort: {text}"
+    );
+    assert!(text.contains("first_held=1"), "{text}");
+}
+
 #[test]
 fn the_check_can_fail_an_unguarded_stream_at_twice_the_limits_is_refused() {
     let Some((py, model)) = franka_env("franka_sim: no guard") else {

@@ -26,6 +26,7 @@ often its own physics loop ran late (physics_late_*, physics_gap_max_ms: see `St
 for late commands and how many it dropped (late=, late_dropped=), and the first reasons.
 
   $CHUNKRT_FRANKA_PYTHON tools/python/fr3_sim.py --host 127.0.0.2 [--no-enforce]
+  $CHUNKRT_FRANKA_PYTHON tools/python/fr3_sim.py --self-test   (`DropLate` on franka-sim's checker)
 Needs FR3_MJCF (scripts/franka-env.sh) so that nothing is fetched from the network.
 """
 import argparse
@@ -142,19 +143,62 @@ class DropLate:
     fact (it rewinds its continuation and differences the command over the cycles since: its
     `MotionLimitChecker.rewind_extrapolation` says it is the one place it parts from the robot);
     `--late apply` keeps that (what a real FR3 never does). The cycle counts as lost either way
-    (franka-sim's accounting)."""
+    (franka-sim's accounting).
+
+    A motion's *first* command dropped: the robot holds its start (its reference stays `q_d`, at
+    `dq_d`, `ddq_d`) and differences the next command against that, one cycle. franka-sim's checker
+    extrapolates nothing before a first command is recorded, so it would take the next command as
+    the motion's start, rebase it at zero velocity and charge the one after it a jerk of
+    a / 1 ms: a conforming ramp from rest (3.3 then 4.6 rad/s^2) aborted with
+    `joint_motion_generator_acceleration_discontinuity: 7917 rad/s^3` on the restarted robot of the
+    takeover test. So the cycles up to the next command's are recorded as held at the start
+    (`first_held`), just before that command is absorbed: not at the drop itself, where the publish
+    thread may still be about to close the dropped cycle."""
 
     def __init__(self):
+        from franka_sim.control_modes import ControlMode
         from franka_sim.franka_sim_server import FrankaSimServer
+        from franka_sim.limits.checker import MotionLimitChecker
 
         self.dropped = 0
+        self.first_held = 0
         orig = FrankaSimServer._absorb_within_motion_limits
         me = self
+        pending = {}  # checker -> the motion whose first command was dropped
+
+        def hold_start(chk, command):
+            """The dropped first command's cycles, held at the start (lock held)."""
+            if not (chk._active and chk._first_command and chk._mode is ControlMode.POSITION):
+                return
+            if pending.get(id(chk)) != chk._motion_id:
+                return
+            answered = int(command.get("message_id", 0))
+            if chk._applied_id is not None and answered - 1 <= chk._applied_id:
+                return
+            pending.pop(id(chk), None)
+            chk._first_command = False
+            chk._applied_id = answered - 1
+            chk._last_command = dict(command, q_c=list(chk._joint.value))
+            me.first_held += 1
+
+        orig_start = MotionLimitChecker.start_motion
+
+        def start_motion(chk, *a, **k):
+            pending.pop(id(chk), None)  # a new motion: nothing dropped in it yet
+            return orig_start(chk, *a, **k)
+
+        MotionLimitChecker.start_motion = start_motion
 
         def absorb(server, command, *, fresh):
+            chk = server.motion_limits
             if not fresh:
                 me.dropped += 1
+                with chk._lock:
+                    if chk._active and chk._first_command:
+                        pending[id(chk)] = chk._motion_id
                 return False  # the caller then neither records nor dispatches it
+            with chk._lock:
+                hold_start(chk, command)
             return orig(server, command, fresh=fresh)
 
         FrankaSimServer._absorb_within_motion_limits = absorb
@@ -349,7 +393,66 @@ def block(spec, t0):
     cls._apply_control = apply
 
 
+def self_test():
+    """`--self-test`: `DropLate` against franka-sim's own checker and absorb path, no simulator.
+
+    A joint-position motion from rest whose first command misses its cycle, then a conforming
+    ramp (3.3, then 4.6 rad/s^2; jerk 3 333, then 1 250 rad/s^3): franka-sim's absorb with the
+    late command only dropped must abort it (the check can fail), `DropLate` must not, and neither
+    must a motion whose first command was on time. Prints one line per case; exit 1 on a wrong one.
+    """
+    import types
+
+    from franka_sim.control_modes import ControlMode
+    from franka_sim.franka_sim_server import FrankaSimServer
+    from franka_sim.limits.checker import MotionLimitChecker
+
+    start = [0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785]
+    ramp = {5: 0.0, 6: 3.333e-6, 7: 1.125e-5, 8: 2.2e-5}  # the restarted robot's trace, joint 1
+    plain = FrankaSimServer._absorb_within_motion_limits
+
+    def only_dropped(server, command, *, fresh):
+        return False if not fresh else plain(server, command, fresh=fresh)
+
+    def run(first_late, absorb):
+        aborted = []
+        server = types.SimpleNamespace(
+            motion_limits=MotionLimitChecker(enforce=True), enforce_motion_limits=True,
+            robot_state=types.SimpleNamespace(state={"q": list(start)}),
+            _extrapolated_reference=None, control_mode=ControlMode.POSITION,
+            _latch_and_abort=lambda violation, _motion: aborted.append(violation))
+        chk = server.motion_limits
+        chk.report = lambda *_a, **_k: None
+        chk.start_motion(ControlMode.POSITION, {"q": start, "q_d": start, "dq_d": [0.0] * 7,
+                                                "ddq_d": [0.0] * 7}, motion_id=7)
+        for m, d in ramp.items():
+            chk.note_published(m + 1 if first_late and m == 5 else m)
+            if m == 6 and first_late:
+                chk.extrapolate(5)  # the publish thread closes the dropped cycle: nothing to do
+            q = [x - d for x in start]
+            command = {"message_id": m, "q_c": q, "motion_generation_finished": False}
+            absorb(server, command, fresh=not (first_late and m == 5))
+        return aborted
+
+    drop = DropLate()
+    cases = [("first command late, only dropped", run(True, only_dropped), True),
+             ("first command late, DropLate", run(True, FrankaSimServer._absorb_within_motion_limits),
+              False),
+             ("first command on time, DropLate",
+              run(False, FrankaSimServer._absorb_within_motion_limits), False)]
+    wrong = 0
+    for name, aborted, expected in cases:
+        ok = bool(aborted) == expected
+        wrong += not ok
+        what = f"aborted: {aborted[0]}" if aborted else "no reflex"
+        print(f"fr3_sim self-test: {name}: {what} ({'as expected' if ok else 'WRONG'})")
+    print(f"fr3_sim self-test: first_held={drop.first_held}")
+    return 1 if wrong else 0
+
+
 def main():
+    if sys.argv[1:] == ["--self-test"]:
+        sys.exit(self_test())
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--port", type=int, default=1337)
@@ -453,6 +556,7 @@ def main():
     print(f"franka-sim summary: reflexes={counter.reflexes} violations={counter.violations} "
           f"lost_reports={counter.lost} enforced={int(enforce)} {steps.summary()} "
           f"late={args.late} late_dropped={drop.dropped if drop else 0} "
+          f"first_held={drop.first_held if drop else 0} "
           f"reference_feedforward={feedforward.used if feedforward else -1}", flush=True)
     for r in counter.reasons:
         print(f"franka-sim reason: {r}", flush=True)
