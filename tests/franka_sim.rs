@@ -13,7 +13,7 @@
 //! port is fixed) and the process tests run one at a time (two cores).
 
 use std::path::PathBuf;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use chunkrt_tools::testing::{
     summary_value, unique_namespace, ChildGuard, Finished, HostSteal, StealTimeline,
@@ -471,7 +471,9 @@ fn droid_once(
     model: &str,
     host: &str,
 ) -> (Finished, Finished, Finished, Finished, Finished) {
-    droid_run(py, model, host, &["--mode", "random"], &[], 13)
+    // until the policy has answered 10 times (a loaded machine answers slower: 7 and 8 chunks
+    // in 13 s beside a busy loop, 5 with the hypervisor taking 40 %), at most 40 s
+    droid_run_until(py, model, host, &["--mode", "random"], &[], 40, Some(10))
 }
 
 /// One run of openpi's server (the scripted DROID test double, `mode`) driving the FR3, the
@@ -483,6 +485,20 @@ fn droid_run(
     mode: &[&str],
     driver_extra: &[&str],
     seconds: u32,
+) -> (Finished, Finished, Finished, Finished, Finished) {
+    droid_run_until(py, model, host, mode, driver_extra, seconds, None)
+}
+
+/// [`droid_run`], the controller stopped (SIGTERM) once its status counts `chunks` chunks, or
+/// after `seconds`; the driver and the camera 2 s after it (the driver holds the arm meanwhile).
+fn droid_run_until(
+    py: &str,
+    model: &str,
+    host: &str,
+    mode: &[&str],
+    driver_extra: &[&str],
+    seconds: u32,
+    chunks: Option<u64>,
 ) -> (Finished, Finished, Finished, Finished, Finished) {
     let ns = unique_namespace("fr3-droid");
     let port = std::net::TcpListener::bind("127.0.0.1:0")
@@ -535,9 +551,29 @@ fn droid_run(
             "0",
         ],
     );
-    let c_out = c.finish(Duration::from_secs(40));
-    let d_out = d.finish(Duration::from_secs(20));
-    let cam_out = camera.finish(Duration::from_secs(10));
+    let Some(chunks) = chunks else {
+        let c_out = c.finish(Duration::from_secs(40));
+        let d_out = d.finish(Duration::from_secs(20));
+        let cam_out = camera.finish(Duration::from_secs(10));
+        let srv_out = server.terminate(Duration::from_secs(5));
+        let s_out = sim_g.terminate(Duration::from_secs(5));
+        return (c_out, d_out, cam_out, srv_out, s_out);
+    };
+    let mut w = Watch::new(&ns);
+    let t0 = Instant::now();
+    while w.last_status.chunks < chunks && t0.elapsed() < Duration::from_secs(seconds.into()) {
+        w.pump(Duration::from_millis(100));
+    }
+    println!(
+        "{} chunks in {:.1} s of the controller's run",
+        w.last_status.chunks,
+        t0.elapsed().as_secs_f64()
+    );
+    drop(w);
+    let c_out = c.terminate(Duration::from_secs(30));
+    std::thread::sleep(Duration::from_secs(2));
+    let d_out = d.terminate(Duration::from_secs(20));
+    let cam_out = camera.terminate(Duration::from_secs(10));
     let srv_out = server.terminate(Duration::from_secs(5));
     let s_out = sim_g.terminate(Duration::from_secs(5));
     (c_out, d_out, cam_out, srv_out, s_out)

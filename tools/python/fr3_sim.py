@@ -220,11 +220,26 @@ class Steps:
     meanwhile were stale, as a real robot's lost states are; the lateness is still counted. The
     catch-up costs the physics thread the steps it missed, which makes its next gap longer (beside
     a busy loop, gaps past 1.5 ms in 3 runs of the blocked-joint test: 78-282 with it, 16-100
-    without); at most MAX_CATCH_UP steps (20 ms) are caught up at once."""
+    without); at most MAX_CATCH_UP steps (20 ms) are caught up at once.
+
+    **One clock** (`pace`, the default; `--no-pace` for franka-sim's own): franka-sim steps its
+    physics on the wall clock and sends its states on a thread of its own that never bursts, so a
+    starved sender makes the robot's cycles slower than its physics. Each command then stays in
+    force for more than a millisecond of physics while the servo feeds the reference velocity
+    forward, and the arm runs ahead of every command it is given (seen: joint 7 0.06 rad ahead at
+    1.5 rad/s, its position moving 1.7 ms of physics per robot cycle, the robot sending 0.8 of
+    real time). A real FR3 has one clock. So the physics waits while it is PACE_AHEAD steps ahead
+    of the states sent (at most PACE_WAIT_S, then the clocks are re-aligned and the wall clock leads
+    until the robot sends again), and catches up no further than the states sent."""
 
     MAX_CATCH_UP = 20
+    #: How many steps the physics may run ahead of the states the robot has sent.
+    PACE_AHEAD = 2
+    #: The longest the physics waits for the robot's next state before it runs on (no session
+    #: sending states, or one stalled: the robot's time is then the wall clock's again).
+    PACE_WAIT_S = 0.004
 
-    def __init__(self, catch_up=True):
+    def __init__(self, catch_up=True, pace=True):
         import collections
 
         import mujoco
@@ -235,6 +250,12 @@ class Steps:
         self.late = [0, 0, 0]  # gaps past 1.5, 2.5 and 5 ms
         self.worst = 0.0
         self.caught_up = 0  # physics steps run to catch up
+        self.steps = 0  # physics steps, the loop's and the caught-up ones
+        self.server = None  # set once the server exists: its states_sent is the robot's clock
+        self.anchor = None  # (states_sent, steps) when the two clocks were last aligned
+        self.paced = 0  # physics steps that waited for the robot's next state
+        self.pace_released = 0  # waits given up (PACE_WAIT_S): the clocks re-aligned
+        self.idle_at = None  # states_sent when a wait was given up, until the robot sends again
         self.commands = collections.deque(maxlen=256)  # (arrival, joint positions)
         cls = m.MujocoFrankaSim
         orig = cls._read_and_publish_state
@@ -245,8 +266,44 @@ class Steps:
             orig_update(sim, positions)
             me.commands.append((time.perf_counter(), sim.latest_joint_positions))
 
+        def robot_lead():
+            """States sent past the physics' steps since the clocks were aligned (or None)."""
+            server = me.server
+            if server is None or not pace:
+                return None
+            sent = server.states_sent
+            if me.anchor is None or sent < me.anchor[0]:  # a new session counts from 0
+                me.anchor = (sent, me.steps)
+            return (sent - me.anchor[0]) - (me.steps - me.anchor[1])
+
+        def wait_for_robot():
+            """Hold this step while the physics is PACE_AHEAD steps ahead of the robot's clock."""
+            lead = robot_lead()
+            if lead is None:
+                return
+            if me.server.states_sent == me.idle_at:
+                # the robot sends no states (between sessions, a recovery): the wall clock leads
+                me.anchor = (me.idle_at, me.steps)
+                return
+            me.idle_at = None
+            if lead > -me.PACE_AHEAD:
+                return
+            give_up = time.perf_counter() + me.PACE_WAIT_S
+            while robot_lead() <= -me.PACE_AHEAD:
+                if time.perf_counter() > give_up:
+                    me.idle_at = me.server.states_sent
+                    me.anchor = (me.idle_at, me.steps)
+                    me.pace_released += 1
+                    return
+                time.sleep(0.0001)
+            me.paced += 1
+
         def catch_up_steps(sim, since, gap):
             missed = min(int(gap / sim.dt + 0.5) - 1, me.MAX_CATCH_UP)
+            lead = robot_lead()
+            if lead is not None:
+                # no further than the states the robot has sent meanwhile
+                missed = min(missed, lead)
             if missed <= 0 or sim.control_mode != ControlMode.POSITION:
                 return
             history = list(me.commands)
@@ -264,20 +321,25 @@ class Steps:
                 sim._apply_control()
                 mujoco.mj_step(sim.model, sim.data)
                 me.caught_up += 1
+                me.steps += 1
             # the newest command stands, or one that came while this ran
             after = me.commands[-1] if me.commands else None
             sim.latest_joint_positions = after[1] if after is not last_before else newest
 
         def publish(sim, *a, **k):
+            waited = time.perf_counter()
+            wait_for_robot()
             now = time.perf_counter()
             if me.last is not None and now - me.last < 1.0:  # (not the wait before the loop)
-                gap = now - me.last
+                # a wait for the robot's clock is not lateness of the physics
+                gap = now - me.last - (now - waited)
                 me.worst = max(me.worst, gap)
                 for i, limit in enumerate((1.5e-3, 2.5e-3, 5e-3)):
                     me.late[i] += gap > limit
                 if catch_up and gap > 1.5 * sim.dt:
                     catch_up_steps(sim, me.last, gap)
             me.last = now
+            me.steps += 1  # the step the loop takes after this read
             return orig(sim, *a, **k)
 
         cls._read_and_publish_state = publish
@@ -287,7 +349,8 @@ class Steps:
     def summary(self):
         return (f"physics_late_1_5ms={self.late[0]} physics_late_2_5ms={self.late[1]} "
                 f"physics_late_5ms={self.late[2]} physics_gap_max_ms={self.worst * 1e3:.1f} "
-                f"physics_caught_up={self.caught_up}")
+                f"physics_caught_up={self.caught_up} physics_paced={self.paced} "
+                f"physics_pace_released={self.pace_released}")
 
 
 class ReferenceFeedforward:
@@ -477,6 +540,9 @@ def main():
                     help="franka-sim's own rule for a late physics loop (the missed steps dropped, "
                          "the newest command applied at once) instead of stepping through them "
                          "with the commands of their time (see `Steps`)")
+    ap.add_argument("--no-pace", action="store_true",
+                    help="franka-sim's own physics clock (the wall clock) instead of the robot's "
+                         "(the states it has sent; see `Steps`)")
     ap.add_argument("--franka-feedforward", action="store_true",
                     help="franka-sim's own velocity feedforward for its position servo (the target "
                          "differenced over physics steps) instead of the robot's reference velocity "
@@ -524,7 +590,7 @@ def main():
         trace_events(os.environ["FR3_SIM_EVENTS"])
 
     feedforward = None if args.franka_feedforward else ReferenceFeedforward()
-    steps = Steps(catch_up=not args.no_catch_up)
+    steps = Steps(catch_up=not args.no_catch_up, pace=not args.no_pace)
     drop = DropLate() if args.late == "drop" else None
     if drop:
         print("franka-sim: commands that miss their cycle are dropped, as the FCI drops them",
@@ -534,6 +600,7 @@ def main():
     enforce = not args.no_enforce
     server = FrankaSimServer(host=args.host, port=args.port, enable_gripper=not args.no_gripper,
                              enforce_comm_constraints=enforce, enforce_motion_limits=enforce)
+    steps.server = server
     done = threading.Event()
 
     def stop(*_):
