@@ -473,25 +473,13 @@ fn droid_once(
 ) -> (Finished, Finished, Finished, Finished, Finished) {
     // until the policy has answered 10 times (a loaded machine answers slower: 7 and 8 chunks
     // in 13 s beside a busy loop, 5 with the hypervisor taking 40 %), at most 40 s
-    droid_run_until(py, model, host, &["--mode", "random"], &[], 40, Some(10))
+    droid_run(py, model, host, &["--mode", "random"], &[], 40, Some(10))
 }
 
 /// One run of openpi's server (the scripted DROID test double, `mode`) driving the FR3, the
-/// controller for `seconds`.
+/// controller for `seconds`; with `chunks`, stopped (SIGTERM) once its status counts that many
+/// chunks, and the driver and the camera 2 s after it (the driver holds the arm meanwhile).
 fn droid_run(
-    py: &str,
-    model: &str,
-    host: &str,
-    mode: &[&str],
-    driver_extra: &[&str],
-    seconds: u32,
-) -> (Finished, Finished, Finished, Finished, Finished) {
-    droid_run_until(py, model, host, mode, driver_extra, seconds, None)
-}
-
-/// [`droid_run`], the controller stopped (SIGTERM) once its status counts `chunks` chunks, or
-/// after `seconds`; the driver and the camera 2 s after it (the driver holds the arm meanwhile).
-fn droid_run_until(
     py: &str,
     model: &str,
     host: &str,
@@ -614,6 +602,7 @@ fn droid_chunks_that_drive_every_joint_to_minus_1_and_plus_1_stop_before_the_rob
             &["--mode", "constant", "--value", value],
             &["--trace", &tr],
             seconds,
+            None,
         );
         println!("{what}: the driver's trace: {tr}");
         assert_eq!(c_out.code, Some(0), "{what}: {}", c_out.stderr);
@@ -666,6 +655,7 @@ fn after_a_reflex_in_a_folded_pose_the_controller_rejoins_from_the_arm() {
         &["--mode", "constant", "--value", "-1", "--flip-after-s", "9"],
         &["--inject-reflex-at", "9", "--trace", &tr],
         13,
+        None,
     );
     println!("rejoin: the driver's trace: {tr}");
     println!("rejoin: {}", srv_out.stdout.lines().last().unwrap_or(""));
